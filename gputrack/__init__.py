@@ -1,0 +1,39 @@
+"""gputrack: GPU-portable compute primitives and trackers for visual tracking.
+
+The same ops run on NumPy (the reference), Taichi (CPU, Vulkan, CUDA) and OpenCL (PoCL or any
+vendor driver). Pick a device, keep data on it, and call ops::
+
+    import gputrack
+    dev = gputrack.device("taichi:cpu")      # or None: GPUTRACK_DEVICE, else the best one
+    x = dev.asarray(numpy_array)             # DeviceArray; x.numpy() downloads
+    print(gputrack.devices())                # every backend, available or not and why
+"""
+
+from .device import (
+    Device,
+    DeviceArray,
+    DeviceInfo,
+    DeviceUnavailable,
+    TaichiArchConflict,
+    device,
+    devices,
+    to_numpy,
+)
+from .scheduler import FrameStats, Pipeline, StageStats
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Device",
+    "DeviceArray",
+    "DeviceInfo",
+    "DeviceUnavailable",
+    "FrameStats",
+    "Pipeline",
+    "StageStats",
+    "TaichiArchConflict",
+    "device",
+    "devices",
+    "to_numpy",
+    "__version__",
+]

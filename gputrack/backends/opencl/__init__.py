@@ -1,0 +1,1 @@
+"""OpenCL backend: thin PyOpenCL launchers; kernel sources live in the top-level ``kernels/``."""

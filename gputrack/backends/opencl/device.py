@@ -1,0 +1,173 @@
+"""OpenCL devices (``opencl`` and ``opencl:<name>``): probing, selection and arrays."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from ...device import Device, DeviceInfo, _unavailable
+
+_TRIVIAL = """
+__kernel void gt_probe(__global float *y) { const int i = get_global_id(0); y[i] = 2.0f * y[i] + 1.0f; }
+"""
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
+
+
+def _enumerate():
+    """[(spec, platform, device)] for every OpenCL device, or raise with the reason there are none."""
+    import pyopencl as cl
+
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:
+        raise RuntimeError(f"no OpenCL platform ({' '.join(str(e).split())}); install an ICD such as pocl-opencl-icd") from None
+    found, seen = [], {}
+    for p in platforms:
+        try:
+            devs = p.get_devices()
+        except cl.Error:
+            continue
+        for d in devs:
+            base = _slug(d.name) or "device"
+            seen[base] = seen.get(base, -1) + 1
+            spec = f"opencl:{base}" + (f"-{seen[base]}" if seen[base] else "")
+            found.append((spec, p, d))
+    return found
+
+
+def _test(dev) -> str:
+    """Build and run a trivial kernel; '' if it works, else the reason (one line)."""
+    import pyopencl as cl
+
+    try:
+        ctx = cl.Context([dev])
+        queue = cl.CommandQueue(ctx)
+        prg = cl.Program(ctx, _TRIVIAL).build()
+        host = np.arange(16, dtype=np.float32)
+        buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
+        prg.gt_probe(queue, (16,), None, buf)
+        out = np.empty_like(host)
+        cl.enqueue_copy(queue, out, buf)
+        queue.finish()
+    except Exception as e:  # noqa: BLE001 - the reason is reported
+        msg = " ".join(str(e).split())
+        return f"cannot build or run a trivial kernel: {msg[:300]}"
+    if not np.array_equal(out, 2 * host + 1):
+        return "a trivial kernel gave wrong results"
+    return ""
+
+
+def _kind(dev) -> str:
+    import pyopencl as cl
+
+    if dev.type & cl.device_type.GPU:
+        return "gpu"
+    if dev.type & cl.device_type.CPU:
+        return "cpu"
+    return "other"
+
+
+def _info(spec, platform, dev, reason) -> DeviceInfo:
+    return DeviceInfo(
+        spec,
+        "opencl",
+        not reason,
+        name=f"{dev.name} ({platform.name})",
+        reason=reason,
+        fp64=bool(dev.double_fp_config),
+        kind=_kind(dev),
+        max_work_group_size=int(dev.max_work_group_size),
+        driver=f"{platform.version} / {dev.driver_version}",
+    )
+
+
+def probe_opencl() -> list[DeviceInfo]:
+    """``opencl`` (the best working device) plus one ``opencl:<name>`` per device found."""
+    try:
+        import pyopencl  # noqa: F401
+    except ImportError as e:
+        return [DeviceInfo("opencl", "opencl", False, reason=f"pyopencl is not installed ({e})")]
+    try:
+        found = _enumerate()
+    except RuntimeError as e:
+        return [DeviceInfo("opencl", "opencl", False, reason=str(e))]
+    infos = [_info(spec, p, d, _test(d)) for spec, p, d in found]
+    working = sorted((i for i in infos if i.available), key=lambda i: i.kind != "gpu")
+    if working:
+        best = working[0]
+        default = DeviceInfo(**{**best.as_dict(), "spec": "opencl"})
+    elif infos:
+        default = DeviceInfo("opencl", "opencl", False, reason=f"no working OpenCL device ({infos[0].reason})")
+    else:
+        default = DeviceInfo("opencl", "opencl", False, reason="no OpenCL device found; install an ICD such as pocl-opencl-icd")
+    return [default, *infos]
+
+
+def open_opencl(selector: str) -> "OpenCLDevice":
+    """The OpenCL device matching ``selector`` ('' = the best working device)."""
+    spec = f"opencl:{selector}" if selector else "opencl"
+    try:
+        import pyopencl  # noqa: F401
+    except ImportError as e:
+        raise _unavailable(spec, f"pyopencl is not installed ({e})") from None
+    try:
+        found = _enumerate()
+    except RuntimeError as e:
+        raise _unavailable(spec, str(e)) from None
+    key = selector.lower()
+    if key:
+        matches = [
+            (s, p, d) for s, p, d in found if key == s[7:] or key in s[7:] or key in d.name.lower() or key in p.name.lower()
+        ]
+        if not matches:
+            raise _unavailable(spec, f"no OpenCL device matches {selector!r} (found: {', '.join(s for s, _, _ in found) or 'none'})")
+    else:
+        matches = sorted(found, key=lambda f: _kind(f[2]) != "gpu")
+    reasons = []
+    for s, p, d in matches:
+        reason = _test(d)
+        if not reason:
+            info = _info(s if key else "opencl", p, d, "")
+            return OpenCLDevice(info, d)
+        reasons.append(f"{s}: {reason}")
+    raise _unavailable(spec, "; ".join(reasons) or "no OpenCL device found")
+
+
+class OpenCLDevice(Device):
+    """Arrays are ``pyopencl.array.Array`` objects on one context and in-order queue."""
+
+    backend = "opencl"
+
+    def __init__(self, info: DeviceInfo, cl_device):
+        import pyopencl as cl
+
+        super().__init__(info)
+        self.cl_device = cl_device
+        self.context = cl.Context([cl_device])
+        self.queue = cl.CommandQueue(self.context)
+
+    def _upload(self, host: np.ndarray):
+        import pyopencl.array as cla
+
+        return cla.to_device(self.queue, host)
+
+    def _empty(self, shape, dtype):
+        import pyopencl.array as cla
+
+        return cla.empty(self.queue, shape, dtype)
+
+    def _download(self, buffer, shape, dtype) -> np.ndarray:
+        return buffer.get(queue=self.queue).reshape(shape)
+
+    def synchronize(self) -> None:
+        self.queue.finish()
+
+    def program(self, source_name: str, defines: dict | None = None):
+        """The built program for ``kernels/<source_name>`` on this device (cached)."""
+        from .program import build
+
+        return build(self.context, source_name, defines)

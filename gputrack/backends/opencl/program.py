@@ -1,0 +1,45 @@
+"""Locate the OpenCL C sources in ``kernels/`` and build them once per device and options."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+_HERE = Path(__file__).resolve()
+
+
+@functools.cache
+def kernel_dir() -> Path:
+    """The folder holding the ``.cl`` sources: inside the installed package, or the repo's ``kernels/``."""
+    for candidate in (_HERE.parents[2] / "kernels", _HERE.parents[3] / "kernels"):
+        if candidate.is_dir() and any(candidate.glob("*.cl")):
+            return candidate
+    raise FileNotFoundError(
+        f"expected OpenCL kernel sources in {_HERE.parents[2] / 'kernels'} (installed) or "
+        f"{_HERE.parents[3] / 'kernels'} (source tree), found none"
+    )
+
+
+def kernel_files() -> list[Path]:
+    """Every ``.cl`` file shipped with gputrack."""
+    return sorted(kernel_dir().glob("*.cl"))
+
+
+def build(context, source_name: str, defines: dict | None = None):
+    """Build ``kernels/<source_name>`` for ``context`` (cached); ``defines`` become -D options."""
+    items = tuple(sorted((defines or {}).items()))
+    return _build(context, source_name, items)
+
+
+@functools.lru_cache(maxsize=None)
+def _build(context, source_name: str, defines: tuple):
+    import pyopencl as cl
+
+    path = kernel_dir() / source_name
+    if not path.is_file():
+        raise FileNotFoundError(f"expected an OpenCL source {path}, found none")
+    options = [f"-I{kernel_dir()}"] + [f"-D{k}={v}" for k, v in defines]
+    try:
+        return cl.Program(context, path.read_text()).build(options=options)
+    except cl.RuntimeError as e:
+        raise RuntimeError(f"building {source_name} failed on {context.devices[0].name}: {e}") from None

@@ -1,0 +1,48 @@
+"""The ``numpy`` device: arrays are plain NumPy arrays on the host."""
+
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+
+from ...device import Device, DeviceInfo
+
+
+def cpu_name() -> str:
+    """The CPU model name (from /proc/cpuinfo where there is one)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def probe_numpy() -> DeviceInfo:
+    return DeviceInfo("numpy", "numpy", True, name=f"NumPy {np.__version__} on {cpu_name()}", fp64=True, kind="cpu")
+
+
+class NumpyDevice(Device):
+    """Runs the reference implementation; ``asarray`` returns a contiguous NumPy array."""
+
+    backend = "numpy"
+
+    def __init__(self):
+        super().__init__(probe_numpy())
+
+    def asarray(self, array, dtype=None):
+        from ...device import DeviceArray
+
+        if isinstance(array, DeviceArray):
+            raise ValueError(f"expected a NumPy array for numpy, got an array on {array.device.spec}")
+        host = np.asarray(array, dtype=dtype)
+        self.check_dtype(host.dtype)
+        if host.ndim == 0:
+            raise ValueError(f"expected an array with at least one dimension, got a scalar of shape {host.shape}")
+        return np.ascontiguousarray(host)
+
+    def empty(self, shape, dtype=np.float32):
+        return np.empty(shape, dtype=self.check_dtype(dtype))

@@ -1,0 +1,129 @@
+"""Taichi devices (taichi:cpu, taichi:vulkan, taichi:cuda): probing and arrays."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from ...device import Device, DeviceInfo, DeviceUnavailable, TaichiArchConflict, _unavailable
+from ..reference.device import cpu_name
+
+PROBE_TIMEOUT_S = 120
+
+
+def _hardware(arch: str) -> tuple[str, str]:
+    """(name, kind) of what runs ``arch``."""
+    if arch == "cpu":
+        return cpu_name(), "cpu"
+    if arch == "vulkan":
+        from .vulkan_info import vulkan_devices
+
+        found = vulkan_devices()
+        return (found[0]["name"], found[0]["kind"]) if found else ("no Vulkan device", "other")
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True, timeout=20
+        )
+        return out.stdout.strip().splitlines()[0], "gpu"
+    except Exception:  # noqa: BLE001 - the name is informative only
+        return "NVIDIA GPU", "gpu"
+
+
+def _info(arch: str, found: dict) -> DeviceInfo:
+    spec = f"taichi:{arch}"
+    if not found.get("available"):
+        return DeviceInfo(spec, "taichi", False, reason=found.get("reason", "unknown"), kind="other")
+    name, kind = _hardware(arch)
+    return DeviceInfo(spec, "taichi", True, name=name, fp64=bool(found.get("fp64")), kind=kind)
+
+
+def probe_taichi() -> list[DeviceInfo]:
+    """Probe taichi:cpu, taichi:vulkan and taichi:cuda in a subprocess (Taichi is per-process)."""
+    if importlib.util.find_spec("taichi") is None:
+        return [DeviceInfo(f"taichi:{a}", "taichi", False, reason="taichi is not installed") for a in ("cpu", "vulkan", "cuda")]
+    cmd = [sys.executable, "-m", "gputrack.backends.taichi.probe"]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S)
+        line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("GPUTRACK_PROBE "))
+        found = json.loads(line.split(" ", 1)[1])
+    except Exception as e:  # noqa: BLE001 - reported as the reason
+        tail = ""
+        if "proc" in locals():
+            tail = (proc.stderr.strip().splitlines() or [""])[-1]
+        reason = f"the Taichi probe failed: {type(e).__name__} {tail}".strip()
+        return [DeviceInfo(f"taichi:{a}", "taichi", False, reason=reason) for a in ("cpu", "vulkan", "cuda")]
+    return [_info(a, found.get(a, {"reason": "not probed"})) for a in ("cpu", "vulkan", "cuda")]
+
+
+def open_taichi(arch: str) -> "TaichiDevice":
+    """Start Taichi on ``arch`` in this process and return its device."""
+    try:
+        from . import runtime
+    except ImportError as e:
+        raise _unavailable(f"taichi:{arch}", f"taichi is not installed ({e})") from None
+    from .probe import _axpy32, _axpy64, _check
+
+    try:
+        runtime.start(arch)
+    except TaichiArchConflict:
+        raise
+    except Exception as e:  # noqa: BLE001 - becomes the reason
+        raise _unavailable(f"taichi:{arch}", " ".join(str(e).split())[:300]) from None
+    try:
+        if not _check(_axpy32, np.float32):
+            raise DeviceUnavailable(f"taichi:{arch}: a float32 test kernel gave wrong results")
+        try:
+            fp64 = _check(_axpy64, np.float64)
+        except Exception:  # noqa: BLE001 - no fp64
+            fp64 = False
+    except BaseException:
+        runtime.stop()
+        raise
+    name, kind = _hardware(arch)
+    return TaichiDevice(arch, DeviceInfo(f"taichi:{arch}", "taichi", True, name=name, fp64=fp64, kind=kind))
+
+
+class TaichiDevice(Device):
+    """Arrays are ``taichi.Ndarray`` objects; kernels live in this package's modules."""
+
+    backend = "taichi"
+
+    def __init__(self, arch: str, info: DeviceInfo):
+        super().__init__(info)
+        self.arch = arch
+
+    def _upload(self, host: np.ndarray):
+        from .runtime import DTYPES, ti
+
+        if host.size == 0:
+            return None  # Taichi cannot allocate empty ndarrays; ops reject empty inputs anyway
+        arr = ti.ndarray(DTYPES[host.dtype.name], host.shape)
+        arr.from_numpy(host)
+        return arr
+
+    def _empty(self, shape, dtype):
+        from .runtime import DTYPES, ti
+
+        if int(np.prod(shape)) == 0:
+            return None
+        return ti.ndarray(DTYPES[np.dtype(dtype).name], shape)
+
+    def _download(self, buffer, shape, dtype) -> np.ndarray:
+        if buffer is None:
+            return np.empty(shape, dtype)
+        return np.ascontiguousarray(buffer.to_numpy(), dtype=dtype).reshape(shape)
+
+    def synchronize(self) -> None:
+        from .runtime import ti
+
+        ti.sync()
+
+    def close(self) -> None:
+        from . import runtime
+
+        super().close()
+        runtime.stop()

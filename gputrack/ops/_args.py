@@ -1,0 +1,101 @@
+"""Validation of op arguments at the public boundary, shared by every op.
+
+``arg`` checks one array argument (type, device, dtype, shape against named dimensions, finite
+values) and returns it on the op's device: a NumPy array for the ``numpy`` device, else a
+DeviceArray (uploading a NumPy input, which the device counts as a transfer). Messages read
+"<name>: expected X, got Y". Finiteness is checked for host (NumPy) inputs; arrays already on a
+device are trusted, since checking them would cost a download.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..device import Device, DeviceArray
+
+FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+def _fmt_shape(spec, dims) -> str:
+    parts = []
+    for s in spec:
+        if isinstance(s, str) and s in dims:
+            parts.append(f"{s}={dims[s]}")
+        else:
+            parts.append(str(s))
+    return "(" + ", ".join(parts) + ")"
+
+
+def check_device(device) -> Device:
+    if not isinstance(device, Device):
+        raise TypeError(f"expected a gputrack.Device (from gputrack.device(spec)), got {type(device).__name__}")
+    device._check_open()
+    return device
+
+
+def match_shape(name: str, shape: tuple, spec: tuple, dims: dict) -> None:
+    """Check ``shape`` against ``spec`` (ints, dimension names or None for any), binding names in ``dims``."""
+    if len(shape) != len(spec):
+        raise ValueError(f"{name}: expected shape {_fmt_shape(spec, dims)}, got {tuple(shape)}")
+    for got, want in zip(shape, spec):
+        if want is None:
+            continue
+        if isinstance(want, str):
+            if want not in dims:
+                dims[want] = got
+                continue
+            want_n = dims[want]
+        else:
+            want_n = want
+        if got != want_n:
+            raise ValueError(f"{name}: expected shape {_fmt_shape(spec, dims)}, got {tuple(shape)}")
+
+
+def arg(
+    device: Device,
+    x,
+    name: str,
+    shape: tuple | None = None,
+    dims: dict | None = None,
+    *,
+    dtype=np.float32,
+    finite: bool = True,
+    cast: bool = False,
+):
+    """Validate array argument ``x`` of an op and return it on ``device``.
+
+    ``dtype`` is one dtype or a tuple of accepted dtypes; a NumPy input of another dtype raises
+    TypeError unless ``cast`` (then it is converted to the first accepted dtype). Python lists
+    and scalars are converted to the first accepted dtype.
+    """
+    accepted = tuple(np.dtype(d) for d in (dtype if isinstance(dtype, (tuple, list)) else (dtype,)))
+    names = " or ".join(d.name for d in accepted)
+    if isinstance(x, DeviceArray):
+        if x.device is not device:
+            raise ValueError(f"{name}: expected an array on {device.spec} or a NumPy array, got an array on {x.device.spec}")
+        if x.dtype not in accepted:
+            raise TypeError(f"{name}: expected dtype {names}, got {x.dtype.name}")
+        if shape is not None:
+            match_shape(name, x.shape, shape, dims if dims is not None else {})
+        return x
+    if not isinstance(x, np.ndarray):
+        if x is None:
+            raise TypeError(f"{name}: expected an array, got None")
+        x = np.asarray(x)
+        if x.dtype.kind in "biuf":
+            x = x.astype(accepted[0])
+    if x.dtype not in accepted:
+        if cast and x.dtype.kind in "biuf":
+            x = x.astype(accepted[0])
+        else:
+            raise TypeError(f"{name}: expected dtype {names}, got {x.dtype.name}")
+    if shape is not None:
+        match_shape(name, x.shape, shape, dims if dims is not None else {})
+    if finite and x.dtype.kind == "f" and not np.isfinite(x).all():
+        bad = np.argwhere(~np.isfinite(x))[0]
+        raise ValueError(f"{name}: expected finite values, got {x[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+    if device.backend == "numpy":
+        return np.ascontiguousarray(x)
+    return device.asarray(x)
+
+

@@ -1,0 +1,152 @@
+"""Host scheduler: device-resident pipelines with per-stage timing and transfer counts.
+
+A :class:`Pipeline` runs named stages on one device. Buffers stay on the device between
+stages (keep them in ``pipeline.buffers`` or in your own variables); each stage records its wall
+time, measured after a device synchronisation, and the bytes that crossed the bus
+(host->device and device->host) while it ran, as counted by the device. A frame groups the
+stages of one input frame so that a caller can check what a steady-state frame moved::
+
+    pipe = gputrack.Pipeline(dev)
+    with pipe.frame() as frame:
+        with pipe.stage("upload"):
+            gray = dev.asarray(gray_host)
+        with pipe.stage("score"):
+            cost = gputrack.ops.rgbd_cost(dev, ...)
+        with pipe.stage("download"):
+            best = cost.total.numpy()
+    print(pipe.table())
+    assert frame.h2d == gray_host.nbytes
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import statistics
+import time
+
+from .device import Device, Transfers
+
+__all__ = ["Pipeline", "StageStats", "FrameStats"]
+
+
+@dataclasses.dataclass
+class StageStats:
+    """Accumulated figures for one named stage."""
+
+    name: str
+    times_s: list = dataclasses.field(default_factory=list)
+    h2d: int = 0
+    d2h: int = 0
+
+    @property
+    def calls(self) -> int:
+        return len(self.times_s)
+
+    @property
+    def total_s(self) -> float:
+        return float(sum(self.times_s))
+
+    @property
+    def median_s(self) -> float:
+        return float(statistics.median(self.times_s)) if self.times_s else 0.0
+
+    def as_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "calls": self.calls,
+            "median_ms": self.median_s * 1e3,
+            "total_ms": self.total_s * 1e3,
+            "h2d_bytes": self.h2d,
+            "d2h_bytes": self.d2h,
+        }
+
+
+@dataclasses.dataclass
+class FrameStats:
+    """What one frame (one ``with pipeline.frame()`` block) cost: time and bytes per stage."""
+
+    stages: dict = dataclasses.field(default_factory=dict)  # name -> (seconds, h2d, d2h)
+    wall_s: float = 0.0
+
+    @property
+    def h2d(self) -> int:
+        return sum(s[1] for s in self.stages.values())
+
+    @property
+    def d2h(self) -> int:
+        return sum(s[2] for s in self.stages.values())
+
+
+class Pipeline:
+    """Named stages on one device, timed after device sync, with bytes moved per stage."""
+
+    def __init__(self, device: Device):
+        if not isinstance(device, Device):
+            raise TypeError(f"expected a gputrack.Device, got {type(device).__name__}")
+        self.device = device
+        self.buffers: dict = {}
+        self.stats: dict[str, StageStats] = {}
+        self._frame: FrameStats | None = None
+        self.frames: list[FrameStats] = []
+
+    @contextlib.contextmanager
+    def stage(self, name: str):
+        """Time the block as stage ``name``: sync, run, sync; record time and transfers."""
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"expected a non-empty stage name, got {name!r}")
+        dev = self.device
+        dev.synchronize()
+        before: Transfers = dev.transfers.copy()
+        t0 = time.perf_counter()
+        yield
+        dev.synchronize()
+        dt = time.perf_counter() - t0
+        moved = dev.transfers - before
+        st = self.stats.setdefault(name, StageStats(name))
+        st.times_s.append(dt)
+        st.h2d += moved.h2d
+        st.d2h += moved.d2h
+        if self._frame is not None:
+            prev = self._frame.stages.get(name, (0.0, 0, 0))
+            self._frame.stages[name] = (prev[0] + dt, prev[1] + moved.h2d, prev[2] + moved.d2h)
+
+    @contextlib.contextmanager
+    def frame(self):
+        """Group the stages run inside the block into one :class:`FrameStats` (yielded)."""
+        if self._frame is not None:
+            raise RuntimeError("expected frames one after another, got a frame inside a frame")
+        fs = FrameStats()
+        self._frame = fs
+        t0 = time.perf_counter()
+        try:
+            yield fs
+        finally:
+            self.device.synchronize()
+            fs.wall_s = time.perf_counter() - t0
+            self._frame = None
+            self.frames.append(fs)
+
+    def reset(self) -> None:
+        """Forget the recorded figures (e.g. after warm-up frames)."""
+        self.stats.clear()
+        self.frames.clear()
+
+    def report(self) -> list[dict]:
+        """One dict per stage, in first-run order: calls, median/total ms, bytes each way."""
+        return [s.as_dict() for s in self.stats.values()]
+
+    def table(self, title: str | None = None) -> str:
+        """The figures as a text table (ms per call, like the papers' Tables 1-2)."""
+        rows = self.report()
+        head = f"{'stage':<24}{'calls':>7}{'median ms':>12}{'total ms':>12}{'H->D bytes':>14}{'D->H bytes':>14}"
+        lines = [title or f"stages on {self.device.spec} ({self.device.name})", head, "-" * len(head)]
+        for r in rows:
+            lines.append(
+                f"{r['name']:<24}{r['calls']:>7}{r['median_ms']:>12.3f}{r['total_ms']:>12.3f}"
+                f"{r['h2d_bytes']:>14}{r['d2h_bytes']:>14}"
+            )
+        if self.frames:
+            med = statistics.median(f.wall_s for f in self.frames) * 1e3
+            lines.append(f"{'frame (median)':<24}{len(self.frames):>7}{med:>12.3f}")
+        return "\n".join(lines)

@@ -1,0 +1,54 @@
+"""Test configuration: one ``device`` fixture parametrised over every backend.
+
+Unavailable backends are skipped with their reason, unless listed in ``GPUTRACK_REQUIRE``
+(comma-separated specs), which turns them into errors. The fixture is session-scoped so that
+pytest groups the tests by device; a Taichi device is closed when its group ends, which lets
+the next Taichi arch start in the same process.
+"""
+
+import os
+
+import pytest
+
+import gputrack
+
+ALL_SPECS = ["numpy", "opencl", "taichi:cpu", "taichi:vulkan", "taichi:cuda"]
+
+
+def _required() -> set[str]:
+    return {s.strip() for s in os.environ.get("GPUTRACK_REQUIRE", "").split(",") if s.strip()}
+
+
+def _infos() -> dict:
+    return {d.spec: d for d in gputrack.devices()}
+
+
+def pytest_report_header(config):
+    lines = ["gputrack devices:"]
+    for d in gputrack.devices():
+        state = f"available  {d.name}" + ("  fp64" if d.fp64 else "") if d.available else f"UNAVAILABLE  {d.reason}"
+        lines.append(f"  {d.spec:<16} {state}")
+    req = _required()
+    if req:
+        lines.append(f"  required (GPUTRACK_REQUIRE): {', '.join(sorted(req))}")
+    return lines
+
+
+def pytest_configure(config):
+    unknown = _required() - set(_infos())
+    if unknown:
+        raise pytest.UsageError(f"GPUTRACK_REQUIRE names unknown specs {sorted(unknown)}; known: {sorted(_infos())}")
+
+
+@pytest.fixture(scope="session", params=ALL_SPECS)
+def device(request):
+    spec = request.param
+    info = _infos()[spec]
+    if not info.available:
+        if spec in _required():
+            pytest.fail(f"{spec} is required by GPUTRACK_REQUIRE but not available: {info.reason}", pytrace=False)
+        pytest.skip(f"{spec} not available: {info.reason}")
+    dev = gputrack.device(spec)
+    yield dev
+    if dev.backend == "taichi":
+        dev.close()  # lets the next Taichi arch start in this process
