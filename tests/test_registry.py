@@ -1,0 +1,155 @@
+"""Device discovery and selection, the CLI, the doctor and the wheel."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import zipfile
+from pathlib import Path
+
+import pytest
+
+import gputrack
+
+ROOT = Path(__file__).resolve().parents[1]
+SPECS = {"numpy", "taichi:cpu", "taichi:vulkan", "taichi:cuda", "opencl"}
+
+
+def run_py(code: str, env=None, timeout=300):
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def test_devices_lists_every_backend_with_reason():
+    infos = gputrack.devices()
+    specs = [d.spec for d in infos]
+    assert SPECS <= set(specs)
+    assert len(specs) == len(set(specs))
+    for d in infos:
+        if d.available:
+            assert d.name, d
+        else:
+            assert d.reason and "\n" not in d.reason, d
+    opencl_named = [d for d in infos if d.spec.startswith("opencl:")]
+    assert all(d.backend == "opencl" for d in opencl_named)
+
+
+def test_unknown_spec_lists_valid_forms():
+    with pytest.raises(ValueError, match=r"unknown device spec 'cuda'.*taichi:cpu.*opencl:<"):
+        gputrack.device("cuda")
+    with pytest.raises(ValueError, match="unknown device spec"):
+        gputrack.device("taichi:metal")
+    with pytest.raises(TypeError, match="expected a device spec string"):
+        gputrack.device(3)
+
+
+def test_unavailable_spec_names_reason_and_available_specs():
+    with pytest.raises(gputrack.DeviceUnavailable, match=r"no OpenCL device matches 'no-such-device'.*Available: numpy"):
+        gputrack.device("opencl:no-such-device")
+
+
+def test_unavailable_cuda_reason_when_there_is_no_gpu():
+    cuda = next(d for d in gputrack.devices() if d.spec == "taichi:cuda")
+    if cuda.available:
+        pytest.skip("this machine has CUDA")
+    r = run_py("""
+        import gputrack
+        try:
+            gputrack.device("taichi:cuda")
+        except gputrack.DeviceUnavailable as e:
+            print("UNAVAILABLE", e)
+    """)
+    assert "UNAVAILABLE taichi:cuda is not available" in r.stdout, r.stderr
+    assert "Available: numpy" in r.stdout
+
+
+def test_default_device_honours_env_and_prefers_gpu():
+    r = run_py("import gputrack; print('SPEC', gputrack.device().spec)", env={"GPUTRACK_DEVICE": "numpy"})
+    assert "SPEC numpy" in r.stdout, r.stderr
+    r = run_py("import gputrack; print('SPEC', gputrack.device().spec)", env={"GPUTRACK_DEVICE": ""})
+    infos = {d.spec: d for d in gputrack.devices()}
+    if infos["taichi:cuda"].available:
+        expected = "taichi:cuda"
+    elif infos["taichi:vulkan"].available and infos["taichi:vulkan"].kind == "gpu":
+        expected = "taichi:vulkan"
+    elif infos["opencl"].available and infos["opencl"].kind == "gpu":
+        expected = "opencl"
+    else:
+        expected = "taichi:cpu"
+    assert f"SPEC {expected}" in r.stdout, r.stderr
+
+
+def test_second_taichi_arch_is_refused_not_reset():
+    r = run_py("""
+        import numpy as np, gputrack
+        cpu = gputrack.device("taichi:cpu")
+        a = cpu.asarray(np.arange(5, dtype=np.float32))
+        try:
+            gputrack.device("taichi:vulkan")
+        except gputrack.TaichiArchConflict as e:
+            print("CONFLICT", e)
+        print("INTACT", a.numpy().tolist())
+        cpu.close()
+        try:
+            a.numpy()
+        except gputrack.DeviceUnavailable as e:
+            print("CLOSED", e)
+    """)
+    assert "CONFLICT Taichi already runs on taichi:cpu" in r.stdout, r.stderr
+    assert "INTACT [0.0, 1.0, 2.0, 3.0, 4.0]" in r.stdout
+    assert "CLOSED taichi:cpu was closed" in r.stdout
+
+
+def test_cli_devices_text_and_json():
+    text = subprocess.run([sys.executable, "-m", "gputrack.cli", "devices"], capture_output=True, text=True, cwd=ROOT)
+    assert text.returncode == 0, text.stderr
+    for spec in SPECS:
+        assert spec in text.stdout
+    js = subprocess.run([sys.executable, "-m", "gputrack.cli", "devices", "--json"], capture_output=True, text=True, cwd=ROOT)
+    rows = json.loads(js.stdout)
+    assert SPECS <= {r["spec"] for r in rows}
+    for r in rows:
+        assert {"spec", "available", "reason", "fp64", "name"} <= set(r)
+        assert r["available"] or r["reason"]
+
+
+def test_doctor_passes_on_available_devices_and_fails_on_missing_requirement(tmp_path):
+    ok = subprocess.run([sys.executable, "host/doctor.py", "--require", "numpy", "--json", str(tmp_path / "r.json")],
+                        capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert ok.returncode == 0, ok.stdout + ok.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["problems"] == []
+    assert all(r["ok"] for rows in report["selftests"].values() for r in rows)
+    assert "numpy" in report["selftests"]
+    bad = subprocess.run([sys.executable, "host/doctor.py", "--require", "opencl:no-such-device"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert bad.returncode == 1
+    assert "opencl:no-such-device: unknown spec" in bad.stdout
+
+
+def test_wheel_ships_kernels_and_nothing_stray(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(ROOT)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    (wheel,) = tmp_path.glob("gputrack-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    kernels = sorted(p.name for p in (ROOT / "kernels").iterdir() if p.suffix in (".cl", ".clh"))
+    assert kernels and sorted(n.split("/")[-1] for n in names if n.startswith("gputrack/kernels/")) == kernels
+    for n in names:
+        assert n.startswith(("gputrack/", "gputrack-0.1.0.dist-info/")), n
+        assert "__pycache__" not in n and not n.endswith(".pyc"), n
+    assert "gputrack/__init__.py" in names and "gputrack/cli.py" in names
+    entry = zipfile.ZipFile(wheel).read("gputrack-0.1.0.dist-info/entry_points.txt").decode()
+    assert "gputrack = gputrack.cli:main" in entry
+
+
+def test_ci_runs_the_readme_test_command():
+    readme = (ROOT / "README.md").read_text()
+    ci = (ROOT / ".ci" / "run").read_text()
+    blocks = [b.split("```", 1)[0].strip() for b in readme.split("```sh")[1:]]
+    test_cmd = next(b for b in blocks if "pytest" in b)
+    assert test_cmd in ci
+    assert "GPUTRACK_REQUIRE=taichi:cpu,taichi:vulkan,opencl" in ci
