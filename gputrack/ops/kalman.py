@@ -1,0 +1,321 @@
+"""Batched Kalman filters: every track of a tracker predicted, updated and gated in one call.
+
+Papers 001 (groups, stereo EKF, eq. 1-8) and 002 (pedestrians, occlusion-adaptive gain, eq. 4-6)
+run one Kalman filter per tracked object; these ops update all T tracks at once. Shapes (T tracks,
+state size n, observation size m, D detections)::
+
+    x (T,n)   P (T,n,n)   F, Q (n,n) shared or (T,n,n) per track
+    z (T,m)   H (m,n) or (T,m,n)   R (m,m) or (T,m,m)   mask (T,) bool   gain_scale (T,)
+
+Everything is float32 by default; float64 works where the device has it (the dtype of ``x``
+decides; NumPy inputs of another float dtype are converted to it, device arrays must match).
+
+Results: :func:`kf_predict` returns ``(x, P)``; :func:`kf_update` and :func:`ekf_update_stereo`
+return a :class:`KalmanState` ``(x, P, status)`` with a per-track ``status`` (uint8,
+:class:`KalmanStatus`): 0 UPDATED, 1 SKIPPED (mask False or a non-finite observation), 2 NOT_PD
+(the innovation covariance S is not positive definite), 3 BAD_DEPTH (stereo: predicted z <= 0).
+Every track whose status is not UPDATED is returned exactly as it came in (after the prediction,
+when ``predict=`` is given). Arrays are DeviceArrays on a device, NumPy arrays on ``numpy``.
+
+Numerics (identical on every backend):
+
+- P and R are symmetrised, (A + A^T)/2, before use; returned covariances are exactly symmetric.
+- S = H P H^T + R is factorised by Cholesky (S = L L^T); the gain comes from two triangular
+  solves, K^T = S^-1 (H P), never from an inverse. A pivot d_j <= 4 eps S_jj (eps of the dtype)
+  marks S as not positive definite (status NOT_PD, track unchanged).
+- Covariance update in Joseph form, P+ = (I - K H) P (I - K H)^T + K R K^T: it stays symmetric
+  positive semi-definite and is the exact covariance for any gain, so with ``gain_scale`` s
+  (paper 002: trust strongly occluded, shrunken segments less) the gain is s K and the same
+  formula gives the consistent covariance: s = 0 returns the prediction unchanged, s = 1 the
+  plain update.
+- Observations: NaN (or any non-finite value) in a row of z means "missing": that track is
+  SKIPPED. NumPy observations with +-inf are rejected (ValueError); device arrays are not
+  inspected on the host.
+- ``predict=(F, Q)`` on an update runs the prediction first in the same launch (one kernel
+  instead of two; equal to kf_predict followed by the update). Masked tracks are then predicted
+  only, as paper 001 does for a tracker with fewer than 2 observations.
+- Empty batches (T = 0, D = 0) return empty results of the right shapes.
+
+Sizes: 1 <= n <= MAX_N and 1 <= m <= MAX_M (the device kernels unroll the small matrix algebra
+for the n and m of each call and compile once per combination).
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple
+
+import numpy as np
+
+from . import backend_module
+from ._args import FLOAT, arg, check_device, match_shape
+
+__all__ = [
+    "KalmanState",
+    "KalmanStatus",
+    "constant_velocity",
+    "ekf_update_stereo",
+    "kf_predict",
+    "kf_update",
+    "mahalanobis",
+]
+
+MAX_N = 12
+MAX_M = 6
+
+
+class KalmanStatus(enum.IntEnum):
+    """Per-track outcome of an update (the ``status`` array holds these values as uint8)."""
+
+    UPDATED = 0
+    SKIPPED = 1  # mask False, or a non-finite observation (treated as missing)
+    NOT_PD = 2  # innovation covariance not positive definite: track left unchanged
+    BAD_DEPTH = 3  # stereo EKF: predicted depth z <= 0: track left unchanged
+
+
+class KalmanState(NamedTuple):
+    """Result of an update: state x (T,n), covariance P (T,n,n), status (T,) uint8 (KalmanStatus)."""
+
+    x: object
+    P: object
+    status: object
+
+
+def constant_velocity(dim: int = 3, dt: float = 1.0, q=1.0, dtype=np.float32):
+    """F and Q (2 dim x 2 dim) of the constant-velocity model (paper 001 eq. 1-3).
+
+    State order [x xdot y ydot z zdot] (``dim`` axes, position then velocity per axis); F has the
+    block [[1, dt], [0, 1]] per axis (eq. 3 with dt = 1). Q is the discrete white-noise
+    acceleration model: per axis Q = q G G^T with G = [dt^2/2, dt]^T (the Gamma of eq. 2), i.e.
+    q [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]; ``q`` is the acceleration variance, a scalar or one
+    value per axis. Returns NumPy arrays of ``dtype``.
+    """
+    if not isinstance(dim, (int, np.integer)) or isinstance(dim, bool) or dim < 1:
+        raise ValueError(f"dim: expected a positive integer, got {dim!r}")
+    dt = float(dt)
+    if not np.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt: expected a positive finite time step, got {dt}")
+    qa = np.broadcast_to(np.asarray(q, dtype=np.float64), (dim,)) if np.ndim(q) == 0 else np.asarray(q, np.float64)
+    if qa.shape != (dim,):
+        raise ValueError(f"q: expected a scalar or {dim} values (one per axis), got shape {np.shape(q)}")
+    if not (np.isfinite(qa).all() and (qa >= 0).all()):
+        raise ValueError(f"q: expected finite non-negative acceleration variances, got {qa.tolist()}")
+    F = np.eye(2 * dim)
+    Q = np.zeros((2 * dim, 2 * dim))
+    G = np.array([dt * dt / 2.0, dt])
+    for a in range(dim):
+        F[2 * a, 2 * a + 1] = dt  # eq. 3
+        Q[2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = qa[a] * np.outer(G, G)  # eq. 2: Gamma w
+    return F.astype(dtype), Q.astype(dtype)
+
+
+# -- validation ------------------------------------------------------------------------------------
+def _state(device, x, P, dims):
+    x = arg(device, x, "x", ("T", "n"), dims, dtype=FLOAT)
+    dt = x.dtype
+    n = dims["n"]
+    if not 1 <= n <= MAX_N:
+        raise ValueError(f"x: expected a state size n between 1 and {MAX_N}, got n={n}")
+    P = arg(device, P, "P", ("T", "n", "n"), dims, dtype=dt, cast=True)
+    return x, P, dt
+
+
+def _matrix(device, A, name, rows, cols, dims, dt):
+    """A shared (rows, cols) matrix or a per-track (T, rows, cols) one."""
+    nd = getattr(A, "ndim", None)
+    if nd is None:
+        nd = np.ndim(A)
+    if nd == 3:
+        return arg(device, A, name, ("T", rows, cols), dims, dtype=dt, cast=True)
+    if nd == 2:
+        return arg(device, A, name, (rows, cols), dims, dtype=dt, cast=True)
+    shape = getattr(A, "shape", np.shape(A))
+    want = f"({rows}={dims.get(rows, '?')}, {cols}={dims.get(cols, '?')})"
+    raise ValueError(f"{name}: expected shape {want} shared or (T={dims['T']}, ...) per track, got {tuple(shape)}")
+
+
+def _observations(device, z, dims, dt):
+    z = arg(device, z, "z", ("T", "m"), dims, dtype=dt, cast=True, finite=False)
+    if isinstance(z, np.ndarray) and np.isinf(z).any():
+        bad = np.argwhere(np.isinf(z))[0]
+        raise ValueError(
+            f"z: expected finite values or NaN (missing), got {z[tuple(bad)]} at index {tuple(int(i) for i in bad)}"
+        )
+    m = dims["m"]
+    if not 1 <= m <= MAX_M:
+        raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={m}")
+    return z
+
+
+def _options(device, mask, gain_scale, predict, dims, dt):
+    if mask is not None:
+        mask = arg(device, mask, "mask", ("T",), dims, dtype=np.uint8, cast=True)
+    if gain_scale is not None:
+        gain_scale = arg(device, gain_scale, "gain_scale", ("T",), dims, dtype=dt, cast=True)
+        if isinstance(gain_scale, np.ndarray) and (gain_scale < 0).any():
+            i = int(np.argmax(gain_scale < 0))
+            raise ValueError(f"gain_scale: expected values >= 0, got {gain_scale[i]} at index {i}")
+    if predict is not None:
+        if not isinstance(predict, (tuple, list)) or len(predict) != 2:
+            raise TypeError(f"predict: expected a pair (F, Q) or None, got {type(predict).__name__}")
+        predict = (
+            _matrix(device, predict[0], "F", "n", "n", dims, dt),
+            _matrix(device, predict[1], "Q", "n", "n", dims, dt),
+        )
+    return mask, gain_scale, predict
+
+
+def _empty_state(device, dims, dt, with_status=True):
+    T, n = dims["T"], dims["n"]
+    x, P = device.empty((T, n), dt), device.empty((T, n, n), dt)
+    return KalmanState(x, P, device.empty((T,), np.uint8)) if with_status else (x, P)
+
+
+def _scalar(value, name, positive=False):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}") from None
+    if not np.isfinite(v) or (positive and v <= 0):
+        raise ValueError(f"{name}: expected a {'positive ' if positive else ''}finite number, got {value!r}")
+    return v
+
+
+# -- ops -------------------------------------------------------------------------------------------
+def kf_predict(device, x, P, F, Q):
+    """Predict every track: x' = F x, P' = F P F^T + Q (paper 001 eq. 2-3).
+
+    x (T,n), P (T,n,n), F and Q (n,n) shared or (T,n,n) per track. Returns ``(x', P')`` with P'
+    symmetrised.
+    """
+    device = check_device(device)
+    dims: dict = {}
+    x, P, dt = _state(device, x, P, dims)
+    F = _matrix(device, F, "F", "n", "n", dims, dt)
+    Q = _matrix(device, Q, "Q", "n", "n", dims, dt)
+    if dims["T"] == 0:
+        return _empty_state(device, dims, dt, with_status=False)
+    return backend_module(device, "kalman").kf_predict(device, x, P, F, Q)
+
+
+def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None) -> KalmanState:
+    """Linear Kalman update of every track with its observation z (T,m).
+
+    y = z - H x; S = H P H^T + R (Cholesky); K = gain_scale * P H^T S^-1; x+ = x + K y;
+    P+ = (I - K H) P (I - K H)^T + K R K^T (Joseph form). H (m,n) or (T,m,n), R (m,m) or (T,m,m).
+    ``mask`` (T,) bool: False leaves the track unchanged (predict-only frame). ``gain_scale`` (T,)
+    >= 0 multiplies each track's gain (paper 002 eq. 4-6). ``predict=(F, Q)`` predicts first in
+    the same launch. Returns :class:`KalmanState` (x, P, status); see the module docstring.
+    """
+    device = check_device(device)
+    dims: dict = {}
+    x, P, dt = _state(device, x, P, dims)
+    z = _observations(device, z, dims, dt)
+    H = _matrix(device, H, "H", "m", "n", dims, dt)
+    R = _matrix(device, R, "R", "m", "m", dims, dt)
+    mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
+    if dims["T"] == 0:
+        return _empty_state(device, dims, dt)
+    out = backend_module(device, "kalman").kf_update(device, x, P, z, H, R, mask, gain_scale, predict)
+    return KalmanState(*out)
+
+
+def ekf_update_stereo(
+    device, x, P, z, R, *, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None
+) -> KalmanState:
+    """Extended Kalman update with the stereo observation of paper 001 (eq. 1, 4-6).
+
+    State x (T,6) = [x xdot y ydot z zdot] (camera frame), observation z (T,3) = [u v d] with
+    h(x) = [f x/z + cx, f y/z + cy, f b/z] (f focal length in pixels, b baseline, (cx, cy) the
+    principal point; d the disparity). The analytic Jacobian of h at the (predicted) state is the
+    H of the linear update; everything else is as in :func:`kf_update`. A track whose state has
+    z <= 0 is left unchanged with status BAD_DEPTH. R (3,3) or (T,3,3).
+    """
+    device = check_device(device)
+    dims: dict = {}
+    x, P, dt = _state(device, x, P, dims)
+    if dims["n"] != 6:
+        raise ValueError(f"x: expected shape (T={dims['T']}, 6) ([x xdot y ydot z zdot]), got {tuple(x.shape)}")
+    dims["m"] = 3
+    z = _observations(device, z, dims, dt)
+    R = _matrix(device, R, "R", "m", "m", dims, dt)
+    f = _scalar(f, "f", positive=True)
+    b = _scalar(b, "b", positive=True)
+    cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
+    mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
+    if dims["T"] == 0:
+        return _empty_state(device, dims, dt)
+    out = backend_module(device, "kalman").ekf_update_stereo(
+        device, x, P, z, R, f, b, cx, cy, mask, gain_scale, predict
+    )
+    return KalmanState(*out)
+
+
+def mahalanobis(device, x, P, H, R, z):
+    """Squared Mahalanobis distance of every detection to every track's predicted observation.
+
+    d2[t, i] = (z_i - H x_t)^T S_t^-1 (z_i - H x_t), S_t = H P_t H^T + R (paper 001 eq. 8 gating;
+    association costs for paper 002). x (T,n), P (T,n,n), H (m,n) or (T,m,n), R (m,m) or (T,m,m),
+    z (D,m) finite detections. Returns (T,D) in the dtype of x; inf for a track whose S is not
+    positive definite. One Cholesky per track, then D triangular solves.
+    """
+    device = check_device(device)
+    dims: dict = {}
+    x, P, dt = _state(device, x, P, dims)
+    z = arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
+    if not 1 <= dims["m"] <= MAX_M:
+        raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
+    H = _matrix(device, H, "H", "m", "n", dims, dt)
+    R = _matrix(device, R, "R", "m", "m", dims, dt)
+    if dims["T"] == 0 or dims["D"] == 0:
+        return device.empty((dims["T"], dims["D"]), dt)
+    return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z)
+
+
+def _selftest(device) -> None:
+    """Run a tiny random problem on ``device`` and compare with the NumPy reference.
+
+    Raises AssertionError naming the largest error. Used by host/doctor.py.
+    """
+    from ..backends.reference import kalman as ref
+
+    rng = np.random.default_rng(1)
+    T, n, m, D = 7, 6, 3, 4
+    F, Q = constant_velocity(3, 0.5, 0.2)
+    A = rng.standard_normal((T, n, n)).astype(np.float32)
+    P = (A @ np.swapaxes(A, 1, 2) / n + np.eye(n)).astype(np.float32)
+    x = rng.standard_normal((T, n)).astype(np.float32)
+    x[:, 4] += 5.0
+    H = np.zeros((m, n), np.float32)
+    H[0, 0] = H[1, 2] = H[2, 4] = 1
+    R = (0.3 * np.eye(m)).astype(np.float32)
+    z = rng.standard_normal((T, m)).astype(np.float32)
+    zs = np.stack([400 * x[:, 0] / x[:, 4], 400 * x[:, 2] / x[:, 4], 40 / x[:, 4]], 1).astype(np.float32)
+    mask = np.arange(T) % 3 != 1
+    gain = np.linspace(0, 1.5, T).astype(np.float32)
+    det = rng.standard_normal((D, m)).astype(np.float32)
+
+    def to_np(a):
+        return device.to_numpy(a) if device.backend != "numpy" else a
+
+    got = {
+        "predict": kf_predict(device, x, P, F, Q),
+        "update": kf_update(device, x, P, z, H, R, mask=mask, gain_scale=gain, predict=(F, Q))[:2],
+        "stereo": ekf_update_stereo(device, x, P, zs + 0.5, R, f=400.0, b=0.1)[:2],
+        "gating": (mahalanobis(device, x, P, H, R, det),),
+    }
+    want = {
+        "predict": ref.kf_predict(None, x, P, F, Q),
+        "update": ref.kf_update(None, x, P, z, H, R, mask.astype(np.uint8), gain, (F, Q))[:2],
+        "stereo": ref.ekf_update_stereo(None, x, P, zs + 0.5, R, 400.0, 0.1)[:2],
+        "gating": (ref.mahalanobis(None, x, P, H, R, det),),
+    }
+    worst, where = 0.0, ""
+    for key in got:
+        for g, w in zip(got[key], want[key]):
+            g = to_np(g).astype(np.float64)
+            err = float(np.max(np.abs(g - w) / (1.0 + np.abs(w))))
+            if not err <= worst:
+                worst, where = err, key
+    if not worst <= 1e-3:
+        raise AssertionError(f"kalman self-test on {device.spec}: max relative error {worst:.3g} in {where}")
