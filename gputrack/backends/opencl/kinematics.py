@@ -1,0 +1,38 @@
+"""OpenCL forward kinematics: launches gt_forward_kinematics (kernels/gt_kinematics.cl) once per call."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+
+@functools.lru_cache(maxsize=None)
+def _kernel(program):
+    """One Kernel object per built program (retrieving it from the program each call is costly)."""
+    import pyopencl as cl
+
+    return cl.Kernel(program, "gt_forward_kinematics")
+
+
+def forward_kinematics(device, chain, params):
+    from ...ops.kinematics import chain_tables
+
+    table, offsets = chain_tables(device, chain, params.dtype)
+    b, p = params.shape
+    j = chain.n_parts
+    out = device.empty((b, j, 3, 4), params.dtype)
+    kernel = _kernel(device.program("gt_kinematics.cl", {"GT_FK_DOUBLE": int(params.dtype == np.float64)}))
+    kernel(
+        device.queue,
+        (b,),
+        None,
+        params.buffer.data,
+        table.buffer.data,
+        offsets.buffer.data,
+        out.buffer.data,
+        np.int32(b),
+        np.int32(p),
+        np.int32(j),
+    )
+    return out

@@ -1,0 +1,68 @@
+"""Forward kinematics of an articulated chain for a batch of parameter vectors (paper 000, eq. 2-11).
+
+``forward_kinematics(device, chain, params)`` -> (B, J, 3, 4) camera-from-part rigid transforms
+[R | t] (the chain's root joint is camera-from-root, e.g. camera-from-torso D of eq. 4-6; a child
+is camera-from-parent @ parent-from-child, eq. 2-3). One kernel launch per call; the chain is
+read from two small tables (see :meth:`gputrack.models.Chain.packed`) uploaded once per device,
+chain and dtype and cached, so the kernels work for any chain, not only the upper body.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+from ..models.chain import Chain
+from . import backend_module
+from ._args import FLOAT, arg, check_device
+
+__all__ = ["chain_tables", "forward_kinematics"]
+
+# device -> {(chain key, dtype): (table, offsets)}; weak so that a closed device's arrays go with it
+_TABLES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def chain_tables(device, chain: Chain, dtype=np.float32):
+    """The chain's (table (J, 10) int32, offsets (J, 3) dtype) on ``device``, uploaded once and cached."""
+    per_device = _TABLES.setdefault(device, {})
+    key = (chain.key(), np.dtype(dtype).name)
+    if key not in per_device:
+        table, offsets = chain.packed()
+        per_device[key] = (device.asarray(table), device.asarray(offsets.astype(dtype)))
+    return per_device[key]
+
+
+def forward_kinematics(device, chain: Chain, params):
+    """Camera-from-part transforms for a batch of poses.
+
+    device: a gputrack Device. chain: a :class:`gputrack.models.Chain` with J parts and P
+    parameters. params: (B, P) float32 or float64 (B >= 1; float64 only on a device with fp64),
+    NumPy or on ``device``. Returns (B, J, 3, 4) of the params' dtype on ``device``:
+    rows [R | t] with R a rotation and t in the chain's length unit (mm for the upper body).
+    """
+    device = check_device(device)
+    if not isinstance(chain, Chain):
+        raise TypeError(f"chain: expected a gputrack.models.Chain, got {type(chain).__name__}")
+    params = arg(device, params, "params", ("B", chain.n_params), dtype=FLOAT)
+    if params.shape[0] == 0:
+        raise ValueError(f"params: expected at least one parameter vector (B >= 1), got shape {tuple(params.shape)}")
+    return backend_module(device, "kinematics").forward_kinematics(device, chain, params)
+
+
+def _selftest(device) -> None:
+    """Tiny forward-kinematics check against the reference (used by host/doctor.py)."""
+    from ..backends.reference.kinematics import forward_kinematics as reference
+    from ..models import upper_body
+
+    chain = upper_body(shoulders=True)
+    rng = np.random.default_rng(0)
+    params = chain.rest_params()[None, :] + rng.normal(0.0, 0.3, (7, chain.n_params)) * np.r_[[1.0] * 3, [50.0] * 3, [1.0] * 8, [20.0] * 6]
+    for dtype, tol in ((np.float32, 2e-3), (np.float64, 1e-9)):
+        if dtype == np.float64 and not device.fp64:
+            continue
+        p = params.astype(dtype)
+        got = device.to_numpy(forward_kinematics(device, chain, p))
+        want = reference(None, chain, p)
+        err = float(np.max(np.abs(got - want)))
+        assert err <= tol, f"forward_kinematics ({np.dtype(dtype).name}) differs from the reference by {err:g} (> {tol:g})"
