@@ -1,0 +1,483 @@
+"""Taichi batched Levenberg-Marquardt: the same steps as backends/reference/lm.py.
+
+One launch per op call and one per solver iteration. On taichi:cpu a kernel launch costs a fixed
+~25-40 us plus ~15 us per parallel top-level loop (thread-pool dispatch) and ~2-25 us per ndarray
+argument (depending on load), so the solver packs its state into two arrays (S float, I int32)
+and runs the light per-problem phases as serial loops; only the O(B P^2 M) normal equations run
+as a parallel loop over (problem, row).
+
+Finiteness is tested on the bit pattern (Taichi compiles with fast-math, where x != x may be
+folded away).
+"""
+
+import numpy as np
+
+from .runtime import ti
+
+nd = ti.types.ndarray()
+
+RUNNING, CONVERGED, MAX_ITER, FAILED = 0, 1, 2, 3
+R_FTOL, R_XTOL, R_GTOL, R_MAXIT, R_NONFINITE, R_NOTPD, R_DAMPING = 1, 2, 3, 4, 5, 6, 7
+MAX_CHOL_TRIES = 40
+
+
+def _ti_dtype(dt):
+    return ti.f64 if np.dtype(dt) == np.float64 else ti.f32
+
+
+@ti.func
+def _finite(v, dt: ti.template()) -> ti.i32:
+    ok = 1
+    if ti.static(dt == ti.f64):
+        bits = ti.bit_cast(ti.cast(v, ti.f64), ti.u64)
+        ok = ti.i32(((bits >> ti.u64(52)) & ti.u64(0x7FF)) != ti.u64(0x7FF))
+    else:
+        bits = ti.bit_cast(ti.cast(v, ti.f32), ti.u32)
+        ok = ti.i32(((bits >> ti.u32(23)) & ti.u32(0xFF)) != ti.u32(0xFF))
+    return ok
+
+
+# ------------------------------------------------------------------------------------------------
+# ops
+
+
+@ti.kernel
+def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, dt: ti.template()):
+    B, M, P = J.shape[0], J.shape[1], J.shape[2]
+    for t in range(B * P):
+        b, i = t // P, t % P
+        for j in range(i + 1):
+            s = ti.cast(0, dt)
+            for m in range(M):
+                s += J[b, m, i] * J[b, m, j]  # eq. 22: J^T J
+            JtJ[b, i, j] = s
+            JtJ[b, j, i] = s
+        s = ti.cast(0, dt)
+        for m in range(M):
+            s += J[b, m, i] * r[b, m]  # eq. 22: J^T r
+        Jtr[b, i] = s
+
+
+@ti.func
+def _chol_solve_nd(W: ti.template(), delta: ti.template(), b, P, C, dt: ti.template()) -> ti.i32:
+    """In place: W[b] (lower triangle, + C I) -> L; delta[b] (rhs) -> solution. 0 if not PD."""
+    ok = 1
+    for j in range(P):
+        if ok:
+            s = W[b, j, j] + C
+            for k in range(j):
+                s -= W[b, j, k] * W[b, j, k]
+            if s <= 0 or not _finite(s, dt):
+                ok = 0
+            else:
+                d = ti.sqrt(s)
+                W[b, j, j] = d
+                for i in range(j + 1, P):
+                    v = W[b, i, j]
+                    for k in range(j):
+                        v -= W[b, i, k] * W[b, j, k]
+                    W[b, i, j] = v / d
+    if ok:
+        for i in range(P):
+            v = delta[b, i]
+            for k in range(i):
+                v -= W[b, i, k] * delta[b, k]
+            delta[b, i] = v / W[b, i, i]
+        for ii in range(P):
+            i = P - 1 - ii
+            v = delta[b, i]
+            for k in range(i + 1, P):
+                v -= W[b, k, i] * delta[b, k]
+            delta[b, i] = v / W[b, i, i]
+    else:
+        for i in range(P):
+            delta[b, i] = ti.cast(0, dt)
+    return ok
+
+
+@ti.kernel
+def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template()):
+    B, P = Jtr.shape[0], Jtr.shape[1]
+    ti.loop_config(serialize=B < 64)
+    for b in range(B):
+        for i in range(P):
+            delta[b, i] = Jtr[b, i]
+            for j in range(i + 1):
+                W[b, i, j] = JtJ[b, i, j]
+        ok[b] = _chol_solve_nd(W, delta, b, P, damping[b], dt)  # eq. 22
+
+
+@ti.kernel
+def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template()):
+    B, M, P = J.shape[0], J.shape[1], J.shape[2]
+    for t in range(B * P):
+        b, i = t // P, t % P
+        for j in range(i + 1):
+            s = ti.cast(0, dt)
+            for m in range(M):
+                s += J[b, m, i] * J[b, m, j]  # eq. 22: J^T J
+            W[b, i, j] = s
+        s = ti.cast(0, dt)
+        for m in range(M):
+            s += J[b, m, i] * r[b, m]  # eq. 22: J^T r
+        delta[b, i] = s
+    ti.loop_config(serialize=B < 64)
+    for b in range(B):
+        ok[b] = _chol_solve_nd(W, delta, b, P, damping[b], dt)
+
+
+_work_cache: dict = {}
+
+
+def _work(device, shape, dtype):
+    key = (id(device), tuple(shape), np.dtype(dtype).name)
+    w = _work_cache.get(key)
+    if w is None or w.device.closed:
+        w = device.empty(shape, dtype)
+        _work_cache[key] = w
+    return w
+
+
+def normal_equations(device, J, r):
+    B, M, P = J.shape
+    JtJ = device.empty((B, P, P), J.dtype)
+    Jtr = device.empty((B, P), J.dtype)
+    _normal_equations(J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, _ti_dtype(J.dtype))
+    return JtJ, Jtr
+
+
+def lm_step(device, JtJ, Jtr, damping):
+    B, P = Jtr.shape
+    delta = device.empty((B, P), Jtr.dtype)
+    ok = device.empty((B,), np.int32)
+    W = _work(device, (B, P, P), Jtr.dtype)
+    _lm_step(JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer, _ti_dtype(Jtr.dtype))
+    return delta, ok
+
+
+def lm_solve(device, J, r, damping):
+    B, M, P = J.shape
+    delta = device.empty((B, P), J.dtype)
+    ok = device.empty((B,), np.int32)
+    W = _work(device, (B, P, P), J.dtype)
+    _lm_solve(J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer, _ti_dtype(J.dtype))
+    return delta, ok
+
+
+# ------------------------------------------------------------------------------------------------
+# solver: packed state (gputrack.ops.lm.Layout), one launch per iteration
+
+
+@ti.func
+def _sb(P, M):
+    return 7 * P + 2 * P * P + P * M + 8
+
+
+@ti.func
+def _phase_jacobian(S: ti.template(), I: ti.template(), R: ti.template(), Jg: ti.template(), b, n, dt: ti.template(), use_jac: ti.template()):
+    """Jt[b, n, :] at the evaluated trial (eq. 24 or given) and its finite flag."""
+    P, M, B = I[3], I[4], I[1]
+    SB = _sb(P, M)
+    base = b * SB
+    IB = 4 + P
+    ibase = 8 + b * IB
+    jt = base + 7 * P + 2 * P * P + n * M
+    ok = 1
+    if ti.static(use_jac):
+        for m in range(M):
+            v = ti.cast(Jg[b, m, n], dt)
+            ok &= _finite(v, dt)
+            S[jt + m] = v
+    else:
+        SR = R.shape[0] // B
+        den = S[base + 3 * P + n]
+        rp = b * SR + 1 + 2 * n
+        has_mask = I[2]
+        mbase = B * SB + 8
+        for m in range(M):
+            need = 1
+            if has_mask:
+                need = S[mbase + m * P + n] != 0
+            v = ti.cast(0, dt)
+            if need:
+                d = ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt)  # r(x + eps e_n) - r(x - eps e_n)
+                ok &= _finite(d, dt)
+                if den != 0:
+                    v = d / den  # eq. 24
+            S[jt + m] = v
+    I[ibase + 4 + n] = ok
+
+
+@ti.func
+def _phase_accept(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: ti.template(), first: ti.template(), final: ti.template()):
+    P, M, B = I[3], I[4], I[1]
+    SB = _sb(P, M)
+    base = b * SB
+    sc = base + 7 * P + 2 * P * P + P * M
+    IB = 4 + P
+    ib = 8 + b * IB
+    G = B * SB
+    ftol, xtol, cmax = S[G + 0], S[G + 1], S[G + 5]
+    SR = R.shape[0] // B
+    I[ib + 2] = 0
+    if I[ib + 0] == RUNNING:
+        ok = 1
+        Ft = ti.cast(0, dt)
+        for m in range(M):
+            v = ti.cast(R[b * SR, m], dt)
+            ok &= _finite(v, dt)
+            Ft += v * v  # eq. 20-21: cost = r^T r
+        ok &= _finite(Ft, dt)
+        if ti.static(not final):
+            for n in range(P):
+                ok &= I[ib + 4 + n]
+        S[sc + 4] = Ft
+        acc = 0
+        if not ok:
+            I[ib + 0] = FAILED
+            I[ib + 3] = R_NONFINITE
+            if ti.static(first):
+                S[sc + 0] = ti.cast(np.inf, dt)
+        else:
+            if ti.static(first):
+                acc = 1
+            else:
+                I[ib + 1] += 1
+                F, pred = S[sc + 0], S[sc + 3]
+                dF = F - Ft
+                if dF > 0:
+                    acc = 1
+                    rho = ti.cast(1, dt)
+                    if pred > 0:
+                        rho = dF / pred
+                    q = 2 * rho - 1
+                    S[sc + 1] *= ti.max(ti.cast(1.0 / 3.0, dt), 1 - q * q * q)  # Nielsen: lower C near the optimum
+                    S[sc + 2] = ti.cast(2, dt)
+                else:
+                    S[sc + 1] *= S[sc + 2]  # rejected: raise this problem's C only
+                    S[sc + 2] *= 2
+                    dmax = ti.cast(0, dt)
+                    for i in range(P):
+                        dmax = ti.max(dmax, S[base + 7 * P + i * P + i])
+                    if S[sc + 1] > cmax * (1 + dmax):
+                        I[ib + 0] = FAILED
+                        I[ib + 3] = R_DAMPING
+            if acc:
+                I[ib + 2] = 1
+                sn = ti.cast(0, dt)
+                xn = ti.cast(0, dt)
+                for i in range(P):
+                    d = S[base + P + i] - S[base + i]
+                    sn += d * d
+                    S[base + i] = S[base + P + i]
+                    xn += S[base + i] * S[base + i]
+                sn = ti.sqrt(sn)
+                S[sc + 5] = sn
+                F_old = S[sc + 0]
+                S[sc + 0] = Ft
+                if ti.static(not first):
+                    if F_old - Ft <= ftol * F_old:
+                        I[ib + 0] = CONVERGED
+                        I[ib + 3] = R_FTOL
+                    elif sn <= xtol * (xtol + ti.sqrt(xn)):
+                        I[ib + 0] = CONVERGED
+                        I[ib + 3] = R_XTOL
+        if ti.static(final):
+            if I[ib + 0] == RUNNING:
+                I[ib + 0] = MAX_ITER
+                I[ib + 3] = R_MAXIT
+
+
+@ti.func
+def _phase_normal(S: ti.template(), I: ti.template(), R: ti.template(), b, i, dt: ti.template()):
+    """Row i of J^T J and J^T r at the accepted point (eq. 22)."""
+    P, M, B = I[3], I[4], I[1]
+    SB = _sb(P, M)
+    base = b * SB
+    jt = base + 7 * P + 2 * P * P
+    SR = R.shape[0] // B
+    if I[8 + b * (4 + P) + 2]:
+        ri = jt + i * M
+        for j in range(i + 1):
+            rj = jt + j * M
+            s = ti.cast(0, dt)
+            for m in range(M):
+                s += S[ri + m] * S[rj + m]  # eq. 22: J^T J
+            S[base + 7 * P + i * P + j] = s
+            S[base + 7 * P + j * P + i] = s
+        s = ti.cast(0, dt)
+        for m in range(M):
+            s += S[ri + m] * ti.cast(R[b * SR, m], dt)  # eq. 22: J^T r
+        S[base + 2 * P + i] = s
+
+
+@ti.func
+def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.template()):
+    """gtol test, damped Cholesky step, trial point and the next points to evaluate."""
+    P, M, B = I[3], I[4], I[1]
+    SB = _sb(P, M)
+    base = b * SB
+    sc = base + 7 * P + 2 * P * P + P * M
+    ib = 8 + b * (4 + P)
+    G = B * SB
+    gtol, rel, ctiny, cmax = S[G + 2], S[G + 3], S[G + 4], S[G + 5]
+    A = base + 7 * P
+    L = A + P * P
+    xo, xto, go, deno, loo, hio, ho = base, base + P, base + 2 * P, base + 3 * P, base + 4 * P, base + 5 * P, base + 6 * P
+    if I[ib + 0] == RUNNING and I[ib + 2]:
+        # projected gradient (components pushing against an active bound removed)
+        gmax = ti.cast(0, dt)
+        for i in range(P):
+            gi = S[go + i]
+            x = S[xo + i]
+            if not ((x >= S[hio + i] and gi < 0) or (x <= S[loo + i] and gi > 0)):
+                gmax = ti.max(gmax, ti.abs(gi))
+        if gmax <= gtol:
+            I[ib + 0] = CONVERGED
+            I[ib + 3] = R_GTOL
+    if I[ib + 0] == RUNNING:
+        dmax = ti.cast(0, dt)
+        for i in range(P):
+            dmax = ti.max(dmax, S[A + i * P + i])
+        dmax += 1
+        C = S[sc + 1]
+        ok = 0
+        tries = 0
+        while tries <= MAX_CHOL_TRIES:
+            # Cholesky of J^T J + C I (eq. 22) into L
+            ok = 1
+            for j in range(P):
+                if ok:
+                    s = S[A + j * P + j] + C
+                    for k in range(j):
+                        s -= S[L + j * P + k] * S[L + j * P + k]
+                    if s <= 0 or not _finite(s, dt):
+                        ok = 0
+                    else:
+                        d = ti.sqrt(s)
+                        S[L + j * P + j] = d
+                        for i in range(j + 1, P):
+                            v = S[A + i * P + j]
+                            for k in range(j):
+                                v -= S[L + i * P + k] * S[L + j * P + k]
+                            S[L + i * P + j] = v / d
+            if ok or C > cmax * dmax:
+                break
+            C = ti.max(10 * C, ctiny * dmax)  # not PD: raise C tenfold and try again
+            tries += 1
+        S[sc + 1] = C
+        if not ok:
+            I[ib + 0] = FAILED
+            I[ib + 3] = R_NOTPD
+        else:
+            # delta = (J^T J + C I)^-1 J^T r by substitution, in the xt slots
+            for i in range(P):
+                v = S[go + i]
+                for k in range(i):
+                    v -= S[L + i * P + k] * S[xto + k]
+                S[xto + i] = v / S[L + i * P + i]
+            for ii in range(P):
+                i = P - 1 - ii
+                v = S[xto + i]
+                for k in range(i + 1, P):
+                    v -= S[L + k * P + i] * S[xto + k]
+                S[xto + i] = v / S[L + i * P + i]
+            for i in range(P):
+                # eq. 22 step, projected into the box (paper 003 eq. 8-9)
+                S[xto + i] = ti.min(ti.max(S[xo + i] - S[xto + i], S[loo + i]), S[hio + i])
+            # predicted reduction of the model ||r - J s||^2 for s = x - xt
+            pr = ti.cast(0, dt)
+            for i in range(P):
+                si = S[xo + i] - S[xto + i]
+                As = ti.cast(0, dt)
+                for j in range(P):
+                    As += S[A + i * P + j] * (S[xo + j] - S[xto + j])
+                pr += 2 * si * S[go + i] - si * As
+            S[sc + 3] = pr
+    # next points: the trial and its perturbed copies (eq. 24), or the accepted x when stopped
+    SX = X.shape[0] // B
+    src = xto
+    if I[ib + 0] != RUNNING:
+        src = xo
+    for row in range(SX):
+        for n in range(P):
+            X[b * SX + row, n] = S[src + n]
+    if SX > 1:
+        for n in range(P):
+            p = S[src + n]
+            eps = S[ho + n]
+            if eps <= 0:
+                eps = rel * ti.max(ti.abs(p), ti.cast(1, dt))
+            rp = b * SX + 1 + 2 * n
+            X[rp, n] = ti.min(p + eps, S[hio + n])
+            X[rp + 1, n] = ti.max(p - eps, S[loo + n])
+            S[deno + n] = ti.cast(X[rp, n], dt) - ti.cast(X[rp + 1, n], dt)
+    else:
+        for n in range(P):
+            S[deno + n] = ti.cast(0, dt)
+
+
+@ti.kernel
+def _update(S: nd, I: nd, X: nd, R: nd, dt: ti.template(), first: ti.template(), final: ti.template()):
+    B, P = I[1], I[3]
+    if ti.static(not final):
+        for t in range(B * P):
+            b, n = t // P, t % P
+            if I[8 + b * (4 + P)] == RUNNING:
+                _phase_jacobian(S, I, R, R, b, n, dt, False)
+    ti.loop_config(serialize=True)
+    for b in range(B):
+        _phase_accept(S, I, R, b, dt, first, final)
+    if ti.static(not final):
+        for t in range(B * P):
+            _phase_normal(S, I, R, t // P, t % P, dt)
+        ti.loop_config(serialize=True)
+        for b in range(B):
+            _phase_step(S, I, X, b, dt)
+
+
+@ti.kernel
+def _update_jac(S: nd, I: nd, X: nd, R: nd, Jg: nd, dt: ti.template(), first: ti.template(), final: ti.template()):
+    B, P = I[1], I[3]
+    if ti.static(not final):
+        for t in range(B * P):
+            b, n = t // P, t % P
+            if I[8 + b * (4 + P)] == RUNNING:
+                _phase_jacobian(S, I, R, Jg, b, n, dt, True)
+    ti.loop_config(serialize=True)
+    for b in range(B):
+        _phase_accept(S, I, R, b, dt, first, final)
+    if ti.static(not final):
+        for t in range(B * P):
+            _phase_normal(S, I, R, t // P, t % P, dt)
+        ti.loop_config(serialize=True)
+        for b in range(B):
+            _phase_step(S, I, X, b, dt)
+
+
+class State:
+    def __init__(self, device, lay, S, I):
+        self.device, self.lay = device, lay
+        self.S = device.asarray(S)
+        self.I = device.asarray(I)
+        self.dt = _ti_dtype(S.dtype)
+
+
+def solver_state(device, lay, S, I):
+    return State(device, lay, S, I)
+
+
+def solver_update(state, R, X, *, first, final, jac=None):
+    if jac is None:
+        _update(state.S.buffer, state.I.buffer, X.buffer, R.buffer, state.dt, bool(first), bool(final))
+    else:
+        _update_jac(state.S.buffer, state.I.buffer, X.buffer, R.buffer, jac.buffer, state.dt, bool(first), bool(final))
+
+
+def solver_active(state) -> int:
+    I = state.I.numpy()
+    return int(np.count_nonzero(state.lay.iblock(I)[:, 0] == RUNNING))
+
+
+def solver_result(state):
+    return state.S.numpy(), state.I.numpy()

@@ -1,0 +1,642 @@
+"""Batched small-matrix Levenberg-Marquardt (paper 000 eq. 20-24 and Alg. 2; paper 003 eq. 6-10).
+
+B independent nonlinear least-squares problems with P parameters and M residuals each are
+solved together: the residuals of every problem are evaluated in one batched call of the user's
+residual function, and the normal equations, the damped Cholesky solve, the acceptance test,
+the damping update and the next points to evaluate are computed for every problem in ONE
+device launch per iteration.
+
+Ops (one launch each):
+
+- :func:`normal_equations` ``(J (B,M,P), r (B,M)) -> (J^T J (B,P,P), J^T r (B,P))``.
+- :func:`lm_step` ``(JtJ, Jtr, damping (B,)) -> (delta (B,P), ok (B,) int32)``: solves
+  ``(J^T J + C I) delta = J^T r`` by Cholesky; a problem whose damped matrix is not positive
+  definite gets ``ok = 0`` and ``delta = 0`` (never NaN).
+- :func:`lm_solve` ``(J, r, damping) -> (delta, ok)``: the two above fused in one launch.
+
+Sign convention (eq. 22): the new point is ``x - delta``.
+
+Solver: :func:`least_squares`, see its docstring for the algorithm, the residual-function
+protocol, bounds, sparsity, precision and the bad-input policy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import inspect
+import logging
+
+import numpy as np
+
+from ..device import Device, DeviceArray
+from . import backend_module
+from ._args import arg, check_device
+
+log = logging.getLogger("gputrack")
+
+__all__ = [
+    "LeastSquaresResult",
+    "Status",
+    "least_squares",
+    "lm_solve",
+    "lm_step",
+    "normal_equations",
+]
+
+#: relative finite-difference step (of max(|x|, 1)) used when ``step=None``: cbrt(machine eps),
+#: the usual optimum for central differences (scipy uses the same).
+DEFAULT_REL_STEP = {"float64": float(np.finfo(np.float64).eps ** (1 / 3)), "float32": float(np.finfo(np.float32).eps ** (1 / 3))}
+
+#: smallest damping tried after a failed Cholesky, relative to 1 + max diag(J^T J).
+_CTINY = {"float64": 1e-12, "float32": 1e-6}
+#: damping above which a problem fails (no acceptable step), relative to 1 + max diag(J^T J).
+_CMAX = {"float64": 1e16, "float32": 1e10}
+
+
+class Status(enum.IntEnum):
+    """Per-problem outcome of :func:`least_squares` (``RUNNING`` only appears internally)."""
+
+    RUNNING = 0
+    CONVERGED = 1
+    MAX_ITER = 2
+    FAILED = 3
+
+
+#: why a problem stopped (``LeastSquaresResult.reason`` holds these codes; ``REASONS`` the words).
+REASONS = {
+    0: "running",
+    1: "ftol: relative cost reduction below ftol",
+    2: "xtol: relative step below xtol",
+    3: "gtol: projected gradient below gtol",
+    4: "max_iter reached",
+    5: "non-finite residuals or Jacobian",
+    6: "damped normal matrix not positive definite at the largest damping",
+    7: "no acceptable step: damping overflow",
+}
+
+
+@dataclasses.dataclass
+class LeastSquaresResult:
+    """Result of :func:`least_squares` (NumPy arrays, downloaded once at the end).
+
+    x (B,P), cost (B,) = sum of squared residuals at x, iterations (B,) = steps tried by each
+    problem, status (B,) int8 codes of :class:`Status`, reason (B,) int8 codes of ``REASONS``,
+    damping (B,) the final C, nfev = calls of the residual function, njev = calls of the
+    Jacobian callable, npoints = points evaluated in all, dtype = the precision the solver ran in,
+    x0_clipped (B,) bool = x0 was outside the bounds and was clipped into them.
+    """
+
+    x: np.ndarray
+    cost: np.ndarray
+    iterations: np.ndarray
+    status: np.ndarray
+    reason: np.ndarray
+    damping: np.ndarray
+    nfev: int
+    njev: int
+    npoints: int
+    dtype: np.dtype
+    x0_clipped: np.ndarray
+
+    @property
+    def success(self) -> np.ndarray:
+        return self.status == Status.CONVERGED
+
+    def statuses(self) -> list[Status]:
+        return [Status(int(s)) for s in self.status]
+
+    def messages(self) -> list[str]:
+        return [REASONS[int(r)] for r in self.reason]
+
+
+# ------------------------------------------------------------------------------------------------
+# layout of the packed solver state (shared by every backend; see Layout)
+
+
+class Layout:
+    """Offsets of the solver state packed into one float array S and one int32 array I.
+
+    Packing keeps a solver launch at four array arguments (S, I, X, R) whatever the problem:
+    on taichi:cpu every ndarray argument costs ~25 us of launch overhead.
+
+    S (float, solver dtype), per problem b a block of ``SB`` values at ``b*SB``:
+    x[P] accepted point, xt[P] trial point, g[P] = J^T r at x, den[P] finite-difference
+    denominators of the pending points, lo[P], hi[P] bounds, h[P] absolute steps (0: relative),
+    A[P*P] = J^T J at x (lower triangle used), L[P*P] Cholesky factor, Jt[P*M] = J^T at the
+    last evaluated point, then 8 scalars F (cost at x), C (damping), nu (damping growth),
+    pred (predicted reduction of the trial), Ft (trial cost), snorm, spare, spare.
+    After the B blocks, 8 globals: ftol, xtol, gtol, rel (relative step), ctiny, cmax, spare,
+    spare; then the Jacobian mask M*P (1.0 where computed) when ``has_mask``.
+
+    I (int32): 8 globals [active, B, has_mask, P, M, spare...], then per problem ``IB = 4 + P``
+    values: status, iterations, accepted, reason, fin[P] (finite flags of the perturbed rows).
+    """
+
+    NSCAL = 8
+    NGLOB = 8
+
+    def __init__(self, B: int, P: int, M: int):
+        self.B, self.P, self.M = B, P, M
+        self.x, self.xt, self.g, self.den = 0, P, 2 * P, 3 * P
+        self.lo, self.hi, self.h = 4 * P, 5 * P, 6 * P
+        self.A = 7 * P
+        self.L = 7 * P + P * P
+        self.Jt = 7 * P + 2 * P * P
+        self.scal = self.Jt + P * M
+        self.F, self.C, self.nu, self.pred, self.Ft, self.snorm = (self.scal + i for i in range(6))
+        self.SB = self.scal + self.NSCAL
+        self.glob = B * self.SB
+        self.mask = self.glob + self.NGLOB
+        self.IB = 4 + P
+        self.ib = 8  # first per-problem int block
+
+    def s_size(self, has_mask: bool) -> int:
+        return self.mask + (self.M * self.P if has_mask else 0)
+
+    def i_size(self) -> int:
+        return self.ib + self.B * self.IB
+
+    # NumPy views (used by the reference backend and to pack / unpack on the host)
+    def block(self, S: np.ndarray) -> np.ndarray:
+        return S[: self.glob].reshape(self.B, self.SB)
+
+    def vec(self, S, off, n=None):
+        return self.block(S)[:, off : off + (self.P if n is None else n)]
+
+    def mat(self, S, off, rows, cols):
+        return self.block(S)[:, off : off + rows * cols].reshape(self.B, rows, cols)
+
+    def sc(self, S, off):
+        return self.block(S)[:, off]
+
+    def iblock(self, I: np.ndarray) -> np.ndarray:
+        return I[self.ib : self.ib + self.B * self.IB].reshape(self.B, self.IB)
+
+    def maskview(self, S):
+        return S[self.mask : self.mask + self.M * self.P].reshape(self.M, self.P)
+
+
+# ------------------------------------------------------------------------------------------------
+# ops
+
+
+def _float_dtypes(device):
+    return (np.float32, np.float64) if device.fp64 else (np.float32,)
+
+
+def normal_equations(device: Device, J, r):
+    """J^T J and J^T r for every problem (one launch).
+
+    J: (B, M, P) float32 or float64 (float64 only on a device with fp64); r: (B, M), same dtype.
+    Returns (JtJ (B, P, P) symmetric, Jtr (B, P)) on the device, in J's dtype.
+    """
+    device = check_device(device)
+    dims: dict = {}
+    J = arg(device, J, "J", ("B", "M", "P"), dims, dtype=_float_dtypes(device))
+    r = arg(device, r, "r", ("B", "M"), dims, dtype=J.dtype)
+    _nonempty(dims, "J")
+    return backend_module(device, "lm").normal_equations(device, J, r)
+
+
+def lm_step(device: Device, JtJ, Jtr, damping):
+    """Solve (J^T J + C I) delta = J^T r per problem by Cholesky (eq. 22; new point = x - delta).
+
+    JtJ: (B, P, P) symmetric (the lower triangle is read); Jtr: (B, P); damping: (B,) C >= 0, all
+    in one float dtype. Returns (delta (B, P), ok (B,) int32): ok = 0 flags a problem whose damped
+    matrix is not positive definite; its delta is 0, never NaN.
+    """
+    device = check_device(device)
+    dims: dict = {}
+    JtJ = arg(device, JtJ, "JtJ", ("B", "P", "P"), dims, dtype=_float_dtypes(device))
+    Jtr = arg(device, Jtr, "Jtr", ("B", "P"), dims, dtype=JtJ.dtype)
+    damping = _damping_arg(device, damping, dims, JtJ.dtype)
+    _nonempty(dims, "JtJ")
+    return backend_module(device, "lm").lm_step(device, JtJ, Jtr, damping)
+
+
+def lm_solve(device: Device, J, r, damping):
+    """normal_equations + lm_step fused in one launch: (J (B,M,P), r (B,M), damping (B,)) -> (delta, ok)."""
+    device = check_device(device)
+    dims: dict = {}
+    J = arg(device, J, "J", ("B", "M", "P"), dims, dtype=_float_dtypes(device))
+    r = arg(device, r, "r", ("B", "M"), dims, dtype=J.dtype)
+    damping = _damping_arg(device, damping, dims, J.dtype)
+    _nonempty(dims, "J")
+    return backend_module(device, "lm").lm_solve(device, J, r, damping)
+
+
+def _nonempty(dims, name):
+    for k, v in dims.items():
+        if v == 0:
+            raise ValueError(f"{name}: expected a non-empty {k} dimension, got {k}=0")
+
+
+def _damping_arg(device, damping, dims, dtype):
+    if not isinstance(damping, DeviceArray):
+        d = np.asarray(damping, dtype=np.float64)
+        if d.ndim == 0:
+            d = np.full(dims["B"], float(d))
+        if d.ndim == 1 and d.shape[0] == dims["B"] and np.isfinite(d).all() and (d < 0).any():
+            raise ValueError(f"damping: expected values >= 0, got {d.min()}")
+        damping = d.astype(dtype)
+    return arg(device, damping, "damping", ("B",), dims, dtype=dtype)
+
+
+# ------------------------------------------------------------------------------------------------
+# solver
+
+
+def _rows_protocol(fn) -> bool:
+    """True when ``fn`` accepts a ``rows`` keyword (the sparse evaluation protocol)."""
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    p = params.get("rows")
+    return p is not None and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+
+
+def _bounds(value, name, B, P, dtype, default):
+    if value is None:
+        return np.full((B, P), default, dtype=np.float64)
+    v = np.asarray(value, dtype=np.float64)
+    if v.ndim == 0:
+        v = np.full((B, P), float(v))
+    elif v.shape == (P,):
+        v = np.broadcast_to(v, (B, P))
+    elif v.shape != (B, P):
+        raise ValueError(f"{name}: expected shape (P={P},) or (B={B}, P={P}), got {v.shape}")
+    if np.isnan(v).any():
+        raise ValueError(f"{name}: expected numbers or +-inf, got NaN")
+    return np.array(v, dtype=np.float64)
+
+
+def least_squares(
+    residuals,
+    x0,
+    *,
+    device: Device,
+    jacobian="central",
+    step=None,
+    lower=None,
+    upper=None,
+    damping=1e-5,
+    max_iter: int = 10,
+    ftol: float = 1e-8,
+    xtol: float = 1e-8,
+    gtol: float = 1e-8,
+    dtype=np.float64,
+    jac_sparsity=None,
+    points_dtype=None,
+    early_stop: bool = True,
+) -> LeastSquaresResult:
+    """Minimise sum_m r_m(x_b)^2 for B problems at once by Levenberg-Marquardt.
+
+    x0: (B, P) start points (NumPy). Returns a :class:`LeastSquaresResult` (NumPy arrays).
+
+    **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
+    on the ``numpy`` device, else a DeviceArray of ``device`` — in ``points_dtype`` (default: the
+    solver precision) and returns (n, M) residuals (NumPy or DeviceArray, float32 or float64;
+    M is fixed by the first call, M < P is allowed since the step is damped). It must not keep or
+    modify X. With ``jacobian="central"`` each iteration makes ONE call with every problem's
+    points stacked, ``2P + 1`` rows per problem: row ``b*(2P+1)`` is problem b's point, rows
+    ``b*(2P+1) + 1 + 2n`` and ``+ 2 + 2n`` are it with parameter n moved by +eps_n and -eps_n
+    (eq. 24; the Jacobian column is their difference over the actual distance between them).
+    The last call of a solve that reaches ``max_iter`` has only the B points (n = B).
+    ``jacobian`` may instead be a callable ``jacobian(X) -> (B, M, P)`` evaluated at the same
+    (B, P) points as ``residuals`` (one call each per iteration, n = B).
+
+    **Steps.** ``step=None``: eps_n = rel * max(|x_n|, 1) with rel = cbrt(machine eps) of the
+    precision (6.1e-6 in float64, 4.9e-3 in float32). A scalar or (P,) ``step`` gives absolute
+    steps (paper 000's per-parameter constants).
+
+    **Algorithm** (per problem, every problem independently): cost F = sum r^2; J^T J and J^T r
+    by eq. 22-24; delta from (J^T J + C I) delta = J^T r by Cholesky (a factorisation failure
+    raises C tenfold and retries in the same launch); trial x_t = clip(x - delta, lower, upper)
+    (projection onto the box, paper 003 eq. 8-9). The next call evaluates the residuals at x_t
+    together with the perturbed points around x_t (its Jacobian, used if x_t is accepted), so one
+    call and one launch make an iteration. x_t is accepted iff its cost is lower than F; the
+    damping follows Nielsen's rule with the gain ratio rho = (F - F_t) / predicted reduction:
+    accepted: C *= max(1/3, 1 - (2 rho - 1)^3); rejected: C *= nu, nu *= 2. ``damping`` is the
+    initial C (scalar or (B,); paper 000: 1e-5), added as C I (eq. 22).
+
+    **Stopping**, per problem: converged when an accepted step reduced the cost by less than
+    ``ftol * F``, or moved by less than ``xtol * (xtol + |x|)``, or the projected gradient
+    (components pushing against an active bound removed) has max-norm <= ``gtol``; max_iter after
+    ``max_iter`` trial steps; failed when its residuals or Jacobian (at the start or at a trial)
+    are not finite — the problem keeps its last accepted x and cost, the batch goes on — or when
+    the damping needed exceeds 1e16 (float32: 1e10) x (1 + max diag J^T J). The batch stops when
+    every problem has stopped. ``iterations`` counts the trial steps each problem evaluated.
+
+    **Bounds**: ``lower``/``upper`` scalar, (P,) or (B, P), +-inf allowed, lower == upper fixes a
+    parameter. Perturbed points are clipped into the box too (the difference quotient then uses
+    the clipped distance: one-sided at a bound). x0 outside the box is clipped into it and
+    flagged in ``x0_clipped`` (logged at INFO). lower > upper raises ValueError.
+
+    **Sparsity**: ``jac_sparsity`` (M, P) bool: J[m, n] is computed only where it is True (paper
+    000 Fig. 2), 0 elsewhere. If ``residuals`` has a ``rows`` keyword parameter it is called as
+    ``residuals(X, rows=need)`` with ``need`` an (n, M) uint8 array on the device (NumPy for
+    numpy; uploaded once per solve): it only has to compute r[i, m] where ``need[i, m]`` is 1
+    (point rows: all ones; the rows of parameter n: ``jac_sparsity[:, n]``); other entries are
+    ignored and may hold anything. Without a ``rows`` parameter every residual is computed.
+
+    **Precision**: ``dtype`` float64 (default, paper 000 uses double for the differences) runs in
+    float64 on a device with fp64 and falls back to float32 (with the larger default step above)
+    elsewhere; ``result.dtype`` says which. ``points_dtype=np.float32`` hands float32 points to a
+    float32 residual function (the differences are then taken over the rounded points).
+
+    **Traffic**: state lives on the device; x0, bounds and settings are uploaded once. Per
+    iteration the residual function's output stays on the device (a NumPy output is uploaded,
+    counted) and, with ``early_stop`` (default), the small int32 status block (8 + B (P + 4)
+    values) is downloaded to decide whether every problem has stopped. ``early_stop=False``
+    downloads nothing until the end (stopped problems stay frozen on the device; the batch runs
+    ``max_iter`` iterations). The result is downloaded once at the end.
+
+    **Bad input**: NaN/inf in x0, a non-float x0, x0 not (B, P), P = 0, a residual output of the
+    wrong shape or dtype (cannot be attributed to one problem) and invalid settings raise
+    ValueError/TypeError. B = 0 returns an empty result without calling ``residuals``.
+    """
+    device = check_device(device)
+    if not callable(residuals):
+        raise TypeError(f"residuals: expected a callable, got {type(residuals).__name__}")
+    central = isinstance(jacobian, str)
+    if central and jacobian != "central":
+        raise ValueError(f"jacobian: expected 'central' or a callable, got {jacobian!r}")
+    if not central and not callable(jacobian):
+        raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
+    x0 = np.asarray(x0)
+    if x0.dtype.kind not in "fiu":
+        raise TypeError(f"x0: expected a float array, got dtype {x0.dtype.name}")
+    if x0.ndim != 2:
+        raise ValueError(f"x0: expected shape (B, P), got {x0.shape}")
+    B, P = x0.shape
+    if P == 0:
+        raise ValueError("x0: expected P >= 1 parameters, got shape (B, 0)")
+    if not np.isfinite(x0).all():
+        bad = np.argwhere(~np.isfinite(x0))[0]
+        raise ValueError(f"x0: expected finite values, got {x0[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+    want = np.dtype(dtype)
+    if want not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise TypeError(f"dtype: expected float32 or float64, got {want.name}")
+    dt = np.dtype(np.float64) if (want == np.float64 and device.fp64) else np.dtype(np.float32)
+    if want == np.float64 and dt != want:
+        log.info("least_squares: %s has no float64; running in float32", device.spec)
+    pdt = dt if points_dtype is None else np.dtype(points_dtype)
+    if pdt not in (np.dtype(np.float32), np.dtype(np.float64)) or (pdt == np.float64 and not device.fp64):
+        raise TypeError(f"points_dtype: expected float32{' or float64' if device.fp64 else ''}, got {pdt.name}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
+        raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
+    for name, v in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
+        if not np.isscalar(v) or not np.isfinite(v) or v < 0:
+            raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+    c0 = np.asarray(damping, dtype=np.float64)
+    if c0.ndim == 0:
+        c0 = np.full(B, float(c0))
+    if c0.shape != (B,) or not np.isfinite(c0).all() or (c0 < 0).any():
+        raise ValueError(f"damping: expected a finite number >= 0 or (B={B},) of them, got {np.asarray(damping)!r}")
+    lo = _bounds(lower, "lower", B, P, dt, -np.inf)
+    hi = _bounds(upper, "upper", B, P, dt, np.inf)
+    if (lo > hi).any():
+        b, n = (int(i) for i in np.argwhere(lo > hi)[0])
+        raise ValueError(f"lower/upper: expected lower <= upper, got lower={lo[b, n]} > upper={hi[b, n]} at [{b}, {n}]")
+    if step is None:
+        h = np.zeros(P)
+    else:
+        h = np.asarray(step, dtype=np.float64)
+        if h.ndim == 0:
+            h = np.full(P, float(h))
+        if h.shape != (P,) or not np.isfinite(h).all() or (h <= 0).any():
+            raise ValueError(f"step: expected a positive number or (P={P},) positive numbers, got {np.asarray(step)!r}")
+    mask = None
+    if jac_sparsity is not None:
+        mask = np.asarray(jac_sparsity)
+        if mask.dtype != np.bool_:
+            if mask.dtype.kind in "iu" and mask.size and set(np.unique(mask)) <= {0, 1}:
+                mask = mask.astype(bool)
+            else:
+                raise TypeError(f"jac_sparsity: expected a bool array, got dtype {mask.dtype.name}")
+        if mask.ndim != 2 or mask.shape[1] != P:
+            raise ValueError(f"jac_sparsity: expected shape (M, P={P}), got {mask.shape}")
+        if not central:
+            raise ValueError("jac_sparsity: expected jacobian='central' (a Jacobian callable computes its own entries)")
+    x0c = np.clip(x0.astype(np.float64), lo, hi)
+    clipped = (x0c != x0).any(axis=1)
+    if clipped.any():
+        log.info("least_squares: x0 of problems %s was outside the bounds and was clipped", np.flatnonzero(clipped).tolist())
+
+    if B == 0:
+        e = np.empty(0)
+        return LeastSquaresResult(np.empty((0, P), dt), e.astype(dt), e.astype(np.int32), e.astype(np.int8),
+                                  e.astype(np.int8), e.astype(dt), 0, 0, 0, dt, e.astype(bool))
+
+    solver = _Solver(device, residuals, jacobian if not central else None, B, P, dt, pdt, mask)
+    return solver.run(x0c, lo, hi, h, c0, max_iter, (ftol, xtol, gtol), early_stop, clipped)
+
+
+class _Solver:
+    """Drives one solve: residual calls on the host side, one backend launch per iteration."""
+
+    def __init__(self, device, residuals, jacobian, B, P, dt, pdt, mask):
+        self.device, self.fn, self.jac = device, residuals, jacobian
+        self.B, self.P, self.dt, self.pdt, self.mask = B, P, dt, pdt, mask
+        self.be = backend_module(device, "lm")
+        self.rows_protocol = mask is not None and _rows_protocol(residuals)
+        self.nfev = self.njev = self.npoints = 0
+        self.M = None
+
+    # -- user calls ------------------------------------------------------------------------------
+    def _check_out(self, out, n, what, shape):
+        if isinstance(out, DeviceArray):
+            if out.device is not self.device:
+                raise ValueError(f"{what}: expected an array on {self.device.spec}, got one on {out.device.spec}")
+        else:
+            out = np.asarray(out)
+        if out.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
+            raise TypeError(f"{what}: expected a float32 or float64 result, got dtype {out.dtype.name}")
+        if tuple(out.shape) != shape:
+            want = ", ".join(str(s) for s in shape)
+            raise ValueError(f"{what}: expected a result of shape ({want}), got {tuple(out.shape)}")
+        if not isinstance(out, DeviceArray):
+            if out.dtype == np.float64 and not self.device.fp64:
+                out = out.astype(np.float32)
+            out = self.device.asarray(out) if self.device.backend != "numpy" else np.ascontiguousarray(out)
+        return out
+
+    def _call(self, X, need):
+        n = X.shape[0]
+        self.nfev += 1
+        self.npoints += n
+        out = self.fn(X, rows=need) if (need is not None) else self.fn(X)
+        if self.M is None:
+            shp = getattr(out, "shape", None)
+            if shp is None:
+                out = np.asarray(out)
+                shp = out.shape
+            if len(shp) != 2 or shp[0] != n:
+                raise ValueError(f"residuals: expected a result of shape (n={n}, M), got {tuple(shp)}")
+            if shp[1] == 0:
+                raise ValueError(f"residuals: expected M >= 1 residuals, got shape {tuple(shp)}")
+            self.M = int(shp[1])
+            if self.mask is not None and self.mask.shape[0] != self.M:
+                raise ValueError(f"jac_sparsity: expected shape (M={self.M}, P={self.P}), got {self.mask.shape}")
+        return self._check_out(out, n, "residuals", (n, self.M))
+
+    def _call_jac(self, X):
+        self.njev += 1
+        out = self.jac(X)
+        return self._check_out(out, X.shape[0], "jacobian", (self.B, self.M, self.P))
+
+    # -- loop ------------------------------------------------------------------------------------
+    def run(self, x0, lo, hi, h, c0, max_iter, tols, early_stop, clipped):
+        B, P, dev, be = self.B, self.P, self.device, self.be
+        central = self.jac is None
+        S_rows = 2 * P + 1 if central else 1
+        pts = _initial_points(x0, lo, hi, h, self.dt, self.pdt, S_rows)
+        X_full = dev.asarray(pts) if dev.backend != "numpy" else pts
+        X_last = X_full if S_rows == 1 else dev.empty((B, P), self.pdt)
+        need_full = need_last = None
+        # the first call fixes M; its points are x0 (and the perturbed points around it)
+        first_X = X_full if max_iter > 0 else (dev.asarray(pts[::S_rows].copy()) if dev.backend != "numpy" else pts[::S_rows].copy())
+        if self.rows_protocol:
+            need_full, need_last = self._need(S_rows)
+        R = self._call(first_X, need_full if max_iter > 0 else need_last)
+        M = self.M
+        lay = Layout(B, P, M)
+        S, I = _pack(lay, x0, lo, hi, h, c0, tols, self.dt, self.mask)
+        # denominators of the first points (same rounding as the kernels: over the stored points)
+        _first_den(lay, S, pts, S_rows)
+        state = be.solver_state(dev, lay, S, I)
+        Jg = self._call_jac(first_X) if not central else None
+        for it in range(max_iter + 1):
+            final = it == max_iter
+            nxt = X_last if it == max_iter - 1 else X_full
+            be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
+            if final:
+                break
+            if early_stop and be.solver_active(state) == 0:
+                break
+            R = self._call(nxt, need_last if nxt is X_last and nxt is not X_full else need_full)
+            if not central:
+                Jg = self._call_jac(nxt)
+        out = be.solver_result(state)
+        S, I = out
+        ib = lay.iblock(I)
+        status = ib[:, 0].astype(np.int8)
+        status[status == Status.RUNNING] = Status.MAX_ITER  # stopped early only when none is running
+        reason = ib[:, 3].astype(np.int8)
+        reason[(reason == 0)] = 4
+        return LeastSquaresResult(
+            x=lay.vec(S, lay.x).astype(self.dt, copy=True),
+            cost=lay.sc(S, lay.F).astype(self.dt, copy=True),
+            iterations=ib[:, 1].astype(np.int32),
+            status=status,
+            reason=reason,
+            damping=lay.sc(S, lay.C).astype(self.dt, copy=True),
+            nfev=self.nfev,
+            njev=self.njev,
+            npoints=self.npoints,
+            dtype=self.dt,
+            x0_clipped=clipped,
+        )
+
+    def _need(self, S_rows):
+        """The (n, M) uint8 row masks handed to a residual function with a ``rows`` parameter."""
+        mask = self.mask
+        M, P, B, dev = mask.shape[0], self.P, self.B, self.device
+        block = np.ones((S_rows, M), np.uint8)
+        block[1::2] = mask.T
+        block[2::2] = mask.T
+        full = np.tile(block, (B, 1))
+        last = np.ones((B, M), np.uint8)
+        if dev.backend == "numpy":
+            return full, last
+        return dev.asarray(full), dev.asarray(last)
+
+
+def _initial_points(x0, lo, hi, h, dt, pdt, S_rows):
+    """(B*S_rows, P) points: x0 and, when S_rows > 1, its perturbed copies (same rule as the kernels)."""
+    x = x0.astype(dt)
+    B, P = x.shape
+    out = np.repeat(x.astype(pdt), S_rows, axis=0).reshape(B, S_rows, P)
+    if S_rows > 1:
+        xp, xm = perturbed(x, lo.astype(dt), hi.astype(dt), h.astype(dt), DEFAULT_REL_STEP[dt.name])
+        for n in range(P):
+            out[:, 1 + 2 * n, n] = xp[:, n]
+            out[:, 2 + 2 * n, n] = xm[:, n]
+    return out.reshape(B * S_rows, P)
+
+
+def perturbed(x, lo, hi, h, rel):
+    """eq. 24 points x_n +- eps_n clipped into the box; eps_n = h_n, or rel * max(|x_n|, 1) when h_n = 0."""
+    eps = np.where(h > 0, h, rel * np.maximum(np.abs(x), 1).astype(x.dtype)).astype(x.dtype)
+    return np.minimum(x + eps, hi).astype(x.dtype), np.maximum(x - eps, lo).astype(x.dtype)
+
+
+def _first_den(lay, S, pts, S_rows):
+    den = lay.vec(S, lay.den)
+    if S_rows == 1:
+        den[:] = 0
+        return
+    X = pts.reshape(lay.B, S_rows, lay.P).astype(S.dtype)
+    for n in range(lay.P):
+        den[:, n] = X[:, 1 + 2 * n, n] - X[:, 2 + 2 * n, n]
+
+
+def _pack(lay, x0, lo, hi, h, c0, tols, dt, mask):
+    S = np.zeros(lay.s_size(mask is not None), dtype=dt)
+    I = np.zeros(lay.i_size(), dtype=np.int32)
+    lay.vec(S, lay.x)[:] = x0
+    lay.vec(S, lay.xt)[:] = x0
+    lay.vec(S, lay.lo)[:] = np.maximum(lo, np.finfo(dt).min)
+    lay.vec(S, lay.hi)[:] = np.minimum(hi, np.finfo(dt).max)
+    lay.vec(S, lay.h)[:] = h
+    lay.sc(S, lay.C)[:] = c0
+    lay.sc(S, lay.nu)[:] = 2.0
+    g = S[lay.glob : lay.glob + lay.NGLOB]
+    g[:6] = (*tols, DEFAULT_REL_STEP[dt.name], _CTINY[dt.name], _CMAX[dt.name])
+    if mask is not None:
+        lay.maskview(S)[:] = mask
+    I[1], I[2], I[3], I[4] = lay.B, int(mask is not None), lay.P, lay.M
+    return S, I
+
+
+# ------------------------------------------------------------------------------------------------
+# self-test for host/doctor.py
+
+
+def _selftest(device) -> None:
+    """Tiny batched problems vs the NumPy reference; raises AssertionError with the max error."""
+    import gputrack
+
+    rng = np.random.default_rng(7)
+    B, M, P = 3, 9, 4
+    dt = np.float64 if device.fp64 else np.float32
+    J = rng.normal(size=(B, M, P)).astype(dt)
+    r = rng.normal(size=(B, M)).astype(dt)
+    C = np.full(B, 1e-3, dt)
+    ref = gputrack.device("numpy")
+    want_d, want_ok = lm_solve(ref, J, r, C)
+    got_d, got_ok = lm_solve(device, J, r, C)
+    got_d = gputrack.to_numpy(got_d)
+    err = float(np.max(np.abs(got_d - want_d)))
+    tol = 1e-8 if dt == np.float64 else 1e-3
+    if not err <= tol or not np.array_equal(gputrack.to_numpy(got_ok), want_ok):
+        raise AssertionError(f"lm_solve on {device.spec}: max error {err:.3g} > {tol:g} or ok flags differ")
+
+    # a batch of exponential fits y = a exp(b t) from 3 starting points
+    t = np.linspace(0, 1, 12)
+    y = 2.0 * np.exp(-1.3 * t)
+
+    def res(X):
+        Xn = gputrack.to_numpy(X).astype(np.float64)
+        out = Xn[:, :1] * np.exp(Xn[:, 1:2] * t[None, :]) - y[None, :]
+        return out.astype(X.dtype)
+
+    x0 = np.array([[1.0, 0.0], [3.0, -2.0], [1.5, -1.0]])
+    a = least_squares(res, x0, device=device, max_iter=30)
+    b = least_squares(res, x0, device=ref, max_iter=30, dtype=a.dtype)
+    err = float(np.max(np.abs(a.x - b.x)))
+    tol = 1e-7 if a.dtype == np.float64 else 1e-2
+    if not err <= tol or not np.array_equal(a.status, b.status):
+        raise AssertionError(f"least_squares on {device.spec}: max error {err:.3g} > {tol:g} vs reference or statuses differ")
