@@ -116,8 +116,15 @@ class SparseTemplate:
         self.xyz = xyz
         self.part = part
         self.value = value
-        # (N, 4) [x, y, z, value]: the layout every backend's kernels read
-        self.packed = np.ascontiguousarray(np.concatenate([xyz, value[:, None]], axis=1), dtype=np.float32)
+        # The layout the kernels read: points grouped by part (so a kernel loads each part's
+        # transform once), (N, 4) [x, y, z, value]; ``perm[k]`` is the original index of sorted
+        # point k (residuals are written in the original order); part j owns sorted points
+        # start[j]:start[j+1].
+        order = np.argsort(part, kind="stable").astype(np.int32)
+        self.perm = order
+        self.packed = np.ascontiguousarray(np.concatenate([xyz, value[:, None]], axis=1)[order], dtype=np.float32)
+        self.sorted_part = np.ascontiguousarray(part[order])
+        self.start = np.searchsorted(self.sorted_part, np.arange(self.n_parts + 1)).astype(np.int32)
         self._on = weakref.WeakKeyDictionary()
 
     @property
@@ -141,11 +148,17 @@ class SparseTemplate:
         return self
 
     def on(self, device: Device) -> dict:
-        """The device copies {"pts": (N, 4) f32, "part": (N,) i32, ...}, uploading them once."""
+        """The device copies, uploaded once: {"pts": (N, 4) f32 grouped by part, "part": (N,) i32,
+        "start": (n_parts + 1,) i32, "perm": (N,) i32} (see ``packed``)."""
         check_device(device)
         found = self._on.get(device)
         if found is None:
-            found = {"pts": device.asarray(self.packed), "part": device.asarray(self.part)}
+            found = {
+                "pts": device.asarray(self.packed),
+                "part": device.asarray(self.sorted_part),
+                "start": device.asarray(self.start),
+                "perm": device.asarray(self.perm),
+            }
             self._on[device] = found
         return found
 

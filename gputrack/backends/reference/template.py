@@ -96,9 +96,12 @@ def rgbd_cost(device, tf, rgb, depth, gray, depth_image, camera, *, lam, c_rgb, 
 def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, *, lam, c_rgb, c_depth):
     d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
     w_c, w_d = np.sqrt(1.0 - lam), np.sqrt(lam)
-    r = np.where(ok, w_c * d / np.sqrt(c_rgb * c_rgb + d * d), w_c)  # eq. 20-21: r_i
+    r = np.empty(d.shape, np.float64)
+    rd = np.empty(dd.shape, np.float64)
+    # the template's points are grouped by part; perm puts them back in the caller's order
+    r[:, rgb["perm"]] = np.where(ok, w_c * d / np.sqrt(c_rgb * c_rgb + d * d), w_c)  # eq. 20-21: r_i
     with np.errstate(invalid="ignore"):
-        rd = np.where(okd, w_d * dd / np.sqrt(c_depth * c_depth + dd * dd), w_d)  # eq. 20-21: r'_i
+        rd[:, depth["perm"]] = np.where(okd, w_d * dd / np.sqrt(c_depth * c_depth + dd * dd), w_d)  # eq. 20-21: r'_i
     return np.concatenate([r, rd], axis=1).astype(np.float32)
 
 

@@ -1,0 +1,265 @@
+// Sparse-template RGB-D cost and residuals (paper 000 eq. 17-21) and zero-mean NCC patches
+// (paper 003 eq. 13). Conventions: gputrack/ops/template.py.
+//
+// gt_rgbd: one work-item evaluates LANES consecutive hypotheses (explicit vector lanes, see
+// gt_lanes.clh) over every template point, with the points grouped by part so that each part's
+// transform is loaded once. Sums are blocked (CHUNK points per partial sum) so float32 keeps its
+// accuracy for thousands of points. Build options: LANES (1, 4, 8, 16), RESIDUALS (0: costs,
+// 1: per-point residuals of eq. 20-21).
+#include "gt_lanes.clh"
+
+#ifndef RESIDUALS
+#define RESIDUALS 0
+#endif
+#define CHUNK 64
+#define GT_TINY 1e-12f
+#define GT_BIG 3.0e38f
+
+// The camera-from-part transform rows of part j for the lanes' hypotheses bl.
+typedef struct {
+    realv r[12];
+} gt_pose;
+
+inline gt_pose gt_load_pose(__global const float *tf, const intv bl, const int nj, const int j)
+{
+    gt_pose p;
+    const intv base = (bl * nj + j) * 12;
+    for (int e = 0; e < 12; ++e)
+        p.r[e] = GATHER(tf, base + e);
+    return p;
+}
+
+__kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
+                      __global const float *rpts, __global const int *rstart, const int rparts, const int n,
+                      __global const int *rperm,
+                      __global const float *dpts, __global const int *dstart, const int dparts, const int m,
+                      __global const int *dperm,
+                      __global const float *gray, __global const float *dimg, const int h, const int w,
+                      const float fx, const float fy, const float cx, const float cy,
+                      const float lam, const float c_rgb, const float c_depth,
+                      __global float *sample, __global char *valid,
+                      __global float *total, __global float *eps_c, __global float *eps_d, __global float *res)
+{
+    const int g = get_global_id(0);
+    const int b0 = g * LANES;
+    if (b0 >= nb)
+        return;
+    const intv bl = min(b0 + LANE_IDS, nb - 1);  // lanes past the batch repeat the last hypothesis
+    const float wm1 = (float)(w - 1), hm1 = (float)(h - 1);
+    const float cc = c_rgb * c_rgb, cd = c_depth * c_depth;
+    const float wc = sqrt(1.0f - lam), wd = sqrt(lam);
+    const size_t srow = (size_t)g * (size_t)n;
+
+    // ---- RGB pass 1: samples I_i, validity, and the sums over the valid points (eq. 17)
+    realv sT = 0.0f, sTT = 0.0f, sTI = 0.0f, bT = 0.0f, bTT = 0.0f, bTI = 0.0f;
+    int cnt = 0;
+    for (int j = 0; j < rparts; ++j) {
+        const gt_pose P = gt_load_pose(tf, bl, nj, j);
+        for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
+            const float x = rpts[4 * i], y = rpts[4 * i + 1], z = rpts[4 * i + 2], T = rpts[4 * i + 3];
+            const realv X = P.r[0] * x + P.r[1] * y + P.r[2] * z + P.r[3];  // eq. 4
+            const realv Y = P.r[4] * x + P.r[5] * y + P.r[6] * z + P.r[7];
+            const realv Z = P.r[8] * x + P.r[9] * y + P.r[10] * z + P.r[11];
+            const realv u = fx * (X / Z) + cx;  // eq. 5
+            const realv v = fy * (Y / Z) + cy;
+            const intv ok = (Z > 0.0f) & (Z < GT_BIG) & (u >= 0.0f) & (u <= wm1) & (v >= 0.0f) & (v <= hm1);
+            const realv uc = select((realv)0.0f, u, ok), vc = select((realv)0.0f, v, ok);
+            const intv x0 = min(TO_INT(uc), w - 2), y0 = min(TO_INT(vc), h - 2);
+            const intv k = y0 * w + x0;
+            const realv a = uc - TO_REAL(x0), bw = vc - TO_REAL(y0);
+            const realv i00 = GATHER(gray, k), i01 = GATHER(gray, k + 1);
+            const realv i10 = GATHER(gray, k + w), i11 = GATHER(gray, k + w + 1);
+            const realv top = i00 + a * (i01 - i00), bot = i10 + a * (i11 - i10);
+            const realv I = top + bw * (bot - top);  // sec. 3.5: bilinear
+            const realv Tv = select((realv)0.0f, (realv)T, ok);
+            bT += Tv;
+            bTT += Tv * T;
+            bTI += Tv * I;
+            VSTORER(I, srow + i, sample);
+            VSTOREC(TO_CHAR(ok), srow + i, valid);
+            if (++cnt == CHUNK) {
+                sT += bT; sTT += bTT; sTI += bTI;
+                bT = 0.0f; bTT = 0.0f; bTI = 0.0f;
+                cnt = 0;
+            }
+        }
+    }
+    sT += bT; sTT += bTT; sTI += bTI;
+    const realv alpha = select((realv)0.0f, 1.0f / sT, sT > GT_TINY);              // eq. 17
+    const realv beta = select((realv)0.0f, alpha * sTT / sTI, sTI > GT_TINY);      // eq. 17
+
+    // ---- RGB pass 2: eps_C = sum rho_c(d_i) (eq. 17); residuals r_i (eq. 20-21)
+    realv eC = 0.0f, blk = 0.0f;
+    cnt = 0;
+    for (int i = 0; i < n; ++i) {
+        const realv I = VLOADR(srow + i, sample);
+        const intv ok = TO_INT(VLOADC(srow + i, valid));
+        const realv d = beta * I - alpha * rpts[4 * i + 3];  // eq. 17: d_i
+        const realv q = cc + d * d;
+        blk += select((realv)1.0f, d * d / q, ok);  // rho_c(d_i); an invalid point adds 1
+#if RESIDUALS
+        const realv r = select((realv)wc, wc * d / sqrt(q), ok);  // eq. 20-21: r_i
+        float tmp[LANES];
+        VSTORER(r, 0, tmp);
+        const int col = rperm[i];
+        for (int l = 0; l < LANES && b0 + l < nb; ++l)
+            res[(size_t)(b0 + l) * (size_t)(n + m) + col] = tmp[l];
+#endif
+        if (++cnt == CHUNK) {
+            eC += blk;
+            blk = 0.0f;
+            cnt = 0;
+        }
+    }
+    eC += blk;
+
+    // ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
+    realv eD = 0.0f;
+    blk = 0.0f;
+    cnt = 0;
+    for (int j = 0; j < dparts; ++j) {
+        const gt_pose P = gt_load_pose(tf, bl, nj, j);
+        for (int i = dstart[j]; i < dstart[j + 1]; ++i) {
+            const float x = dpts[4 * i], y = dpts[4 * i + 1], z = dpts[4 * i + 2];
+            const realv X = P.r[0] * x + P.r[1] * y + P.r[2] * z + P.r[3];  // eq. 4
+            const realv Y = P.r[4] * x + P.r[5] * y + P.r[6] * z + P.r[7];
+            const realv Z = P.r[8] * x + P.r[9] * y + P.r[10] * z + P.r[11];
+            const realv u = fx * (X / Z) + cx;  // eq. 5
+            const realv v = fy * (Y / Z) + cy;
+            const intv ok = (Z > 0.0f) & (Z < GT_BIG) & (u >= 0.0f) & (u <= wm1) & (v >= 0.0f) & (v <= hm1);
+            const realv uc = select((realv)0.0f, u, ok), vc = select((realv)0.0f, v, ok);
+            const intv x0 = min(TO_INT(uc), w - 2), y0 = min(TO_INT(vc), h - 2);
+            const intv k = y0 * w + x0;
+            const realv d00 = GATHER(dimg, k), d01 = GATHER(dimg, k + 1);
+            const realv d10 = GATHER(dimg, k + w), d11 = GATHER(dimg, k + w + 1);
+            // a measurement is > 0 and finite (NaN fails both tests)
+            const intv okd = ok & (fmin(fmin(d00, d01), fmin(d10, d11)) > 0.0f) & (d00 < GT_BIG) & (d01 < GT_BIG) &
+                             (d10 < GT_BIG) & (d11 < GT_BIG);
+            const realv a = uc - TO_REAL(x0), bw = vc - TO_REAL(y0);
+            const realv top = d00 + a * (d01 - d00), bot = d10 + a * (d11 - d10);
+            const realv dd = select((realv)0.0f, top + bw * (bot - top) - Z, okd);  // eq. 18: d'_i = Zhat - Z
+            const realv q = cd + dd * dd;
+            blk += select((realv)1.0f, dd * dd / q, okd);
+#if RESIDUALS
+            const realv r = select((realv)wd, wd * dd / sqrt(q), okd);  // eq. 20-21: r'_i
+            float tmp[LANES];
+            VSTORER(r, 0, tmp);
+            const int col = n + dperm[i];
+            for (int l = 0; l < LANES && b0 + l < nb; ++l)
+                res[(size_t)(b0 + l) * (size_t)(n + m) + col] = tmp[l];
+#endif
+            if (++cnt == CHUNK) {
+                eD += blk;
+                blk = 0.0f;
+                cnt = 0;
+            }
+        }
+    }
+    eD += blk;
+
+#if !RESIDUALS
+    float t0[LANES], t1[LANES], t2[LANES];
+    VSTORER((1.0f - lam) * eC + lam * eD, 0, t0);  // eq. 19
+    VSTORER(eC, 0, t1);
+    VSTORER(eD, 0, t2);
+    for (int l = 0; l < LANES && b0 + l < nb; ++l) {
+        total[b0 + l] = t0[l];
+        eps_c[b0 + l] = t1[l];
+        eps_d[b0 + l] = t2[l];
+    }
+#endif
+}
+
+// ---- zero-mean NCC of a template with the bilinear image patch at a point (paper 003 eq. 13)
+#define GT_FLAT 1e-6f
+
+inline float gt_ncc_one(const float u, const float v, __global const float *t, const int s,
+                        __global const float *img, const int h, const int w)
+{
+    const float ctr = 0.5f * (float)(s - 1);
+    const float u0 = u - ctr, v0 = v - ctr, u1 = u + ctr, v1 = v + ctr;
+    // the whole patch must lie inside the image (NaN fails the tests)
+    if (!(u0 >= 0.0f && u1 <= (float)(w - 1) && v0 >= 0.0f && v1 <= (float)(h - 1)))
+        return 0.0f;
+    const float n = (float)(s * s);
+    // pass 1: means (sums shifted by the first values, for accuracy)
+    float p0 = 0.0f, t0 = t[0], sp = 0.0f, st = 0.0f;
+    for (int i = 0; i < s; ++i) {
+        const float vv = v + ((float)i - ctr);
+        const int y0 = min((int)vv, h - 2);
+        const float bw = vv - (float)y0;
+        float rp = 0.0f, rt = 0.0f;
+        for (int jj = 0; jj < s; ++jj) {
+            const float uu = u + ((float)jj - ctr);
+            const int x0 = min((int)uu, w - 2);
+            const float a = uu - (float)x0;
+            const int k = y0 * w + x0;
+            const float top = img[k] + a * (img[k + 1] - img[k]);
+            const float bot = img[k + w] + a * (img[k + w + 1] - img[k + w]);
+            const float P = top + bw * (bot - top);  // patch pixel (i, jj), bilinear
+            if (i == 0 && jj == 0)
+                p0 = P;
+            rp += P - p0;
+            rt += t[i * s + jj] - t0;
+        }
+        sp += rp;
+        st += rt;
+    }
+    const float mp = p0 + sp / n, mt = t0 + st / n;
+    // pass 2: centred sums
+    float spp = 0.0f, stt = 0.0f, spt = 0.0f;
+    for (int i = 0; i < s; ++i) {
+        const float vv = v + ((float)i - ctr);
+        const int y0 = min((int)vv, h - 2);
+        const float bw = vv - (float)y0;
+        float rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
+        for (int jj = 0; jj < s; ++jj) {
+            const float uu = u + ((float)jj - ctr);
+            const int x0 = min((int)uu, w - 2);
+            const float a = uu - (float)x0;
+            const int k = y0 * w + x0;
+            const float top = img[k] + a * (img[k + 1] - img[k]);
+            const float bot = img[k + w] + a * (img[k + w + 1] - img[k + w]);
+            const float P = top + bw * (bot - top) - mp;
+            const float T = t[i * s + jj] - mt;
+            rpp += P * P;
+            rtt += T * T;
+            rpt += P * T;
+        }
+        spp += rpp;
+        stt += rtt;
+        spt += rpt;
+    }
+    // a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
+    const float fp = GT_FLAT * (fabs(mp) + 1.0f), ft = GT_FLAT * (fabs(mt) + 1.0f);
+    if (!(spp > n * fp * fp && stt > n * ft * ft))
+        return 0.0f;
+    return clamp(spt / sqrt(spp * stt), -1.0f, 1.0f);
+}
+
+// One work-item per (hypothesis, point): ncc (B, K).
+__kernel void gt_patch_ncc_points(__global const float *pts, const int nb, const int nk, __global const float *tpl,
+                                  const int s, __global const float *img, const int h, const int w,
+                                  __global float *ncc)
+{
+    const int gid = get_global_id(0);
+    if (gid >= nb * nk)
+        return;
+    const int kk = gid % nk;
+    ncc[gid] = gt_ncc_one(pts[2 * gid], pts[2 * gid + 1], tpl + (size_t)kk * (size_t)(s * s), s, img, h, w);
+}
+
+// One work-item per hypothesis: N(u) = sum over the K points (eq. 13), (B,).
+__kernel void gt_patch_ncc(__global const float *pts, const int nb, const int nk, __global const float *tpl, const int s,
+                           __global const float *img, const int h, const int w, __global float *out)
+{
+    const int b = get_global_id(0);
+    if (b >= nb)
+        return;
+    float acc = 0.0f;
+    for (int kk = 0; kk < nk; ++kk) {
+        const int p = b * nk + kk;
+        acc += gt_ncc_one(pts[2 * p], pts[2 * p + 1], tpl + (size_t)kk * (size_t)(s * s), s, img, h, w);
+    }
+    out[b] = acc;
+}
