@@ -1,0 +1,129 @@
+"""OpenCL launchers for the batched Levenberg-Marquardt (kernels/gt_lm.cl).
+
+One launch per op call (``lm_solve`` fuses the normal equations and the Cholesky step in one
+work-group per problem) and one per solver iteration (``gt_lm_update``, one work-group per problem).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+RUNNING = 0
+_CTYPE = {"float32": "float", "float64": "double"}
+
+
+def _program(device, real, rtype=None, xtype=None, use_jac=False):
+    rtype = rtype or real
+    xtype = xtype or real
+    defines = {"REAL": _CTYPE[np.dtype(real).name], "RTYPE": _CTYPE[np.dtype(rtype).name], "XTYPE": _CTYPE[np.dtype(xtype).name]}
+    for key, dt in (("REAL_IS_DOUBLE", real), ("RTYPE_IS_DOUBLE", rtype), ("XTYPE_IS_DOUBLE", xtype)):
+        if np.dtype(dt) == np.float64:
+            defines[key] = 1
+    if use_jac:
+        defines["USE_JAC"] = 1
+    return device.program("gt_lm.cl", defines)
+
+
+_kernels: dict = {}
+
+
+def _kernel(prg, name):
+    """One cl.Kernel per program and name (retrieving ``prg.name`` builds a new one each time)."""
+    import pyopencl as cl
+
+    key = (id(prg), name)
+    k = _kernels.get(key)
+    if k is None or k[0] is not prg:
+        k = (prg, cl.Kernel(prg, name))
+        _kernels[key] = k
+    return k[1]
+
+
+def _local_size(device, P):
+    return int(max(1, min(P, 64, device.info.max_work_group_size or 64)))
+
+
+_work_cache: dict = {}
+
+
+def _work(device, shape, dtype):
+    key = (id(device), tuple(shape), np.dtype(dtype).name)
+    w = _work_cache.get(key)
+    if w is None or w.device.closed:
+        w = device.empty(shape, dtype)
+        _work_cache[key] = w
+    return w
+
+
+def normal_equations(device, J, r):
+    B, M, P = J.shape
+    JtJ = device.empty((B, P, P), J.dtype)
+    Jtr = device.empty((B, P), J.dtype)
+    prg = _program(device, J.dtype)
+    n = B * P
+    _kernel(prg, "gt_normal_equations")(
+        device.queue, (n,), None, J.buffer.data, r.buffer.data, JtJ.buffer.data, Jtr.buffer.data,
+        np.int32(B), np.int32(M), np.int32(P),
+    )
+    return JtJ, Jtr
+
+
+def lm_step(device, JtJ, Jtr, damping):
+    B, P = Jtr.shape
+    delta = device.empty((B, P), Jtr.dtype)
+    ok = device.empty((B,), np.int32)
+    W = _work(device, (B, P, P), Jtr.dtype)
+    prg = _program(device, Jtr.dtype)
+    _kernel(prg, "gt_lm_step")(
+        device.queue, (B,), None, JtJ.buffer.data, Jtr.buffer.data, damping.buffer.data, delta.buffer.data,
+        ok.buffer.data, W.buffer.data, np.int32(B), np.int32(P),
+    )
+    return delta, ok
+
+
+def lm_solve(device, J, r, damping):
+    B, M, P = J.shape
+    delta = device.empty((B, P), J.dtype)
+    ok = device.empty((B,), np.int32)
+    W = _work(device, (B, P, P), J.dtype)
+    prg = _program(device, J.dtype)
+    ls = _local_size(device, P)
+    _kernel(prg, "gt_lm_solve")(
+        device.queue, (B * ls,), (ls,), J.buffer.data, r.buffer.data, damping.buffer.data, delta.buffer.data,
+        ok.buffer.data, W.buffer.data, np.int32(M), np.int32(P),
+    )
+    return delta, ok
+
+
+class State:
+    def __init__(self, device, lay, S, I):
+        self.device, self.lay = device, lay
+        self.S = device.asarray(S)
+        self.I = device.asarray(I)
+        self.ls = _local_size(device, lay.P)
+        self.n_status = lay.ib + lay.B * lay.IB
+
+
+def solver_state(device, lay, S, I):
+    return State(device, lay, S, I)
+
+
+def solver_update(state, R, X, *, first, final, jac=None):
+    dev, lay = state.device, state.lay
+    B = lay.B
+    prg = _program(dev, state.S.dtype, R.dtype, X.dtype, use_jac=jac is not None)
+    Jg = jac if jac is not None else R
+    _kernel(prg, "gt_lm_update")(
+        dev.queue, (B * state.ls,), (state.ls,), state.S.buffer.data, state.I.buffer.data, X.buffer.data,
+        R.buffer.data, Jg.buffer.data, np.int32(R.shape[0] // B), np.int32(X.shape[0] // B),
+        np.int32(bool(first)), np.int32(bool(final)),
+    )
+
+
+def solver_active(state) -> int:
+    I = state.I.numpy()
+    return int(np.count_nonzero(state.lay.iblock(I)[:, 0] == RUNNING))
+
+
+def solver_result(state):
+    return state.S.numpy(), state.I.numpy()
