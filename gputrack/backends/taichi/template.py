@@ -1,10 +1,16 @@
 """Taichi kernels: sparse-template cost and residuals (paper 000 eq. 17-21), NCC patches (paper 003).
 
-One launch per op call. The outermost loop runs over hypotheses (one thread each) with a serial
-inner loop over the points, summed in blocks of ``CHUNK`` (two-level sums: the error grows with
-CHUNK + N / CHUNK, not with N). RGB needs two passes (alpha and beta are sums over the valid
-points): the first stores each point's sample and validity in a per-hypothesis scratch row.
-Conventions: gputrack/ops/template.py.
+One launch per op call. The outermost (parallel) loop runs over groups of ``LANES`` consecutive
+hypotheses; the serial inner loop runs over the template points, grouped by part so that each
+part's transform is loaded once per group, and evaluates the point for every lane of the group
+(statically unrolled, branch-free: the samples of a particle filter are close, so the lanes read
+neighbouring pixels, and there is no data-dependent branch to mispredict). Sums are blocked
+(``CHUNK`` points per partial sum), so float32 keeps its accuracy for thousands of points. RGB
+needs two passes (alpha and beta are sums over the valid points): the first stores each point's
+sample and validity in a scratch row per hypothesis. Conventions: gputrack/ops/template.py.
+
+Block-shared-memory reductions compile only on CUDA; this one-group-per-thread form runs on
+every arch (on a GPU each thread then handles LANES hypotheses, LANES = 1 there).
 """
 
 import weakref
@@ -14,43 +20,41 @@ import numpy as np
 from .runtime import DTYPES, ti
 
 CHUNK = 64
+CPU_LANES = 8
 TINY = 1e-12
-FLT_BIG = 3.0e38
+BIG = 3.0e38
 FLAT = 1e-6
 
 # per-device scratch buffers (raw Taichi ndarrays), dropped with the device
 _scratch = weakref.WeakKeyDictionary()
 
 
-@ti.func
-def _point(tf: ti.types.ndarray(dtype=ti.f32, ndim=4), b, j, x, y, z, fx, fy, cx, cy, wm1, hm1):
-    """Camera-frame Z, pixel (u, v), and whether the point is inside the image (Z > 0)."""
-    X = tf[b, j, 0, 0] * x + tf[b, j, 0, 1] * y + tf[b, j, 0, 2] * z + tf[b, j, 0, 3]  # eq. 4
-    Y = tf[b, j, 1, 0] * x + tf[b, j, 1, 1] * y + tf[b, j, 1, 2] * z + tf[b, j, 1, 3]
-    Z = tf[b, j, 2, 0] * x + tf[b, j, 2, 1] * y + tf[b, j, 2, 2] * z + tf[b, j, 2, 3]
-    u = ti.f32(0.0)
-    v = ti.f32(0.0)
-    ok = 0
-    if Z > 0.0 and Z < FLT_BIG:
-        u = fx * (X / Z) + cx  # eq. 5
-        v = fy * (Y / Z) + cy
-        if u >= 0.0 and u <= wm1 and v >= 0.0 and v <= hm1:
-            ok = 1
-    return Z, u, v, ok
+def lanes(device) -> int:
+    """Hypotheses per thread on ``device``."""
+    return CPU_LANES if device.info.kind == "cpu" else 1
 
 
 @ti.func
-def _measured(d):
-    return d > 0.0 and d < FLT_BIG  # a measurement: > 0 and finite (NaN fails both)
+def _project(P: ti.template(), l: ti.template(), x, y, z, fx, fy, cx, cy, wm1, hm1):
+    """Lane l's camera-frame Z, pixel (u, v) (0 where invalid) and in-image flag of one point."""
+    X = P[l, 0] * x + P[l, 1] * y + P[l, 2] * z + P[l, 3]  # eq. 4: M_C = D M_O
+    Y = P[l, 4] * x + P[l, 5] * y + P[l, 6] * z + P[l, 7]
+    Z = P[l, 8] * x + P[l, 9] * y + P[l, 10] * z + P[l, 11]
+    u = fx * (X / Z) + cx  # eq. 5
+    v = fy * (Y / Z) + cy
+    ok = (Z > 0.0) & (Z < BIG) & (u >= 0.0) & (u <= wm1) & (v >= 0.0) & (v <= hm1)
+    return Z, ti.select(ok, u, 0.0), ti.select(ok, v, 0.0), ok
 
 
 @ti.kernel
 def _rgbd_kernel(
     tf: ti.types.ndarray(dtype=ti.f32, ndim=4),
     rpts: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    rpart: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    rstart: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    rperm: ti.types.ndarray(dtype=ti.i32, ndim=1),
     dpts: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    dpart: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    dstart: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    dperm: ti.types.ndarray(dtype=ti.i32, ndim=1),
     gray: ti.types.ndarray(dtype=ti.f32, ndim=2),
     dimg: ti.types.ndarray(dtype=ti.f32, ndim=2),
     fx: ti.f32,
@@ -67,31 +71,43 @@ def _rgbd_kernel(
     eps_d: ti.types.ndarray(dtype=ti.f32, ndim=1),
     residuals: ti.types.ndarray(dtype=ti.f32, ndim=2),
     want_residuals: ti.template(),
+    L: ti.template(),
 ):
     nb = tf.shape[0]
     n = rpts.shape[0]
     m = dpts.shape[0]
     h = gray.shape[0]
     w = gray.shape[1]
+    rparts = rstart.shape[0] - 1
+    dparts = dstart.shape[0] - 1
     wm1 = ti.f32(w - 1)
     hm1 = ti.f32(h - 1)
     cc = c_rgb * c_rgb
     cd = c_depth * c_depth
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
-    for b in range(nb):
-        # pass 1 (RGB): samples I_i and the sums over the valid points (eq. 17)
-        sT = ti.f32(0.0)
-        sTT = ti.f32(0.0)
-        sTI = ti.f32(0.0)
-        for c0 in range((n + CHUNK - 1) // CHUNK):
-            bT = ti.f32(0.0)
-            bTT = ti.f32(0.0)
-            bTI = ti.f32(0.0)
-            for i in range(c0 * CHUNK, ti.min(n, c0 * CHUNK + CHUNK)):
-                Z, u, v, ok = _point(tf, b, rpart[i], rpts[i, 0], rpts[i, 1], rpts[i, 2], fx, fy, cx, cy, wm1, hm1)
-                I = ti.f32(0.0)
-                if ok:
+    for g in range((nb + L - 1) // L):
+        P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
+        # ---- RGB pass 1: samples I_i, validity, sums over the valid points (eq. 17)
+        sT = ti.Vector([0.0] * L, dt=ti.f32)
+        sTT = ti.Vector([0.0] * L, dt=ti.f32)
+        sTI = ti.Vector([0.0] * L, dt=ti.f32)
+        bT = ti.Vector([0.0] * L, dt=ti.f32)
+        bTT = ti.Vector([0.0] * L, dt=ti.f32)
+        bTI = ti.Vector([0.0] * L, dt=ti.f32)
+        cnt = 0
+        for j in range(rparts):
+            for l in ti.static(range(L)):
+                b = ti.min(g * L + l, nb - 1)  # lanes past the batch repeat the last hypothesis
+                for e in ti.static(range(12)):
+                    P[l, e] = tf[b, j, e // 4, e % 4]
+            for i in range(rstart[j], rstart[j + 1]):
+                x = rpts[i, 0]
+                y = rpts[i, 1]
+                z = rpts[i, 2]
+                T = rpts[i, 3]
+                for l in ti.static(range(L)):
+                    Z, u, v, ok = _project(P, l, x, y, z, fx, fy, cx, cy, wm1, hm1)
                     x0 = ti.min(ti.cast(u, ti.i32), w - 2)
                     y0 = ti.min(ti.cast(v, ti.i32), h - 2)
                     a = u - ti.cast(x0, ti.f32)
@@ -103,67 +119,95 @@ def _rgbd_kernel(
                     top = i00 + a * (i01 - i00)
                     bot = i10 + a * (i11 - i10)
                     I = top + bw * (bot - top)  # sec. 3.5: bilinear
-                    T = rpts[i, 3]
-                    bT += T
-                    bTT += T * T
-                    bTI += T * I
-                sample[b, i] = I
-                valid[b, i] = ti.cast(ok, ti.u8)
-            sT += bT
-            sTT += bTT
-            sTI += bTI
-        alpha = ti.f32(0.0)
-        beta = ti.f32(0.0)
-        if sT > TINY:
-            alpha = 1.0 / sT  # eq. 17
-        if sTI > TINY:
-            beta = alpha * sTT / sTI  # eq. 17
-        # pass 2 (RGB): eps_C = sum rho_c(d_i)
-        eC = ti.f32(0.0)
-        for c0 in range((n + CHUNK - 1) // CHUNK):
-            blk = ti.f32(0.0)
-            for i in range(c0 * CHUNK, ti.min(n, c0 * CHUNK + CHUNK)):
-                rho = ti.f32(1.0)
-                r = wc
-                if valid[b, i] != 0:
-                    d = beta * sample[b, i] - alpha * rpts[i, 3]  # eq. 17: d_i
-                    rho = d * d / (cc + d * d)
-                    r = wc * d / ti.sqrt(cc + d * d)  # eq. 20-21: r_i
-                blk += rho
+                    Tv = ti.select(ok, T, 0.0)
+                    bT[l] += Tv
+                    bTT[l] += Tv * T
+                    bTI[l] += Tv * I
+                    sample[g, i * L + l] = I
+                    valid[g, i * L + l] = ti.cast(ok, ti.u8)
+                cnt += 1
+                if cnt == CHUNK:
+                    sT += bT
+                    sTT += bTT
+                    sTI += bTI
+                    bT.fill(0.0)
+                    bTT.fill(0.0)
+                    bTI.fill(0.0)
+                    cnt = 0
+        sT += bT
+        sTT += bTT
+        sTI += bTI
+        alpha = ti.Vector([0.0] * L, dt=ti.f32)
+        beta = ti.Vector([0.0] * L, dt=ti.f32)
+        for l in ti.static(range(L)):
+            alpha[l] = ti.select(sT[l] > TINY, 1.0 / sT[l], 0.0)  # eq. 17: alpha = 1 / sum T_i
+            beta[l] = ti.select(sTI[l] > TINY, alpha[l] * sTT[l] / sTI[l], 0.0)  # eq. 17: beta
+        # ---- RGB pass 2: eps_C = sum rho_c(d_i) (eq. 17); residuals r_i (eq. 20-21)
+        eC = ti.Vector([0.0] * L, dt=ti.f32)
+        blk = ti.Vector([0.0] * L, dt=ti.f32)
+        cnt = 0
+        for i in range(n):
+            T = rpts[i, 3]
+            for l in ti.static(range(L)):
+                d = beta[l] * sample[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
+                q = cc + d * d
+                ok = valid[g, i * L + l] != 0
+                blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
                 if ti.static(want_residuals):
-                    residuals[b, i] = r
-            eC += blk
-        # depth: eps_D = sum rho_c'(d'_i) (eq. 18)
-        eD = ti.f32(0.0)
-        for c0 in range((m + CHUNK - 1) // CHUNK):
-            blk = ti.f32(0.0)
-            for i in range(c0 * CHUNK, ti.min(m, c0 * CHUNK + CHUNK)):
-                Z, u, v, ok = _point(tf, b, dpart[i], dpts[i, 0], dpts[i, 1], dpts[i, 2], fx, fy, cx, cy, wm1, hm1)
-                rho = ti.f32(1.0)
-                r = wd
-                if ok:
+                    if g * L + l < nb:
+                        residuals[g * L + l, rperm[i]] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
+            cnt += 1
+            if cnt == CHUNK:
+                eC += blk
+                blk.fill(0.0)
+                cnt = 0
+        eC += blk
+        # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
+        eD = ti.Vector([0.0] * L, dt=ti.f32)
+        blk.fill(0.0)
+        cnt = 0
+        for j in range(dparts):
+            for l in ti.static(range(L)):
+                b = ti.min(g * L + l, nb - 1)
+                for e in ti.static(range(12)):
+                    P[l, e] = tf[b, j, e // 4, e % 4]
+            for i in range(dstart[j], dstart[j + 1]):
+                x = dpts[i, 0]
+                y = dpts[i, 1]
+                z = dpts[i, 2]
+                for l in ti.static(range(L)):
+                    Z, u, v, ok = _project(P, l, x, y, z, fx, fy, cx, cy, wm1, hm1)
                     x0 = ti.min(ti.cast(u, ti.i32), w - 2)
                     y0 = ti.min(ti.cast(v, ti.i32), h - 2)
                     d00 = dimg[y0, x0]
                     d01 = dimg[y0, x0 + 1]
                     d10 = dimg[y0 + 1, x0]
                     d11 = dimg[y0 + 1, x0 + 1]
-                    if _measured(d00) and _measured(d01) and _measured(d10) and _measured(d11):
-                        a = u - ti.cast(x0, ti.f32)
-                        bw = v - ti.cast(y0, ti.f32)
-                        top = d00 + a * (d01 - d00)
-                        bot = d10 + a * (d11 - d10)
-                        dd = top + bw * (bot - top) - Z  # eq. 18: d'_i = Zhat - Z
-                        rho = dd * dd / (cd + dd * dd)
-                        r = wd * dd / ti.sqrt(cd + dd * dd)  # eq. 20-21: r'_i
-                blk += rho
-                if ti.static(want_residuals):
-                    residuals[b, n + i] = r
-            eD += blk
+                    # a measurement is > 0 and finite (NaN fails both tests)
+                    okd = ok & (ti.min(ti.min(d00, d01), ti.min(d10, d11)) > 0.0)
+                    okd = okd & (d00 < BIG) & (d01 < BIG) & (d10 < BIG) & (d11 < BIG)
+                    a = u - ti.cast(x0, ti.f32)
+                    bw = v - ti.cast(y0, ti.f32)
+                    top = d00 + a * (d01 - d00)
+                    bot = d10 + a * (d11 - d10)
+                    dd = ti.select(okd, top + bw * (bot - top) - Z, 0.0)  # eq. 18: d'_i = Zhat - Z
+                    q = cd + dd * dd
+                    blk[l] += ti.select(okd, dd * dd / q, 1.0)
+                    if ti.static(want_residuals):
+                        if g * L + l < nb:
+                            residuals[g * L + l, n + dperm[i]] = ti.select(okd, wd * dd / ti.sqrt(q), wd)
+                cnt += 1
+                if cnt == CHUNK:
+                    eD += blk
+                    blk.fill(0.0)
+                    cnt = 0
+        eD += blk
         if ti.static(not want_residuals):
-            total[b] = (1.0 - lam) * eC + lam * eD  # eq. 19
-            eps_c[b] = eC
-            eps_d[b] = eD
+            for l in ti.static(range(L)):
+                if g * L + l < nb:
+                    total[g * L + l] = (1.0 - lam) * eC[l] + lam * eD[l]  # eq. 19
+                    eps_c[g * L + l] = eC[l]
+                    eps_d[g * L + l] = eD[l]
 
 
 def _buffer(device, name, shape, dtype):
@@ -177,11 +221,13 @@ def _buffer(device, name, shape, dtype):
 
 
 def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, residuals):
+    nl = lanes(device)
     nb = tf.shape[0]
     n = rgb["pts"].shape[0]
     m = depth["pts"].shape[0]
-    sample = _buffer(device, "sample", (nb, n), np.float32)
-    valid = _buffer(device, "valid", (nb, n), np.uint8)
+    groups = (nb + nl - 1) // nl
+    sample = _buffer(device, "sample", (groups, n * nl), np.float32)
+    valid = _buffer(device, "valid", (groups, n * nl), np.uint8)
     if residuals:
         res = device.empty((nb, n + m), np.float32)
         dummy = _buffer(device, "dummy1", (1,), np.float32)
@@ -193,10 +239,11 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, residu
         res_buf = _buffer(device, "dummy2", (1, 1), np.float32)
     fx, fy, cx, cy = (float(c) for c in camera)
     _rgbd_kernel(
-        tf.buffer, rgb["pts"].buffer, rgb["part"].buffer, depth["pts"].buffer, depth["part"].buffer,
+        tf.buffer, rgb["pts"].buffer, rgb["start"].buffer, rgb["perm"].buffer,
+        depth["pts"].buffer, depth["start"].buffer, depth["perm"].buffer,
         gray.buffer, dimg.buffer, fx, fy, cx, cy, lam, c_rgb, c_depth, sample, valid,
-        outs[0], outs[1], outs[2], res_buf, residuals,
-    )
+        outs[0], outs[1], outs[2], res_buf, residuals, nl,
+    )  # fmt: skip
     return res
 
 
@@ -206,3 +253,107 @@ def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *, lam, c_rgb, c_depth
 
 def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, *, lam, c_rgb, c_depth):
     return _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, True)
+
+
+# -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------
+@ti.func
+def _sample(img: ti.template(), uu, vv, h, w):
+    x0 = ti.min(ti.cast(uu, ti.i32), w - 2)
+    y0 = ti.min(ti.cast(vv, ti.i32), h - 2)
+    a = uu - ti.cast(x0, ti.f32)
+    bw = vv - ti.cast(y0, ti.f32)
+    top = img[y0, x0] + a * (img[y0, x0 + 1] - img[y0, x0])
+    bot = img[y0 + 1, x0] + a * (img[y0 + 1, x0 + 1] - img[y0 + 1, x0])
+    return top + bw * (bot - top)  # bilinear
+
+
+@ti.func
+def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
+    s = tpl.shape[1]
+    h = img.shape[0]
+    w = img.shape[1]
+    u = pts[b, k, 0]
+    v = pts[b, k, 1]
+    ctr = 0.5 * ti.cast(s - 1, ti.f32)
+    out = ti.f32(0.0)
+    # the whole patch must lie inside the image (NaN fails the tests)
+    if u - ctr >= 0.0 and u + ctr <= ti.cast(w - 1, ti.f32) and v - ctr >= 0.0 and v + ctr <= ti.cast(h - 1, ti.f32):
+        n = ti.cast(s * s, ti.f32)
+        # pass 1: means (sums shifted by the first values, for accuracy)
+        p0 = _sample(img, u - ctr, v - ctr, h, w)
+        t0 = tpl[k, 0, 0]
+        sp = ti.f32(0.0)
+        st = ti.f32(0.0)
+        for i in range(s):
+            vv = v + (ti.cast(i, ti.f32) - ctr)
+            rp = ti.f32(0.0)
+            rt = ti.f32(0.0)
+            for jj in range(s):
+                uu = u + (ti.cast(jj, ti.f32) - ctr)
+                rp += _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj)
+                rt += tpl[k, i, jj] - t0
+            sp += rp
+            st += rt
+        mp = p0 + sp / n
+        mt = t0 + st / n
+        # pass 2: centred sums
+        spp = ti.f32(0.0)
+        stt = ti.f32(0.0)
+        spt = ti.f32(0.0)
+        for i in range(s):
+            vv = v + (ti.cast(i, ti.f32) - ctr)
+            rpp = ti.f32(0.0)
+            rtt = ti.f32(0.0)
+            rpt = ti.f32(0.0)
+            for jj in range(s):
+                uu = u + (ti.cast(jj, ti.f32) - ctr)
+                p = _sample(img, uu, vv, h, w) - mp
+                t = tpl[k, i, jj] - mt
+                rpp += p * p
+                rtt += t * t
+                rpt += p * t
+            spp += rpp
+            stt += rtt
+            spt += rpt
+        # a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
+        fp = FLAT * (ti.abs(mp) + 1.0)
+        ft = FLAT * (ti.abs(mt) + 1.0)
+        if spp > n * fp * fp and stt > n * ft * ft:
+            out = ti.min(ti.max(spt / ti.sqrt(spp * stt), -1.0), 1.0)
+    return out
+
+
+@ti.kernel
+def _ncc_points(
+    pts: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    tpl: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    img: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+):
+    for b, k in ti.ndrange(pts.shape[0], pts.shape[1]):
+        out[b, k] = _ncc_one(pts, tpl, img, b, k)
+
+
+@ti.kernel
+def _ncc_sum(
+    pts: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    tpl: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    img: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
+    for b in range(pts.shape[0]):
+        acc = ti.f32(0.0)
+        for k in range(pts.shape[1]):
+            acc += _ncc_one(pts, tpl, img, b, k)
+        out[b] = acc  # eq. 13: N(u) = sum over the K points
+
+
+def patch_ncc(device, pts, tpl, img, *, per_point):
+    nb, nk = pts.shape[:2]
+    if per_point:
+        out = device.empty((nb, nk), np.float32)
+        _ncc_points(pts.buffer, tpl.buffer, img.buffer, out.buffer)
+    else:
+        out = device.empty((nb,), np.float32)
+        _ncc_sum(pts.buffer, tpl.buffer, img.buffer, out.buffer)
+    return out
