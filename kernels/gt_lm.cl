@@ -155,10 +155,14 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
         REAL C = sc[1];
         int ok = 0;
         for (int tries = 0; tries <= MAX_CHOL_TRIES; ++tries) {
+            // parameters held at a bound by the gradient stay there (identity rows, rhs 0)
             for (int i = 0; i < P; ++i) {
-                xt[i] = g[i];
-                for (int j = 0; j <= i; ++j)
-                    L[i * P + j] = A[i * P + j];
+                const int ai = (x[i] >= hi[i] && g[i] < 0) || (x[i] <= lo[i] && g[i] > 0);
+                xt[i] = ai ? 0 : g[i];
+                for (int j = 0; j <= i; ++j) {
+                    const int aj = (x[j] >= hi[j] && g[j] < 0) || (x[j] <= lo[j] && g[j] > 0);
+                    L[i * P + j] = (ai || aj) ? (REAL)(i == j) : A[i * P + j];
+                }
             }
             ok = gt_chol_solve(L, xt, P, C);  // eq. 22: delta into the xt slots
             if (ok || C > cmax * dmax)
@@ -292,10 +296,16 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global XTYPE *X,
                 } else {
                     sc[1] *= sc[2];
                     sc[2] *= 2;
-                    REAL dmax = 0;
-                    for (int i = 0; i < P; ++i)
+                    REAL dmax = 0, sn = 0, xn = 0;
+                    for (int i = 0; i < P; ++i) {
                         dmax = fmax(dmax, A[i * P + i]);
-                    if (sc[1] > cmax * (1 + dmax)) {
+                        sn += (xt[i] - x[i]) * (xt[i] - x[i]);
+                        xn += x[i] * x[i];
+                    }
+                    if (sqrt(sn) <= xtol * (xtol + sqrt(xn))) {
+                        ib[0] = CONVERGED;  // no step this small improves the cost
+                        ib[3] = R_XTOL;
+                    } else if (sc[1] > cmax * (1 + dmax)) {
                         ib[0] = FAILED;
                         ib[3] = R_DAMPING;
                     }

@@ -152,7 +152,9 @@ def solver_update(state, R, X, *, first, final, jac=None):
             else:
                 C[b] *= nu[b]  # rejected: raise this problem's C only
                 nu[b] *= 2.0
-                if C[b] > cmax * (1.0 + np.max(np.diag(A[b]))):
+                if np.linalg.norm(xt[b] - x[b]) <= xtol * (xtol + np.linalg.norm(x[b])):
+                    status[b], reason[b] = CONVERGED, R_XTOL  # no step this small improves the cost
+                elif C[b] > cmax * (1.0 + np.max(np.diag(A[b]))):
                     status[b], reason[b] = FAILED, R_DAMPING
                     continue
         if acc:
@@ -182,18 +184,23 @@ def solver_update(state, R, X, *, first, final, jac=None):
     eye = np.eye(P, dtype=dt)
     for b in range(B):
         if status[b] == RUNNING:
+            # parameters held at a bound by the gradient (the step is x - delta) stay there: their
+            # rows and columns of the system become the identity, their right-hand side 0
+            act = ((x[b] >= hi[b]) & (g[b] < 0)) | ((x[b] <= lo[b]) & (g[b] > 0))
+            Ab = np.where(act[:, None] | act[None, :], 0, A[b]) + np.diag(act.astype(dt))
+            gb = np.where(act, 0, g[b])
             # damped Cholesky (eq. 22); a failure raises C tenfold and tries again
             dmax = 1.0 + np.max(np.diag(A[b]))
-            L = cholesky(A[b] + C[b] * eye)
+            L = cholesky(Ab + C[b] * eye)
             tries = 0
-            while L is None and tries < MAX_CHOL_TRIES and C[b] <= cmax * dmax:
+            while L is None and tries <= MAX_CHOL_TRIES and C[b] <= cmax * dmax:
                 C[b] = max(10.0 * C[b], ctiny * dmax)
-                L = cholesky(A[b] + C[b] * eye)
+                L = cholesky(Ab + C[b] * eye)
                 tries += 1
             if L is None:
                 status[b], reason[b] = FAILED, R_NOTPD
             else:
-                delta = chol_solve(L, g[b])
+                delta = chol_solve(L, gb)
                 xt[b] = np.clip(x[b] - delta, lo[b], hi[b])  # eq. 22, projected into the box (paper 003 eq. 8-9)
                 s = x[b] - xt[b]
                 pred[b] = 2.0 * (s @ g[b]) - s @ (A[b] @ s)  # predicted reduction of the model ||r - J s||^2

@@ -257,9 +257,17 @@ def _phase_accept(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: t
                     S[sc + 1] *= S[sc + 2]  # rejected: raise this problem's C only
                     S[sc + 2] *= 2
                     dmax = ti.cast(0, dt)
+                    sn = ti.cast(0, dt)
+                    xn = ti.cast(0, dt)
                     for i in range(P):
                         dmax = ti.max(dmax, S[base + 7 * P + i * P + i])
-                    if S[sc + 1] > cmax * (1 + dmax):
+                        d = S[base + P + i] - S[base + i]
+                        sn += d * d
+                        xn += S[base + i] * S[base + i]
+                    if ti.sqrt(sn) <= xtol * (xtol + ti.sqrt(xn)):
+                        I[ib + 0] = CONVERGED  # no step this small improves the cost
+                        I[ib + 3] = R_XTOL
+                    elif S[sc + 1] > cmax * (1 + dmax):
                         I[ib + 0] = FAILED
                         I[ib + 3] = R_DAMPING
             if acc:
@@ -312,6 +320,13 @@ def _phase_normal(S: ti.template(), I: ti.template(), R: ti.template(), b, i, dt
 
 
 @ti.func
+def _active(S: ti.template(), xo, loo, hio, go, i) -> ti.i32:
+    """Parameter i is held at a bound by the gradient (the step is x - delta)."""
+    x, gi = S[xo + i], S[go + i]
+    return ti.i32((x >= S[hio + i] and gi < 0) or (x <= S[loo + i] and gi > 0))
+
+
+@ti.func
 def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.template()):
     """gtol test, damped Cholesky step, trial point and the next points to evaluate."""
     P, M, B = I[3], I[4], I[1]
@@ -348,7 +363,10 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
             ok = 1
             for j in range(P):
                 if ok:
+                    aj = _active(S, xo, loo, hio, go, j)
                     s = S[A + j * P + j] + C
+                    if aj:
+                        s = 1 + C
                     for k in range(j):
                         s -= S[L + j * P + k] * S[L + j * P + k]
                     if s <= 0 or not _finite(s, dt):
@@ -358,6 +376,8 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
                         S[L + j * P + j] = d
                         for i in range(j + 1, P):
                             v = S[A + i * P + j]
+                            if aj or _active(S, xo, loo, hio, go, i):
+                                v = ti.cast(0, dt)
                             for k in range(j):
                                 v -= S[L + i * P + k] * S[L + j * P + k]
                             S[L + i * P + j] = v / d
@@ -373,6 +393,8 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
             # delta = (J^T J + C I)^-1 J^T r by substitution, in the xt slots
             for i in range(P):
                 v = S[go + i]
+                if _active(S, xo, loo, hio, go, i):
+                    v = ti.cast(0, dt)
                 for k in range(i):
                     v -= S[L + i * P + k] * S[xto + k]
                 S[xto + i] = v / S[L + i * P + i]

@@ -1,0 +1,459 @@
+"""Batched Levenberg-Marquardt (gputrack.ops.lm) on every backend vs the NumPy reference."""
+
+import numpy as np
+import pytest
+import scipy.optimize
+from tolerances import assert_matches
+
+import gputrack
+from gputrack.ops import lm
+from gputrack.ops.lm import Layout, Status, least_squares
+
+REF = gputrack.device("numpy")
+
+
+def _fdt(device):
+    return np.float64 if device.fp64 else np.float32
+
+
+def host_residual(f, calls=None):
+    """A residual function computed on the host (downloads X, returns NumPy in X's dtype)."""
+
+    def res(X):
+        Xn = gputrack.to_numpy(X)
+        if calls is not None:
+            calls.append(Xn.shape[0])
+        return f(Xn.astype(np.float64)).astype(Xn.dtype)
+
+    return res
+
+
+def rosenbrock(X):
+    return np.stack([10 * (X[:, 1] - X[:, 0] ** 2), 1 - X[:, 0]], axis=1)
+
+
+def powell_singular(X):
+    x1, x2, x3, x4 = X.T
+    return np.stack([x1 + 10 * x2, np.sqrt(5) * (x3 - x4), (x2 - 2 * x3) ** 2, np.sqrt(10) * (x1 - x4) ** 2], axis=1)
+
+
+T_BOX = 0.1 * np.arange(1, 11)
+
+
+def box3d(X):
+    t = T_BOX[None, :]
+    x1, x2, x3 = X[:, :1], X[:, 1:2], X[:, 2:3]
+    return np.exp(-t * x1) - np.exp(-t * x2) - x3 * (np.exp(-t) - np.exp(-10 * t))
+
+
+T_EXP = np.linspace(0, 2, 40)
+Y_EXP = 2.5 * np.exp(-1.3 * T_EXP) + 0.01 * np.random.default_rng(3).normal(size=T_EXP.size)
+
+
+def expfit(X):
+    return X[:, :1] * np.exp(X[:, 1:2] * T_EXP[None, :]) - Y_EXP[None, :]
+
+
+# ------------------------------------------------------------------------------------------------
+# ops
+
+
+@pytest.mark.parametrize("B,M,P", [(1, 1, 1), (13, 7, 5), (3, 129, 20), (2, 3, 14)])
+def test_normal_equations_matches_reference(device, B, M, P):
+    rng = np.random.default_rng(B * 100 + P)
+    for dt in {np.float32, _fdt(device)}:
+        J = rng.normal(size=(B, M, P)).astype(dt)
+        r = rng.normal(size=(B, M)).astype(dt)
+        JtJ, Jtr = lm.normal_equations(device, J, r)
+        want = np.einsum("bmi,bmj->bij", J.astype(np.float64), J.astype(np.float64))
+        assert_matches(device, JtJ, want, dt, scale=M)
+        assert_matches(device, Jtr, np.einsum("bmi,bm->bi", J.astype(np.float64), r.astype(np.float64)), dt, scale=M)
+        assert gputrack.to_numpy(JtJ).dtype == dt
+
+
+@pytest.mark.parametrize("B,P", [(1, 1), (13, 5), (10, 20)])
+def test_lm_step_and_solve_match_reference(device, B, P):
+    rng = np.random.default_rng(P)
+    dt = _fdt(device)
+    M = P + 7
+    J = rng.normal(size=(B, M, P)).astype(dt)
+    r = rng.normal(size=(B, M)).astype(dt)
+    C = rng.uniform(1e-5, 1, size=B).astype(dt)
+    JtJ, Jtr = lm.normal_equations(REF, J, r)
+    want = np.stack([np.linalg.solve(JtJ[b] + C[b] * np.eye(P), Jtr[b]) for b in range(B)])
+    delta, ok = lm.lm_step(device, JtJ, Jtr, C)
+    assert_matches(device, delta, want, dt, scale=1e3 if dt == np.float32 else 1e2)
+    assert (gputrack.to_numpy(ok) == 1).all()
+    delta2, ok2 = lm.lm_solve(device, J, r, C)
+    assert_matches(device, delta2, want, dt, scale=1e3 if dt == np.float32 else 1e2)
+    assert (gputrack.to_numpy(ok2) == 1).all()
+
+
+def test_lm_step_flags_not_positive_definite(device):
+    dt = _fdt(device)
+    P = 4
+    JtJ = np.stack([np.eye(P), -np.eye(P), np.zeros((P, P)), np.diag([1.0, 1.0, 0.0, 1.0])]).astype(dt)
+    Jtr = np.ones((4, P), dt)
+    C = np.array([0.0, 0.5, 0.0, 0.0], dt)
+    delta, ok = lm.lm_step(device, JtJ, Jtr, C)
+    d = gputrack.to_numpy(delta)
+    assert gputrack.to_numpy(ok).tolist() == [1, 0, 0, 0]
+    assert np.isfinite(d).all()
+    assert (d[1:] == 0).all()
+    assert_matches(device, d[0], np.ones(P), dt)
+    # the same singular matrix becomes solvable with damping
+    delta, ok = lm.lm_step(device, JtJ[2:], Jtr[2:], np.array([1.0, 1.0], dt))
+    assert gputrack.to_numpy(ok).tolist() == [1, 1]
+
+
+def test_ops_bad_input(device):
+    dt = _fdt(device)
+    J = np.zeros((2, 5, 3), dt)
+    with pytest.raises(ValueError, match="r: expected shape"):
+        lm.normal_equations(device, J, np.zeros((2, 4), dt))
+    with pytest.raises(ValueError, match="J: expected shape"):
+        lm.normal_equations(device, np.zeros((5, 3), dt), np.zeros((2, 5), dt))
+    with pytest.raises(TypeError, match="J: expected dtype"):
+        lm.normal_equations(device, J.astype(np.int32), np.zeros((2, 5), dt))
+    with pytest.raises(ValueError, match="J: expected finite"):
+        bad = J.copy()
+        bad[0, 0, 0] = np.nan
+        lm.normal_equations(device, bad, np.zeros((2, 5), dt))
+    with pytest.raises(ValueError, match="non-empty"):
+        lm.normal_equations(device, np.zeros((0, 5, 3), dt), np.zeros((0, 5), dt))
+    with pytest.raises(ValueError, match="damping: expected values >= 0"):
+        lm.lm_step(device, np.zeros((2, 3, 3), dt), np.zeros((2, 3), dt), np.array([1.0, -1.0]))
+    with pytest.raises(ValueError, match="damping: expected shape"):
+        lm.lm_step(device, np.zeros((2, 3, 3), dt), np.zeros((2, 3), dt), np.ones(3, dt))
+
+
+# ------------------------------------------------------------------------------------------------
+# solver: classic problems
+
+
+def test_rosenbrock_batch_reaches_minimum_and_matches_reference(device):
+    x0 = np.array([[-1.2, 1.0], [0.0, 0.0], [2.0, 2.0], [-0.5, 3.0], [1.0, 1.0]])
+    res = least_squares(host_residual(rosenbrock), x0, device=device, max_iter=100)
+    assert res.dtype == _fdt(device)
+    np.testing.assert_allclose(res.x, 1.0, atol=1e-6)
+    assert (res.cost < 1e-12).all()
+    assert (res.status == Status.CONVERGED).all()
+    ref = least_squares(host_residual(rosenbrock), x0, device=REF, max_iter=100)
+    assert_matches(device, res.x, ref.x, np.float64, scale=1e3)
+    np.testing.assert_array_equal(res.status, ref.status)
+    np.testing.assert_array_equal(res.iterations, ref.iterations)
+
+
+def test_powell_singular(device):
+    x0 = np.array([[3.0, -1.0, 0.0, 1.0]])
+    res = least_squares(host_residual(powell_singular), x0, device=device, max_iter=200)
+    assert res.status[0] == Status.CONVERGED, res.messages()
+    assert res.cost[0] < 1e-8
+    assert np.abs(res.x).max() < 2e-2
+
+
+def test_box3d(device):
+    x0 = np.array([[0.0, 10.0, 20.0]])
+    res = least_squares(host_residual(box3d), x0, device=device, max_iter=100)
+    assert res.status[0] == Status.CONVERGED, res.messages()
+    assert res.cost[0] < 1e-12
+    np.testing.assert_allclose(res.x[0], [1.0, 10.0, 1.0], atol=1e-4)
+
+
+def test_exponential_fit_matches_scipy(device):
+    x0 = np.array([[1.0, 0.0], [4.0, -3.0], [2.0, -1.0]])
+    res = least_squares(host_residual(expfit), x0, device=device, max_iter=50)
+    want = scipy.optimize.least_squares(lambda p: expfit(p[None])[0], x0[0], method="lm", xtol=1e-14, ftol=1e-14).x
+    assert (res.status == Status.CONVERGED).all(), res.messages()
+    np.testing.assert_allclose(res.x, np.broadcast_to(want, res.x.shape), rtol=1e-6)
+    np.testing.assert_allclose(res.cost, np.sum(expfit(want[None]) ** 2), rtol=1e-8)
+
+
+def test_float32_fallback(device):
+    x0 = np.array([[1.0, 0.0], [4.0, -3.0]])
+    res = least_squares(host_residual(expfit), x0, device=device, max_iter=50, dtype=np.float32)
+    assert res.dtype == np.float32 and res.x.dtype == np.float32
+    want = scipy.optimize.least_squares(lambda p: expfit(p[None])[0], x0[0], method="lm").x
+    np.testing.assert_allclose(res.x, np.broadcast_to(want, res.x.shape), rtol=2e-3)
+    assert set(res.status.tolist()) <= {Status.CONVERGED, Status.MAX_ITER}
+
+
+def test_points_dtype_float32(device):
+    seen = []
+
+    def res32(X):
+        seen.append(X.dtype)
+        Xn = gputrack.to_numpy(X)
+        return expfit(Xn.astype(np.float64)).astype(np.float32)
+
+    res = least_squares(res32, np.array([[1.0, 0.0]]), device=device, max_iter=50, points_dtype=np.float32, step=1e-3)
+    assert set(seen) == {np.dtype(np.float32)}
+    want = scipy.optimize.least_squares(lambda p: expfit(p[None])[0], [1.0, 0.0], method="lm").x
+    np.testing.assert_allclose(res.x[0], want, rtol=1e-3)
+
+
+# ------------------------------------------------------------------------------------------------
+# solver: per-problem behaviour
+
+
+def _mixed(X):
+    """Problem 0 easy (linear), 1 hard (Powell singular), 2 diverging (leaves its domain), 3 NaN at x0."""
+    out = np.zeros((X.shape[0], 4))
+    B = 4
+    S = X.shape[0] // B
+    for b in range(B):
+        Xb = X[b * S : (b + 1) * S]
+        if b == 0:
+            out[b * S : (b + 1) * S] = np.stack([Xb[:, 0] - 1, Xb[:, 1] + 2, Xb[:, 2] - 3, Xb[:, 3]], axis=1)
+        elif b == 1:
+            out[b * S : (b + 1) * S] = powell_singular(Xb)
+        elif b == 2:
+            # minimum at x = 3, but the model is undefined (NaN) beyond x = 2
+            r = np.where(Xb[:, :1] > 2.0, np.nan, Xb[:, :1] - 3.0)
+            out[b * S : (b + 1) * S] = np.concatenate([r, 0 * Xb[:, 1:]], axis=1)
+        else:
+            out[b * S : (b + 1) * S] = np.nan
+    return out
+
+
+def test_mixed_batch_gives_each_problem_its_status(device):
+    x0 = np.array([[0.0, 0.0, 0.0, 0.0], [3.0, -1.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]])
+    res = least_squares(host_residual(_mixed), x0, device=device, max_iter=10)
+    assert res.statuses() == [Status.CONVERGED, Status.MAX_ITER, Status.FAILED, Status.FAILED], res.messages()
+    np.testing.assert_allclose(res.x[0], [1, -2, 3, 0], atol=1e-8)
+    assert res.iterations[1] == 10
+    assert res.reason[2] == 5 and res.reason[3] == 5  # non-finite residuals
+    assert res.x[2, 0] <= 2.0 and np.isfinite(res.cost[2])  # keeps its last accepted point
+    assert res.cost[3] == np.inf
+    # the hard problem runs exactly as it would alone
+    alone = least_squares(host_residual(powell_singular), x0[1:2], device=device, max_iter=10)
+    np.testing.assert_array_equal(res.x[1], alone.x[0])
+    ref = least_squares(host_residual(_mixed), x0, device=REF, max_iter=10)
+    np.testing.assert_array_equal(res.status, ref.status)
+    assert_matches(device, res.x[:2], ref.x[:2], np.float64, scale=1e3)
+
+
+def test_early_stop_off_gives_the_same_result(device):
+    x0 = np.array([[-1.2, 1.0], [2.0, 2.0]])
+    a = least_squares(host_residual(rosenbrock), x0, device=device, max_iter=60)
+    b = least_squares(host_residual(rosenbrock), x0, device=device, max_iter=60, early_stop=False)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.status, b.status)
+    np.testing.assert_array_equal(a.iterations, b.iterations)
+    assert a.nfev < b.nfev == 61
+
+
+def test_max_iter_zero_and_call_layout(device):
+    calls = []
+    x0 = np.array([[1.0, 2.0, 3.0]] * 2)
+    res = least_squares(host_residual(box3d, calls), x0, device=device, max_iter=0)
+    assert calls == [2] and (res.status == Status.MAX_ITER).all() and (res.iterations == 0).all()
+    np.testing.assert_allclose(res.cost, np.sum(box3d(x0) ** 2, axis=1), rtol=1e-12)
+    calls.clear()
+    least_squares(host_residual(box3d, calls), x0, device=device, max_iter=3, early_stop=False)
+    assert calls == [2 * 7, 2 * 7, 2 * 7, 2]  # B (2P + 1) stacked points, the last call B points
+
+
+def test_stacked_points_are_central_differences(device):
+    got = []
+
+    def res(X):
+        got.append(gputrack.to_numpy(X).copy())
+        return np.zeros((X.shape[0], 1), dtype=X.dtype)
+
+    x0 = np.array([[0.5, -2000.0]])
+    least_squares(res, x0, device=device, max_iter=0 + 1, step=None, early_stop=False)
+    X = got[0]
+    eps = lm.DEFAULT_REL_STEP[X.dtype.name] * np.maximum(np.abs(x0[0]), 1)
+    np.testing.assert_array_equal(X[0], x0[0])
+    np.testing.assert_allclose(X[1], [0.5 + eps[0], -2000.0])
+    np.testing.assert_allclose(X[2], [0.5 - eps[0], -2000.0])
+    np.testing.assert_allclose(X[3], [0.5, -2000.0 + eps[1]])
+    np.testing.assert_allclose(X[4], [0.5, -2000.0 - eps[1]])
+
+
+# ------------------------------------------------------------------------------------------------
+# bounds
+
+
+def test_bounds_hold_and_reach_the_constrained_minimum(device):
+    x0 = np.array([[-1.2, 1.0], [0.0, 0.0], [0.4, 0.9]])
+    seen = []
+
+    def res(X):
+        Xn = gputrack.to_numpy(X)
+        seen.append(Xn.copy())
+        return rosenbrock(Xn.astype(np.float64)).astype(Xn.dtype)
+
+    out = least_squares(res, x0, device=device, upper=[0.5, np.inf], lower=[-2.0, -1.0], max_iter=100)
+    assert (out.x[:, 0] <= 0.5).all()
+    np.testing.assert_allclose(out.x, [[0.5, 0.25]] * 3, atol=1e-6)
+    np.testing.assert_allclose(out.cost, 0.25, rtol=1e-8)
+    assert (out.status == Status.CONVERGED).all(), out.messages()
+    allpts = np.concatenate(seen)
+    assert (allpts[:, 0] <= 0.5).all() and (allpts[:, 0] >= -2.0).all() and (allpts[:, 1] >= -1.0).all()
+
+
+def test_fixed_parameter_and_clipped_start(device):
+    x0 = np.array([[3.0, 1.0], [0.0, 0.3]])
+    out = least_squares(host_residual(rosenbrock), x0, device=device, lower=[-2.0, 0.3], upper=[2.0, 0.3], max_iter=100)
+    assert out.x0_clipped.tolist() == [True, False]
+    np.testing.assert_array_equal(out.x[:, 1], 0.3)
+    # min over x1 of 100 (0.3 - x1^2)^2 + (1 - x1)^2
+    want = scipy.optimize.minimize_scalar(lambda a: 100 * (0.3 - a * a) ** 2 + (1 - a) ** 2, bounds=(0, 2), method="bounded", options={"xatol": 1e-12}).x
+    np.testing.assert_allclose(out.x[:, 0], want, atol=1e-5)
+
+
+def test_bounds_bad_input(device):
+    f = host_residual(rosenbrock)
+    with pytest.raises(ValueError, match="expected lower <= upper"):
+        least_squares(f, np.zeros((1, 2)), device=device, lower=[0, 1], upper=[1, 0])
+    with pytest.raises(ValueError, match="upper: expected shape"):
+        least_squares(f, np.zeros((1, 2)), device=device, upper=[1, 2, 3])
+    with pytest.raises(ValueError, match="lower: expected numbers"):
+        least_squares(f, np.zeros((1, 2)), device=device, lower=[np.nan, 0])
+
+
+# ------------------------------------------------------------------------------------------------
+# Jacobian sparsity and the rows protocol
+
+
+def _chain(X):
+    """A two-part chain (paper 000 Fig. 2): residuals 0-5 depend on params 0-1, residuals 6-11 on 0-3."""
+    a, b, c, d = X.T
+    t = np.linspace(0, 1, 6)[None, :]
+    r0 = a[:, None] * np.exp(b[:, None] * t) - 2 * np.exp(-t)
+    r1 = a[:, None] + c[:, None] * np.sin(d[:, None] * (t + 1)) - (2 + 0.5 * np.sin(1.5 * (t + 1)))
+    return np.concatenate([r0, r1], axis=1)
+
+
+CHAIN_MASK = np.zeros((12, 4), bool)
+CHAIN_MASK[:6, :2] = True
+CHAIN_MASK[6:, :] = True
+CHAIN_MASK[6:, 1] = False  # r1 does not depend on b: the mask is exact
+
+
+def test_sparse_jacobian_gives_the_dense_steps(device):
+    x0 = np.array([[1.0, -0.5, 0.3, 1.2], [2.5, -1.5, 0.6, 1.6]])
+    counted = {"entries": 0}
+
+    def res_rows(X, rows):
+        need = gputrack.to_numpy(rows).astype(bool)
+        Xn = gputrack.to_numpy(X)
+        counted["entries"] += int(need.sum())
+        out = _chain(Xn.astype(np.float64))
+        out[~need] = 1e30  # not needed: any value, must be ignored
+        return out.astype(Xn.dtype)
+
+    dense = least_squares(host_residual(_chain), x0, device=device, max_iter=8, early_stop=False)
+    sparse = least_squares(res_rows, x0, device=device, max_iter=8, early_stop=False, jac_sparsity=CHAIN_MASK)
+    assert_matches(device, sparse.x, dense.x, np.float64)
+    np.testing.assert_array_equal(sparse.iterations, dense.iterations)
+    assert_matches(device, sparse.cost, dense.cost, np.float64)
+    # the perturbations of parameter n evaluated only the rows that depend on it
+    B, P, M = 2, 4, 12
+    per_call = B * (M + 2 * int(CHAIN_MASK.sum()))
+    assert counted["entries"] == 8 * per_call + B * M
+    assert counted["entries"] < sparse.npoints * M
+
+
+def test_sparse_mask_without_rows_protocol(device):
+    x0 = np.array([[1.0, -0.5, 0.3, 1.2]])
+    dense = least_squares(host_residual(_chain), x0, device=device, max_iter=30)
+    sparse = least_squares(host_residual(_chain), x0, device=device, max_iter=30, jac_sparsity=CHAIN_MASK)
+    assert_matches(device, sparse.x, dense.x, np.float64)
+    with pytest.raises(ValueError, match="jac_sparsity: expected shape"):
+        least_squares(host_residual(_chain), x0, device=device, jac_sparsity=CHAIN_MASK[:5])
+    with pytest.raises(TypeError, match="jac_sparsity: expected a bool"):
+        least_squares(host_residual(_chain), x0, device=device, jac_sparsity=CHAIN_MASK * 0.5)
+
+
+def test_jacobian_callable(device):
+    def jac(X):
+        Xn = gputrack.to_numpy(X).astype(np.float64)
+        a, b = Xn[:, :1, None], Xn[:, 1:2, None]
+        e = np.exp(b * T_EXP[None, :, None])
+        return np.concatenate([e, a * T_EXP[None, :, None] * e], axis=2).astype(gputrack.to_numpy(X).dtype)
+
+    x0 = np.array([[1.0, 0.0], [4.0, -3.0]])
+    res = least_squares(host_residual(expfit), x0, device=device, jacobian=jac, max_iter=50)
+    central = least_squares(host_residual(expfit), x0, device=device, max_iter=50)
+    np.testing.assert_allclose(res.x, central.x, rtol=1e-7)
+    assert res.njev == res.nfev and res.npoints == res.nfev * 2
+
+
+# ------------------------------------------------------------------------------------------------
+# residual functions on the device, traffic, bad input
+
+
+def test_device_residual_and_no_download_per_iteration(device):
+    """A residual returning device arrays; with early_stop=False nothing but the result is downloaded."""
+    moved = {"d2h": 0}
+
+    def res(X):
+        Xn = gputrack.to_numpy(X)
+        moved["d2h"] += Xn.nbytes if device.backend != "numpy" else 0
+        out = rosenbrock(Xn.astype(np.float64)).astype(Xn.dtype)
+        return device.asarray(out)
+
+    x0 = np.array([[-1.2, 1.0], [2.0, 2.0]])
+    before = device.transfers.copy()
+    out = least_squares(res, x0, device=device, max_iter=40, early_stop=False)
+    moved_d2h = (device.transfers - before).d2h
+    if device.backend != "numpy":
+        lay = Layout(2, 2, 2)
+        dt = np.dtype(out.dtype)
+        assert moved_d2h == moved["d2h"] + lay.s_size(False) * dt.itemsize + lay.i_size() * 4
+    np.testing.assert_allclose(out.x, 1.0, atol=1e-6)
+
+
+def test_solver_bad_input(device):
+    f = host_residual(rosenbrock)
+    with pytest.raises(ValueError, match="x0: expected finite"):
+        least_squares(f, np.array([[np.nan, 1.0]]), device=device)
+    with pytest.raises(ValueError, match=r"x0: expected shape \(B, P\)"):
+        least_squares(f, np.zeros(2), device=device)
+    with pytest.raises(TypeError, match="x0: expected a float"):
+        least_squares(f, np.array([["a", "b"]]), device=device)
+    with pytest.raises(ValueError, match="residuals: expected a result of shape"):
+        least_squares(lambda X: np.zeros((3, 2)), np.zeros((1, 2)), device=device)
+    with pytest.raises(TypeError, match="residuals: expected a float32 or float64"):
+        least_squares(lambda X: np.zeros((X.shape[0], 2), np.int32), np.zeros((1, 2)), device=device)
+    with pytest.raises(ValueError, match="jacobian: expected 'central'"):
+        least_squares(f, np.zeros((1, 2)), device=device, jacobian="forward")
+    with pytest.raises(ValueError, match="damping: expected"):
+        least_squares(f, np.zeros((1, 2)), device=device, damping=-1)
+    with pytest.raises(ValueError, match="step: expected"):
+        least_squares(f, np.zeros((1, 2)), device=device, step=[1e-3, 0])
+    with pytest.raises(ValueError, match="max_iter: expected"):
+        least_squares(f, np.zeros((1, 2)), device=device, max_iter=-1)
+    with pytest.raises(ValueError, match="ftol: expected"):
+        least_squares(f, np.zeros((1, 2)), device=device, ftol=np.nan)
+    with pytest.raises(TypeError, match="dtype: expected"):
+        least_squares(f, np.zeros((1, 2)), device=device, dtype=np.int32)
+
+    # the output shape changing after the first call
+    n_calls = []
+
+    def shrinking(X):
+        n_calls.append(1)
+        Xn = gputrack.to_numpy(X)
+        out = rosenbrock(Xn.astype(np.float64)).astype(Xn.dtype)
+        return out if len(n_calls) == 1 else np.concatenate([out, out[:, :1]], axis=1)
+
+    with pytest.raises(ValueError, match="residuals: expected a result of shape"):
+        least_squares(shrinking, np.zeros((1, 2)), device=device, max_iter=3)
+
+
+def test_empty_batch_and_underdetermined(device):
+    called = []
+    out = least_squares(lambda X: called.append(1), np.zeros((0, 3)), device=device)
+    assert out.x.shape == (0, 3) and not called and out.nfev == 0
+    # M = 1 < P = 3: the damped step still reduces the cost to zero
+    res = least_squares(host_residual(lambda X: (X.sum(axis=1, keepdims=True) - 1)), np.zeros((2, 3)), device=device, max_iter=20)
+    np.testing.assert_allclose(res.x.sum(axis=1), 1.0, atol=1e-8)
+    assert (res.status == Status.CONVERGED).all()
+
+
+def test_selftest(device):
+    lm._selftest(device)
