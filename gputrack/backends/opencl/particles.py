@@ -1,0 +1,46 @@
+"""OpenCL launchers for kernels/gt_particles.cl: counter-based sampling (eq. 12) and best-k."""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+_kernels = weakref.WeakKeyDictionary()
+
+
+def _kernel(device, name):
+    import pyopencl as cl
+
+    per_device = _kernels.setdefault(device, {})
+    found = per_device.get(name)
+    if found is None:
+        found = cl.Kernel(device.program("gt_particles.cl"), name)
+        per_device[name] = found
+    return found
+
+
+def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
+    c, p = cand.shape
+    out = device.empty((n, p), np.float32)
+    i32 = np.int32
+    _kernel(device, "gt_sample_around")(
+        device.queue, (n * p,), None, cand.buffer.data, i32(c), i32(p), sig.buffer.data, i32(per_candidate),
+        i32(n), np.uint32(lo), np.uint32(hi), i32(keep_candidates), out.buffer.data,
+    )  # fmt: skip
+    return out
+
+
+def best_k(device, scores, k, rows):
+    idx = device.empty((k,), np.int32)
+    val = device.empty((k,), np.float32)
+    keys = device.empty((k,), np.uint32)
+    sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
+    p = rows.shape[1] if rows is not None else 0
+    rows_buf = rows.buffer.data if rows is not None else scores.buffer.data
+    sel_buf = sel.buffer.data if sel is not None else val.buffer.data
+    _kernel(device, "gt_best_k")(
+        device.queue, (1,), None, scores.buffer.data, np.int32(scores.shape[0]), np.int32(k), idx.buffer.data,
+        val.buffer.data, keys.buffer.data, rows_buf, np.int32(p), sel_buf,
+    )  # fmt: skip
+    return idx, val, sel

@@ -1,0 +1,53 @@
+"""NumPy reference of the particle-filter helpers (paper 000 eq. 12): counter-based sampling, best-k.
+
+The generator: bits = pcg(pcg(counter) + key), key = pcg(seed_lo ^ pcg(seed_hi)), with
+pcg the 32-bit PCG output hash; the normal deviate of (sample k, parameter p) is Box-Muller
+(cosine branch) on the uniforms of counters 2 (k P + p) and 2 (k P + p) + 1.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...ops.particles import sortable_key
+
+U32 = np.uint32
+
+
+def pcg(x):
+    """PCG-RXS-M-XS 32-bit hash (uint32 arrays; arithmetic wraps modulo 2**32)."""
+    x = np.asarray(x, dtype=U32)
+    state = x * U32(747796405) + U32(2891336453)
+    word = ((state >> ((state >> U32(28)) + U32(4))) ^ state) * U32(277803737)
+    return (word >> U32(22)) ^ word
+
+
+def normals(n_values: int, lo: int, hi: int) -> np.ndarray:
+    """The first ``n_values`` standard normal deviates (float32) of the stream keyed by (lo, hi)."""
+    key = pcg(np.array([lo], U32) ^ pcg(np.array([hi], U32)))[0]
+    c = np.arange(2 * n_values, dtype=U32)
+    bits = pcg(pcg(c) + key)
+    u1 = ((bits[0::2] >> U32(8)) + U32(1)).astype(np.float32) * np.float32(2.0**-24)  # (0, 1]
+    u2 = (bits[1::2] >> U32(8)).astype(np.float32) * np.float32(2.0**-24)  # [0, 1)
+    r = np.sqrt(np.float32(-2.0) * np.log(u1))
+    return (r * np.cos(np.float32(2.0 * np.pi) * u2)).astype(np.float32)
+
+
+def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
+    c, p = cand.shape
+    k = np.arange(n)
+    owner = k * c // n  # sample k belongs to candidate k C // K
+    z = normals(n * p, lo, hi).reshape(n, p)
+    s = sig[owner] if per_candidate else sig[None, :]
+    out = cand[owner] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+    if keep_candidates:
+        first = k == (owner * n + c - 1) // c  # the first sample of each block
+        out[first] = cand[owner[first]]
+    return out.astype(np.float32)
+
+
+def best_k(device, scores, k, rows):
+    order = np.argsort(sortable_key(scores), kind="stable")[:k]  # ascending, ties by index
+    idx = order.astype(np.int32)
+    sel = None if rows is None else rows[idx].copy()
+    return idx, scores[idx].astype(np.float32), sel

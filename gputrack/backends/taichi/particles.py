@@ -1,0 +1,137 @@
+"""Taichi kernels of the particle-filter helpers: counter-based sampling (eq. 12) and best-k.
+
+Same generator as the reference (gputrack/backends/reference/particles.py). best-k runs as one
+serial task (an ordered k-list over the B scores, O(B k)), which on CPUs costs a few
+microseconds for the filter's sizes and saves a second launch.
+"""
+
+import numpy as np
+
+from .runtime import ti
+
+
+@ti.func
+def _pcg(x):
+    state = x * ti.u32(747796405) + ti.u32(2891336453)
+    word = ((state >> ((state >> ti.u32(28)) + ti.u32(4))) ^ state) * ti.u32(277803737)
+    return (word >> ti.u32(22)) ^ word
+
+
+@ti.func
+def _normal(key, cnt):
+    """Standard normal deviate of counters cnt, cnt + 1 (Box-Muller, cosine branch)."""
+    b1 = _pcg(_pcg(cnt) + key)
+    b2 = _pcg(_pcg(cnt + ti.u32(1)) + key)
+    u1 = ti.cast((b1 >> ti.u32(8)) + ti.u32(1), ti.f32) * (1.0 / 16777216.0)  # (0, 1]
+    u2 = ti.cast(b2 >> ti.u32(8), ti.f32) * (1.0 / 16777216.0)  # [0, 1)
+    return ti.sqrt(-2.0 * ti.log(u1)) * ti.cos(6.2831853071795864 * u2)
+
+
+@ti.func
+def _sample_body(cand: ti.template(), sig: ti.template(), out: ti.template(), lo, hi, keep, per_candidate: ti.template()):
+    n = out.shape[0]
+    p = out.shape[1]
+    c = cand.shape[0]
+    key = _pcg(lo ^ _pcg(hi))
+    for k, q in ti.ndrange(n, p):
+        owner = ti.cast(ti.cast(k, ti.i64) * c // n, ti.i32)  # sample k belongs to candidate k C // K
+        z = _normal(key, ti.cast(k * p + q, ti.u32) * ti.u32(2))
+        s = ti.f32(0.0)
+        if ti.static(per_candidate):
+            s = sig[owner, q]
+        else:
+            s = sig[q]
+        val = cand[owner, q] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+        first = ti.cast((ti.cast(owner, ti.i64) * n + c - 1) // c, ti.i32)  # first sample of the block
+        if keep != 0 and k == first:
+            val = cand[owner, q]
+        out[k, q] = val
+
+
+@ti.kernel
+def _sample_p(
+    cand: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    sig: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    lo: ti.u32,
+    hi: ti.u32,
+    keep: ti.i32,
+):
+    _sample_body(cand, sig, out, lo, hi, keep, False)
+
+
+@ti.kernel
+def _sample_cp(
+    cand: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    sig: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    lo: ti.u32,
+    hi: ti.u32,
+    keep: ti.i32,
+):
+    _sample_body(cand, sig, out, lo, hi, keep, True)
+
+
+def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
+    out = device.empty((n, cand.shape[1]), np.float32)
+    kernel = _sample_cp if per_candidate else _sample_p
+    kernel(cand.buffer, sig.buffer, out.buffer, lo, hi, int(keep_candidates))
+    return out
+
+
+@ti.func
+def _key(s):
+    """uint32 key ordering float32 scores ascending; NaN last (bit tests: immune to fast math)."""
+    bits = ti.bit_cast(s, ti.u32)
+    key = bits | ti.u32(0x80000000)
+    if (bits >> ti.u32(31)) == ti.u32(1):
+        key = ~bits
+    if (bits & ti.u32(0x7FFFFFFF)) > ti.u32(0x7F800000):
+        key = ti.u32(0xFFFFFFFF)
+    return key
+
+
+@ti.kernel
+def _best_k(
+    scores: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    idx: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    val: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    keys: ti.types.ndarray(dtype=ti.u32, ndim=1),
+    rows: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    sel: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    with_rows: ti.template(),
+):
+    nb = scores.shape[0]
+    k = idx.shape[0]
+    for _ in range(1):  # one serial task
+        cnt = 0
+        for i in range(nb):
+            key = _key(scores[i])
+            # strictly better than the current k-th (ties keep the lower index: i is larger)
+            if cnt < k or key < keys[k - 1]:
+                pos = ti.min(cnt, k - 1)
+                while pos > 0 and keys[pos - 1] > key:
+                    keys[pos] = keys[pos - 1]
+                    idx[pos] = idx[pos - 1]
+                    pos -= 1
+                keys[pos] = key
+                idx[pos] = i
+                cnt = ti.min(cnt + 1, k)
+        for r in range(k):
+            val[r] = scores[idx[r]]
+            if ti.static(with_rows):
+                for q in range(rows.shape[1]):
+                    sel[r, q] = rows[idx[r], q]
+
+
+def best_k(device, scores, k, rows):
+    idx = device.empty((k,), np.int32)
+    val = device.empty((k,), np.float32)
+    keys = device.empty((k,), np.uint32)
+    if rows is None:
+        dummy = device.empty((1, 1), np.float32)
+        _best_k(scores.buffer, idx.buffer, val.buffer, keys.buffer, dummy.buffer, dummy.buffer, False)
+        return idx, val, None
+    sel = device.empty((k, rows.shape[1]), np.float32)
+    _best_k(scores.buffer, idx.buffer, val.buffer, keys.buffer, rows.buffer, sel.buffer, True)
+    return idx, val, sel

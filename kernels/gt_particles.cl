@@ -1,0 +1,76 @@
+// Particle-filter helpers (paper 000 eq. 12): counter-based sampling around candidates, best-k.
+// Same generator as the NumPy reference (gputrack/backends/reference/particles.py).
+
+inline uint gt_pcg(const uint x)
+{
+    const uint state = x * 747796405u + 2891336453u;
+    const uint word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+// Standard normal deviate of counters cnt, cnt + 1 (Box-Muller, cosine branch).
+inline float gt_normal(const uint key, const uint cnt)
+{
+    const uint b1 = gt_pcg(gt_pcg(cnt) + key), b2 = gt_pcg(gt_pcg(cnt + 1u) + key);
+    const float u1 = (float)((b1 >> 8u) + 1u) * (1.0f / 16777216.0f);  // (0, 1]
+    const float u2 = (float)(b2 >> 8u) * (1.0f / 16777216.0f);         // [0, 1)
+    return sqrt(-2.0f * log(u1)) * cos(6.2831853071795864f * u2);
+}
+
+// out (n, p): sample k belongs to candidate k c / n; sigma is (p,) or, with per_candidate, (c, p).
+__kernel void gt_sample_around(__global const float *cand, const int c, const int p, __global const float *sig,
+                               const int per_candidate, const int n, const uint lo, const uint hi, const int keep,
+                               __global float *out)
+{
+    const int gid = get_global_id(0);
+    if (gid >= n * p)
+        return;
+    const int k = gid / p, q = gid % p;
+    const uint key = gt_pcg(lo ^ gt_pcg(hi));
+    const int owner = (int)(((long)k * c) / n);
+    const float z = gt_normal(key, (uint)gid * 2u);
+    const float s = per_candidate ? sig[owner * p + q] : sig[q];
+    float val = cand[owner * p + q] + s * z;  // eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+    const int first = (int)(((long)owner * n + c - 1) / c);  // the first sample of the block
+    if (keep && k == first)
+        val = cand[owner * p + q];
+    out[gid] = val;
+}
+
+// uint key ordering float scores ascending; NaN last (bit tests: immune to fast math).
+inline uint gt_key(const float s)
+{
+    const uint bits = as_uint(s);
+    if ((bits & 0x7fffffffu) > 0x7f800000u)
+        return 0xffffffffu;
+    return (bits >> 31u) ? ~bits : (bits | 0x80000000u);
+}
+
+// One work-item: an ordered k-list over the b scores (ties keep the lower index), then the
+// selected scores and, when p > 0, rows.
+__kernel void gt_best_k(__global const float *scores, const int b, const int k, __global int *idx, __global float *val,
+                        __global uint *keys, __global const float *rows, const int p, __global float *sel)
+{
+    if (get_global_id(0) != 0)
+        return;
+    int cnt = 0;
+    for (int i = 0; i < b; ++i) {
+        const uint key = gt_key(scores[i]);
+        if (cnt < k || key < keys[k - 1]) {
+            int pos = min(cnt, k - 1);
+            while (pos > 0 && keys[pos - 1] > key) {
+                keys[pos] = keys[pos - 1];
+                idx[pos] = idx[pos - 1];
+                --pos;
+            }
+            keys[pos] = key;
+            idx[pos] = i;
+            cnt = min(cnt + 1, k);
+        }
+    }
+    for (int r = 0; r < k; ++r) {
+        val[r] = scores[idx[r]];
+        for (int q = 0; q < p; ++q)
+            sel[r * p + q] = rows[idx[r] * p + q];
+    }
+}
