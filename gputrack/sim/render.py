@@ -36,8 +36,8 @@ class Texture:
     """
 
     seed: int = 2015
-    waves: int = 8
-    wavelength: tuple[float, float] = (40.0, 120.0)
+    waves: int = 12
+    wavelength: tuple[float, float] = (30.0, 80.0)
     contrast: float = 0.3
 
     def _waves(self, key: int):
@@ -230,61 +230,69 @@ def render(
     if noise > 0 and rng is None:
         raise ValueError("rng: expected a numpy.random.Generator when noise > 0, got None")
 
-    ray_x = (np.arange(width) - camera.cx) / camera.fx
-    ray_y = (np.arange(height) - camera.cy) / camera.fy
-    zbuf = np.full((height, width), np.inf)
+    boxes = [
+        _pixel_box(transforms[j], pt.shape, camera, width, height) if pt.shape is not None else None
+        for j, pt in enumerate(chain.parts)
+    ]
+    # work only where something can be seen: the whole image with a wall, else the parts' boxes
     if background is not None:
-        zbuf[:] = background.z
-    part = np.full((height, width), -1, np.int32)
-    local = np.zeros((height, width, 3))
-    cos_view = np.ones((height, width))
+        region = (0, width, 0, height)
+    else:
+        live = [b for b in boxes if b is not None]
+        region = (min(b[0] for b in live), max(b[1] for b in live), min(b[2] for b in live), max(b[3] for b in live)) if live else None
+    gray_full = np.zeros((height, width), np.float32)
+    depth_full = np.zeros((height, width), np.float32)
+    part_full = np.full((height, width), -1, np.int32)
+    points_full = np.zeros((height, width, 3), np.float32)
+    local_full = np.zeros((height, width, 3), np.float32)
+    if region is not None:
+        ru0, ru1, rv0, rv1 = region
+        rh, rw = rv1 - rv0, ru1 - ru0
+        ray_x = (np.arange(ru0, ru1) - camera.cx) / camera.fx
+        ray_y = (np.arange(rv0, rv1) - camera.cy) / camera.fy
+        zbuf = np.full((rh, rw), np.inf if background is None else background.z)
+        part = np.full((rh, rw), -1, np.int32)
+        local = np.zeros((rh, rw, 3))
+        cos_view = np.ones((rh, rw))
+        for j, pt in enumerate(chain.parts):
+            if boxes[j] is None:
+                continue
+            u0, u1, v0, v1 = boxes[j][0] - ru0, boxes[j][1] - ru0, boxes[j][2] - rv0, boxes[j][3] - rv0
+            gy, gx = np.meshgrid(ray_y[v0:v1], ray_x[u0:u1], indexing="ij")
+            d_cam = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
+            r, t = transforms[j, :, :3], transforms[j, :, 3]
+            d = d_cam @ r  # R^T d: the rays in part coordinates (|d| and the ray parameter are kept)
+            o = -(r.T @ t)
+            hit, normal = intersect(pt.shape, o, d)
+            sub = zbuf[v0:v1, u0:u1].ravel()
+            idx = np.flatnonzero(hit < sub)  # z-buffer test
+            if idx.size == 0:
+                continue
+            sub[idx] = hit[idx]
+            zbuf[v0:v1, u0:u1] = sub.reshape(v1 - v0, u1 - u0)
+            rows, cols = np.divmod(idx, u1 - u0)
+            rows += v0
+            cols += u0
+            part[rows, cols] = j
+            local[rows, cols] = o + hit[idx, None] * d[idx]
+            dn = d[idx] / np.linalg.norm(d[idx], axis=1, keepdims=True)
+            cos_view[rows, cols] = np.abs((dn * normal[idx]).sum(axis=1))
 
-    for j, pt in enumerate(chain.parts):
-        if pt.shape is None:
-            continue
-        box = _pixel_box(transforms[j], pt.shape, camera, width, height)
-        if box is None:
-            continue
-        u0, u1, v0, v1 = box
-        gy, gx = np.meshgrid(ray_y[v0:v1], ray_x[u0:u1], indexing="ij")
-        d_cam = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
-        r, t = transforms[j, :, :3], transforms[j, :, 3]
-        d = d_cam @ r  # R^T d: the rays in part coordinates (|d| and the ray parameter are kept)
-        o = -(r.T @ t)
-        hit, normal = intersect(pt.shape, o, d)
-        sub = zbuf[v0:v1, u0:u1].ravel()
-        win = hit < sub
-        if not win.any():
-            continue
-        idx = np.flatnonzero(win)
-        sub[idx] = hit[idx]
-        zbuf[v0:v1, u0:u1] = sub.reshape(v1 - v0, u1 - u0)
-        rows, cols = np.divmod(idx, u1 - u0)
-        rows += v0
-        cols += u0
-        part[rows, cols] = j
-        local[rows, cols] = o + hit[idx, None] * d[idx]
-        dn = d[idx] / np.linalg.norm(d[idx], axis=1, keepdims=True)
-        cos_view[rows, cols] = np.abs((dn * normal[idx]).sum(axis=1))
-
-    hit_any = np.isfinite(zbuf)
-    z = np.where(hit_any, zbuf, 0.0)
-    points = np.stack([ray_x[None, :] * z, ray_y[:, None] * z, z], axis=-1)
-    gray = np.zeros((height, width))
-    for j in range(chain.n_parts):
-        m = part == j
-        if m.any():
-            gray[m] = texture.sample(j, local[m]) * (1.0 - shading + shading * cos_view[m])
-    if background is not None:
-        m = part < 0
-        gray[m] = _wall_image(background, camera, width, height)[m]
+        z = np.where(np.isfinite(zbuf), zbuf, 0.0)
+        gray = np.zeros((rh, rw))
+        for j in range(chain.n_parts):
+            m = part == j
+            if m.any():
+                gray[m] = texture.sample(j, local[m]) * (1.0 - shading + shading * cos_view[m])
+        if background is not None:
+            m = part < 0
+            gray[m] = _wall_image(background, camera, width, height)[m]
+        win = (slice(rv0, rv1), slice(ru0, ru1))
+        gray_full[win] = gray
+        depth_full[win] = z if not depth_step else np.round(z / depth_step) * depth_step
+        part_full[win] = part
+        points_full[win] = np.stack([ray_x[None, :] * z, ray_y[:, None] * z, z], axis=-1)
+        local_full[win] = local
     if noise > 0:
-        gray = np.clip(gray + rng.normal(0.0, noise, gray.shape), 0.0, 1.0)
-    depth = z if not depth_step else np.round(z / depth_step) * depth_step
-    return Rendering(
-        gray=gray.astype(np.float32),
-        depth=depth.astype(np.float32),
-        part=part,
-        points=points.astype(np.float32),
-        local=local.astype(np.float32),
-    )
+        gray_full = np.clip(gray_full + rng.normal(0.0, noise, gray_full.shape), 0.0, 1.0).astype(np.float32)
+    return Rendering(gray=gray_full, depth=depth_full, part=part_full, points=points_full, local=local_full)

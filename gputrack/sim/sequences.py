@@ -68,9 +68,9 @@ def _motion(name: str, t: np.ndarray, amp: float, ph: float):
         m.update(ph_O=25 * amp * s, ps_O=4 * np.sin(2 * np.pi * tau / 2.1), th_O=3 * s,
                  L=(75 + 5 * s, 15 * s, z, 20 + z), R=(105 + 5 * s, -15 * s, z, 20 + z))  # fmt: skip
     elif name == "wave":
-        w = np.sin(2 * np.pi * tau / 1.2)
+        w = np.sin(2 * np.pi * tau / 1.5)
         m.update(L=(78 + 3 * w, 10 * np.sin(2 * np.pi * tau / 2.5), z, 15 + z),
-                 R=(210 + 5 * w, 10 + z, 60 + 30 * amp * w, 10 + z))  # fmt: skip
+                 R=(210 + 5 * w, 10 + z, 60 + 25 * amp * w, 10 + z))  # fmt: skip
     elif name == "reach":
         e = _ease(tau / 2.8)
         m.update(ps_O=-6 * e, L=(85 + z, 80 * amp * e, z, 90 - 80 * e), R=(95 + z, 80 * amp * e, z, 90 - 80 * e))
@@ -80,11 +80,11 @@ def _motion(name: str, t: np.ndarray, amp: float, ph: float):
         m.update(dx=120 * amp * s, dz=150 * c, th_O=8 * amp * s, ps_O=4 * c,
                  L=(75 - 15 * s, 25 * c, z, 25 + 15 * s), R=(105 - 15 * s, -25 * c, z, 25 - 15 * s))  # fmt: skip
     elif name == "punch":
-        a = _ease(tau / 1.4)
-        b = _ease(tau / 1.4 + 0.5)
+        a = _ease(tau / 2.0)
+        b = _ease(tau / 2.0 + 0.5)
         m.update(ph_O=-8 * (a - b),
-                 L=(95 - 10 * a, 35 + 45 * amp * a, z, 110 - 100 * a),
-                 R=(85 + 10 * b, 35 + 45 * amp * b, z, 110 - 100 * b))  # fmt: skip
+                 L=(95 - 10 * a, 35 + 45 * amp * a, z, 100 - 90 * a),
+                 R=(85 + 10 * b, 35 + 45 * amp * b, z, 100 - 90 * b))  # fmt: skip
     elif name == "shoulder_spread":
         e = np.clip(tau / 2.5, 0.0, 1.0)
         e = e * e * (3 - 2 * e)  # smoothstep: spread (th = 0) -> hanging (th = 75)
