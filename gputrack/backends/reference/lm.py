@@ -125,7 +125,8 @@ def solver_update(state, R, X, *, first, final, jac=None):
                 ok_J = _finite(Jb)
                 Jt[b] = Jb.T
             else:
-                diff = (Rb[b, 1::2] - Rb[b, 2::2]) * mask.T  # (P, M): r(x + eps e_n) - r(x - eps e_n)
+                # (P, M): r(x + eps e_n) - r(x - eps e_n), only where the Jacobian mask is set
+                diff = np.where(mask.T != 0, Rb[b, 1::2] - Rb[b, 2::2], 0)
                 ok_J = _finite(diff)
                 safe = np.where(den[b] != 0, den[b], 1)
                 Jt[b] = np.where(den[b][:, None] != 0, diff / safe[:, None], 0)  # eq. 24

@@ -184,27 +184,33 @@ def _phase_jacobian(S: ti.template(), I: ti.template(), R: ti.template(), Jg: ti
     jt = base + 7 * P + 2 * P * P + n * M
     ok = 1
     if ti.static(use_jac):
+        mag = ti.cast(0, dt)
         for m in range(M):
             v = ti.cast(Jg[b, m, n], dt)
-            ok &= _finite(v, dt)
+            mag += ti.abs(v)
             S[jt + m] = v
+        ok = _finite(mag, dt)
     else:
         SR = R.shape[0] // B
         den = S[base + 3 * P + n]
+        inv = ti.cast(0, dt)
+        if den != 0:
+            inv = 1 / den
         rp = b * SR + 1 + 2 * n
-        has_mask = I[2]
         mbase = B * SB + 8
-        for m in range(M):
-            need = 1
-            if has_mask:
-                need = S[mbase + m * P + n] != 0
-            v = ti.cast(0, dt)
-            if need:
+        # a non-finite difference makes the sum of magnitudes non-finite: one test per row
+        mag = ti.cast(0, dt)
+        if I[2]:
+            for m in range(M):
+                d = ti.select(S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt), ti.cast(0, dt))
+                mag += ti.abs(d)
+                S[jt + m] = d * inv  # eq. 24, only where the mask is set
+        else:
+            for m in range(M):
                 d = ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt)  # r(x + eps e_n) - r(x - eps e_n)
-                ok &= _finite(d, dt)
-                if den != 0:
-                    v = d / den  # eq. 24
-            S[jt + m] = v
+                mag += ti.abs(d)
+                S[jt + m] = d * inv  # eq. 24
+        ok = _finite(mag, dt)
     I[ibase + 4 + n] = ok
 
 
@@ -306,13 +312,38 @@ def _phase_normal(S: ti.template(), I: ti.template(), R: ti.template(), b, i, dt
     SR = R.shape[0] // B
     if I[8 + b * (4 + P) + 2]:
         ri = jt + i * M
-        for j in range(i + 1):
+        A = base + 7 * P
+        # eq. 22: J^T J, four columns per pass over row i (contiguous rows of J^T)
+        j = 0
+        while j + 3 <= i:
+            s0 = ti.cast(0, dt)
+            s1 = ti.cast(0, dt)
+            s2 = ti.cast(0, dt)
+            s3 = ti.cast(0, dt)
+            r0 = jt + j * M
+            for m in range(M):
+                a = S[ri + m]
+                s0 += a * S[r0 + m]
+                s1 += a * S[r0 + M + m]
+                s2 += a * S[r0 + 2 * M + m]
+                s3 += a * S[r0 + 3 * M + m]
+            S[A + i * P + j] = s0
+            S[A + i * P + j + 1] = s1
+            S[A + i * P + j + 2] = s2
+            S[A + i * P + j + 3] = s3
+            S[A + j * P + i] = s0
+            S[A + (j + 1) * P + i] = s1
+            S[A + (j + 2) * P + i] = s2
+            S[A + (j + 3) * P + i] = s3
+            j += 4
+        while j <= i:
             rj = jt + j * M
             s = ti.cast(0, dt)
             for m in range(M):
-                s += S[ri + m] * S[rj + m]  # eq. 22: J^T J
-            S[base + 7 * P + i * P + j] = s
-            S[base + 7 * P + j * P + i] = s
+                s += S[ri + m] * S[rj + m]
+            S[A + i * P + j] = s
+            S[A + j * P + i] = s
+            j += 1
         s = ti.cast(0, dt)
         for m in range(M):
             s += S[ri + m] * ti.cast(R[b * SR, m], dt)  # eq. 22: J^T r
