@@ -174,6 +174,23 @@ def test_chain_tables_uploaded_once(device):
     assert out.shape == (13, 5, 3, 4)
 
 
+def test_out_argument(device):
+    chain = upper_body()
+    p = random_params(chain, 13, seed=5).astype(np.float32)
+    out = device.empty((13, 5, 3, 4), np.float32)
+    got = forward_kinematics(device, chain, p, out=out)
+    assert got is out
+    want = reference(None, chain, p)
+    assert_matches(device, gputrack.to_numpy(out)[..., :3], want[..., :3])
+    with pytest.raises(ValueError, match=r"out: expected shape \(13, 5, 3, 4\), got \(12, 5, 3, 4\)"):
+        forward_kinematics(device, chain, p, out=device.empty((12, 5, 3, 4), np.float32))
+    with pytest.raises(TypeError, match="out: expected dtype float32"):
+        forward_kinematics(device, chain, p, out=device.empty((13, 5, 3, 4), np.int32))
+    if device.backend != "numpy":
+        with pytest.raises(TypeError, match=f"out: expected an array on {device.spec}"):
+            forward_kinematics(device, chain, p, out=np.empty((13, 5, 3, 4), np.float32))
+
+
 def test_bad_input(device):
     chain = upper_body()
     good = random_params(chain, 3, seed=0).astype(np.float32)

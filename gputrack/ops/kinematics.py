@@ -13,6 +13,7 @@ import weakref
 
 import numpy as np
 
+from ..device import DeviceArray
 from ..models.chain import Chain
 from . import backend_module
 from ._args import FLOAT, arg, check_device
@@ -33,13 +34,15 @@ def chain_tables(device, chain: Chain, dtype=np.float32):
     return per_device[key]
 
 
-def forward_kinematics(device, chain: Chain, params):
+def forward_kinematics(device, chain: Chain, params, *, out=None):
     """Camera-from-part transforms for a batch of poses.
 
     device: a gputrack Device. chain: a :class:`gputrack.models.Chain` with J parts and P
     parameters. params: (B, P) float32 or float64 (B >= 1; float64 only on a device with fp64),
     NumPy or on ``device``. Returns (B, J, 3, 4) of the params' dtype on ``device``:
     rows [R | t] with R a rotation and t in the chain's length unit (mm for the upper body).
+    ``out``: an existing (B, J, 3, 4) array of that dtype on ``device`` to write into (saves
+    the allocation in a loop); it is returned.
     """
     device = check_device(device)
     if not isinstance(chain, Chain):
@@ -47,7 +50,27 @@ def forward_kinematics(device, chain: Chain, params):
     params = arg(device, params, "params", ("B", chain.n_params), dtype=FLOAT)
     if params.shape[0] == 0:
         raise ValueError(f"params: expected at least one parameter vector (B >= 1), got shape {tuple(params.shape)}")
-    return backend_module(device, "kinematics").forward_kinematics(device, chain, params)
+    shape = (params.shape[0], chain.n_parts, 3, 4)
+    if out is None:
+        out = device.empty(shape, params.dtype)
+    else:
+        out = _check_out(device, out, shape, params.dtype)
+    return backend_module(device, "kinematics").forward_kinematics(device, chain, params, out)
+
+
+def _check_out(device, out, shape, dtype):
+    want = "a NumPy array" if device.backend == "numpy" else f"an array on {device.spec}"
+    if device.backend == "numpy":
+        ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
+    else:
+        ok = isinstance(out, DeviceArray) and out.device is device
+    if not ok:
+        raise TypeError(f"out: expected {want} (C-contiguous, writeable), got {type(out).__name__}")
+    if tuple(out.shape) != shape:
+        raise ValueError(f"out: expected shape {shape}, got {tuple(out.shape)}")
+    if out.dtype != dtype:
+        raise TypeError(f"out: expected dtype {np.dtype(dtype).name} (the params' dtype), got {out.dtype.name}")
+    return out
 
 
 def _selftest(device) -> None:

@@ -15,13 +15,12 @@ def _kernel(program):
     return cl.Kernel(program, "gt_forward_kinematics")
 
 
-def forward_kinematics(device, chain, params):
+def forward_kinematics(device, chain, params, out):
     from ...ops.kinematics import chain_tables
 
     table, offsets = chain_tables(device, chain, params.dtype)
     b, p = params.shape
     j = chain.n_parts
-    out = device.empty((b, j, 3, 4), params.dtype)
     kernel = _kernel(device.program("gt_kinematics.cl", {"GT_FK_DOUBLE": int(params.dtype == np.float64)}))
     kernel(
         device.queue,

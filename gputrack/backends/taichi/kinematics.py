@@ -108,11 +108,10 @@ _fk_f32 = _make(ti.f32)
 _fk_f64 = _make(ti.f64)
 
 
-def forward_kinematics(device, chain, params):
+def forward_kinematics(device, chain, params, out):
     from ...ops.kinematics import chain_tables
 
     table, offsets = chain_tables(device, chain, params.dtype)
-    out = device.empty((params.shape[0], chain.n_parts, 3, 4), params.dtype)
     kernel = _fk_f64 if params.dtype == np.float64 else _fk_f32
     kernel(params.buffer, table.buffer, offsets.buffer, out.buffer)
     return out
