@@ -30,8 +30,9 @@ _scratch = weakref.WeakKeyDictionary()
 
 
 def lanes(device) -> int:
-    """Hypotheses per thread on ``device``."""
-    return CPU_LANES if device.info.kind == "cpu" else 1
+    """Hypotheses per thread: CPU_LANES on taichi:cpu; 1 on GPUs and on Vulkan (lavapipe already
+    runs 8 invocations per SIMD register)."""
+    return CPU_LANES if getattr(device, "arch", "") == "cpu" else 1
 
 
 @ti.func
@@ -70,6 +71,7 @@ def _rgbd_kernel(
     eps_c: ti.types.ndarray(dtype=ti.f32, ndim=1),
     eps_d: ti.types.ndarray(dtype=ti.f32, ndim=1),
     residuals: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    groups: ti.i32,
     want_residuals: ti.template(),
     L: ti.template(),
 ):
@@ -86,7 +88,7 @@ def _rgbd_kernel(
     cd = c_depth * c_depth
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
-    for g in range((nb + L - 1) // L):
+    for g in range(groups):  # groups = ceil(B / L), computed by the caller (SPIR-V needs a plain bound)
         P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
         # ---- RGB pass 1: samples I_i, validity, sums over the valid points (eq. 17)
         sT = ti.Vector([0.0] * L, dt=ti.f32)
@@ -242,7 +244,7 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, residu
         tf.buffer, rgb["pts"].buffer, rgb["start"].buffer, rgb["perm"].buffer,
         depth["pts"].buffer, depth["start"].buffer, depth["perm"].buffer,
         gray.buffer, dimg.buffer, fx, fy, cx, cy, lam, c_rgb, c_depth, sample, valid,
-        outs[0], outs[1], outs[2], res_buf, residuals, nl,
+        outs[0], outs[1], outs[2], res_buf, groups, residuals, nl,
     )  # fmt: skip
     return res
 

@@ -1,0 +1,443 @@
+"""Sparse-template RGB-D cost/residuals (paper 000 eq. 17-21) and NCC patches (paper 003 eq. 13).
+
+Every backend is compared with the NumPy reference; the reference itself is pinned to a plain
+per-point loop written from the conventions in gputrack/ops/template.py.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from tolerances import assert_matches
+
+import gputrack
+from gputrack.ops.template import Camera, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals
+
+REF = gputrack.device("numpy")
+
+
+def make_scene(rng, b, n, m, *, j=3, h=48, w=64, holes=True, spread=0.05, candidates=4):
+    """A PF-like scene: template points on a surface about 2 m away, hypotheses around candidates.
+
+    Some points project off the image or behind the camera, and the depth image has holes
+    (zeros in rectangles, NaN and inf in a band), so every validity rule is exercised.
+    """
+    f = 0.9 * w
+    cam = Camera(f, f * 1.01, (w - 1) / 2 + 0.3, (h - 1) / 2 - 0.2)
+    xyz = np.column_stack([rng.uniform(-1.3, 1.3, n), rng.uniform(-1.0, 1.0, n), rng.uniform(-0.05, 0.05, n)])
+    rgb = SparseTemplate(xyz, rng.integers(0, j, n), rng.uniform(10, 240, n))
+    xyz_d = np.column_stack([rng.uniform(-1.3, 1.3, m), rng.uniform(-1.0, 1.0, m), rng.uniform(-0.05, 0.05, m)])
+    dep = SparseTemplate(xyz_d, rng.integers(0, j, m))
+    cand = np.zeros((candidates, j, 3, 4))
+    for c in range(candidates):
+        for p in range(j):
+            a = rng.normal(0, 0.1, 3)
+            cand[c, p, :, :3] = _rot(a)
+            cand[c, p, :, 3] = [rng.normal(0, 0.05), rng.normal(0, 0.05), 2.0 + rng.normal(0, 0.05)]
+    owner = np.arange(b) * candidates // b
+    tf = cand[owner].copy()
+    tf[..., :, 3] += rng.normal(0, spread, (b, j, 3))
+    if b > 2:
+        tf[1, :, 2, 3] = -2.0  # hypothesis 1: every part behind the camera
+        tf[2, 0, 0, 3] = 50.0  # hypothesis 2: part 0 far off the image
+    yy, xx = np.mgrid[0:h, 0:w]
+    gray = 120 + 80 * np.sin(xx / 3.1) * np.cos(yy / 4.3) + rng.normal(0, 4, (h, w))
+    depth = 2.0 + 0.03 * np.sin(xx / 5.0) + rng.normal(0, 0.003, (h, w))
+    if holes:
+        depth[h // 4 : h // 3, w // 5 : w // 3] = 0.0
+        depth[h // 2 : h // 2 + 3, :] = np.nan
+        depth[h // 2 + 3, w // 2 : w // 2 + 9] = np.inf
+        depth[-4:, -6:] = -1.0
+    return tf.astype(np.float32), rgb, dep, gray.astype(np.float32), depth.astype(np.float32), cam
+
+
+def _rot(a):
+    cx, cy, cz = np.cos(a)
+    sx, sy, sz = np.sin(a)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def run_cost(device, tf, rgb, dep, gray, depth, cam, **kw):
+    return rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.01, **kw)
+
+
+def run_res(device, tf, rgb, dep, gray, depth, cam, **kw):
+    return rgbd_residuals(device, tf, rgb, dep, gray, depth, cam, c_depth=0.01, **kw)
+
+
+# -- the reference against a per-point loop ------------------------------------------------------
+def _loop_cost(tf, rgb, dep, gray, depth, cam, lam, c_rgb, c_depth):
+    """eq. 17-21 point by point, in Python floats, from the documented conventions."""
+    h, w = gray.shape
+    f32 = np.float32
+
+    def project(m, p):
+        x, y, z = (f32(v) for v in p)
+        X = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+        Y = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+        Z = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+        if not Z > 0:
+            return None
+        u = f32(cam.fx) * (X / Z) + f32(cam.cx)
+        v = f32(cam.fy) * (Y / Z) + f32(cam.cy)
+        if not (0 <= u <= w - 1 and 0 <= v <= h - 1):
+            return None
+        x0, y0 = min(int(math.floor(u)), w - 2), min(int(math.floor(v)), h - 2)
+        return float(Z), float(u - x0), float(v - y0), x0, y0
+
+    def bil(img, a, b, x0, y0):
+        top = img[y0, x0] * (1 - a) + img[y0, x0 + 1] * a
+        bot = img[y0 + 1, x0] * (1 - a) + img[y0 + 1, x0 + 1] * a
+        return float(top * (1 - b) + bot * b)
+
+    out = []
+    for t in tf:
+        samples = []
+        for p, j, T in zip(rgb.xyz, rgb.part, rgb.value):
+            pr = project(t[j], p)
+            samples.append(None if pr is None else (float(T), bil(gray, *pr[1:])))
+        valid = [s for s in samples if s is not None]
+        sT = sum(T for T, _ in valid)
+        sTT = sum(T * T for T, _ in valid)
+        sTI = sum(T * I for T, I in valid)
+        alpha = 1 / sT if sT > 1e-12 else 0.0
+        beta = alpha * sTT / sTI if sTI > 1e-12 else 0.0
+        res = []
+        for s in samples:
+            if s is None:
+                res.append(math.sqrt(1 - lam))
+            else:
+                d = beta * s[1] - alpha * s[0]
+                res.append(math.sqrt(1 - lam) * d / math.sqrt(c_rgb**2 + d * d))
+        eps_c = sum(1.0 if s is None else (beta * s[1] - alpha * s[0]) ** 2 / (c_rgb**2 + (beta * s[1] - alpha * s[0]) ** 2) for s in samples)
+        eps_d = 0.0
+        for p, j in zip(dep.xyz, dep.part):
+            pr = project(t[j], p)
+            if pr is not None:
+                Z, a, b, x0, y0 = pr
+                quad = depth[y0 : y0 + 2, x0 : x0 + 2]
+                if not ((quad > 0) & np.isfinite(quad)).all():
+                    pr = None
+            if pr is None:
+                eps_d += 1.0
+                res.append(math.sqrt(lam))
+            else:
+                dd = bil(depth, a, b, x0, y0) - Z
+                eps_d += dd * dd / (c_depth**2 + dd * dd)
+                res.append(math.sqrt(lam) * dd / math.sqrt(c_depth**2 + dd * dd))
+        out.append(((1 - lam) * eps_c + lam * eps_d, eps_c, eps_d, res))
+    return out
+
+
+def test_reference_matches_per_point_loop():
+    rng = np.random.default_rng(11)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 9, 17, 19)
+    got = run_cost(REF, tf, rgb, dep, gray, depth, cam, lam=0.8)
+    res = run_res(REF, tf, rgb, dep, gray, depth, cam, lam=0.8)
+    want = _loop_cost(tf, rgb, dep, gray, depth, cam, 0.8, 0.5 / 17, 0.01)
+    np.testing.assert_allclose(got.total, [w[0] for w in want], rtol=1e-5)
+    np.testing.assert_allclose(got.rgb, [w[1] for w in want], rtol=1e-5)
+    np.testing.assert_allclose(got.depth, [w[2] for w in want], rtol=1e-5)
+    np.testing.assert_allclose(res, [w[3] for w in want], rtol=1e-4, atol=1e-6)
+    # the scene exercises every rule: invalid RGB points, invalid depth points, valid ones
+    assert got.rgb[1] == pytest.approx(17) and got.depth[1] == pytest.approx(19)  # behind the camera
+    assert (got.depth[3:] < 19).all() and (got.depth[3:] > 0.5).all()
+
+
+# -- every backend against the reference ---------------------------------------------------------
+def _compare(device, tf, rgb, dep, gray, depth, cam, **kw):
+    want = run_cost(REF, tf, rgb, dep, gray, depth, cam, **kw)
+    got = run_cost(device, tf, rgb, dep, gray, depth, cam, **kw)
+    for field in ("total", "rgb", "depth"):
+        assert_matches(device, getattr(got, field), getattr(want, field), err_msg=field)
+    want_r = run_res(REF, tf, rgb, dep, gray, depth, cam, **kw)
+    got_r = run_res(device, tf, rgb, dep, gray, depth, cam, **kw)
+    # residuals are single terms d / sqrt(c^2 + d^2) of magnitude <= 1
+    assert_matches(device, got_r, want_r, scale=5.0, err_msg="residuals")
+    return got, got_r
+
+
+@pytest.mark.parametrize("b", [1, 13, 129, 1535])
+def test_rgbd_matches_reference_batch_sizes(device, b):
+    rng = np.random.default_rng(b)
+    _compare(device, *make_scene(rng, b, 37, 29))
+
+
+@pytest.mark.parametrize("n", [1, 13, 127, 128, 129, 1535, 4096])
+def test_rgbd_matches_reference_template_sizes(device, n):
+    rng = np.random.default_rng(n + 7)
+    got, res = _compare(device, *make_scene(rng, 11, n, max(n // 2, 1), j=5))
+    assert res.shape == (11, n + max(n // 2, 1))
+
+
+def test_rgbd_paper_size(device):
+    """B = 1500 hypotheses around 10 candidates, N = N' = 128 points, 640 x 480."""
+    rng = np.random.default_rng(2024)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 1500, 128, 128, j=5, h=480, w=640, candidates=10, spread=0.01)
+    got, _ = _compare(device, tf, rgb, dep, gray, depth, cam, lam=0.9)
+    total = gputrack.to_numpy(got.total)
+    assert np.isfinite(total).all() and (total > 0).all()
+
+
+def test_residuals_square_sum_is_total(device):
+    rng = np.random.default_rng(5)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 129, 129, 65)
+    for lam in (0.0, 0.37, 0.9, 1.0):
+        cost = run_cost(device, tf, rgb, dep, gray, depth, cam, lam=lam, c_rgb=0.01)
+        res = gputrack.to_numpy(run_res(device, tf, rgb, dep, gray, depth, cam, lam=lam, c_rgb=0.01)).astype(np.float64)
+        np.testing.assert_allclose((res**2).sum(axis=1), gputrack.to_numpy(cost.total), rtol=2e-5, atol=1e-5)
+
+
+def test_residual_order_follows_the_callers_points(device):
+    """Residual k belongs to point k of the template as given (not the kernels' part grouping)."""
+    rng = np.random.default_rng(8)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 5, 12, 9, j=3)
+    res = gputrack.to_numpy(run_res(device, tf, rgb, dep, gray, depth, cam))
+    for i in range(12):
+        one = SparseTemplate(rgb.xyz[i : i + 1], rgb.part[i : i + 1], rgb.value[i : i + 1])
+        single = gputrack.to_numpy(run_res(device, tf, one, dep, gray, depth, cam, c_rgb=0.5 / 12))
+        # a one-point template has alpha T = beta I: d = 0 or the point is invalid
+        assert np.all((np.abs(single[:, 0]) < 1e-5) | np.isclose(single[:, 0], math.sqrt(0.1)))
+    want = run_res(REF, tf, rgb, dep, gray, depth, cam)
+    assert_matches(device, res, want, scale=5.0)
+    for i in range(9):
+        one = SparseTemplate(dep.xyz[i : i + 1], dep.part[i : i + 1])
+        single = gputrack.to_numpy(run_res(device, tf, rgb, one, gray, depth, cam))
+        np.testing.assert_allclose(single[:, 12], res[:, 12 + i], rtol=1e-4, atol=1e-6)
+
+
+def test_invalid_points_add_one(device):
+    rng = np.random.default_rng(3)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 4, 20, 30, holes=False)
+    tf[0, :, 2, 3] = -5.0  # behind the camera
+    tf[1, :, 0, 3] = 100.0  # off the image
+    depth_all_holes = np.zeros_like(depth)
+    cost = run_cost(device, tf, rgb, dep, gray, depth_all_holes, cam)
+    d = gputrack.to_numpy(cost.depth)
+    c = gputrack.to_numpy(cost.rgb)
+    np.testing.assert_allclose(d, 30.0, rtol=1e-6)  # every depth point on a hole
+    np.testing.assert_allclose(c[:2], 20.0, rtol=1e-6)
+    assert (c[2:] < 20).all()
+    res = gputrack.to_numpy(run_res(device, tf, rgb, dep, gray, depth_all_holes, cam, lam=0.75))
+    np.testing.assert_allclose(res[:, 20:], math.sqrt(0.75), rtol=1e-6)
+    np.testing.assert_allclose(res[:2, :20], math.sqrt(0.25), rtol=1e-6)
+
+
+def test_exact_pose_scores_zero_depth_cost(device):
+    """A depth image rendered from the hypothesis itself gives d' = 0 at every valid point."""
+    h, w = 40, 50
+    cam = Camera(40.0, 40.0, 24.5, 19.5)
+    z0 = 3.0
+    depth = np.full((h, w), z0, np.float32)
+    xs = np.linspace(-1, 1, 10)
+    xyz = np.column_stack([xs, xs[::-1] * 0.5, np.zeros(10)])
+    dep = SparseTemplate(xyz, np.zeros(10, np.int32))
+    rgb = SparseTemplate(xyz, np.zeros(10, np.int32), np.linspace(1, 2, 10))
+    tf = np.zeros((2, 1, 3, 4), np.float32)
+    tf[:, 0, :, :3] = np.eye(3)
+    tf[0, 0, 2, 3] = z0
+    tf[1, 0, 2, 3] = z0 + 0.2
+    cost = rgbd_cost(device, tf, rgb, dep, np.ones((h, w), np.float32), depth, cam, c_depth=0.05)
+    d = gputrack.to_numpy(cost.depth)
+    assert d[0] == pytest.approx(0.0, abs=1e-6)
+    assert d[1] == pytest.approx(10 * 0.04 / (0.0025 + 0.04), rel=1e-5)
+    # a flat gray image matches any template up to the brightness normalisation only
+    assert gputrack.to_numpy(cost.rgb)[0] > 0
+
+
+def test_nonfinite_transforms_on_device_give_max_cost(device):
+    if device.backend == "numpy":
+        pytest.skip("host transforms are checked at the boundary (see test_bad_input)")
+    rng = np.random.default_rng(4)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 6, 16, 12)
+    tf[0, 0, 0, 0] = np.nan
+    tf[1, :, 2, 3] = np.inf
+    tf[2, :, 0, 3] = -np.inf
+    cost = run_cost(device, device.asarray(tf), rgb, dep, gray, depth, cam)
+    total = gputrack.to_numpy(cost.total)
+    assert np.isfinite(total).all()
+    assert gputrack.to_numpy(cost.depth)[1] == pytest.approx(12) and gputrack.to_numpy(cost.rgb)[2] == pytest.approx(16)
+
+
+def test_template_is_uploaded_once(device):
+    if device.backend == "numpy":
+        pytest.skip("the numpy device has no transfers")
+    rng = np.random.default_rng(6)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 33, 40, 20)
+    d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
+    rgb.to(device)
+    dep.to(device)
+    before = device.transfers.copy()
+    for _ in range(3):
+        run_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+        run_res(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+    moved = device.transfers - before
+    assert (moved.h2d, moved.d2h) == (0, 0)
+
+
+def test_cost_accuracy_many_points(device):
+    """N = 4096 points with tiny, equal terms: a single running float32 sum would drift."""
+    h, w = 64, 64
+    cam = Camera(30.0, 30.0, 31.5, 31.5)
+    n = 4096
+    rng = np.random.default_rng(9)
+    xyz = np.column_stack([rng.uniform(-0.9, 0.9, n), rng.uniform(-0.9, 0.9, n), np.zeros(n)])
+    dep = SparseTemplate(xyz, np.zeros(n, np.int32))
+    rgb = SparseTemplate(xyz, np.zeros(n, np.int32), np.full(n, 7.0))
+    tf = np.zeros((3, 1, 3, 4), np.float32)
+    tf[:, 0, :, :3] = np.eye(3)
+    tf[:, 0, 2, 3] = [1.0, 1.001, 1.0003]
+    depth = np.full((h, w), 1.0, np.float32)
+    cost = rgbd_cost(device, tf, rgb, dep, np.full((h, w), 3.0, np.float32), depth, cam, c_depth=0.1)
+    dz = np.float64(np.float32([1.0, 1.001, 1.0003])) - 1.0  # d' = 1 - Z with Z as float32 holds it
+    want = n * dz**2 / (0.01 + dz**2)
+    np.testing.assert_allclose(gputrack.to_numpy(cost.depth), want, rtol=2e-5, atol=1e-6)
+    np.testing.assert_allclose(gputrack.to_numpy(cost.rgb), 0.0, atol=1e-3)
+
+
+# -- NCC -----------------------------------------------------------------------------------------
+def ncc_scene(rng, b, k, s, h=40, w=56):
+    img = (100 + 50 * np.sin(np.arange(w)[None, :] / 2.3) * np.cos(np.arange(h)[:, None] / 3.7) + rng.normal(0, 5, (h, w))).astype(np.float32)
+    pts = np.column_stack([rng.uniform(-3, w + 2, b * k), rng.uniform(-3, h + 2, b * k)]).reshape(b, k, 2).astype(np.float32)
+    tpl = rng.uniform(0, 255, (k, s, s)).astype(np.float32)
+    return pts, tpl, img
+
+
+@pytest.mark.parametrize("b,k,s", [(1, 1, 1), (1, 1, 2), (13, 10, 16), (129, 3, 5), (1000, 10, 16)])
+def test_patch_ncc_matches_reference(device, b, k, s):
+    rng = np.random.default_rng(b * 100 + k + s)
+    pts, tpl, img = ncc_scene(rng, b, k, s)
+    # some templates copied from the image at integer points, so that scores near 1 appear
+    for kk in range(0, k, 2):
+        y0, x0 = 5 + kk, 7 + 2 * kk
+        tpl[kk] = img[y0 : y0 + s, x0 : x0 + s]
+        pts[0, kk] = (x0 + (s - 1) / 2, y0 + (s - 1) / 2)
+    want_pp = patch_ncc_per_point(REF, pts, tpl, img)
+    got_pp = patch_ncc_per_point(device, pts, tpl, img)
+    assert_matches(device, got_pp, want_pp, scale=10.0)  # sqrt of float32 sums of S^2 terms
+    want = patch_ncc(REF, pts, tpl, img)
+    assert_matches(device, patch_ncc(device, pts, tpl, img), want, scale=10.0 * k)
+    np.testing.assert_allclose(want, want_pp.astype(np.float64).sum(axis=1), rtol=1e-5, atol=1e-5)
+    assert (np.abs(want_pp) <= 1).all()
+    if s > 1:
+        np.testing.assert_allclose(want_pp[0, ::2], 1.0, atol=1e-5)
+
+
+def test_patch_ncc_conventions(device):
+    h, w, s = 30, 40, 5
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    img[:, 30:] = 0.25  # a flat region
+    exact = img[10:15, 4:9]
+    tpl = np.stack([exact, 1 - exact, rng.uniform(0, 1, (5, 5)).astype(np.float32)])
+    pts = np.array(
+        [
+            [[6, 12], [6, 12], [2, 2]],  # the exact patch; its negative; inside, touching the border
+            [[34, 12], [34, 12], [34, 12]],  # a flat image patch
+            [[1.9, 12], [w - 3 + 0.01, 12], [6, h - 2.5]],  # partly off the image
+        ],
+        np.float32,
+    )
+    got = gputrack.to_numpy(patch_ncc_per_point(device, pts, tpl, img))
+    np.testing.assert_allclose(got[0, :2], [1.0, -1.0], atol=1e-5)
+    assert abs(got[0, 2]) > 1e-3
+    np.testing.assert_array_equal(got[1:], 0.0)
+    total = gputrack.to_numpy(patch_ncc(device, pts, tpl, img))
+    np.testing.assert_allclose(total, got.sum(axis=1), rtol=1e-5, atol=1e-5)
+    flat_tpl = np.stack([exact, np.full((5, 5), 3.0, np.float32), tpl[2]])
+    got = gputrack.to_numpy(patch_ncc_per_point(device, pts[:1], flat_tpl, img))
+    np.testing.assert_allclose(got[0, :2], [1.0, 0.0], atol=1e-5)
+
+
+# -- bad input -----------------------------------------------------------------------------------
+def test_bad_input(device):
+    rng = np.random.default_rng(0)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 4, 10, 10, j=3)
+    ok = dict(transforms=tf, rgb=rgb, depth=dep, gray=gray, depth_image=depth, camera=cam)
+
+    def call(**kw):
+        args = {**ok, **kw}
+        return rgbd_cost(device, args["transforms"], args["rgb"], args["depth"], args["gray"], args["depth_image"], args["camera"], **{k: v for k, v in kw.items() if k not in ok})
+
+    with pytest.raises(ValueError, match=r"transforms: expected shape \(B=4, J=3, 3, 4\), got \(4, 3, 3, 3\)"):
+        call(transforms=tf[:, :, :, :3])
+    with pytest.raises(TypeError, match="transforms: expected dtype float32, got float64"):
+        call(transforms=tf.astype(np.float64))
+    bad = tf.copy()
+    bad[2, 1, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="transforms: expected finite values"):
+        call(transforms=bad)
+    with pytest.raises(ValueError, match="B = 0"):
+        call(transforms=tf[:0])
+    with pytest.raises(ValueError, match=r"rgb.part: expected part indices in \[0, J=2\)"):
+        call(transforms=np.ascontiguousarray(tf[:, :2]))
+    with pytest.raises(ValueError, match=r"depth_image: expected shape \(H=48, W=64\)"):
+        call(depth_image=depth[:-1])
+    with pytest.raises(TypeError, match="gray: expected dtype float32, got uint8"):
+        call(gray=gray.astype(np.uint8))
+    with pytest.raises(ValueError, match="gray: expected finite values"):
+        g = gray.copy()
+        g[3, 3] = np.inf
+        call(gray=g)
+    with pytest.raises(ValueError, match="at least 2 x 2"):
+        call(gray=gray[:1], depth_image=depth[:1])
+    with pytest.raises(TypeError, match="rgb: expected a gputrack.SparseTemplate"):
+        call(rgb=rgb.xyz)
+    with pytest.raises(TypeError, match="camera: expected a gputrack.Camera"):
+        call(camera=(1, 1, 0, 0))
+    with pytest.raises(ValueError, match=r"lam: expected a number in \[0.0, 1.0\]"):
+        call(lam=1.5)
+    with pytest.raises(ValueError, match="c_depth: expected a number > 0"):
+        call(c_depth=0.0)
+    with pytest.raises(TypeError, match="expected a gputrack.Device"):
+        rgbd_cost("numpy", tf, rgb, dep, gray, depth, cam)
+    if device.backend != "numpy":
+        with pytest.raises(ValueError, match="transforms: expected an array on numpy"):
+            rgbd_cost(REF, device.asarray(tf), rgb, dep, gray, depth, cam)
+    # NCC
+    pts, tpl, img = ncc_scene(rng, 3, 2, 4)
+    with pytest.raises(ValueError, match=r"templates: expected shape \(K=2, S, S\)"):
+        patch_ncc(device, pts, tpl[:1], img)
+    with pytest.raises(ValueError, match=r"templates: expected shape \(K=2, S=4, S=4\)"):
+        patch_ncc(device, pts, tpl[:, :, :3], img)
+    with pytest.raises(ValueError, match="points2d: expected finite values"):
+        p = pts.copy()
+        p[0, 0, 0] = np.nan
+        patch_ncc(device, p, tpl, img)
+    with pytest.raises(ValueError, match="at least one hypothesis and one point"):
+        patch_ncc(device, pts[:0], tpl, img)
+    with pytest.raises(TypeError, match="image: expected dtype float32"):
+        patch_ncc_per_point(device, pts, tpl, img.astype(np.float64))
+
+
+def test_bad_templates_and_cameras():
+    with pytest.raises(ValueError, match="empty template"):
+        SparseTemplate(np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(0))
+    with pytest.raises(ValueError, match=r"xyz: expected shape \(N, 3\)"):
+        SparseTemplate(np.zeros((4, 2)), np.zeros(4, np.int32))
+    with pytest.raises(ValueError, match=r"part: expected shape \(N=4,\)"):
+        SparseTemplate(np.zeros((4, 3)), np.zeros(3, np.int32))
+    with pytest.raises(ValueError, match="part: expected indices >= 0"):
+        SparseTemplate(np.zeros((2, 3)), np.array([0, -1]))
+    with pytest.raises(TypeError, match="part: expected integer part indices"):
+        SparseTemplate(np.zeros((2, 3)), np.array([0.0, 1.0]))
+    with pytest.raises(ValueError, match=r"value: expected shape \(N=2,\)"):
+        SparseTemplate(np.zeros((2, 3)), np.zeros(2, np.int32), np.zeros(3))
+    with pytest.raises(ValueError, match="xyz: expected finite values"):
+        SparseTemplate(np.array([[0, 0, np.nan]]), np.zeros(1, np.int32))
+    with pytest.raises(ValueError, match="Camera: expected fx > 0"):
+        Camera(0.0, 1.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="Camera.cx: expected a finite number"):
+        Camera(1.0, 1.0, np.nan, 0.0)
+    t = SparseTemplate(np.zeros((3, 3)), np.array([2, 0, 2], np.int64), [1, 2, 3])
+    assert t.n == 3 and t.n_parts == 3 and t.xyz.dtype == np.float32 and t.part.dtype == np.int32
+    assert list(t.start) == [0, 1, 1, 3] and list(t.perm) == [1, 0, 2]
+
+
+def test_selftest(device):
+    from gputrack.ops.template import _selftest
+
+    _selftest(device)
