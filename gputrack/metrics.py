@@ -50,7 +50,9 @@ def arm_axis_errors(chain, estimated, true, parts=tuple(ARM_PARTS.values())) -> 
     est = _poses(chain, estimated, "estimated")
     tru = _poses(chain, true, "true")
     if est.shape != tru.shape:
-        raise ValueError(f"estimated and true: expected the same number of poses, got {est.shape[0]} and {tru.shape[0]}")
+        raise ValueError(
+            f"estimated and true: expected the same number of poses, got {est.shape[0]} and {tru.shape[0]}"
+        )
     idx = list(parts)
     return axis_angle(est[:, idx], tru[:, idx])
 

@@ -7,6 +7,7 @@ import gputrack
 from gputrack.backends.reference.kinematics import forward_kinematics
 from gputrack.metrics import ARM_PARTS, arm_axis_errors, axis_angle, mean_arm_errors, shoulder_errors
 from gputrack.models import upper_body
+from gputrack.ops.template import SparseTemplate
 from gputrack.sim import DEFAULT_CAMERA, SEQUENCES, render, sequence, sequence_params
 from gputrack.sim.render import intersect
 from gputrack.trackers import select_pixels, sparse_template
@@ -165,7 +166,7 @@ def test_template_reprojects_onto_its_part(index, frame):
     seq = sequence(index, frames=90, seed=0)
     truth = seq.params[frame]
     rgb, dep = sparse_template(CHAIN, truth, n=128, n_depth=128)
-    assert isinstance(rgb, gputrack.ops.template.SparseTemplate) and isinstance(dep, gputrack.ops.template.SparseTemplate)
+    assert all(isinstance(x, SparseTemplate) for x in (rgb, dep))
     assert rgb.n == dep.n == 128
     f = seq[frame]  # the input frame: wall, quantised depth
     t = forward_kinematics(None, CHAIN, truth[None])[0]
@@ -273,7 +274,8 @@ def test_template_cost_is_lowest_at_the_true_pose():
     poses[2, 12] += 10 * DEG  # left elbow
     poses[3, 3] += 15.0  # torso x
     poses[4, 1] += 3 * DEG  # torso turn
-    cost = rgbd_cost(dev, forward_kinematics(None, CHAIN, poses).astype(np.float32), rgb, dep, f.gray, f.depth, DEFAULT_CAMERA)
+    transforms = forward_kinematics(None, CHAIN, poses).astype(np.float32)
+    cost = rgbd_cost(dev, transforms, rgb, dep, f.gray, f.depth, DEFAULT_CAMERA)
     total = np.asarray(cost.total)
     assert np.argmin(total) == 0, total
 

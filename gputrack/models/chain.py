@@ -88,7 +88,8 @@ class Part:
             raise ValueError(f"part {self.name}: axes: expected up to 3 of 'x', 'y', 'z', got {self.axes!r}")
         if len(self.angles) != len(self.axes):
             raise ValueError(
-                f"part {self.name}: angles: expected one parameter index per axis ({len(self.axes)}), got {self.angles!r}"
+                f"part {self.name}: angles: expected one parameter index per axis ({len(self.axes)}), "
+                f"got {self.angles!r}"
             )
         if len(self.offset) != 3 or len(self.translation) != 3:
             raise ValueError(f"part {self.name}: offset and translation: expected 3 entries each")
@@ -174,7 +175,9 @@ class Chain:
         if parts.ndim != 1 or parts.dtype.kind not in "iu":
             raise ValueError(f"part_of_residual: expected a 1-D integer array, got shape {parts.shape} {parts.dtype}")
         if parts.size and (parts.min() < 0 or parts.max() >= self.n_parts):
-            raise ValueError(f"part_of_residual: expected part indices in [0, {self.n_parts}), got {parts.min()}..{parts.max()}")
+            raise ValueError(
+                f"part_of_residual: expected part indices in [0, {self.n_parts}), got {parts.min()}..{parts.max()}"
+            )
         return self.dependency_mask()[parts]
 
     # -- tables for the kernels ----------------------------------------------------------------

@@ -76,7 +76,8 @@ def upper_body(shoulders: bool = False, dimensions: dict | None = None) -> Chain
     t_rs = (-lx, ly, lz)
     lu, lf = float(d["upper_arm_length"]), float(d["forearm_length"])
 
-    torso_shape = Shape("cylinder", 1, d["torso_top"], d["torso_bottom"], (d["torso_half_width"], d["torso_half_depth"]))
+    torso_radii = (d["torso_half_width"], d["torso_half_depth"])
+    torso_shape = Shape("cylinder", 1, d["torso_top"], d["torso_bottom"], torso_radii)
     upper_shape = Shape("capsule", 0, 0.0, lu, (d["upper_arm_radius"],) * 2)
     fore_shape = Shape("capsule", 0, 0.0, lf, (d["forearm_radius"],) * 2)
 
@@ -101,7 +102,8 @@ def upper_body(shoulders: bool = False, dimensions: dict | None = None) -> Chain
     if shoulders:
         rest += [*t_rs, *t_ls]
         names = names + SHOULDER_NAMES
-    return Chain(parts, len(rest), names, tuple(float(v) for v in rest), name="upper_body_20" if shoulders else "upper_body_14")
+    name = "upper_body_20" if shoulders else "upper_body_14"
+    return Chain(parts, len(rest), names, tuple(float(v) for v in rest), name=name)
 
 
 def pf_sigma(chain: Chain, shoulder_sigma_mm: float = 0.0) -> np.ndarray:

@@ -80,7 +80,8 @@ def _selftest(device) -> None:
 
     chain = upper_body(shoulders=True)
     rng = np.random.default_rng(0)
-    params = chain.rest_params()[None, :] + rng.normal(0.0, 0.3, (7, chain.n_params)) * np.r_[[1.0] * 3, [50.0] * 3, [1.0] * 8, [20.0] * 6]
+    scale = np.r_[[1.0] * 3, [50.0] * 3, [1.0] * 8, [20.0] * 6]  # rad, mm, rad, mm
+    params = chain.rest_params()[None, :] + rng.normal(0.0, 0.3, (7, chain.n_params)) * scale
     for dtype, tol in ((np.float32, 2e-3), (np.float64, 1e-9)):
         if dtype == np.float64 and not device.fp64:
             continue
@@ -88,4 +89,5 @@ def _selftest(device) -> None:
         got = device.to_numpy(forward_kinematics(device, chain, p))
         want = reference(None, chain, p)
         err = float(np.max(np.abs(got - want)))
-        assert err <= tol, f"forward_kinematics ({np.dtype(dtype).name}) differs from the reference by {err:g} (> {tol:g})"
+        name = np.dtype(dtype).name
+        assert err <= tol, f"forward_kinematics ({name}) differs from the reference by {err:g} (> {tol:g})"

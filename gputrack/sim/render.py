@@ -239,7 +239,10 @@ def render(
         region = (0, width, 0, height)
     else:
         live = [b for b in boxes if b is not None]
-        region = (min(b[0] for b in live), max(b[1] for b in live), min(b[2] for b in live), max(b[3] for b in live)) if live else None
+        region = None
+        if live:
+            u0s, u1s, v0s, v1s = zip(*live)
+            region = (min(u0s), max(u1s), min(v0s), max(v1s))
     gray_full = np.zeros((height, width), np.float32)
     depth_full = np.zeros((height, width), np.float32)
     part_full = np.full((height, width), -1, np.int32)

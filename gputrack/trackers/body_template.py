@@ -143,7 +143,9 @@ def select_pixels(
     values = np.asarray(values, dtype=np.float64)
     part_img = np.asarray(part_img)
     if values.shape != part_img.shape or values.ndim != 2:
-        raise ValueError(f"values and part image: expected the same (H, W) shape, got {values.shape} and {part_img.shape}")
+        raise ValueError(
+            f"values and part image: expected the same (H, W) shape, got {values.shape} and {part_img.shape}"
+        )
     if window < 3 or window % 2 == 0:
         raise ValueError(f"window: expected an odd size >= 3, got {window}")
     if n < 1:
@@ -230,12 +232,16 @@ def sparse_template(
     not visible at all.
     """
     if rendering is None:
-        rendering = render(chain, params, camera, size, texture=texture, background=None, depth_step=0.0, shading=shading)
+        rendering = render(
+            chain, params, camera, size, texture=texture, background=None, depth_step=0.0, shading=shading
+        )
     if not (rendering.part >= 0).any():
         raise ValueError("sparse_template: no visible model surface at this pose (the model is out of view)")
     out = []
     for count, values, name in ((n, rendering.gray, "RGB"), (n_depth, rendering.points[..., 2], "depth")):
-        px = select_pixels(values, rendering.part, count, n_parts=chain.n_parts, window=window, border=border, spacing=spacing)
+        px = select_pixels(
+            values, rendering.part, count, n_parts=chain.n_parts, window=window, border=border, spacing=spacing
+        )
         xyz = rendering.local[px.rows, px.cols]
         out.append(SparseTemplate(xyz, px.part, values[px.rows, px.cols].astype(np.float32)))
     return out[0], out[1]
