@@ -1,0 +1,152 @@
+"""Batched Levenberg-Marquardt: B = 10 problems, P = 14 and 20 params, M = 256 and 1280 residuals.
+
+Cases per (P, M), each timed on the device with the NumPy reference in the same run:
+
+- ``lm_solve``: normal equations + damped Cholesky step (the public fused op, J given as
+  (B, M, P) on the device); peer: the same in batched NumPy (einsum + np.linalg.solve).
+- ``lm iteration``: the solver's fused per-iteration launch (Jacobian from the stacked residuals,
+  J^T J, J^T r, acceptance, damping, damped Cholesky step, next points), residuals on the device.
+- ``least_squares 10 it RGB-D``: a whole 10-iteration solve (``early_stop=False``: exactly 11
+  residual calls) whose residuals are paper 000's RGB-D template residuals (eq. 20-21) of the
+  upper-body model (forward kinematics + ``rgbd_residuals``, float32 points, N = N' = M / 2), on a
+  synthetic 640x480 frame; peer: ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10
+  iterations' worth of evaluations) looping over the 10 problems with the NumPy residuals.
+"""
+
+import sys
+
+import numpy as np
+
+from ..benchmark import Case, bench_main
+
+NAME = "lm"
+B = 10
+
+
+def add_arguments(parser):
+    parser.add_argument("--params", type=int, action="append", help="P (14 or 20, repeatable; default both)")
+    parser.add_argument("--residuals", type=int, action="append", help="M (even, repeatable; default 256 and 1280)")
+    parser.add_argument("--iterations", type=int, default=10, help="LM iterations of the whole solve (default 10)")
+    parser.add_argument("--no-scipy", action="store_true", help="skip the scipy.optimize.least_squares peer")
+
+
+def _scene(P, M, rng):
+    """Upper-body chain, templates on its parts, a synthetic frame, and 10 perturbed poses."""
+    from ..models import upper_body
+    from ..ops.template import Camera, SparseTemplate
+
+    chain = upper_body(shoulders=(P == 20))
+    n = M // 2
+    # points on the parts, in part coordinates (torso box; arms along x)
+    part = rng.integers(0, 5, 2 * n)
+    xyz = np.empty((2 * n, 3))
+    torso = part == 0
+    xyz[torso] = rng.uniform([-150, -270, -90], [150, 290, 0], (int(torso.sum()), 3))
+    arm = ~torso
+    length = np.where(part[arm] <= 2, 290.0, 265.0)
+    xyz[arm] = np.stack([rng.uniform(0, 1, int(arm.sum())) * length, rng.uniform(-40, 40, int(arm.sum())), rng.uniform(-40, 0, int(arm.sum()))], 1)
+    rgb = SparseTemplate(xyz[:n], part[:n], rng.uniform(20, 230, n))
+    dep = SparseTemplate(xyz[n:], part[n:])
+    h, w = 480, 640
+    yy, xx = np.mgrid[0:h, 0:w]
+    gray = (128 + 60 * np.sin(xx / 23.0) * np.cos(yy / 31.0)).astype(np.float32)
+    depth = (2000 + 80 * np.sin(xx / 57.0 + yy / 41.0)).astype(np.float32)
+    cam = Camera(525.0, 525.0, 319.5, 239.5)
+    rest = np.asarray(chain.rest_params(), dtype=np.float64)
+    scale = np.r_[[0.05] * 3, [20.0] * 3, [0.1] * 8, [10.0] * (P - 14)]
+    x0 = rest[None, :] + rng.normal(0, 1, (B, P)) * scale[None, :]
+    return chain, rgb, dep, gray, depth, cam, x0
+
+
+def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
+    from ..ops.kinematics import forward_kinematics
+    from ..ops.template import rgbd_residuals
+
+    g = device.asarray(gray)
+    d = device.asarray(depth)
+
+    def residuals(X):
+        tf = forward_kinematics(device, chain, X)
+        return rgbd_residuals(device, tf, rgb, dep, g, d, cam)
+
+    return residuals
+
+
+def cases(device, args):
+    import gputrack
+    from ..ops import lm
+    from ..ops.lm import Layout, _first_den, _initial_points, _pack, least_squares
+
+    ref = gputrack.device("numpy")
+    dt = np.float64 if device.fp64 else np.float32
+    out = []
+    rng = np.random.default_rng(0)
+    for P in args.params or [14, 20]:
+        for M in args.residuals or [256, 1280]:
+            params = {"B": B, "P": P, "M": M, "dtype": np.dtype(dt).name}
+            # 1. the fused op
+            J = rng.normal(size=(B, M, P)).astype(dt)
+            r = rng.normal(size=(B, M)).astype(dt)
+            C = np.full(B, 1e-5, dt)
+            Jd, rd, Cd = device.asarray(J), device.asarray(r), device.asarray(C)
+
+            def numpy_batched(J=J, r=r, C=C, P=P):
+                A = np.einsum("bmi,bmj->bij", J, J) + C[:, None, None] * np.eye(P)
+                return np.linalg.solve(A, np.einsum("bmi,bm->bi", J, r)[..., None])[..., 0]
+
+            out.append(Case(
+                f"lm_solve B={B} M={M} P={P}",
+                run=lambda Jd=Jd, rd=rd, Cd=Cd: lm.lm_solve(device, Jd, rd, Cd),
+                reference=lambda J=J, r=r, C=C: lm.lm_solve(ref, J, r, C),
+                peers={"numpy batched": numpy_batched},
+                params=params,
+            ))
+            # 2. the solver's per-iteration launch, residuals already on the device
+            lay = Layout(B, P, M)
+            x0 = rng.normal(size=(B, P))
+            lo, hi, h = np.full((B, P), -np.inf), np.full((B, P), np.inf), np.zeros(P)
+            S, I = _pack(lay, x0, lo, hi, h, np.full(B, 1e-5), (1e-8, 1e-8, 1e-8), np.dtype(dt), None)
+            pts = _initial_points(x0, lo, hi, h, np.dtype(dt), np.dtype(dt), 2 * P + 1)
+            _first_den(lay, S, pts, 2 * P + 1)
+            R = rng.normal(size=(B * (2 * P + 1), M)).astype(np.float32)
+            be, be_ref = lm.backend_module(device, "lm"), lm.backend_module(ref, "lm")
+            st, st_ref = be.solver_state(device, lay, S, I), be_ref.solver_state(ref, lay, S, I)
+            Xd, Rd = device.asarray(pts), device.asarray(R)
+            Xr = pts.copy()
+            out.append(Case(
+                f"lm iteration B={B} M={M} P={P}",
+                run=lambda st=st, Rd=Rd, Xd=Xd: be.solver_update(st, Rd, Xd, first=True, final=False),
+                reference=lambda st=st_ref, R=R, Xr=Xr: be_ref.solver_update(st, R, Xr, first=True, final=False),
+                params={**params, "residual dtype": "float32"},
+            ))
+            # 3. a whole solve with the RGB-D template residuals
+            if M % 2:
+                continue
+            chain, rgb, dep, gray, depth, cam, x0 = _scene(P, M, rng)
+            fn = _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam)
+            fn_ref = _rgbd_residual_fn(ref, chain, rgb, dep, gray, depth, cam)
+            kw = dict(max_iter=args.iterations, points_dtype=np.float32, early_stop=False)
+            peers = {}
+            if not args.no_scipy:
+                import scipy.optimize
+
+                def one(p, fn_ref=fn_ref):
+                    return fn_ref(p[None, :].astype(np.float32))[0].astype(np.float64)
+
+                def scipy_loop(x0=x0, P=P, one=one):
+                    for b in range(B):
+                        scipy.optimize.least_squares(one, x0[b], method="trf", jac="3-point", max_nfev=args.iterations + 1)
+
+                peers["scipy least_squares x10"] = scipy_loop
+            out.append(Case(
+                f"least_squares {args.iterations} it RGB-D B={B} M={M} P={P}",
+                run=lambda fn=fn, x0=x0: least_squares(fn, x0, device=device, **kw),
+                reference=lambda fn=fn_ref, x0=x0: least_squares(fn, x0, device=ref, **kw),
+                peers=peers,
+                params={**params, "N": M // 2, "N'": M // 2, "iterations": args.iterations, "points dtype": "float32"},
+            ))
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(bench_main(sys.modules[__name__]))
