@@ -26,6 +26,7 @@ import dataclasses
 import enum
 import inspect
 import logging
+import weakref
 
 import numpy as np
 
@@ -493,34 +494,39 @@ class _Solver:
         central = self.jac is None
         S_rows = 2 * P + 1 if central else 1
         pts = _initial_points(x0, lo, hi, h, self.dt, self.pdt, S_rows)
-        X_full = dev.asarray(pts) if dev.backend != "numpy" else pts
-        X_last = X_full if S_rows == 1 else dev.empty((B, P), self.pdt)
-        need_full = need_last = None
-        # the first call fixes M; its points are x0 (and the perturbed points around it)
-        first_X = X_full if max_iter > 0 else (dev.asarray(pts[::S_rows].copy()) if dev.backend != "numpy" else pts[::S_rows].copy())
-        if self.rows_protocol:
-            need_full, need_last = self._need(S_rows)
-        R = self._call(first_X, need_full if max_iter > 0 else need_last)
-        M = self.M
-        lay = Layout(B, P, M)
-        S, I = _pack(lay, x0, lo, hi, h, c0, tols, self.dt, self.mask)
-        # denominators of the first points (same rounding as the kernels: over the stored points)
-        _first_den(lay, S, pts, S_rows)
-        state = be.solver_state(dev, lay, S, I)
-        Jg = self._call_jac(first_X) if not central else None
-        for it in range(max_iter + 1):
-            final = it == max_iter
-            nxt = X_last if it == max_iter - 1 else X_full
-            be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
-            if final:
-                break
-            if early_stop and be.solver_active(state) == 0:
-                break
-            R = self._call(nxt, need_last if nxt is X_last and nxt is not X_full else need_full)
-            if not central:
-                Jg = self._call_jac(nxt)
-        out = be.solver_result(state)
-        S, I = out
+        pool = _Pool(dev)
+        try:
+            X_full = pool.upload(pts)
+            X_last = X_full if S_rows == 1 else pool.empty((B, P), self.pdt)
+            need_full = need_last = None
+            if self.rows_protocol:
+                need_full, need_last = (pool.upload(a) for a in self._need(S_rows))
+            # the first call fixes M; its points are x0 (and the perturbed points around it)
+            if max_iter > 0:
+                first_X, first_need = X_full, need_full
+            else:
+                first_X, first_need = pool.upload(np.ascontiguousarray(pts[::S_rows])), need_last
+            R = self._call(first_X, first_need)
+            lay = Layout(B, P, self.M)
+            S, I = _pack(lay, x0, lo, hi, h, c0, tols, self.dt, self.mask)
+            # denominators of the first points (same rounding as the kernels: over the stored points)
+            _first_den(lay, S, pts, S_rows)
+            state = be.solver_state(dev, lay, pool.upload(S), pool.upload(I))
+            Jg = self._call_jac(first_X) if not central else None
+            for it in range(max_iter + 1):
+                final = it == max_iter
+                nxt = X_last if it == max_iter - 1 else X_full
+                be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
+                if final:
+                    break
+                if early_stop and be.solver_active(state) == 0:
+                    break
+                R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
+                if not central:
+                    Jg = self._call_jac(nxt)
+            S, I = be.solver_result(state)
+        finally:
+            pool.release()
         ib = lay.iblock(I)
         status = ib[:, 0].astype(np.int8)
         status[status == Status.RUNNING] = Status.MAX_ITER  # stopped early only when none is running
@@ -543,15 +549,56 @@ class _Solver:
     def _need(self, S_rows):
         """The (n, M) uint8 row masks handed to a residual function with a ``rows`` parameter."""
         mask = self.mask
-        M, P, B, dev = mask.shape[0], self.P, self.B, self.device
+        M, B = mask.shape[0], self.B
         block = np.ones((S_rows, M), np.uint8)
         block[1::2] = mask.T
         block[2::2] = mask.T
-        full = np.tile(block, (B, 1))
-        last = np.ones((B, M), np.uint8)
+        return np.tile(block, (B, 1)), np.ones((B, M), np.uint8)
+
+
+class _Pool:
+    """Device buffers of a solve, reused by the next solve of the same shapes on the same device.
+
+    Allocating a Taichi ndarray costs ~0.5 ms, a solve needs four. Buffers are taken out of the
+    per-device pool for the duration of a solve (a nested solve allocates its own) and put back
+    at the end. Uploads into a reused buffer are counted in ``device.transfers`` like any other.
+    """
+
+    _free: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+    def __init__(self, device):
+        self.device = device
+        self.taken: list = []
+
+    def _take(self, shape, dtype):
+        dev = self.device
+        key = (tuple(shape), np.dtype(dtype).name)
+        free = self._free.setdefault(dev, {}).get(key)
+        arr = free.pop() if free else dev.empty(shape, dtype)
+        self.taken.append((key, arr))
+        return arr
+
+    def empty(self, shape, dtype):
+        if self.device.backend == "numpy":
+            return np.empty(shape, dtype)
+        return self._take(shape, dtype)
+
+    def upload(self, host):
+        dev = self.device
         if dev.backend == "numpy":
-            return full, last
-        return dev.asarray(full), dev.asarray(last)
+            return host
+        arr = self._take(host.shape, host.dtype)
+        backend_module(dev, "lm").upload_into(dev, arr, np.ascontiguousarray(host))
+        dev.transfers.h2d += host.nbytes
+        return arr
+
+    def release(self):
+        if self.device.backend == "numpy" or self.device.closed:
+            return
+        free = self._free.setdefault(self.device, {})
+        for key, arr in self.taken:
+            free.setdefault(key, []).append(arr)
+        self.taken = []
 
 
 def _initial_points(x0, lo, hi, h, dt, pdt, S_rows):

@@ -98,10 +98,15 @@ def lm_solve(device, J, r, damping):
 class State:
     def __init__(self, device, lay, S, I):
         self.device, self.lay = device, lay
-        self.S = device.asarray(S)
-        self.I = device.asarray(I)
+        self.S = S if not isinstance(S, np.ndarray) else device.asarray(S)
+        self.I = I if not isinstance(I, np.ndarray) else device.asarray(I)
         self.ls = _local_size(device, lay.P)
         self.n_status = lay.ib + lay.B * lay.IB
+
+
+def upload_into(device, arr, host):
+    """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts it."""
+    arr.buffer.set(host, queue=device.queue)
 
 
 def solver_state(device, lay, S, I):

@@ -41,54 +41,99 @@ def _finite(v, dt: ti.template()) -> ti.i32:
 # ops
 
 
-@ti.kernel
-def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, dt: ti.template()):
-    B, M, P = J.shape[0], J.shape[1], J.shape[2]
-    for t in range(B * P):
-        b, i = t // P, t % P
-        for j in range(i + 1):
-            s = ti.cast(0, dt)
-            for m in range(M):
-                s += J[b, m, i] * J[b, m, j]  # eq. 22: J^T J
-            JtJ[b, i, j] = s
-            JtJ[b, j, i] = s
-        s = ti.cast(0, dt)
-        for m in range(M):
-            s += J[b, m, i] * r[b, m]  # eq. 22: J^T r
-        Jtr[b, i] = s
+@ti.func
+def _transpose(J: ti.template(), W: ti.template(), b, i, off, M, P):
+    """Column i of J[b] (stride P) into the contiguous row W[b, off + i*M : off + (i+1)*M]."""
+    for m in range(M):
+        W[b, off + i * M + m] = J[b, m, i]
 
 
 @ti.func
-def _chol_solve_nd(W: ti.template(), delta: ti.template(), b, P, C, dt: ti.template()) -> ti.i32:
-    """In place: W[b] (lower triangle, + C I) -> L; delta[b] (rhs) -> solution. 0 if not PD."""
+def _gram_row(W: ti.template(), r: ti.template(), A: ti.template(), g: ti.template(), b, i, off, aoff, M, P, dt: ti.template()):
+    """Row i of J^T J (both triangles) into A[b, aoff + i*P + j] and J^T r into g[b, i] (eq. 22),
+    from the contiguous rows of J^T in W; four columns per pass over row i."""
+    ri = off + i * M
+    j = 0
+    while j + 3 <= i:
+        s0 = ti.cast(0, dt)
+        s1 = ti.cast(0, dt)
+        s2 = ti.cast(0, dt)
+        s3 = ti.cast(0, dt)
+        r0 = off + j * M
+        for m in range(M):
+            a = W[b, ri + m]
+            s0 += a * W[b, r0 + m]
+            s1 += a * W[b, r0 + M + m]
+            s2 += a * W[b, r0 + 2 * M + m]
+            s3 += a * W[b, r0 + 3 * M + m]
+        A[b, aoff + i * P + j] = s0
+        A[b, aoff + i * P + j + 1] = s1
+        A[b, aoff + i * P + j + 2] = s2
+        A[b, aoff + i * P + j + 3] = s3
+        A[b, aoff + j * P + i] = s0
+        A[b, aoff + (j + 1) * P + i] = s1
+        A[b, aoff + (j + 2) * P + i] = s2
+        A[b, aoff + (j + 3) * P + i] = s3
+        j += 4
+    while j <= i:
+        rj = off + j * M
+        s = ti.cast(0, dt)
+        for m in range(M):
+            s += W[b, ri + m] * W[b, rj + m]
+        A[b, aoff + i * P + j] = s
+        A[b, aoff + j * P + i] = s
+        j += 1
+    s = ti.cast(0, dt)
+    for m in range(M):
+        s += W[b, ri + m] * r[b, m]
+    g[b, i] = s
+
+
+@ti.kernel
+def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template()):
+    B, M, P = J.shape[0], J.shape[1], J.shape[2]
+    for t in range(B * P):
+        _transpose(J, W, t // P, t % P, 0, M, P)
+    for t in range(B * P):
+        b, i = t // P, t % P
+        _gram_row(W, r, W, Jtr, b, i, 0, P * M, M, P, dt)  # J^T J lands after the J^T rows of W
+    for t in range(B * P * P):
+        b, k = t // (P * P), t % (P * P)
+        JtJ[b, k // P, k % P] = W[b, P * M + k]
+
+
+@ti.func
+def _chol_solve(W: ti.template(), delta: ti.template(), b, P, C, dt: ti.template()) -> ti.i32:
+    """In place: W[b, i*P + j] (lower triangle read, + C I) -> L; delta[b] (rhs) -> solution.
+    Returns 0 (and delta = 0) if the damped matrix is not positive definite."""
     ok = 1
     for j in range(P):
         if ok:
-            s = W[b, j, j] + C
+            s = W[b, j * P + j] + C
             for k in range(j):
-                s -= W[b, j, k] * W[b, j, k]
+                s -= W[b, j * P + k] * W[b, j * P + k]
             if s <= 0 or not _finite(s, dt):
                 ok = 0
             else:
                 d = ti.sqrt(s)
-                W[b, j, j] = d
+                W[b, j * P + j] = d
                 for i in range(j + 1, P):
-                    v = W[b, i, j]
+                    v = W[b, i * P + j]
                     for k in range(j):
-                        v -= W[b, i, k] * W[b, j, k]
-                    W[b, i, j] = v / d
+                        v -= W[b, i * P + k] * W[b, j * P + k]
+                    W[b, i * P + j] = v / d
     if ok:
         for i in range(P):
             v = delta[b, i]
             for k in range(i):
-                v -= W[b, i, k] * delta[b, k]
-            delta[b, i] = v / W[b, i, i]
+                v -= W[b, i * P + k] * delta[b, k]
+            delta[b, i] = v / W[b, i * P + i]
         for ii in range(P):
             i = P - 1 - ii
             v = delta[b, i]
             for k in range(i + 1, P):
-                v -= W[b, k, i] * delta[b, k]
-            delta[b, i] = v / W[b, i, i]
+                v -= W[b, k * P + i] * delta[b, k]
+            delta[b, i] = v / W[b, i * P + i]
     else:
         for i in range(P):
             delta[b, i] = ti.cast(0, dt)
@@ -103,36 +148,31 @@ def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.tem
         for i in range(P):
             delta[b, i] = Jtr[b, i]
             for j in range(i + 1):
-                W[b, i, j] = JtJ[b, i, j]
-        ok[b] = _chol_solve_nd(W, delta, b, P, damping[b], dt)  # eq. 22
+                W[b, i * P + j] = JtJ[b, i, j]
+        ok[b] = _chol_solve(W, delta, b, P, damping[b], dt)  # eq. 22
 
 
 @ti.kernel
 def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template()):
+    """W: (B, P*P + P*M) work: the matrix / factor, then the rows of J^T."""
     B, M, P = J.shape[0], J.shape[1], J.shape[2]
     for t in range(B * P):
-        b, i = t // P, t % P
-        for j in range(i + 1):
-            s = ti.cast(0, dt)
-            for m in range(M):
-                s += J[b, m, i] * J[b, m, j]  # eq. 22: J^T J
-            W[b, i, j] = s
-        s = ti.cast(0, dt)
-        for m in range(M):
-            s += J[b, m, i] * r[b, m]  # eq. 22: J^T r
-        delta[b, i] = s
+        _transpose(J, W, t // P, t % P, P * P, M, P)
+    for t in range(B * P):
+        _gram_row(W, r, W, delta, t // P, t % P, P * P, 0, M, P, dt)  # eq. 22: J^T J, J^T r
     ti.loop_config(serialize=B < 64)
     for b in range(B):
-        ok[b] = _chol_solve_nd(W, delta, b, P, damping[b], dt)
+        ok[b] = _chol_solve(W, delta, b, P, damping[b], dt)  # eq. 22: (J^T J + C I) delta = J^T r
 
 
 _work_cache: dict = {}
 
 
 def _work(device, shape, dtype):
+    """A scratch array per device, shape and dtype, allocated once (Taichi allocations are slow)."""
     key = (id(device), tuple(shape), np.dtype(dtype).name)
     w = _work_cache.get(key)
-    if w is None or w.device.closed:
+    if w is None or w.device is not device or w.device.closed:
         w = device.empty(shape, dtype)
         _work_cache[key] = w
     return w
@@ -142,7 +182,8 @@ def normal_equations(device, J, r):
     B, M, P = J.shape
     JtJ = device.empty((B, P, P), J.dtype)
     Jtr = device.empty((B, P), J.dtype)
-    _normal_equations(J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, _ti_dtype(J.dtype))
+    W = _work(device, (B, P * M + P * P), J.dtype)
+    _normal_equations(J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W.buffer, _ti_dtype(J.dtype))
     return JtJ, Jtr
 
 
@@ -150,7 +191,7 @@ def lm_step(device, JtJ, Jtr, damping):
     B, P = Jtr.shape
     delta = device.empty((B, P), Jtr.dtype)
     ok = device.empty((B,), np.int32)
-    W = _work(device, (B, P, P), Jtr.dtype)
+    W = _work(device, (B, P * P), Jtr.dtype)
     _lm_step(JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer, _ti_dtype(Jtr.dtype))
     return delta, ok
 
@@ -159,7 +200,7 @@ def lm_solve(device, J, r, damping):
     B, M, P = J.shape
     delta = device.empty((B, P), J.dtype)
     ok = device.empty((B,), np.int32)
-    W = _work(device, (B, P, P), J.dtype)
+    W = _work(device, (B, P * P + P * M), J.dtype)
     _lm_solve(J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer, _ti_dtype(J.dtype))
     return delta, ok
 
@@ -511,9 +552,14 @@ def _update_jac(S: nd, I: nd, X: nd, R: nd, Jg: nd, dt: ti.template(), first: ti
 class State:
     def __init__(self, device, lay, S, I):
         self.device, self.lay = device, lay
-        self.S = device.asarray(S)
-        self.I = device.asarray(I)
+        self.S = S if not isinstance(S, np.ndarray) else device.asarray(S)
+        self.I = I if not isinstance(I, np.ndarray) else device.asarray(I)
         self.dt = _ti_dtype(S.dtype)
+
+
+def upload_into(device, arr, host):
+    """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts it."""
+    arr.buffer.from_numpy(host)
 
 
 def solver_state(device, lay, S, I):
