@@ -34,7 +34,13 @@ Numerics (identical on every backend):
 - ``predict=(F, Q)`` on an update runs the prediction first in the same launch (one kernel
   instead of two; equal to kf_predict followed by the update). Masked tracks are then predicted
   only, as paper 001 does for a tracker with fewer than 2 observations.
-- Empty batches (T = 0, D = 0) return empty results of the right shapes.
+- ``out=`` (optional, on updates and kf_predict): arrays of the device to write the results
+  into instead of allocating new ones, ``(x, P)`` or ``(x, P, status)``; they may be the input
+  x and P themselves (an in-place update: each track reads its own inputs before it writes).
+  Allocating fresh outputs costs real time on some backends (a (1e5,6,6) Taichi ndarray is
+  ~6 ms on a 2-core CPU), so a tracker that keeps its state on the device passes ``out``.
+- Empty batches (T = 0, D = 0) return empty results of the right shapes (``out`` is then
+  returned as it is).
 
 Sizes: 1 <= n <= MAX_N and 1 <= m <= MAX_M (the device kernels unroll the small matrix algebra
 for the n and m of each call and compile once per combination).
@@ -165,7 +171,43 @@ def _options(device, mask, gain_scale, predict, dims, dt):
     return mask, gain_scale, predict
 
 
-def _empty_state(device, dims, dt, with_status=True):
+def _outputs(device, out, dims, dt, with_status):
+    """Validate caller-provided output arrays (exact shape and dtype, on the device)."""
+    if out is None:
+        return None
+    want = [("x", (dims["T"], dims["n"]), dt), ("P", (dims["T"], dims["n"], dims["n"]), dt)]
+    if with_status:
+        want.append(("status", (dims["T"],), np.dtype(np.uint8)))
+    if not isinstance(out, (tuple, list)) or len(out) != len(want):
+        names = ", ".join(w[0] for w in want)
+        raise TypeError(f"out: expected a tuple ({names}) of arrays or None, got {type(out).__name__}")
+    for a, (name, shape, dtype) in zip(out, want):
+        if device.backend == "numpy":
+            if not isinstance(a, np.ndarray) or not a.flags.c_contiguous or not a.flags.writeable:
+                raise TypeError(f"out {name}: expected a writeable C-contiguous NumPy array, got {type(a).__name__}")
+        else:
+            arg(device, a, f"out {name}", dtype=dtype)  # on this device
+            if not hasattr(a, "buffer"):
+                raise TypeError(f"out {name}: expected an array on {device.spec}, got {type(a).__name__}")
+        if tuple(a.shape) != shape or a.dtype != dtype:
+            raise ValueError(f"out {name}: expected shape {shape} and dtype {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}")
+    return tuple(out)
+
+
+def _pattern(A, cols):
+    """Bitmask of the non-zero entries of a shared host matrix (the device kernels skip the zeros);
+    -1 where unknown (device arrays, per-track matrices, None)."""
+    if not isinstance(A, np.ndarray) or A.ndim != 2 or A.shape[1] != cols or A.shape[0] > MAX_N:
+        return -1
+    bits = 0
+    for i, k in zip(*np.nonzero(A)):
+        bits |= 1 << (int(i) * cols + int(k))
+    return bits
+
+
+def _empty_state(device, dims, dt, with_status=True, out=None):
+    if out is not None:
+        return KalmanState(*out) if with_status else tuple(out)
     T, n = dims["T"], dims["n"]
     x, P = device.empty((T, n), dt), device.empty((T, n, n), dt)
     return KalmanState(x, P, device.empty((T,), np.uint8)) if with_status else (x, P)
@@ -182,46 +224,53 @@ def _scalar(value, name, positive=False):
 
 
 # -- ops -------------------------------------------------------------------------------------------
-def kf_predict(device, x, P, F, Q):
+def kf_predict(device, x, P, F, Q, *, out=None):
     """Predict every track: x' = F x, P' = F P F^T + Q (paper 001 eq. 2-3).
 
     x (T,n), P (T,n,n), F and Q (n,n) shared or (T,n,n) per track. Returns ``(x', P')`` with P'
-    symmetrised.
+    symmetrised. ``out=(x_out, P_out)`` writes into those arrays (they may be x and P).
     """
     device = check_device(device)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
+    pats = (_pattern(F, dims["n"]), -1)
     F = _matrix(device, F, "F", "n", "n", dims, dt)
     Q = _matrix(device, Q, "Q", "n", "n", dims, dt)
+    out = _outputs(device, out, dims, dt, False)
     if dims["T"] == 0:
-        return _empty_state(device, dims, dt, with_status=False)
-    return backend_module(device, "kalman").kf_predict(device, x, P, F, Q)
+        return _empty_state(device, dims, dt, with_status=False, out=out)
+    return tuple(backend_module(device, "kalman").kf_predict(device, x, P, F, Q, out=out, pats=pats))
 
 
-def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None) -> KalmanState:
+def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None, out=None) -> KalmanState:
     """Linear Kalman update of every track with its observation z (T,m).
 
     y = z - H x; S = H P H^T + R (Cholesky); K = gain_scale * P H^T S^-1; x+ = x + K y;
     P+ = (I - K H) P (I - K H)^T + K R K^T (Joseph form). H (m,n) or (T,m,n), R (m,m) or (T,m,m).
     ``mask`` (T,) bool: False leaves the track unchanged (predict-only frame). ``gain_scale`` (T,)
     >= 0 multiplies each track's gain (paper 002 eq. 4-6). ``predict=(F, Q)`` predicts first in
-    the same launch. Returns :class:`KalmanState` (x, P, status); see the module docstring.
+    the same launch. ``out=(x_out, P_out, status_out)`` writes into those arrays (x_out, P_out may
+    be x and P). Returns :class:`KalmanState` (x, P, status); see the module docstring.
     """
     device = check_device(device)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     z = _observations(device, z, dims, dt)
+    pats = (_pattern(predict[0], dims["n"]) if isinstance(predict, (tuple, list)) and predict else -1, _pattern(H, dims["n"]))
     H = _matrix(device, H, "H", "m", "n", dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
     mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
+    out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
-        return _empty_state(device, dims, dt)
-    out = backend_module(device, "kalman").kf_update(device, x, P, z, H, R, mask, gain_scale, predict)
-    return KalmanState(*out)
+        return _empty_state(device, dims, dt, out=out)
+    res = backend_module(device, "kalman").kf_update(
+        device, x, P, z, H, R, mask, gain_scale, predict, out=out, pats=pats
+    )
+    return KalmanState(*res)
 
 
 def ekf_update_stereo(
-    device, x, P, z, R, *, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None
+    device, x, P, z, R, *, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None
 ) -> KalmanState:
     """Extended Kalman update with the stereo observation of paper 001 (eq. 1, 4-6).
 
@@ -229,7 +278,7 @@ def ekf_update_stereo(
     h(x) = [f x/z + cx, f y/z + cy, f b/z] (f focal length in pixels, b baseline, (cx, cy) the
     principal point; d the disparity). The analytic Jacobian of h at the (predicted) state is the
     H of the linear update; everything else is as in :func:`kf_update`. A track whose state has
-    z <= 0 is left unchanged with status BAD_DEPTH. R (3,3) or (T,3,3).
+    z <= 0 is left unchanged with status BAD_DEPTH. R (3,3) or (T,3,3). ``out`` as in kf_update.
     """
     device = check_device(device)
     dims: dict = {}
@@ -242,13 +291,15 @@ def ekf_update_stereo(
     f = _scalar(f, "f", positive=True)
     b = _scalar(b, "b", positive=True)
     cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
+    pats = (_pattern(predict[0], 6) if isinstance(predict, (tuple, list)) and predict else -1, -1)
     mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
+    out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
-        return _empty_state(device, dims, dt)
-    out = backend_module(device, "kalman").ekf_update_stereo(
-        device, x, P, z, R, f, b, cx, cy, mask, gain_scale, predict
+        return _empty_state(device, dims, dt, out=out)
+    res = backend_module(device, "kalman").ekf_update_stereo(
+        device, x, P, z, R, f, b, cx, cy, mask, gain_scale, predict, out=out, pats=pats
     )
-    return KalmanState(*out)
+    return KalmanState(*res)
 
 
 def mahalanobis(device, x, P, H, R, z):
@@ -265,11 +316,12 @@ def mahalanobis(device, x, P, H, R, z):
     z = arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
     if not 1 <= dims["m"] <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
+    pats = (-1, _pattern(H, dims["n"]))
     H = _matrix(device, H, "H", "m", "n", dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
     if dims["T"] == 0 or dims["D"] == 0:
         return device.empty((dims["T"], dims["D"]), dt)
-    return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z)
+    return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z, pats=pats)
 
 
 def _selftest(device) -> None:

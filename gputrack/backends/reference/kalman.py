@@ -73,11 +73,20 @@ def backward(L, W):
     return X
 
 
-def kf_predict(device, x, P, F, Q):
+def _into(out, results):
+    """Copy results into caller-provided arrays (which may alias the inputs)."""
+    if out is None:
+        return results
+    for dst, src in zip(out, results):
+        np.copyto(dst, src)
+    return tuple(out[: len(results)])
+
+
+def kf_predict(device, x, P, F, Q, out=None, pats=None):
     """x' = F x, P' = F P F^T + Q (eq. 2-3: x_{k+1} = Phi x_k + Gamma w_k)."""
     x1 = _mv(F, x)  # eq. 2
     P1 = _sym(F @ _sym(P) @ _t(F) + _sym(Q))  # eq. 2, covariance of Phi x + w
-    return x1.astype(x.dtype, copy=False), P1.astype(x.dtype, copy=False)
+    return _into(out, (x1.astype(x.dtype, copy=False), P1.astype(x.dtype, copy=False)))
 
 
 def _update(x, P, y, H, R, valid, gain_scale):
@@ -131,13 +140,13 @@ def _status(valid, extra_fail, extra_code, pd_ok):
     return st
 
 
-def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None):
+def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=None):
     """Linear update: y = z - H x, K = P H^T S^-1, Joseph-form covariance. Returns (x, P, status)."""
     x, P, valid = _prologue(x, P, z, mask, predict)
     zf = np.where(np.isfinite(z), z, 0).astype(x.dtype)
     y = zf - _mv(H, x)  # innovation
     xo, Po, pd_ok = _update(x, P, y, H, R, valid, gain_scale)
-    return xo, Po, _status(valid, None, 0, pd_ok)
+    return _into(out, (xo, Po, _status(valid, None, 0, pd_ok)))
 
 
 def stereo_observation(x, f, b, cx, cy):
@@ -155,7 +164,9 @@ def stereo_observation(x, f, b, cx, cy):
     return h.astype(x.dtype), J
 
 
-def ekf_update_stereo(device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None):
+def ekf_update_stereo(
+    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=None
+):
     """Stereo EKF update (eq. 4-6): z = [u v d], Jacobian at the (predicted) state."""
     x, P, valid = _prologue(x, P, z, mask, predict)
     dt = x.dtype.type
@@ -165,10 +176,10 @@ def ekf_update_stereo(device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_
     zf = np.where(np.isfinite(z), z, 0).astype(x.dtype)
     y = zf - h  # eq. 5: z = f(x) + v
     xo, Po, pd_ok = _update(x, P, y, J, R, valid & ~bad_depth, gain_scale)
-    return xo, Po, _status(valid, bad_depth & valid, BAD_DEPTH, pd_ok | bad_depth)
+    return _into(out, (xo, Po, _status(valid, bad_depth & valid, BAD_DEPTH, pd_ok | bad_depth)))
 
 
-def mahalanobis(device, x, P, H, R, z):
+def mahalanobis(device, x, P, H, R, z, pats=None):
     """(T,D) squared Mahalanobis distances (z_d - H x)^T S^-1 (z_d - H x), S = H P H^T + R (eq. 8).
 
     inf for a track whose S is not positive definite.

@@ -1,0 +1,118 @@
+"""OpenCL launchers of the batched Kalman filter ops (kernels/gt_kalman.cl): one work-item per track.
+
+Sizes, dtype, layout (shared or per-track matrices), options and the known zero patterns of F
+and H are build defines, so each combination is built once per device (cached by
+``device.program``). Arguments an op does not use are passed as NULL.
+"""
+
+import functools
+
+import numpy as np
+
+MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
+PD_EPS_FACTOR = 4.0
+_STEREO_ROWS = (0b010001, 0b010100, 0b010000)  # non-zeros of the stereo Jacobian, per row
+
+
+def _rows(pat: int, rows: int, cols: int):
+    """Row bitmasks of a row-major bitmask pattern (-1 = dense)."""
+    if pat == -1:
+        return [(1 << cols) - 1] * rows
+    return [(pat >> (i * cols)) & ((1 << cols) - 1) for i in range(rows)]
+
+
+def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, fpat, hrows):
+    real = "double" if dtype == np.float64 else "float"
+    eps = float(np.finfo(dtype).eps) * PD_EPS_FACTOR
+    defines = {
+        "REAL": real,
+        "REAL_IS_DOUBLE": int(dtype == np.float64),
+        "N": n,
+        "M": m,
+        "MODE": mode,
+        "DO_PREDICT": int(predict),
+        "HAS_MASK": int(has_mask),
+        "HAS_GAIN": int(has_gain),
+        "F_PT": pts[0],
+        "Q_PT": pts[1],
+        "H_PT": pts[2],
+        "R_PT": pts[3],
+        "FPAT": ",".join(f"{r}u" for r in _rows(fpat, n, n)),
+        "HPAT": ",".join(f"{r}u" for r in hrows),
+        "PD_TOL": repr(eps),
+    }
+    return device.program("gt_kalman.cl", defines)
+
+
+@functools.lru_cache(maxsize=None)
+def _kernel(program, name: str):
+    """One kernel object per built program (retrieving it anew each call is costly in PyOpenCL)."""
+    import pyopencl as cl
+
+    return cl.Kernel(program, name)
+
+
+def _pt(a):
+    return int(a is not None and a.ndim == 3)
+
+
+def _data(a):
+    return a.buffer.data if a is not None else None
+
+
+def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0)):
+    T, n = x.shape
+    m = z.shape[1] if z is not None else 1
+    dt = x.dtype
+    if out is None:
+        out = (device.empty((T, n), dt), device.empty((T, n, n), dt))
+        if mode != MODE_PREDICT:
+            out += (device.empty((T,), np.uint8),)
+    xo, Po = out[0], out[1]
+    st = out[2] if mode != MODE_PREDICT else None
+    if mode == MODE_STEREO:
+        hrows = _STEREO_ROWS
+    elif mode == MODE_LINEAR:
+        hrows = _rows(pats[1], m, n)
+    else:
+        hrows = [0]
+    prg = _program(
+        device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None,
+        (_pt(F), _pt(Q), _pt(H), _pt(R)), pats[0] if F is not None else -1, hrows,
+    )
+    real = dt.type
+    _kernel(prg, "gt_kf")(
+        device.queue, (T,), None,
+        _data(x), _data(P), _data(z), _data(F), _data(Q), _data(H), _data(R), _data(mask), _data(gain_scale),
+        _data(xo), _data(Po), _data(st),
+        real(cam[0]), real(cam[1]), real(cam[2]), real(cam[3]), np.int32(T),
+    )  # fmt: skip
+    return (xo, Po) if mode == MODE_PREDICT else (xo, Po, st)
+
+
+def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1)):
+    return _run(device, x, P, None, F, Q, None, None, None, None, MODE_PREDICT, out, pats)
+
+
+def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1)):
+    F, Q = predict if predict is not None else (None, None)
+    return _run(device, x, P, z, F, Q, H, R, mask, gain_scale, MODE_LINEAR, out, pats)
+
+
+def ekf_update_stereo(
+    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1)
+):
+    F, Q = predict if predict is not None else (None, None)
+    return _run(device, x, P, z, F, Q, None, R, mask, gain_scale, MODE_STEREO, out, pats, (f, b, cx, cy))
+
+
+def mahalanobis(device, x, P, H, R, z, pats=(-1, -1)):
+    T, n = x.shape
+    D, m = z.shape
+    out = device.empty((T, D), x.dtype)
+    prg = _program(device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), -1, _rows(pats[1], m, n))
+    _kernel(prg, "gt_gate")(
+        device.queue, (T,), None,
+        _data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D),
+    )  # fmt: skip
+    return out
