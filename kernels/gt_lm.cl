@@ -102,17 +102,31 @@ __kernel void gt_lm_solve(__global const REAL *J, __global const REAL *r, __glob
     __global const REAL *Jb = J + (long)b * M * P;
     __global REAL *Wb = W + (long)b * P * P;
     __global REAL *db = delta + (long)b * P;
-    for (int i = lid; i < P; i += ls) {
-        for (int j = 0; j <= i; ++j) {
+    const int npairs = P * (P + 1) / 2;
+    for (int q = lid; q < npairs + P; q += ls) {
+        if (q < npairs) {
+            int i = (int)((sqrt(8.0f * q + 1.0f) - 1.0f) * 0.5f);
+            while (i * (i + 1) / 2 > q)
+                --i;
+            while ((i + 1) * (i + 2) / 2 <= q)
+                ++i;
+            const int j = q - i * (i + 1) / 2;
+            REAL s0 = 0, s1 = 0;
+            int m = 0;
+            for (; m + 1 < M; m += 2) {
+                s0 += Jb[m * P + i] * Jb[m * P + j];  // eq. 22: J^T J
+                s1 += Jb[(m + 1) * P + i] * Jb[(m + 1) * P + j];
+            }
+            for (; m < M; ++m)
+                s0 += Jb[m * P + i] * Jb[m * P + j];
+            Wb[i * P + j] = s0 + s1;
+        } else {
+            const int i = q - npairs;
             REAL s = 0;
             for (int m = 0; m < M; ++m)
-                s += Jb[m * P + i] * Jb[m * P + j];  // eq. 22: J^T J
-            Wb[i * P + j] = s;
+                s += Jb[m * P + i] * r[(long)b * M + m];  // eq. 22: J^T r
+            db[i] = s;
         }
-        REAL s = 0;
-        for (int m = 0; m < M; ++m)
-            s += Jb[m * P + i] * r[(long)b * M + m];  // eq. 22: J^T r
-        db[i] = s;
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
     if (lid == 0) {
@@ -125,6 +139,22 @@ __kernel void gt_lm_solve(__global const REAL *J, __global const REAL *r, __glob
 
 // ------------------------------------------------------------------------------------------------
 // solver: packed state (gputrack.ops.lm.Layout), one launch per iteration
+
+// a . b over M contiguous values, four partial sums
+static REAL gt_dot(__global const REAL *a, __global const REAL *b, const int M)
+{
+    REAL s0 = 0, s1 = 0, s2 = 0, s3 = 0;
+    int m = 0;
+    for (; m + 3 < M; m += 4) {
+        s0 += a[m] * b[m];
+        s1 += a[m + 1] * b[m + 1];
+        s2 += a[m + 2] * b[m + 2];
+        s3 += a[m + 3] * b[m + 3];
+    }
+    for (; m < M; ++m)
+        s0 += a[m] * b[m];
+    return (s0 + s1) + (s2 + s3);
+}
 
 #define SB_(P, M) (7 * (P) + 2 * (P) * (P) + (P) * (M) + 8)
 
@@ -342,22 +372,34 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global XTYPE *X,
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
 
-    // 3. J^T J and J^T r at the accepted point (eq. 22), rows shared by the work-items
+    // 3. J^T J and J^T r at the accepted point (eq. 22): the P (P + 1) / 2 entries of the lower
+    // triangle and the P entries of J^T r are shared out over the work-items
     if (!final_ && ib[2]) {
-        for (int i = lid; i < P; i += ls) {
-            __global const REAL *ri = Jt + i * M;
-            for (int j = 0; j <= i; ++j) {
-                __global const REAL *rj = Jt + j * M;
-                REAL s = 0;
-                for (int m = 0; m < M; ++m)
-                    s += ri[m] * rj[m];
+        const int npairs = P * (P + 1) / 2;
+        for (int q = lid; q < npairs + P; q += ls) {
+            if (q < npairs) {
+                int i = (int)((sqrt(8.0f * q + 1.0f) - 1.0f) * 0.5f);
+                while (i * (i + 1) / 2 > q)
+                    --i;
+                while ((i + 1) * (i + 2) / 2 <= q)
+                    ++i;
+                const int j = q - i * (i + 1) / 2;
+                const REAL s = gt_dot(Jt + i * M, Jt + j * M, M);
                 A[i * P + j] = s;
                 A[j * P + i] = s;
+            } else {
+                const int i = q - npairs;
+                __global const REAL *ri = Jt + i * M;
+                REAL s0 = 0, s1 = 0;
+                int m = 0;
+                for (; m + 1 < M; m += 2) {
+                    s0 += ri[m] * (REAL)rt[m];
+                    s1 += ri[m + 1] * (REAL)rt[m + 1];
+                }
+                for (; m < M; ++m)
+                    s0 += ri[m] * (REAL)rt[m];
+                g[i] = s0 + s1;
             }
-            REAL s = 0;
-            for (int m = 0; m < M; ++m)
-                s += ri[m] * (REAL)rt[m];
-            g[i] = s;
         }
     }
     barrier(CLK_GLOBAL_MEM_FENCE);

@@ -40,7 +40,9 @@ def _kernel(prg, name):
 
 
 def _local_size(device, P):
-    return int(max(1, min(P, 64, device.info.max_work_group_size or 64)))
+    """Work-items per problem: enough to share out the P (P + 1) / 2 entries of J^T J."""
+    want = 64 if P > 4 else 8
+    return int(max(1, min(want, device.info.max_work_group_size or want)))
 
 
 _work_cache: dict = {}
