@@ -161,6 +161,66 @@ def test_generic_chains(device):
     np.testing.assert_allclose(got[0, 0], want, atol=2e-6)
 
 
+FUSED_CL = """
+#include "gt_kinematics.clh"
+__kernel void fused(__global const float *params, __global const int *table, __global const float *offsets,
+                    __global float *scratch, __global float *tips, const int P, const int J)
+{
+    const int b = get_global_id(0);
+    __global float *o = scratch + (size_t)b * J * 12;
+    gt_fk_pose(params + (size_t)b * P, table, offsets, o, J);
+    /* the camera position of each part's point (100, 0, 0): a fused stage after the kinematics */
+    for (int j = 0; j < J; ++j)
+        for (int r = 0; r < 3; ++r)
+            tips[(b * J + j) * 3 + r] = 100.0f * o[j * 12 + 4 * r] + o[j * 12 + 4 * r + 3];
+}
+"""
+
+
+def test_building_blocks_for_fused_kernels(device):
+    """gt_kinematics.clh (OpenCL) and pose_f32 (Taichi) give the op's transforms inside another kernel."""
+    if device.backend == "numpy":
+        pytest.skip("the reference has no kernels")
+    from gputrack.ops.kinematics import chain_tables
+
+    chain = upper_body()
+    p = random_params(chain, 13, seed=9).astype(np.float32)
+    dp = device.asarray(p)
+    table, offsets = chain_tables(device, chain)
+    scratch = device.empty((13, 5, 3, 4), np.float32)
+    tips = device.empty((13, 5, 3), np.float32)
+    if device.backend == "opencl":
+        import pyopencl as cl
+
+        from gputrack.backends.opencl.program import kernel_dir
+
+        prg = cl.Program(device.context, FUSED_CL).build(options=[f"-I{kernel_dir()}"])
+        prg.fused(device.queue, (13,), None, dp.buffer.data, table.buffer.data, offsets.buffer.data,
+                  scratch.buffer.data, tips.buffer.data, np.int32(14), np.int32(5))  # fmt: skip
+    else:
+        from gputrack.backends.taichi.kinematics import pose_f32
+        from gputrack.backends.taichi.runtime import ti
+
+        @ti.kernel
+        def fused(
+            params: ti.types.ndarray(dtype=ti.f32, ndim=2),
+            table: ti.types.ndarray(dtype=ti.i32, ndim=2),
+            offsets: ti.types.ndarray(dtype=ti.f32, ndim=2),
+            scratch: ti.types.ndarray(dtype=ti.f32, ndim=4),
+            tips: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        ):
+            for b in range(params.shape[0]):
+                pose_f32(params, b, table, offsets, scratch)
+                for j in range(table.shape[0]):
+                    for r in ti.static(range(3)):
+                        tips[b, j, r] = 100.0 * scratch[b, j, r, 0] + scratch[b, j, r, 3]
+
+        fused(dp.buffer, table.buffer, offsets.buffer, scratch.buffer, tips.buffer)
+    want = reference(None, chain, p.astype(np.float64))
+    assert_matches(device, scratch.numpy()[..., :3], want[..., :3])
+    assert_matches(device, tips.numpy() / 2000.0, (100.0 * want[..., 0] + want[..., 3]) / 2000.0)
+
+
 def test_chain_tables_uploaded_once(device):
     chain = upper_body()
     p = device.asarray(random_params(chain, 13, seed=2).astype(np.float32))

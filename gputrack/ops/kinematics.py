@@ -5,6 +5,11 @@
 is camera-from-parent @ parent-from-child, eq. 2-3). One kernel launch per call; the chain is
 read from two small tables (see :meth:`gputrack.models.Chain.packed`) uploaded once per device,
 chain and dtype and cached, so the kernels work for any chain, not only the upper body.
+
+For fused kernels (sample + kinematics + score in one launch) the per-pose code is reusable:
+OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)``; Taichi
+``gputrack.backends.taichi.kinematics.pose_f32`` / ``pose_f64`` (``ti.func``), both reading the
+tables from :func:`chain_tables`.
 """
 
 from __future__ import annotations

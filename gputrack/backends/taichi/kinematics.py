@@ -63,6 +63,42 @@ def _make(real):
             n1 = -s * c0 + c * c1
         return n0, n1, n2
 
+    @ti.func
+    def pose(params: ti.template(), b, table: ti.template(), offsets: ti.template(), out: ti.template()):
+        """Camera-from-part transforms of parameter vector b into out[b, j, :, :] for every part j.
+
+        For fused kernels: params (B, P), table (J, 10) int32, offsets (J, 3), out (B, J, 3, 4).
+        """
+        for j in range(table.shape[0]):
+            c0 = ti.Vector([1.0, 0.0, 0.0], dt=real)
+            c1 = ti.Vector([0.0, 1.0, 0.0], dt=real)
+            c2 = ti.Vector([0.0, 0.0, 1.0], dt=real)
+            for k in ti.static(range(3)):
+                axis = table[j, 1 + k]
+                if axis >= 0:
+                    c0, c1, c2 = rotate(c0, c1, c2, axis, params[b, table[j, 4 + k]])
+            t = ti.Vector([offsets[j, 0], offsets[j, 1], offsets[j, 2]], dt=real)
+            for k in ti.static(range(3)):
+                idx = table[j, 7 + k]
+                if idx >= 0:
+                    t[k] += params[b, idx]
+            parent = table[j, 0]
+            if parent >= 0:  # eq. 2-3: camera-from-parent @ parent-from-part
+                p0 = ti.Vector([out[b, parent, 0, 0], out[b, parent, 1, 0], out[b, parent, 2, 0]], dt=real)
+                p1 = ti.Vector([out[b, parent, 0, 1], out[b, parent, 1, 1], out[b, parent, 2, 1]], dt=real)
+                p2 = ti.Vector([out[b, parent, 0, 2], out[b, parent, 1, 2], out[b, parent, 2, 2]], dt=real)
+                pt = ti.Vector([out[b, parent, 0, 3], out[b, parent, 1, 3], out[b, parent, 2, 3]], dt=real)
+                n0 = p0 * c0[0] + p1 * c0[1] + p2 * c0[2]
+                n1 = p0 * c1[0] + p1 * c1[1] + p2 * c1[2]
+                n2 = p0 * c2[0] + p1 * c2[1] + p2 * c2[2]
+                t = p0 * t[0] + p1 * t[1] + p2 * t[2] + pt
+                c0, c1, c2 = n0, n1, n2
+            for r in ti.static(range(3)):
+                out[b, j, r, 0] = c0[r]
+                out[b, j, r, 1] = c1[r]
+                out[b, j, r, 2] = c2[r]
+                out[b, j, r, 3] = t[r]
+
     @ti.kernel
     def fk(
         params: ti.types.ndarray(dtype=real, ndim=2),
@@ -71,41 +107,14 @@ def _make(real):
         out: ti.types.ndarray(dtype=real, ndim=4),
     ):
         for b in range(params.shape[0]):
-            for j in range(table.shape[0]):
-                c0 = ti.Vector([1.0, 0.0, 0.0], dt=real)
-                c1 = ti.Vector([0.0, 1.0, 0.0], dt=real)
-                c2 = ti.Vector([0.0, 0.0, 1.0], dt=real)
-                for k in ti.static(range(3)):
-                    axis = table[j, 1 + k]
-                    if axis >= 0:
-                        c0, c1, c2 = rotate(c0, c1, c2, axis, params[b, table[j, 4 + k]])
-                t = ti.Vector([offsets[j, 0], offsets[j, 1], offsets[j, 2]], dt=real)
-                for k in ti.static(range(3)):
-                    idx = table[j, 7 + k]
-                    if idx >= 0:
-                        t[k] += params[b, idx]
-                parent = table[j, 0]
-                if parent >= 0:  # eq. 2-3: camera-from-parent @ parent-from-part
-                    p0 = ti.Vector([out[b, parent, 0, 0], out[b, parent, 1, 0], out[b, parent, 2, 0]], dt=real)
-                    p1 = ti.Vector([out[b, parent, 0, 1], out[b, parent, 1, 1], out[b, parent, 2, 1]], dt=real)
-                    p2 = ti.Vector([out[b, parent, 0, 2], out[b, parent, 1, 2], out[b, parent, 2, 2]], dt=real)
-                    pt = ti.Vector([out[b, parent, 0, 3], out[b, parent, 1, 3], out[b, parent, 2, 3]], dt=real)
-                    n0 = p0 * c0[0] + p1 * c0[1] + p2 * c0[2]
-                    n1 = p0 * c1[0] + p1 * c1[1] + p2 * c1[2]
-                    n2 = p0 * c2[0] + p1 * c2[1] + p2 * c2[2]
-                    t = p0 * t[0] + p1 * t[1] + p2 * t[2] + pt
-                    c0, c1, c2 = n0, n1, n2
-                for r in ti.static(range(3)):
-                    out[b, j, r, 0] = c0[r]
-                    out[b, j, r, 1] = c1[r]
-                    out[b, j, r, 2] = c2[r]
-                    out[b, j, r, 3] = t[r]
+            pose(params, b, table, offsets, out)
 
-    return fk
+    return pose, fk
 
 
-_fk_f32 = _make(ti.f32)
-_fk_f64 = _make(ti.f64)
+#: ti.func pose(params, b, table, offsets, out) for fused kernels, and the op's kernels
+pose_f32, _fk_f32 = _make(ti.f32)
+pose_f64, _fk_f64 = _make(ti.f64)
 
 
 def forward_kinematics(device, chain, params, out):
