@@ -107,6 +107,17 @@ def test_matches_reference(device, b, shoulders):
         assert_matches(device, got[..., 3] / 2000.0, want[..., 3] / 2000.0, dt)
 
 
+def test_large_angles(device):
+    """Angles far outside [-pi, pi] (every quadrant of the sin/cos range reduction)."""
+    chain = upper_body()
+    p = random_params(chain, 129, seed=4)
+    p[:, [0, 1, 2, *range(6, 14)]] = np.random.default_rng(4).uniform(-20, 20, (129, 11))
+    for dt in dtypes(device):
+        got = gputrack.to_numpy(forward_kinematics(device, chain, p.astype(dt)))
+        want = reference(None, chain, p.astype(dt))
+        assert_matches(device, got / 2000.0, want / 2000.0, dt)
+
+
 def test_device_arrays_in_and_rotations_orthonormal(device):
     chain = upper_body()
     p = device.asarray(random_params(chain, 129, seed=7).astype(np.float32))
