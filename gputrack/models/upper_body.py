@@ -5,10 +5,10 @@ left forearm. Parameters (0-based; angles in radians, lengths in millimetres):
 
     0-2   th_O, ph_O, ps_O      torso rotation Rz(th) Ry(ph) Rx(ps)          (eq. 6-9)
     3-5   t_O = (x, y, z)       torso position in the camera                  (eq. 6)
-    6-7   th_RS, ph_RS          right shoulder Rz(th) Ry(ph)                  (eq. 10)
-    8-9   th_LS, ph_LS          left shoulder                                 (eq. 10)
-    10-11 th_RE, ph_RE          right elbow Rz(th) Ry(ph)                     (eq. 11)
-    12-13 th_LE, ph_LE          left elbow                                    (eq. 11)
+    6-7   th_RU, ph_RU          right upper arm at the shoulder: Rz(th) Ry(ph) (p_RU, eq. 10)
+    8-9   th_LU, ph_LU          left upper arm                                 (p_LU, eq. 10)
+    10-11 th_RL, ph_RL          right forearm at the elbow: Rz(th) Ry(ph)      (p_RL, eq. 11)
+    12-13 th_LL, ph_LL          left forearm                                   (p_LL, eq. 11)
     14-16 t_RS                  right shoulder position in torso coordinates  (eq. 25-27, 20-param variant)
     17-19 t_LS                  left shoulder position in torso coordinates
 
@@ -18,7 +18,11 @@ chest, x towards the person's left, y down, z towards the person's back; so the 
 axis x along the limb (the axis of the papers' accuracy measure). With Rz(th) Ry(ph) the
 limb's direction in its parent's coordinates is (cos th cos ph, sin th cos ph, -sin ph): th
 swings it in the parent's x-y plane, positive ph moves it towards -z (forward, towards the
-camera when the person faces it). An arm hanging straight down has th = 90 deg, ph = 0.
+camera when the person faces it). An arm hanging straight down has th = 90 deg, ph = 0, for
+either arm (the right arm is not mirrored: spread sideways it has th = 180 deg, the left 0).
+
+The torso rotation follows eq. 6 (Rz Ry Rx; eq. 14 of the paper lists the factors in another
+order for the sampled pose, which we read as the same rotation).
 """
 
 from __future__ import annotations
@@ -52,8 +56,8 @@ PF_SIGMA = {
 
 PARAM_NAMES = (
     "th_O", "ph_O", "ps_O", "tx_O", "ty_O", "tz_O",
-    "th_RS", "ph_RS", "th_LS", "ph_LS",
-    "th_RE", "ph_RE", "th_LE", "ph_LE",
+    "th_RU", "ph_RU", "th_LU", "ph_LU",
+    "th_RL", "ph_RL", "th_LL", "ph_LL",
 )  # fmt: skip
 SHOULDER_NAMES = ("x_RS", "y_RS", "z_RS", "x_LS", "y_LS", "z_LS")
 
