@@ -7,7 +7,8 @@ from tolerances import assert_matches
 
 import gputrack
 from gputrack.ops import lm
-from gputrack.ops.lm import Layout, Status, least_squares
+from gputrack.ops.lm import LMStatus as Status
+from gputrack.ops.lm import Layout, least_squares
 
 REF = gputrack.device("numpy")
 
@@ -405,6 +406,17 @@ def test_device_residual_and_no_download_per_iteration(device):
         dt = np.dtype(out.dtype)
         assert moved_d2h == moved["d2h"] + lay.s_size(False) * dt.itemsize + lay.i_size() * 4
     np.testing.assert_allclose(out.x, 1.0, atol=1e-6)
+
+
+def test_x0_on_the_device(device):
+    x0 = np.array([[-1.2, 1.0], [2.0, 2.0]])
+    a = least_squares(host_residual(rosenbrock), device.asarray(x0), device=device, max_iter=30)
+    b = least_squares(host_residual(rosenbrock), x0, device=device, max_iter=30)
+    np.testing.assert_array_equal(a.x, b.x)
+    if device.backend != "numpy":
+        other = gputrack.device("numpy")
+        with pytest.raises(ValueError, match="x0: expected an array on numpy"):
+            least_squares(host_residual(rosenbrock), device.asarray(x0), device=other)
 
 
 def test_solver_bad_input(device):

@@ -37,8 +37,9 @@ from ._args import arg, check_device
 log = logging.getLogger("gputrack")
 
 __all__ = [
+    "LMStatus",
     "LeastSquaresResult",
-    "Status",
+    "REASONS",
     "least_squares",
     "lm_solve",
     "lm_step",
@@ -55,7 +56,7 @@ _CTINY = {"float64": 1e-12, "float32": 1e-6}
 _CMAX = {"float64": 1e16, "float32": 1e10}
 
 
-class Status(enum.IntEnum):
+class LMStatus(enum.IntEnum):
     """Per-problem outcome of :func:`least_squares` (``RUNNING`` only appears internally)."""
 
     RUNNING = 0
@@ -63,6 +64,8 @@ class Status(enum.IntEnum):
     MAX_ITER = 2
     FAILED = 3
 
+
+Status = LMStatus  # short name inside this module
 
 #: why a problem stopped (``LeastSquaresResult.reason`` holds these codes; ``REASONS`` the words).
 REASONS = {
@@ -82,7 +85,7 @@ class LeastSquaresResult:
     """Result of :func:`least_squares` (NumPy arrays, downloaded once at the end).
 
     x (B,P), cost (B,) = sum of squared residuals at x, iterations (B,) = steps tried by each
-    problem, status (B,) int8 codes of :class:`Status`, reason (B,) int8 codes of ``REASONS``,
+    problem, status (B,) int8 codes of :class:`LMStatus`, reason (B,) int8 codes of ``REASONS``,
     damping (B,) the final C, nfev = calls of the residual function, njev = calls of the
     Jacobian callable, npoints = points evaluated in all, dtype = the precision the solver ran in,
     x0_clipped (B,) bool = x0 was outside the bounds and was clipped into them.
@@ -104,8 +107,8 @@ class LeastSquaresResult:
     def success(self) -> np.ndarray:
         return self.status == Status.CONVERGED
 
-    def statuses(self) -> list[Status]:
-        return [Status(int(s)) for s in self.status]
+    def statuses(self) -> list[LMStatus]:
+        return [LMStatus(int(s)) for s in self.status]
 
     def messages(self) -> list[str]:
         return [REASONS[int(r)] for r in self.reason]
@@ -294,7 +297,9 @@ def least_squares(
 ) -> LeastSquaresResult:
     """Minimise sum_m r_m(x_b)^2 for B problems at once by Levenberg-Marquardt.
 
-    x0: (B, P) start points (NumPy). Returns a :class:`LeastSquaresResult` (NumPy arrays).
+    x0: (B, P) start points, NumPy (or a DeviceArray of ``device``, downloaded once: the
+    bounds are applied and the state packed on the host). Returns a :class:`LeastSquaresResult`
+    (NumPy arrays).
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
     on the ``numpy`` device, else a DeviceArray of ``device`` — in ``points_dtype`` (default: the
@@ -366,6 +371,10 @@ def least_squares(
         raise ValueError(f"jacobian: expected 'central' or a callable, got {jacobian!r}")
     if not central and not callable(jacobian):
         raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
+    if isinstance(x0, DeviceArray):
+        if x0.device is not device:
+            raise ValueError(f"x0: expected an array on {device.spec} or a NumPy array, got an array on {x0.device.spec}")
+        x0 = x0.numpy()  # B x P values, downloaded once (counted)
     x0 = np.asarray(x0)
     if x0.dtype.kind not in "fiu":
         raise TypeError(f"x0: expected a float array, got dtype {x0.dtype.name}")
