@@ -140,13 +140,22 @@ def _matrix(device, A, name, rows, cols, dims, dt):
     raise ValueError(f"{name}: expected shape {want} shared or (T={dims['T']}, ...) per track, got {tuple(shape)}")
 
 
+def _host(a):
+    """``a`` as a NumPy array if it is host data (not a DeviceArray), else None."""
+    if a is None or hasattr(a, "buffer"):
+        return None
+    h = np.asarray(a)
+    return h if h.dtype.kind in "biuf" else None
+
+
 def _observations(device, z, dims, dt):
-    z = arg(device, z, "z", ("T", "m"), dims, dtype=dt, cast=True, finite=False)
-    if isinstance(z, np.ndarray) and np.isinf(z).any():
-        bad = np.argwhere(np.isinf(z))[0]
+    h = _host(z)
+    if h is not None and np.isinf(h).any():
+        bad = np.argwhere(np.isinf(h))[0]
         raise ValueError(
-            f"z: expected finite values or NaN (missing), got {z[tuple(bad)]} at index {tuple(int(i) for i in bad)}"
+            f"z: expected finite values or NaN (missing), got {h[tuple(bad)]} at index {tuple(int(i) for i in bad)}"
         )
+    z = arg(device, z, "z", ("T", "m"), dims, dtype=dt, cast=True, finite=False)
     m = dims["m"]
     if not 1 <= m <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={m}")
@@ -157,10 +166,11 @@ def _options(device, mask, gain_scale, predict, dims, dt):
     if mask is not None:
         mask = arg(device, mask, "mask", ("T",), dims, dtype=np.uint8, cast=True)
     if gain_scale is not None:
+        h = _host(gain_scale)
+        if h is not None and h.ndim == 1 and (h < 0).any():
+            i = int(np.argmax(h < 0))
+            raise ValueError(f"gain_scale: expected values >= 0, got {h[i]} at index {i}")
         gain_scale = arg(device, gain_scale, "gain_scale", ("T",), dims, dtype=dt, cast=True)
-        if isinstance(gain_scale, np.ndarray) and (gain_scale < 0).any():
-            i = int(np.argmax(gain_scale < 0))
-            raise ValueError(f"gain_scale: expected values >= 0, got {gain_scale[i]} at index {i}")
     if predict is not None:
         if not isinstance(predict, (tuple, list)) or len(predict) != 2:
             raise TypeError(f"predict: expected a pair (F, Q) or None, got {type(predict).__name__}")
@@ -202,7 +212,7 @@ def _pattern(A, cols):
     bits = 0
     for i, k in zip(*np.nonzero(A)):
         bits |= 1 << (int(i) * cols + int(k))
-    return bits
+    return -1 if bits == (1 << A.size) - 1 else bits  # dense: one kernel variant, as for device arrays
 
 
 def _empty_state(device, dims, dt, with_status=True, out=None):
