@@ -314,7 +314,8 @@ def least_squares(
     (B, P) points as ``residuals`` (one call each per iteration, n = B).
 
     **Steps.** ``step=None``: eps_n = rel * max(|x_n|, 1) with rel = cbrt(machine eps) of the
-    precision (6.1e-6 in float64, 4.9e-3 in float32). A scalar or (P,) ``step`` gives absolute
+    lower of the solver precision and ``points_dtype`` (6.1e-6 in float64, 4.9e-3 in float32: a
+    float32 residual function needs the larger step, its rounding would swamp a small one). A scalar or (P,) ``step`` gives absolute
     steps (paper 000's per-parameter constants).
 
     **Algorithm** (per problem, every problem independently): cost F = sum r^2; J^T J and J^T r
@@ -517,7 +518,7 @@ class _Solver:
                 first_X, first_need = pool.upload(np.ascontiguousarray(pts[::S_rows])), need_last
             R = self._call(first_X, first_need)
             lay = Layout(B, P, self.M)
-            S, I = _pack(lay, x0, lo, hi, h, c0, tols, self.dt, self.mask)
+            S, I = _pack(lay, x0, lo, hi, h, c0, tols, self.dt, self.mask, self.pdt)
             # denominators of the first points (same rounding as the kernels: over the stored points)
             _first_den(lay, S, pts, S_rows)
             state = be.solver_state(dev, lay, pool.upload(S), pool.upload(I))
@@ -610,13 +611,19 @@ class _Pool:
         self.taken = []
 
 
+def _rel_step(dt, pdt=None) -> float:
+    """Default relative step: cbrt(eps) of the lower of the solver and the points precision."""
+    low = np.float32 if np.float32 in (np.dtype(dt), np.dtype(pdt or dt)) else np.float64
+    return DEFAULT_REL_STEP[np.dtype(low).name]
+
+
 def _initial_points(x0, lo, hi, h, dt, pdt, S_rows):
     """(B*S_rows, P) points: x0 and, when S_rows > 1, its perturbed copies (same rule as the kernels)."""
     x = x0.astype(dt)
     B, P = x.shape
     out = np.repeat(x.astype(pdt), S_rows, axis=0).reshape(B, S_rows, P)
     if S_rows > 1:
-        xp, xm = perturbed(x, lo.astype(dt), hi.astype(dt), h.astype(dt), DEFAULT_REL_STEP[dt.name])
+        xp, xm = perturbed(x, lo.astype(dt), hi.astype(dt), h.astype(dt), _rel_step(dt, pdt))
         for n in range(P):
             out[:, 1 + 2 * n, n] = xp[:, n]
             out[:, 2 + 2 * n, n] = xm[:, n]
@@ -639,7 +646,7 @@ def _first_den(lay, S, pts, S_rows):
         den[:, n] = X[:, 1 + 2 * n, n] - X[:, 2 + 2 * n, n]
 
 
-def _pack(lay, x0, lo, hi, h, c0, tols, dt, mask):
+def _pack(lay, x0, lo, hi, h, c0, tols, dt, mask, pdt=None):
     S = np.zeros(lay.s_size(mask is not None), dtype=dt)
     I = np.zeros(lay.i_size(), dtype=np.int32)
     lay.vec(S, lay.x)[:] = x0
@@ -650,7 +657,7 @@ def _pack(lay, x0, lo, hi, h, c0, tols, dt, mask):
     lay.sc(S, lay.C)[:] = c0
     lay.sc(S, lay.nu)[:] = 2.0
     g = S[lay.glob : lay.glob + lay.NGLOB]
-    g[:6] = (*tols, DEFAULT_REL_STEP[dt.name], _CTINY[dt.name], _CMAX[dt.name])
+    g[:6] = (*tols, _rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
     if mask is not None:
         lay.maskview(S)[:] = mask
     I[1], I[2], I[3], I[4] = lay.B, int(mask is not None), lay.P, lay.M
