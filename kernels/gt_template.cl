@@ -30,10 +30,8 @@ inline gt_pose gt_load_pose(__global const float *tf, const intv bl, const int n
 }
 
 __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
-                      __global const float *rpts, __global const int *rstart, const int rparts, const int n,
-                      __global const int *rperm,
-                      __global const float *dpts, __global const int *dstart, const int dparts, const int m,
-                      __global const int *dperm,
+                      __global const float *rpts, __global const int *rindex, const int rparts, const int n,
+                      __global const float *dpts, __global const int *dindex, const int dparts, const int m,
                       __global const float *gray, __global const float *dimg, const int h, const int w,
                       const float fx, const float fy, const float cx, const float cy,
                       const float lam, const float c_rgb, const float c_depth,
@@ -49,6 +47,10 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     const float cc = c_rgb * c_rgb, cd = c_depth * c_depth;
     const float wc = sqrt(1.0f - lam), wd = sqrt(lam);
     const size_t srow = (size_t)g * (size_t)n;
+    // index = [start (parts + 1), perm (points)]: part j owns points start[j]:start[j+1], and
+    // (grouped) point i is the caller's point perm[i]
+    __global const int *rstart = rindex, *rperm = rindex + rparts + 1;
+    __global const int *dstart = dindex, *dperm = dindex + dparts + 1;
 
     // ---- RGB pass 1: samples I_i, validity, and the sums over the valid points (eq. 17)
     realv sT = 0.0f, sTT = 0.0f, sTI = 0.0f, bT = 0.0f, bTT = 0.0f, bTI = 0.0f;

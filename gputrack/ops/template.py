@@ -116,6 +116,7 @@ class SparseTemplate:
         self.xyz = xyz
         self.part = part
         self.value = value
+        self._n_parts = int(part.max()) + 1
         # The layout the kernels read: points grouped by part (so a kernel loads each part's
         # transform once), (N, 4) [x, y, z, value]; ``perm[k]`` is the original index of sorted
         # point k (residuals are written in the original order); part j owns sorted points
@@ -137,7 +138,7 @@ class SparseTemplate:
     @property
     def n_parts(self) -> int:
         """1 + the largest part index (the smallest J the template fits)."""
-        return int(self.part.max()) + 1
+        return self._n_parts
 
     def __repr__(self) -> str:
         return f"SparseTemplate(N={self.n}, parts={self.n_parts})"
@@ -148,16 +149,16 @@ class SparseTemplate:
         return self
 
     def on(self, device: Device) -> dict:
-        """The device copies, uploaded once: {"pts": (N, 4) f32 grouped by part, "part": (N,) i32,
-        "start": (n_parts + 1,) i32, "perm": (N,) i32} (see ``packed``)."""
+        """The device copies, uploaded once: {"pts": (N, 4) f32 grouped by part, "part": (N,) i32
+        (grouped), "index": (n_parts + 1 + N,) i32 = [start, perm], "parts": n_parts} (see ``packed``)."""
         check_device(device)
         found = self._on.get(device)
         if found is None:
             found = {
                 "pts": device.asarray(self.packed),
                 "part": device.asarray(self.sorted_part),
-                "start": device.asarray(self.start),
-                "perm": device.asarray(self.perm),
+                "index": device.asarray(np.concatenate([self.start, self.perm]).astype(np.int32)),
+                "parts": self.n_parts,
             }
             self._on[device] = found
         return found
@@ -235,29 +236,55 @@ def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c
     return tf, g, d, dict(lam=lam, c_rgb=c_rgb, c_depth=c_depth)
 
 
-def rgbd_cost(device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0) -> RgbdCost:
+def _out(device, out, name, shape):
+    """Check a caller-supplied output array (written in place) or allocate one."""
+    if out is None:
+        return device.empty(shape, np.float32)
+    if device.backend == "numpy":
+        ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
+    else:
+        ok = isinstance(out, DeviceArray) and out.device is device
+    if not ok:
+        raise TypeError(f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {type(out).__name__}")
+    if tuple(out.shape) != tuple(shape) or out.dtype != np.float32:
+        raise ValueError(f"{name}: expected a float32 array of shape {tuple(shape)}, got {out.dtype.name} {tuple(out.shape)}")
+    return out
+
+
+def rgbd_cost(
+    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None
+) -> RgbdCost:
     """RGB-D sparse-template cost of B hypotheses (paper 000 eq. 17-19), one kernel launch.
 
     transforms: (B, J, 3, 4) float32 camera-from-part transforms; rgb, depth: SparseTemplate
     (N and N' points, part indices < J); gray: (H, W) float32 intensities; depth_image: (H, W)
     float32 depth in the units of the template (mm), 0 or non-finite = no measurement;
     camera: Camera. ``c_rgb=None`` means 0.5/N. Returns :class:`RgbdCost` (total, rgb, depth),
-    each (B,) float32. See the module docstring for the exact conventions.
+    each (B,) float32. ``out``: an RgbdCost of (B,) float32 arrays on the device (e.g. an earlier
+    result) to write into instead of allocating (a filter stage that runs every frame saves the
+    allocations). See the module docstring for the exact conventions.
     """
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
-    total, c, dd = backend_module(device, "template").rgbd_cost(device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), **p)
-    return RgbdCost(total, c, dd)
+    nb = tf.shape[0]
+    if out is not None and not isinstance(out, RgbdCost):
+        raise TypeError(f"out: expected a gputrack.RgbdCost (e.g. an earlier result), got {type(out).__name__}")
+    outs = tuple(_out(device, None if out is None else getattr(out, f), f"out.{f}", (nb,)) for f in ("total", "rgb", "depth"))
+    backend_module(device, "template").rgbd_cost(device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), *outs, **p)
+    return out if out is not None else RgbdCost(*outs)
 
 
-def rgbd_residuals(device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0):
+def rgbd_residuals(device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None):
     """Residuals of eq. 20-21 for B hypotheses: (B, N + N') float32, RGB points then depth points.
 
     r_i = sqrt(1-lam) d_i / sqrt(c^2 + d_i^2), r'_i = sqrt(lam) d'_i / sqrt(c'^2 + d'_i^2); an
     invalid point's residual is sqrt(1-lam) (RGB) or sqrt(lam) (depth), so that
-    sum(r**2, axis=1) equals ``rgbd_cost(...).total``. Same arguments as :func:`rgbd_cost`.
+    sum(r**2, axis=1) equals ``rgbd_cost(...).total``. Same arguments as :func:`rgbd_cost`;
+    ``out``: a (B, N + N') float32 array on the device to write into.
     """
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
-    return backend_module(device, "template").rgbd_residuals(device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), **p)
+    res = _out(device, out, "out", (tf.shape[0], rgb.n + depth.n))
+    backend_module(device, "template").rgbd_residuals(device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p)
+    return res
 
 
 def _ncc_args(device, points2d, templates, image):

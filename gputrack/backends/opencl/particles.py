@@ -7,6 +7,12 @@ import weakref
 import numpy as np
 
 _kernels = weakref.WeakKeyDictionary()
+_I, _U, _F = np.int32, np.uint32, np.float32
+# scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
+ARG_TYPES = {
+    "gt_sample_around": [None, _I, _I, None, _I, _I, _U, _U, _I, None],
+    "gt_best_k": [None, _I, _I, None, None, None, None, _I, None],
+}
 
 
 def _kernel(device, name):
@@ -16,6 +22,7 @@ def _kernel(device, name):
     found = per_device.get(name)
     if found is None:
         found = cl.Kernel(device.program("gt_particles.cl"), name)
+        found.set_scalar_arg_dtypes(ARG_TYPES[name])
         per_device[name] = found
     return found
 
@@ -23,10 +30,9 @@ def _kernel(device, name):
 def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
     c, p = cand.shape
     out = device.empty((n, p), np.float32)
-    i32 = np.int32
     _kernel(device, "gt_sample_around")(
-        device.queue, (n * p,), None, cand.buffer.data, i32(c), i32(p), sig.buffer.data, i32(per_candidate),
-        i32(n), np.uint32(lo), np.uint32(hi), i32(keep_candidates), out.buffer.data,
+        device.queue, (n * p,), None, cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
+        n, lo, hi, int(keep_candidates), out.buffer.data,
     )  # fmt: skip
     return out
 
@@ -40,7 +46,7 @@ def best_k(device, scores, k, rows):
     rows_buf = rows.buffer.data if rows is not None else scores.buffer.data
     sel_buf = sel.buffer.data if sel is not None else val.buffer.data
     _kernel(device, "gt_best_k")(
-        device.queue, (1,), None, scores.buffer.data, np.int32(scores.shape[0]), np.int32(k), idx.buffer.data,
-        val.buffer.data, keys.buffer.data, rows_buf, np.int32(p), sel_buf,
+        device.queue, (1,), None, scores.buffer.data, scores.shape[0], k, idx.buffer.data,
+        val.buffer.data, keys.buffer.data, rows_buf, p, sel_buf,
     )  # fmt: skip
     return idx, val, sel

@@ -84,25 +84,27 @@ def _rho(x, c):
     return x * x / (c * c + x * x)  # eq. 17: rho_c(x) = x^2 / (c^2 + x^2)
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, depth_image, camera, *, lam, c_rgb, c_depth):
+def rgbd_cost(device, tf, rgb, depth, gray, depth_image, camera, out_total, out_rgb, out_depth, *, lam, c_rgb, c_depth):
     d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
     eps_c = np.where(ok, _rho(d, c_rgb), 1.0).sum(axis=1)  # eq. 17 (invalid point: rho's limit 1)
     with np.errstate(invalid="ignore"):
         eps_d = np.where(okd, _rho(dd, c_depth), 1.0).sum(axis=1)  # eq. 18
-    total = (1.0 - lam) * eps_c + lam * eps_d  # eq. 19
-    return total.astype(np.float32), eps_c.astype(np.float32), eps_d.astype(np.float32)
+    out_total[...] = (1.0 - lam) * eps_c + lam * eps_d  # eq. 19
+    out_rgb[...] = eps_c
+    out_depth[...] = eps_d
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, *, lam, c_rgb, c_depth):
+def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, out, *, lam, c_rgb, c_depth):
     d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
     w_c, w_d = np.sqrt(1.0 - lam), np.sqrt(lam)
     r = np.empty(d.shape, np.float64)
     rd = np.empty(dd.shape, np.float64)
     # the template's points are grouped by part; perm puts them back in the caller's order
-    r[:, rgb["perm"]] = np.where(ok, w_c * d / np.sqrt(c_rgb * c_rgb + d * d), w_c)  # eq. 20-21: r_i
+    r[:, rgb["index"][rgb["parts"] + 1 :]] = np.where(ok, w_c * d / np.sqrt(c_rgb * c_rgb + d * d), w_c)  # eq. 20-21: r_i
     with np.errstate(invalid="ignore"):
-        rd[:, depth["perm"]] = np.where(okd, w_d * dd / np.sqrt(c_depth * c_depth + dd * dd), w_d)  # eq. 20-21: r'_i
-    return np.concatenate([r, rd], axis=1).astype(np.float32)
+        rd[:, depth["index"][depth["parts"] + 1 :]] = np.where(okd, w_d * dd / np.sqrt(c_depth * c_depth + dd * dd), w_d)  # eq. 20-21: r'_i
+    out[:, : r.shape[1]] = r
+    out[:, r.shape[1] :] = rd
 
 
 # -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------

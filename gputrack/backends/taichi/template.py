@@ -47,45 +47,39 @@ def _project(P: ti.template(), l: ti.template(), x, y, z, fx, fy, cx, cy, wm1, h
     return Z, ti.select(ok, u, 0.0), ti.select(ok, v, 0.0), ok
 
 
-@ti.kernel
-def _rgbd_kernel(
-    tf: ti.types.ndarray(dtype=ti.f32, ndim=4),
-    rpts: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    rstart: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    rperm: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    dpts: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    dstart: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    dperm: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    gray: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    dimg: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    fx: ti.f32,
-    fy: ti.f32,
-    cx: ti.f32,
-    cy: ti.f32,
-    lam: ti.f32,
-    c_rgb: ti.f32,
-    c_depth: ti.f32,
-    sample: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    valid: ti.types.ndarray(dtype=ti.u8, ndim=2),
-    total: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    eps_c: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    eps_d: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    residuals: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    groups: ti.i32,
+@ti.func
+def _rgbd_body(
+    tf: ti.template(),
+    rpts: ti.template(),
+    ridx: ti.template(),
+    rparts,
+    dpts: ti.template(),
+    didx: ti.template(),
+    dparts,
+    gray: ti.template(),
+    dimg: ti.template(),
+    cam: ti.template(),
+    scratch: ti.template(),
+    total: ti.template(),
+    eps_c: ti.template(),
+    eps_d: ti.template(),
+    residuals: ti.template(),
+    groups,
     want_residuals: ti.template(),
     L: ti.template(),
 ):
+    """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)]."""
     nb = tf.shape[0]
     n = rpts.shape[0]
     m = dpts.shape[0]
     h = gray.shape[0]
     w = gray.shape[1]
-    rparts = rstart.shape[0] - 1
-    dparts = dstart.shape[0] - 1
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    lam = cam[4]
     wm1 = ti.f32(w - 1)
     hm1 = ti.f32(h - 1)
-    cc = c_rgb * c_rgb
-    cd = c_depth * c_depth
+    cc = cam[5] * cam[5]
+    cd = cam[6] * cam[6]
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
     for g in range(groups):  # groups = ceil(B / L), computed by the caller (SPIR-V needs a plain bound)
@@ -103,7 +97,7 @@ def _rgbd_kernel(
                 b = ti.min(g * L + l, nb - 1)  # lanes past the batch repeat the last hypothesis
                 for e in ti.static(range(12)):
                     P[l, e] = tf[b, j, e // 4, e % 4]
-            for i in range(rstart[j], rstart[j + 1]):
+            for i in range(ridx[j], ridx[j + 1]):
                 x = rpts[i, 0]
                 y = rpts[i, 1]
                 z = rpts[i, 2]
@@ -125,8 +119,8 @@ def _rgbd_kernel(
                     bT[l] += Tv
                     bTT[l] += Tv * T
                     bTI[l] += Tv * I
-                    sample[g, i * L + l] = I
-                    valid[g, i * L + l] = ti.cast(ok, ti.u8)
+                    scratch[g, i * L + l] = I  # samples, then validity flags: contiguous lanes
+                    scratch[g, (n + i) * L + l] = ti.select(ok, 1.0, 0.0)
                 cnt += 1
                 if cnt == CHUNK:
                     sT += bT
@@ -151,13 +145,14 @@ def _rgbd_kernel(
         for i in range(n):
             T = rpts[i, 3]
             for l in ti.static(range(L)):
-                d = beta[l] * sample[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
+                d = beta[l] * scratch[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
                 q = cc + d * d
-                ok = valid[g, i * L + l] != 0
+                ok = scratch[g, (n + i) * L + l] != 0.0
                 blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
                 if ti.static(want_residuals):
                     if g * L + l < nb:
-                        residuals[g * L + l, rperm[i]] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
+                        col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
+                        residuals[g * L + l, col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
             cnt += 1
             if cnt == CHUNK:
                 eC += blk
@@ -173,7 +168,7 @@ def _rgbd_kernel(
                 b = ti.min(g * L + l, nb - 1)
                 for e in ti.static(range(12)):
                     P[l, e] = tf[b, j, e // 4, e % 4]
-            for i in range(dstart[j], dstart[j + 1]):
+            for i in range(didx[j], didx[j + 1]):
                 x = dpts[i, 0]
                 y = dpts[i, 1]
                 z = dpts[i, 2]
@@ -197,7 +192,8 @@ def _rgbd_kernel(
                     blk[l] += ti.select(okd, dd * dd / q, 1.0)
                     if ti.static(want_residuals):
                         if g * L + l < nb:
-                            residuals[g * L + l, n + dperm[i]] = ti.select(okd, wd * dd / ti.sqrt(q), wd)
+                            col = n + didx[dparts + 1 + i]
+                            residuals[g * L + l, col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
                 cnt += 1
                 if cnt == CHUNK:
                     eD += blk
@@ -212,6 +208,54 @@ def _rgbd_kernel(
                     eps_d[g * L + l] = eD[l]
 
 
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+CAM = ti.types.vector(7, ti.f32)
+
+
+@ti.kernel
+def _rgbd_cost_kernel(
+    tf: ti.types.ndarray(dtype=ti.f32, ndim=4),
+    rpts: F2,
+    ridx: I1,
+    rparts: ti.i32,
+    dpts: F2,
+    didx: I1,
+    dparts: ti.i32,
+    gray: F2,
+    dimg: F2,
+    cam: CAM,
+    scratch: F2,
+    total: F1,
+    eps_c: F1,
+    eps_d: F1,
+    groups: ti.i32,
+    L: ti.template(),
+):
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total, groups, False, L)
+
+
+@ti.kernel
+def _rgbd_res_kernel(
+    tf: ti.types.ndarray(dtype=ti.f32, ndim=4),
+    rpts: F2,
+    ridx: I1,
+    rparts: ti.i32,
+    dpts: F2,
+    didx: I1,
+    dparts: ti.i32,
+    gray: F2,
+    dimg: F2,
+    cam: CAM,
+    scratch: F2,
+    residuals: F2,
+    groups: ti.i32,
+    L: ti.template(),
+):
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals, residuals, residuals, groups, True, L)
+
+
 def _buffer(device, name, shape, dtype):
     """A scratch Taichi ndarray of ``shape`` kept per device (reallocated when the shape changes)."""
     per_device = _scratch.setdefault(device, {})
@@ -222,39 +266,28 @@ def _buffer(device, name, shape, dtype):
     return found[1]
 
 
-def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, residuals):
+def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth):
     nl = lanes(device)
     nb = tf.shape[0]
     n = rgb["pts"].shape[0]
-    m = depth["pts"].shape[0]
     groups = (nb + nl - 1) // nl
-    sample = _buffer(device, "sample", (groups, n * nl), np.float32)
-    valid = _buffer(device, "valid", (groups, n * nl), np.uint8)
-    if residuals:
-        res = device.empty((nb, n + m), np.float32)
-        dummy = _buffer(device, "dummy1", (1,), np.float32)
-        outs = (dummy, dummy, dummy)
-        res_buf = res.buffer
-    else:
-        res = tuple(device.empty((nb,), np.float32) for _ in range(3))
-        outs = tuple(r.buffer for r in res)
-        res_buf = _buffer(device, "dummy2", (1, 1), np.float32)
-    fx, fy, cx, cy = (float(c) for c in camera)
-    _rgbd_kernel(
-        tf.buffer, rgb["pts"].buffer, rgb["start"].buffer, rgb["perm"].buffer,
-        depth["pts"].buffer, depth["start"].buffer, depth["perm"].buffer,
-        gray.buffer, dimg.buffer, fx, fy, cx, cy, lam, c_rgb, c_depth, sample, valid,
-        outs[0], outs[1], outs[2], res_buf, groups, residuals, nl,
+    scratch = _buffer(device, "scratch", (groups, 2 * n * nl), np.float32)
+    cam = [float(c) for c in camera] + [float(lam), float(c_rgb), float(c_depth)]
+    args = (
+        tf.buffer, rgb["pts"].buffer, rgb["index"].buffer, rgb["parts"], depth["pts"].buffer, depth["index"].buffer,
+        depth["parts"], gray.buffer, dimg.buffer, cam, scratch,
     )  # fmt: skip
-    return res
+    return args, groups, nl
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *, lam, c_rgb, c_depth):
-    return _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, False)
+def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth):
+    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth)
+    _rgbd_cost_kernel(*args, total.buffer, eps_c.buffer, eps_d.buffer, groups, nl)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, *, lam, c_rgb, c_depth):
-    return _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, True)
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth):
+    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth)
+    _rgbd_res_kernel(*args, out.buffer, groups, nl)
 
 
 # -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------
