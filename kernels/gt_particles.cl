@@ -8,33 +8,36 @@ inline uint gt_pcg(const uint x)
     return (word >> 22u) ^ word;
 }
 
-// Standard normal deviate of counters cnt, cnt + 1 (Box-Muller, cosine branch).
-inline float gt_normal(const uint key, const uint cnt)
-{
-    const uint b1 = gt_pcg(gt_pcg(cnt) + key), b2 = gt_pcg(gt_pcg(cnt + 1u) + key);
-    const float u1 = (float)((b1 >> 8u) + 1u) * (1.0f / 16777216.0f);  // (0, 1]
-    const float u2 = (float)(b2 >> 8u) * (1.0f / 16777216.0f);         // [0, 1)
-    return sqrt(-2.0f * log(u1)) * cos(6.2831853071795864f * u2);
-}
-
 // out (n, p): sample k belongs to candidate k c / n; sigma is (p,) or, with per_candidate, (c, p).
+// One work-item per Box-Muller pair: parameters 2t, 2t+1 of sample k are the (cos, sin) pair of
+// the uniforms of counters 2 (k hp + t), 2 (k hp + t) + 1, hp = ceil(p / 2). NDRange (hp, n).
 __kernel void gt_sample_around(__global const float *cand, const int c, const int p, __global const float *sig,
                                const int per_candidate, const int n, const uint lo, const uint hi, const int keep,
                                __global float *out)
 {
-    const int gid = get_global_id(0);
-    if (gid >= n * p)
+    const int hp = (p + 1) / 2;
+    const int t = get_global_id(0), k = get_global_id(1);  // pair t of sample k
+    if (t >= hp || k >= n)
         return;
-    const int k = gid / p, q = gid % p;
     const uint key = gt_pcg(lo ^ gt_pcg(hi));
-    const int owner = (int)(((long)k * c) / n);
-    const float z = gt_normal(key, (uint)gid * 2u);
-    const float s = per_candidate ? sig[owner * p + q] : sig[q];
-    float val = cand[owner * p + q] + s * z;  // eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
-    const int first = (int)(((long)owner * n + c - 1) / c);  // the first sample of the block
-    if (keep && k == first)
-        val = cand[owner * p + q];
-    out[gid] = val;
+    const int owner = k * c / n;  // n c < 2**31 (checked by the op)
+    const int same = keep && k == (owner * n + c - 1) / c;  // the first sample of the block
+    const uint cnt = (uint)(k * hp + t) * 2u;
+    const uint b1 = gt_pcg(gt_pcg(cnt) + key), b2 = gt_pcg(gt_pcg(cnt + 1u) + key);
+    const float u1 = (float)((b1 >> 8u) + 1u) * (1.0f / 16777216.0f);  // (0, 1]
+    const float u2 = (float)(b2 >> 8u) * (1.0f / 16777216.0f);         // [0, 1)
+    // native_ functions: twice as fast here; the tests pin them to the reference's libm values
+    const float r = sqrt(-2.0f * native_log(u1));
+    const float th = 6.2831853071795864f * u2;
+    const float cs = native_cos(th), sn = native_sin(th);
+    const int q0 = 2 * t, q1 = 2 * t + 1;
+    const float s0 = per_candidate ? sig[owner * p + q0] : sig[q0];
+    // eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+    out[k * p + q0] = same ? cand[owner * p + q0] : cand[owner * p + q0] + s0 * (r * cs);
+    if (q1 < p) {
+        const float s1 = per_candidate ? sig[owner * p + q1] : sig[q1];
+        out[k * p + q1] = same ? cand[owner * p + q1] : cand[owner * p + q1] + s1 * (r * sn);
+    }
 }
 
 // uint key ordering float scores ascending; NaN last (bit tests: immune to fast math).

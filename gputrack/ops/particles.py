@@ -65,8 +65,8 @@ def sample_around(device, candidates, sigma, n, seed, *, keep_candidates=False):
     if int(n) < 1:
         raise ValueError(f"n: expected at least one sample, got {n}")
     lo, hi = _seed(seed)
-    if int(n) * dims["P"] * 2 >= 2**32:
-        raise ValueError(f"n: expected n * P < 2**31 (the generator's counter), got n={n}, P={dims['P']}")
+    if int(n) * (dims["P"] + 1) >= 2**31 or int(n) * dims["C"] >= 2**31:
+        raise ValueError(f"n: expected n * (P + 1) and n * C below 2**31 (the generator's counter), got n={n}")
     return backend_module(device, "particles").sample_around(
         device, cand, sig, int(n), lo, hi, per_candidate=per_candidate, keep_candidates=bool(keep_candidates)
     )

@@ -1,8 +1,8 @@
 """NumPy reference of the particle-filter helpers (paper 000 eq. 12): counter-based sampling, best-k.
 
 The generator: bits = pcg(pcg(counter) + key), key = pcg(seed_lo ^ pcg(seed_hi)), with
-pcg the 32-bit PCG output hash; the normal deviate of (sample k, parameter p) is Box-Muller
-(cosine branch) on the uniforms of counters 2 (k P + p) and 2 (k P + p) + 1.
+pcg the 32-bit PCG output hash; parameters 2t, 2t+1 of sample k are the Box-Muller pair of
+the uniforms of counters 2 (k H + t), 2 (k H + t) + 1, H = ceil(P / 2) (see ``normals``).
 """
 
 from __future__ import annotations
@@ -22,22 +22,31 @@ def pcg(x):
     return (word >> U32(22)) ^ word
 
 
-def normals(n_values: int, lo: int, hi: int) -> np.ndarray:
-    """The first ``n_values`` standard normal deviates (float32) of the stream keyed by (lo, hi)."""
+def normals(n: int, p: int, lo: int, hi: int) -> np.ndarray:
+    """(n, p) standard normal deviates (float32) of the stream keyed by (lo, hi).
+
+    Parameters 2t and 2t+1 of sample k share one Box-Muller pair (cosine and sine branch) made
+    from the uniforms of counters 2 (k H + t) and 2 (k H + t) + 1, H = ceil(p / 2).
+    """
     key = pcg(np.array([lo], U32) ^ pcg(np.array([hi], U32)))[0]
-    c = np.arange(2 * n_values, dtype=U32)
+    half = (p + 1) // 2
+    c = np.arange(2 * n * half, dtype=U32)
     bits = pcg(pcg(c) + key)
     u1 = ((bits[0::2] >> U32(8)) + U32(1)).astype(np.float32) * np.float32(2.0**-24)  # (0, 1]
     u2 = (bits[1::2] >> U32(8)).astype(np.float32) * np.float32(2.0**-24)  # [0, 1)
     r = np.sqrt(np.float32(-2.0) * np.log(u1))
-    return (r * np.cos(np.float32(2.0 * np.pi) * u2)).astype(np.float32)
+    theta = np.float32(2.0 * np.pi) * u2
+    z = np.empty((n, 2 * half), np.float32)
+    z[:, 0::2] = (r * np.cos(theta)).reshape(n, half)
+    z[:, 1::2] = (r * np.sin(theta)).reshape(n, half)
+    return z[:, :p]
 
 
 def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
     c, p = cand.shape
     k = np.arange(n)
     owner = k * c // n  # sample k belongs to candidate k C // K
-    z = normals(n * p, lo, hi).reshape(n, p)
+    z = normals(n, p, lo, hi)
     s = sig[owner] if per_candidate else sig[None, :]
     out = cand[owner] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
     if keep_candidates:

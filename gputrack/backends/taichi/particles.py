@@ -18,13 +18,15 @@ def _pcg(x):
 
 
 @ti.func
-def _normal(key, cnt):
-    """Standard normal deviate of counters cnt, cnt + 1 (Box-Muller, cosine branch)."""
+def _pair(key, cnt):
+    """Box-Muller pair (cos, sin branch) of the uniforms of counters cnt, cnt + 1."""
     b1 = _pcg(_pcg(cnt) + key)
     b2 = _pcg(_pcg(cnt + ti.u32(1)) + key)
     u1 = ti.cast((b1 >> ti.u32(8)) + ti.u32(1), ti.f32) * (1.0 / 16777216.0)  # (0, 1]
     u2 = ti.cast(b2 >> ti.u32(8), ti.f32) * (1.0 / 16777216.0)  # [0, 1)
-    return ti.sqrt(-2.0 * ti.log(u1)) * ti.cos(6.2831853071795864 * u2)
+    r = ti.sqrt(-2.0 * ti.log(u1))
+    theta = 6.2831853071795864 * u2
+    return r * ti.cos(theta), r * ti.sin(theta)
 
 
 @ti.func
@@ -32,20 +34,27 @@ def _sample_body(cand: ti.template(), sig: ti.template(), out: ti.template(), lo
     n = out.shape[0]
     p = out.shape[1]
     c = cand.shape[0]
+    half = (p + 1) // 2
     key = _pcg(lo ^ _pcg(hi))
-    for k, q in ti.ndrange(n, p):
-        owner = ti.cast(ti.cast(k, ti.i64) * c // n, ti.i32)  # sample k belongs to candidate k C // K
-        z = _normal(key, ti.cast(k * p + q, ti.u32) * ti.u32(2))
-        s = ti.f32(0.0)
-        if ti.static(per_candidate):
-            s = sig[owner, q]
-        else:
-            s = sig[q]
-        val = cand[owner, q] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
-        first = ti.cast((ti.cast(owner, ti.i64) * n + c - 1) // c, ti.i32)  # first sample of the block
-        if keep != 0 and k == first:
-            val = cand[owner, q]
-        out[k, q] = val
+    for k in range(n):  # one thread per sample: one division per sample, one log/sqrt per pair
+        owner = k * c // n  # sample k belongs to candidate k C // K (n C < 2**31, checked by the op)
+        first = (owner * n + c - 1) // c  # the first sample of the block
+        same = keep != 0 and k == first
+        for t in range(half):
+            z0, z1 = _pair(key, ti.cast(k * half + t, ti.u32) * ti.u32(2))
+            for h in ti.static(range(2)):
+                q = 2 * t + h
+                if q < p:
+                    s = ti.f32(0.0)
+                    if ti.static(per_candidate):
+                        s = sig[owner, q]
+                    else:
+                        s = sig[q]
+                    z = z0 if ti.static(h == 0) else z1
+                    val = cand[owner, q] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+                    if same:
+                        val = cand[owner, q]
+                    out[k, q] = val
 
 
 @ti.kernel

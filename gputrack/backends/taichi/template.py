@@ -150,9 +150,9 @@ def _rgbd_body(
                 ok = scratch[g, (n + i) * L + l] != 0.0
                 blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
                 if ti.static(want_residuals):
-                    if g * L + l < nb:
-                        col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
-                        residuals[g * L + l, col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
+                    # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
+                    col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
+                    residuals[ti.min(g * L + l, nb - 1), col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
             cnt += 1
             if cnt == CHUNK:
                 eC += blk
@@ -191,9 +191,8 @@ def _rgbd_body(
                     q = cd + dd * dd
                     blk[l] += ti.select(okd, dd * dd / q, 1.0)
                     if ti.static(want_residuals):
-                        if g * L + l < nb:
-                            col = n + didx[dparts + 1 + i]
-                            residuals[g * L + l, col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
+                        col = n + didx[dparts + 1 + i]
+                        residuals[ti.min(g * L + l, nb - 1), col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
                 cnt += 1
                 if cnt == CHUNK:
                     eD += blk
