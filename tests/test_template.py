@@ -278,6 +278,32 @@ def test_template_is_uploaded_once(device):
     assert (moved.h2d, moved.d2h) == (0, 0)
 
 
+def test_out_buffers_are_written_in_place(device):
+    rng = np.random.default_rng(12)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 21, 33, 17)
+    first = run_cost(device, tf, rgb, dep, gray, depth, cam)
+    tf2 = tf.copy()
+    tf2[..., 0, 3] += 0.02
+    want = run_cost(REF, tf2, rgb, dep, gray, depth, cam)
+    again = run_cost(device, tf2, rgb, dep, gray, depth, cam, out=first)
+    assert again is first
+    for field in ("total", "rgb", "depth"):
+        assert_matches(device, getattr(first, field), getattr(want, field), err_msg=field)
+    res = run_res(device, tf, rgb, dep, gray, depth, cam)
+    got = run_res(device, tf2, rgb, dep, gray, depth, cam, out=res)
+    assert got is res
+    assert_matches(device, res, run_res(REF, tf2, rgb, dep, gray, depth, cam), scale=5.0)
+    with pytest.raises(ValueError, match=r"out: expected a float32 array of shape \(21, 50\), got float32 \(21, 49\)"):
+        run_res(device, tf, rgb, dep, gray, depth, cam, out=device.empty((21, 49), np.float32))
+    with pytest.raises(ValueError, match=r"out.total: expected a float32 array of shape \(20,\)"):
+        run_cost(device, tf[:20], rgb, dep, gray, depth, cam, out=first)
+    with pytest.raises(TypeError, match="out: expected a gputrack.RgbdCost"):
+        run_cost(device, tf, rgb, dep, gray, depth, cam, out=res)
+    if device.backend != "numpy":
+        with pytest.raises(TypeError, match="out: expected a writable array on"):
+            run_res(device, tf, rgb, dep, gray, depth, cam, out=np.zeros((21, 50), np.float32))
+
+
 def test_cost_accuracy_many_points(device):
     """N = 4096 points with tiny, equal terms: a single running float32 sum would drift."""
     h, w = 64, 64

@@ -89,6 +89,7 @@ def cases(device, args):
         out = rgbd_cost(device, tf, rgb, dep, d_gray, d_depth, cam)
         return device.to_numpy(out.total)
 
+    keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)  # result buffers reused with out=
     out = [
         Case(
             f"rgbd_cost B={b} N=N'={n} 640x480",
@@ -96,16 +97,23 @@ def cases(device, args):
             reference=lambda: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam),
             end_to_end=e2e_cost,
             params=params,
-        )
+        ),
+        Case(
+            f"rgbd_cost out= B={b} N=N'={n} 640x480",
+            run=lambda: rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep),
+            reference=lambda: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam),
+            params={**params, "out": True},
+        ),
     ]
     for lm_b in (280, 400):
         d_lm = device.asarray(tf[:lm_b])
+        res = rgbd_residuals(device, d_lm, rgb, dep, d_gray, d_depth, cam)
         out.append(
             Case(
-                f"rgbd_residuals B={lm_b} N=N'={n}",
-                run=lambda d_lm=d_lm: rgbd_residuals(device, d_lm, rgb, dep, d_gray, d_depth, cam),
+                f"rgbd_residuals out= B={lm_b} N=N'={n}",
+                run=lambda d_lm=d_lm, res=res: rgbd_residuals(device, d_lm, rgb, dep, d_gray, d_depth, cam, out=res),
                 reference=lambda lm_b=lm_b: rgbd_residuals(ref, tf[:lm_b], rgb, dep, gray, depth, cam),
-                params={**params, "B": lm_b},
+                params={**params, "B": lm_b, "out": True},
             )
         )
     # NCC (paper 003): 1000 hypotheses x 10 points x 16x16 templates
