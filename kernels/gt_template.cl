@@ -184,13 +184,16 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
     if (!(u0 >= 0.0f && u1 <= (float)(w - 1) && v0 >= 0.0f && v1 <= (float)(h - 1)))
         return 0.0f;
     const float n = (float)(s * s);
-    // pass 1: means (sums shifted by the first values, for accuracy)
-    float p0 = 0.0f, t0 = t[0], sp = 0.0f, st = 0.0f;
+    // one pass over the patch; sums of values shifted by the first patch and template values
+    // (so the centred sums below do not cancel), accumulated per row then over the rows
+    float p0 = 0.0f;
+    const float t0 = t[0];
+    float sp = 0.0f, st = 0.0f, spp = 0.0f, stt = 0.0f, spt = 0.0f;
     for (int i = 0; i < s; ++i) {
         const float vv = v + ((float)i - ctr);
         const int y0 = min((int)vv, h - 2);
         const float bw = vv - (float)y0;
-        float rp = 0.0f, rt = 0.0f;
+        float rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
         for (int jj = 0; jj < s; ++jj) {
             const float uu = u + ((float)jj - ctr);
             const int x0 = min((int)uu, w - 2);
@@ -198,45 +201,29 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
             const int k = y0 * w + x0;
             const float top = img[k] + a * (img[k + 1] - img[k]);
             const float bot = img[k + w] + a * (img[k + w + 1] - img[k + w]);
-            const float P = top + bw * (bot - top);  // patch pixel (i, jj), bilinear
+            const float P0 = top + bw * (bot - top);  // patch pixel (i, jj), bilinear
             if (i == 0 && jj == 0)
-                p0 = P;
-            rp += P - p0;
-            rt += t[i * s + jj] - t0;
-        }
-        sp += rp;
-        st += rt;
-    }
-    const float mp = p0 + sp / n, mt = t0 + st / n;
-    // pass 2: centred sums
-    float spp = 0.0f, stt = 0.0f, spt = 0.0f;
-    for (int i = 0; i < s; ++i) {
-        const float vv = v + ((float)i - ctr);
-        const int y0 = min((int)vv, h - 2);
-        const float bw = vv - (float)y0;
-        float rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
-        for (int jj = 0; jj < s; ++jj) {
-            const float uu = u + ((float)jj - ctr);
-            const int x0 = min((int)uu, w - 2);
-            const float a = uu - (float)x0;
-            const int k = y0 * w + x0;
-            const float top = img[k] + a * (img[k + 1] - img[k]);
-            const float bot = img[k + w] + a * (img[k + w + 1] - img[k + w]);
-            const float P = top + bw * (bot - top) - mp;
-            const float T = t[i * s + jj] - mt;
+                p0 = P0;
+            const float P = P0 - p0, T = t[i * s + jj] - t0;
+            rp += P;
+            rt += T;
             rpp += P * P;
             rtt += T * T;
             rpt += P * T;
         }
+        sp += rp;
+        st += rt;
         spp += rpp;
         stt += rtt;
         spt += rpt;
     }
+    const float vp = spp - sp * sp / n, vt = stt - st * st / n, cv = spt - sp * st / n;  // centred sums
+    const float mp = p0 + sp / n, mt = t0 + st / n;
     // a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
     const float fp = GT_FLAT * (fabs(mp) + 1.0f), ft = GT_FLAT * (fabs(mt) + 1.0f);
-    if (!(spp > n * fp * fp && stt > n * ft * ft))
+    if (!(vp > n * fp * fp && vt > n * ft * ft))
         return 0.0f;
-    return clamp(spt / sqrt(spp * stt), -1.0f, 1.0f);
+    return clamp(cv / sqrt(vp * vt), -1.0f, 1.0f);
 }
 
 // One work-item per (hypothesis, point): ncc (B, K).

@@ -313,47 +313,46 @@ def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
     # the whole patch must lie inside the image (NaN fails the tests)
     if u - ctr >= 0.0 and u + ctr <= ti.cast(w - 1, ti.f32) and v - ctr >= 0.0 and v + ctr <= ti.cast(h - 1, ti.f32):
         n = ti.cast(s * s, ti.f32)
-        # pass 1: means (sums shifted by the first values, for accuracy)
+        # one pass; sums of values shifted by the first patch and template values (so the
+        # centred sums below do not cancel), accumulated per row then over the rows
         p0 = _sample(img, u - ctr, v - ctr, h, w)
         t0 = tpl[k, 0, 0]
         sp = ti.f32(0.0)
         st = ti.f32(0.0)
-        for i in range(s):
-            vv = v + (ti.cast(i, ti.f32) - ctr)
-            rp = ti.f32(0.0)
-            rt = ti.f32(0.0)
-            for jj in range(s):
-                uu = u + (ti.cast(jj, ti.f32) - ctr)
-                rp += _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj)
-                rt += tpl[k, i, jj] - t0
-            sp += rp
-            st += rt
-        mp = p0 + sp / n
-        mt = t0 + st / n
-        # pass 2: centred sums
         spp = ti.f32(0.0)
         stt = ti.f32(0.0)
         spt = ti.f32(0.0)
         for i in range(s):
             vv = v + (ti.cast(i, ti.f32) - ctr)
+            rp = ti.f32(0.0)
+            rt = ti.f32(0.0)
             rpp = ti.f32(0.0)
             rtt = ti.f32(0.0)
             rpt = ti.f32(0.0)
             for jj in range(s):
                 uu = u + (ti.cast(jj, ti.f32) - ctr)
-                p = _sample(img, uu, vv, h, w) - mp
-                t = tpl[k, i, jj] - mt
+                p = _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj), bilinear
+                t = tpl[k, i, jj] - t0
+                rp += p
+                rt += t
                 rpp += p * p
                 rtt += t * t
                 rpt += p * t
+            sp += rp
+            st += rt
             spp += rpp
             stt += rtt
             spt += rpt
+        vp = spp - sp * sp / n  # centred sums
+        vt = stt - st * st / n
+        cv = spt - sp * st / n
+        mp = p0 + sp / n
+        mt = t0 + st / n
         # a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
         fp = FLAT * (ti.abs(mp) + 1.0)
         ft = FLAT * (ti.abs(mt) + 1.0)
-        if spp > n * fp * fp and stt > n * ft * ft:
-            out = ti.min(ti.max(spt / ti.sqrt(spp * stt), -1.0), 1.0)
+        if vp > n * fp * fp and vt > n * ft * ft:
+            out = ti.min(ti.max(cv / ti.sqrt(vp * vt), -1.0), 1.0)
     return out
 
 
