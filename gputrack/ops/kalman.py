@@ -39,6 +39,11 @@ Numerics (identical on every backend):
   x and P themselves (an in-place update: each track reads its own inputs before it writes).
   Allocating fresh outputs costs real time on some backends (a (1e5,6,6) Taichi ndarray is
   ~6 ms on a 2-core CPU), so a tracker that keeps its state on the device passes ``out``.
+- Shared model matrices: the device kernels skip the known zero entries of a shared F and H
+  (the constant-velocity F and a selection H are mostly zeros). They know them for a NumPy
+  matrix, which is uploaded on every call, and for a :class:`SharedMatrix` from
+  :func:`shared_matrix` (uploaded once, zero pattern recorded); a plain DeviceArray is treated
+  as dense. Each zero pattern compiles its own kernel variant.
 - Empty batches (T = 0, D = 0) return empty results of the right shapes (``out`` is then
   returned as it is).
 
@@ -59,6 +64,8 @@ from ._args import FLOAT, arg, check_device, match_shape
 __all__ = [
     "KalmanState",
     "KalmanStatus",
+    "SharedMatrix",
+    "shared_matrix",
     "constant_velocity",
     "ekf_update_stereo",
     "kf_predict",
@@ -85,6 +92,36 @@ class KalmanState(NamedTuple):
     x: object
     P: object
     status: object
+
+
+class SharedMatrix(NamedTuple):
+    """A shared model matrix uploaded once, with the bitmask of its non-zero entries (row-major).
+
+    Made by :func:`shared_matrix`; accepted wherever F, Q, H or R is. The kernels skip the
+    entries the pattern marks zero, so the device array's zero entries must stay zero.
+    """
+
+    array: object
+    pattern: int
+
+
+def shared_matrix(device, A, dtype=np.float32) -> SharedMatrix:
+    """Upload the shared (r,c) NumPy matrix ``A`` to ``device`` once and record its zero pattern."""
+    device = check_device(device)
+    if hasattr(A, "buffer"):
+        raise TypeError("A: expected a NumPy matrix (its zero pattern is read on the host), got a DeviceArray")
+    host = np.asarray(A)
+    if host.dtype.kind not in "biuf":
+        raise TypeError(f"A: expected a real matrix, got dtype {host.dtype.name}")
+    if host.ndim != 2:
+        raise ValueError(f"A: expected a shared (rows, cols) matrix, got shape {host.shape}")
+    if not np.isfinite(host).all():
+        raise ValueError("A: expected finite values")
+    host = np.ascontiguousarray(host, dtype=dtype)
+    bits = 0
+    for i, k in zip(*np.nonzero(host)):
+        bits |= 1 << (int(i) * host.shape[1] + int(k))
+    return SharedMatrix(device.asarray(host), bits)
 
 
 def constant_velocity(dim: int = 3, dt: float = 1.0, q=1.0, dtype=np.float32):
@@ -128,6 +165,8 @@ def _state(device, x, P, dims):
 
 def _matrix(device, A, name, rows, cols, dims, dt):
     """A shared (rows, cols) matrix or a per-track (T, rows, cols) one."""
+    if isinstance(A, SharedMatrix):
+        return arg(device, A.array, name, (rows, cols), dims, dtype=dt, cast=True)
     nd = getattr(A, "ndim", None)
     if nd is None:
         nd = np.ndim(A)
@@ -205,14 +244,21 @@ def _outputs(device, out, dims, dt, with_status):
 
 
 def _pattern(A, cols):
-    """Bitmask of the non-zero entries of a shared host matrix (the device kernels skip the zeros);
-    -1 where unknown (device arrays, per-track matrices, None)."""
-    if not isinstance(A, np.ndarray) or A.ndim != 2 or A.shape[1] != cols or A.shape[0] > MAX_N:
-        return -1
-    bits = 0
-    for i, k in zip(*np.nonzero(A)):
-        bits |= 1 << (int(i) * cols + int(k))
-    return -1 if bits == (1 << A.size) - 1 else bits  # dense: one kernel variant, as for device arrays
+    """Bitmask of the non-zero entries of a shared host matrix or a SharedMatrix (the device
+    kernels skip the zeros); -1 where unknown (device arrays, per-track matrices, None)."""
+    if isinstance(A, SharedMatrix):
+        shape = tuple(A.array.shape)
+        bits = int(A.pattern)
+    else:
+        if not isinstance(A, np.ndarray) or A.ndim != 2:
+            return -1
+        shape = A.shape
+        bits = 0
+        for i, k in zip(*np.nonzero(A)):
+            bits |= 1 << (int(i) * cols + int(k))
+    if len(shape) != 2 or shape[1] != cols or shape[0] > MAX_N:
+        return -1  # a shape error is reported by _matrix
+    return -1 if bits == (1 << (shape[0] * shape[1])) - 1 else bits  # dense: the same variant as a DeviceArray
 
 
 def _empty_state(device, dims, dt, with_status=True, out=None):
@@ -312,13 +358,14 @@ def ekf_update_stereo(
     return KalmanState(*res)
 
 
-def mahalanobis(device, x, P, H, R, z):
+def mahalanobis(device, x, P, H, R, z, *, out=None):
     """Squared Mahalanobis distance of every detection to every track's predicted observation.
 
     d2[t, i] = (z_i - H x_t)^T S_t^-1 (z_i - H x_t), S_t = H P_t H^T + R (paper 001 eq. 8 gating;
     association costs for paper 002). x (T,n), P (T,n,n), H (m,n) or (T,m,n), R (m,m) or (T,m,m),
     z (D,m) finite detections. Returns (T,D) in the dtype of x; inf for a track whose S is not
-    positive definite. One Cholesky per track, then D triangular solves.
+    positive definite. One Cholesky per track, then D triangular solves. ``out`` (T,D): an array
+    of the device to write into instead of allocating one.
     """
     device = check_device(device)
     dims: dict = {}
@@ -329,9 +376,19 @@ def mahalanobis(device, x, P, H, R, z):
     pats = (-1, _pattern(H, dims["n"]))
     H = _matrix(device, H, "H", "m", "n", dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
+    if out is not None:
+        if device.backend == "numpy":
+            ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
+        else:
+            ok = hasattr(out, "buffer") and out.device is device
+        if not ok or tuple(out.shape) != (dims["T"], dims["D"]) or out.dtype != dt:
+            raise ValueError(
+                f"out: expected a writeable array of shape ({dims['T']}, {dims['D']}) and dtype {dt.name} on "
+                f"{device.spec}, got {type(out).__name__} {tuple(getattr(out, 'shape', ()))}"
+            )
     if dims["T"] == 0 or dims["D"] == 0:
-        return device.empty((dims["T"], dims["D"]), dt)
-    return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z, pats=pats)
+        return out if out is not None else device.empty((dims["T"], dims["D"]), dt)
+    return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z, out=out, pats=pats)
 
 
 def _selftest(device) -> None:

@@ -106,10 +106,10 @@ def ekf_update_stereo(
     return _run(device, x, P, z, F, Q, None, R, mask, gain_scale, MODE_STEREO, out, pats, (f, b, cx, cy))
 
 
-def mahalanobis(device, x, P, H, R, z, pats=(-1, -1)):
+def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1)):
     T, n = x.shape
     D, m = z.shape
-    out = device.empty((T, D), x.dtype)
+    out = out if out is not None else device.empty((T, D), x.dtype)
     prg = _program(device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), -1, _rows(pats[1], m, n))
     _kernel(prg, "gt_gate")(
         device.queue, (T,), None,

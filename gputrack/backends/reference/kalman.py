@@ -179,7 +179,7 @@ def ekf_update_stereo(
     return _into(out, (xo, Po, _status(valid, bad_depth & valid, BAD_DEPTH, pd_ok | bad_depth)))
 
 
-def mahalanobis(device, x, P, H, R, z, pats=None):
+def mahalanobis(device, x, P, H, R, z, out=None, pats=None):
     """(T,D) squared Mahalanobis distances (z_d - H x)^T S^-1 (z_d - H x), S = H P H^T + R (eq. 8).
 
     inf for a track whose S is not positive definite.
@@ -192,4 +192,4 @@ def mahalanobis(device, x, P, H, R, z, pats=None):
     W = forward(L, np.swapaxes(r, 1, 2))  # (T,m,D): L^-1 r
     d2 = np.sum(W * W, axis=1)
     d2[~ok] = np.inf
-    return d2.astype(x.dtype, copy=False)
+    return _into(None if out is None else (out,), (d2.astype(x.dtype, copy=False),))[0]

@@ -400,9 +400,9 @@ def ekf_update_stereo(
     return _run(device, x, P, z, F, Q, None, R, mask, gain_scale, MODE_STEREO, out, pats, (f, b, cx, cy))
 
 
-def mahalanobis(device, x, P, H, R, z, pats=(-1, -1)):
+def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1)):
     T, n = x.shape
-    out = device.empty((T, z.shape[0]), x.dtype)
+    out = out if out is not None else device.empty((T, z.shape[0]), x.dtype)
     _, gate = _KERNELS[x.dtype.name]
     gate(x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer, n, z.shape[1], pats[1])
     return out
