@@ -1,8 +1,9 @@
 // Batched Levenberg-Marquardt (paper 000 eq. 22-24; paper 003 eq. 8-9): the same steps as
 // gputrack/backends/reference/lm.py. Built with -DREAL=float|double (solver precision),
-// -DRTYPE (residual / Jacobian input type) and -DXTYPE (points output type).
+// -DRTYPE (residual input type), -DJTYPE (Jacobian input type, with USE_JAC) and -DXTYPE
+// (points output type).
 // One work-group per problem; its work-items share the O(P^2 M) normal equations by rows.
-#if defined(REAL_IS_DOUBLE) || defined(RTYPE_IS_DOUBLE) || defined(XTYPE_IS_DOUBLE)
+#if defined(REAL_IS_DOUBLE) || defined(RTYPE_IS_DOUBLE) || defined(XTYPE_IS_DOUBLE) || defined(JTYPE_IS_DOUBLE)
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #endif
 
@@ -242,7 +243,7 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
 // (SR = 2P+1: trial point and perturbed copies; SR = 1: trial point only, with Jg its Jacobian
 // (B, M, P) when USE_JAC, or the last call when FINAL). X: (B*SX, P) receives the next points.
 __kernel void gt_lm_update(__global REAL *S, __global int *I, __global XTYPE *X, __global const RTYPE *R,
-                           __global const RTYPE *Jg, const int SR, const int SX, const int first, const int final_)
+                           __global const JTYPE *Jg, const int SR, const int SX, const int first, const int final_)
 {
     const int b = get_group_id(0), lid = get_local_id(0), ls = get_local_size(0);
     const int B = I[1], has_mask = I[2], P = I[3], M = I[4];

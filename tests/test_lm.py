@@ -378,6 +378,10 @@ def test_jacobian_callable(device):
 
     x0 = np.array([[1.0, 0.0], [4.0, -3.0]])
     res = least_squares(host_residual(expfit), x0, device=device, jacobian=jac, max_iter=50)
+    # a float32 Jacobian with float64 residuals is accepted (converted where it is read)
+    res32 = least_squares(host_residual(expfit), x0, device=device, max_iter=50,
+                          jacobian=lambda X: jac(X).astype(np.float32))
+    np.testing.assert_allclose(res32.x, res.x, rtol=1e-4)
     central = least_squares(host_residual(expfit), x0, device=device, max_iter=50)
     np.testing.assert_allclose(res.x, central.x, rtol=1e-7)
     assert res.njev == res.nfev and res.npoints == res.nfev * 2

@@ -12,11 +12,17 @@ RUNNING = 0
 _CTYPE = {"float32": "float", "float64": "double"}
 
 
-def _program(device, real, rtype=None, xtype=None, use_jac=False):
+def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False):
     rtype = rtype or real
     xtype = xtype or real
-    defines = {"REAL": _CTYPE[np.dtype(real).name], "RTYPE": _CTYPE[np.dtype(rtype).name], "XTYPE": _CTYPE[np.dtype(xtype).name]}
-    for key, dt in (("REAL_IS_DOUBLE", real), ("RTYPE_IS_DOUBLE", rtype), ("XTYPE_IS_DOUBLE", xtype)):
+    jtype = jtype or rtype
+    defines = {
+        "REAL": _CTYPE[np.dtype(real).name],
+        "RTYPE": _CTYPE[np.dtype(rtype).name],
+        "XTYPE": _CTYPE[np.dtype(xtype).name],
+        "JTYPE": _CTYPE[np.dtype(jtype).name],
+    }
+    for key, dt in (("REAL_IS_DOUBLE", real), ("RTYPE_IS_DOUBLE", rtype), ("XTYPE_IS_DOUBLE", xtype), ("JTYPE_IS_DOUBLE", jtype)):
         if np.dtype(dt) == np.float64:
             defines[key] = 1
     if use_jac:
@@ -118,7 +124,7 @@ def solver_state(device, lay, S, I):
 def solver_update(state, R, X, *, first, final, jac=None):
     dev, lay = state.device, state.lay
     B = lay.B
-    prg = _program(dev, state.S.dtype, R.dtype, X.dtype, use_jac=jac is not None)
+    prg = _program(dev, state.S.dtype, R.dtype, X.dtype, jac.dtype if jac is not None else None, use_jac=jac is not None)
     Jg = jac if jac is not None else R
     _kernel(prg, "gt_lm_update")(
         dev.queue, (B * state.ls,), (state.ls,), state.S.buffer.data, state.I.buffer.data, X.buffer.data,
