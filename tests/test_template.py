@@ -173,6 +173,20 @@ def test_rgbd_matches_reference_template_sizes(device, n):
     assert res.shape == (11, n + max(n // 2, 1))
 
 
+@pytest.mark.parametrize("lanes", [1, 4, 16])
+def test_rgbd_other_lane_counts(device, monkeypatch, lanes):
+    """The kernels' other hypotheses-per-thread variants (GPUs build LANES = 1) agree too."""
+    if device.backend == "numpy":
+        pytest.skip("the reference has no lanes")
+    module = __import__(f"gputrack.backends.{device.backend}.template", fromlist=["CPU_LANES"])
+    if device.backend == "taichi" and module.lanes(device) == 1:
+        pytest.skip("this Taichi arch always runs one hypothesis per thread")
+    monkeypatch.setattr(module, "CPU_LANES", lanes)
+    assert module.lanes(device) == lanes
+    rng = np.random.default_rng(lanes)
+    _compare(device, *make_scene(rng, 37, 29, 31))
+
+
 def test_rgbd_paper_size(device):
     """B = 1500 hypotheses around 10 candidates, N = N' = 128 points, 640 x 480."""
     rng = np.random.default_rng(2024)
