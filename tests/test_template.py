@@ -85,7 +85,7 @@ def _loop_cost(tf, rgb, dep, gray, depth, cam, lam, c_rgb, c_depth):
         v = f32(cam.fy) * (Y / Z) + f32(cam.cy)
         if not (0 <= u <= w - 1 and 0 <= v <= h - 1):
             return None
-        x0, y0 = min(int(math.floor(u)), w - 2), min(int(math.floor(v)), h - 2)
+        x0, y0 = min(math.floor(u), w - 2), min(math.floor(v), h - 2)
         return float(Z), float(u - x0), float(v - y0), x0, y0
 
     def bil(img, a, b, x0, y0):
@@ -112,7 +112,10 @@ def _loop_cost(tf, rgb, dep, gray, depth, cam, lam, c_rgb, c_depth):
             else:
                 d = beta * s[1] - alpha * s[0]
                 res.append(math.sqrt(1 - lam) * d / math.sqrt(c_rgb**2 + d * d))
-        eps_c = sum(1.0 if s is None else (beta * s[1] - alpha * s[0]) ** 2 / (c_rgb**2 + (beta * s[1] - alpha * s[0]) ** 2) for s in samples)
+        eps_c = sum(
+            1.0 if s is None else (beta * s[1] - alpha * s[0]) ** 2 / (c_rgb**2 + (beta * s[1] - alpha * s[0]) ** 2)
+            for s in samples
+        )
         eps_d = 0.0
         for p, j in zip(dep.xyz, dep.part):
             pr = project(t[j], p)
@@ -169,7 +172,7 @@ def test_rgbd_matches_reference_batch_sizes(device, b):
 @pytest.mark.parametrize("n", [1, 13, 127, 128, 129, 1535, 4096])
 def test_rgbd_matches_reference_template_sizes(device, n):
     rng = np.random.default_rng(n + 7)
-    got, res = _compare(device, *make_scene(rng, 11, n, max(n // 2, 1), j=5))
+    _got, res = _compare(device, *make_scene(rng, 11, n, max(n // 2, 1), j=5))
     assert res.shape == (11, n + max(n // 2, 1))
 
 
@@ -340,8 +343,14 @@ def test_cost_accuracy_many_points(device):
 
 # -- NCC -----------------------------------------------------------------------------------------
 def ncc_scene(rng, b, k, s, h=40, w=56):
-    img = (100 + 50 * np.sin(np.arange(w)[None, :] / 2.3) * np.cos(np.arange(h)[:, None] / 3.7) + rng.normal(0, 5, (h, w))).astype(np.float32)
-    pts = np.column_stack([rng.uniform(-3, w + 2, b * k), rng.uniform(-3, h + 2, b * k)]).reshape(b, k, 2).astype(np.float32)
+    img = (
+        100 + 50 * np.sin(np.arange(w)[None, :] / 2.3) * np.cos(np.arange(h)[:, None] / 3.7) + rng.normal(0, 5, (h, w))
+    ).astype(np.float32)
+    pts = (
+        np.column_stack([rng.uniform(-3, w + 2, b * k), rng.uniform(-3, h + 2, b * k)])
+        .reshape(b, k, 2)
+        .astype(np.float32)
+    )
     tpl = rng.uniform(0, 255, (k, s, s)).astype(np.float32)
     return pts, tpl, img
 
@@ -367,7 +376,7 @@ def test_patch_ncc_matches_reference(device, b, k, s):
 
 
 def test_patch_ncc_conventions(device):
-    h, w, s = 30, 40, 5
+    h, w = 30, 40
     rng = np.random.default_rng(1)
     img = rng.uniform(0, 1, (h, w)).astype(np.float32)
     img[:, 30:] = 0.25  # a flat region
@@ -396,11 +405,20 @@ def test_patch_ncc_conventions(device):
 def test_bad_input(device):
     rng = np.random.default_rng(0)
     tf, rgb, dep, gray, depth, cam = make_scene(rng, 4, 10, 10, j=3)
-    ok = dict(transforms=tf, rgb=rgb, depth=dep, gray=gray, depth_image=depth, camera=cam)
+    ok = {"transforms": tf, "rgb": rgb, "depth": dep, "gray": gray, "depth_image": depth, "camera": cam}
 
     def call(**kw):
         args = {**ok, **kw}
-        return rgbd_cost(device, args["transforms"], args["rgb"], args["depth"], args["gray"], args["depth_image"], args["camera"], **{k: v for k, v in kw.items() if k not in ok})
+        return rgbd_cost(
+            device,
+            args["transforms"],
+            args["rgb"],
+            args["depth"],
+            args["gray"],
+            args["depth_image"],
+            args["camera"],
+            **{k: v for k, v in kw.items() if k not in ok},
+        )
 
     with pytest.raises(ValueError, match=r"transforms: expected shape \(B=4, J=3, 3, 4\), got \(4, 3, 3, 3\)"):
         call(transforms=tf[:, :, :, :3])

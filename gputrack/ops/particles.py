@@ -111,4 +111,3 @@ def sortable_key(scores: np.ndarray) -> np.ndarray:
     key = np.where(bits >> 31 == 1, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
     nan = (bits & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000)
     return np.where(nan, np.uint32(0xFFFFFFFF), key).astype(np.uint32)
-

@@ -143,7 +143,7 @@ class SparseTemplate:
     def __repr__(self) -> str:
         return f"SparseTemplate(N={self.n}, parts={self.n_parts})"
 
-    def to(self, device: Device) -> "SparseTemplate":
+    def to(self, device: Device) -> SparseTemplate:
         """Upload to ``device`` now (once; later ops reuse the copy) and return this template."""
         self.on(device)
         return self
@@ -166,7 +166,9 @@ class SparseTemplate:
 
 def _host(x, name, dtype):
     if isinstance(x, DeviceArray):
-        raise TypeError(f"{name}: expected a NumPy array (templates are built on the host), got an array on {x.device.spec}")
+        raise TypeError(
+            f"{name}: expected a NumPy array (templates are built on the host), got an array on {x.device.spec}"
+        )
     a = np.asarray(x)
     want = np.dtype(dtype)
     if a.dtype.kind == "b" or a.dtype.kind not in "iuf":
@@ -233,7 +235,7 @@ def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c
     d = arg(device, depth_image, "depth_image", ("H", "W"), img, finite=False)
     if img["H"] < 2 or img["W"] < 2:
         raise ValueError(f"gray: expected an image of at least 2 x 2 pixels, got {img['H']} x {img['W']}")
-    return tf, g, d, dict(lam=lam, c_rgb=c_rgb, c_depth=c_depth)
+    return tf, g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth}
 
 
 def _out(device, out, name, shape):
@@ -245,9 +247,13 @@ def _out(device, out, name, shape):
     else:
         ok = isinstance(out, DeviceArray) and out.device is device
     if not ok:
-        raise TypeError(f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {type(out).__name__}")
+        raise TypeError(
+            f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {type(out).__name__}"
+        )
     if tuple(out.shape) != tuple(shape) or out.dtype != np.float32:
-        raise ValueError(f"{name}: expected a float32 array of shape {tuple(shape)}, got {out.dtype.name} {tuple(out.shape)}")
+        raise ValueError(
+            f"{name}: expected a float32 array of shape {tuple(shape)}, got {out.dtype.name} {tuple(out.shape)}"
+        )
     return out
 
 
@@ -268,12 +274,18 @@ def rgbd_cost(
     nb = tf.shape[0]
     if out is not None and not isinstance(out, RgbdCost):
         raise TypeError(f"out: expected a gputrack.RgbdCost (e.g. an earlier result), got {type(out).__name__}")
-    outs = tuple(_out(device, None if out is None else getattr(out, f), f"out.{f}", (nb,)) for f in ("total", "rgb", "depth"))
-    backend_module(device, "template").rgbd_cost(device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), *outs, **p)
+    outs = tuple(
+        _out(device, None if out is None else getattr(out, f), f"out.{f}", (nb,)) for f in ("total", "rgb", "depth")
+    )
+    backend_module(device, "template").rgbd_cost(
+        device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), *outs, **p
+    )
     return out if out is not None else RgbdCost(*outs)
 
 
-def rgbd_residuals(device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None):
+def rgbd_residuals(
+    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None
+):
     """Residuals of eq. 20-21 for B hypotheses: (B, N + N') float32, RGB points then depth points.
 
     r_i = sqrt(1-lam) d_i / sqrt(c^2 + d_i^2), r'_i = sqrt(lam) d'_i / sqrt(c'^2 + d'_i^2); an
@@ -283,7 +295,9 @@ def rgbd_residuals(device, transforms, rgb, depth, gray, depth_image, camera, *,
     """
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
     res = _out(device, out, "out", (tf.shape[0], rgb.n + depth.n))
-    backend_module(device, "template").rgbd_residuals(device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p)
+    backend_module(device, "template").rgbd_residuals(
+        device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p
+    )
     return res
 
 
@@ -336,8 +350,8 @@ def _selftest_scene(rng, b=7, j=2, n=29, m=23, h=24, w=32):
 
 def _selftest(device) -> None:
     """Tiny rgbd_cost and patch_ncc on ``device`` against the NumPy reference (AssertionError with the max error)."""
-    from ..device import to_numpy
     from ..device import device as get_device
+    from ..device import to_numpy
 
     rng = np.random.default_rng(3)
     tf, rgb, dep, gray, depth, cam = _selftest_scene(rng)

@@ -38,9 +38,7 @@ def _buffer(device, name, nbytes):
 # directly, which takes a launch from ~150 us to ~20 us on PoCL
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
-    "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I]
-    + [_F] * 7
-    + [None] * 6,
+    "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 7 + [None] * 6,
     "gt_patch_ncc_points": [None, _I, _I, None, _I, None, _I, _I, None],
     "gt_patch_ncc": [None, _I, _I, None, _I, None, _I, _I, None],
 }
@@ -105,7 +103,9 @@ def patch_ncc(device, pts, tpl, img, *, per_point):
     args = (pts.buffer.data, nb, nk, tpl.buffer.data, s, img.buffer.data, h, w)
     if per_point:
         out = device.empty((nb, nk), np.float32)
-        _kernel(device, "gt_patch_ncc_points", LANES=1, RESIDUALS=0)(device.queue, (nb * nk,), None, *args, out.buffer.data)
+        _kernel(device, "gt_patch_ncc_points", LANES=1, RESIDUALS=0)(
+            device.queue, (nb * nk,), None, *args, out.buffer.data
+        )
     else:
         out = device.empty((nb,), np.float32)
         _kernel(device, "gt_patch_ncc", LANES=1, RESIDUALS=0)(device.queue, (nb,), None, *args, out.buffer.data)

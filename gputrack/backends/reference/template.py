@@ -100,9 +100,13 @@ def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, out, *, la
     r = np.empty(d.shape, np.float64)
     rd = np.empty(dd.shape, np.float64)
     # the template's points are grouped by part; perm puts them back in the caller's order
-    r[:, rgb["index"][rgb["parts"] + 1 :]] = np.where(ok, w_c * d / np.sqrt(c_rgb * c_rgb + d * d), w_c)  # eq. 20-21: r_i
+    r[:, rgb["index"][rgb["parts"] + 1 :]] = np.where(
+        ok, w_c * d / np.sqrt(c_rgb * c_rgb + d * d), w_c
+    )  # eq. 20-21: r_i
     with np.errstate(invalid="ignore"):
-        rd[:, depth["index"][depth["parts"] + 1 :]] = np.where(okd, w_d * dd / np.sqrt(c_depth * c_depth + dd * dd), w_d)  # eq. 20-21: r'_i
+        rd[:, depth["index"][depth["parts"] + 1 :]] = np.where(
+            okd, w_d * dd / np.sqrt(c_depth * c_depth + dd * dd), w_d
+        )  # eq. 20-21: r'_i
     out[:, : r.shape[1]] = r
     out[:, r.shape[1] :] = rd
 
@@ -112,7 +116,6 @@ FLAT = 1e-6
 
 
 def patch_ncc(device, pts, tpl, img, *, per_point):
-    b, k = pts.shape[:2]
     s = tpl.shape[1]
     h, w = img.shape
     off = np.arange(s, dtype=np.float32) - np.float32((s - 1) / 2)

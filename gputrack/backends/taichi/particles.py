@@ -30,7 +30,9 @@ def _pair(key, cnt):
 
 
 @ti.func
-def _sample_body(cand: ti.template(), sig: ti.template(), out: ti.template(), lo, hi, keep, per_candidate: ti.template()):
+def _sample_body(
+    cand: ti.template(), sig: ti.template(), out: ti.template(), lo, hi, keep, per_candidate: ti.template()
+):
     n = out.shape[0]
     p = out.shape[1]
     c = cand.shape[0]

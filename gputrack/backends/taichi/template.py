@@ -71,7 +71,6 @@ def _rgbd_body(
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)]."""
     nb = tf.shape[0]
     n = rpts.shape[0]
-    m = dpts.shape[0]
     h = gray.shape[0]
     w = gray.shape[1]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
@@ -192,7 +191,9 @@ def _rgbd_body(
                     blk[l] += ti.select(okd, dd * dd / q, 1.0)
                     if ti.static(want_residuals):
                         col = n + didx[dparts + 1 + i]
-                        residuals[ti.min(g * L + l, nb - 1), col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
+                        residuals[ti.min(g * L + l, nb - 1), col] = ti.select(
+                            okd, wd * dd / ti.sqrt(q), wd
+                        )  # eq. 20-21
                 cnt += 1
                 if cnt == CHUNK:
                     eD += blk
@@ -232,7 +233,26 @@ def _rgbd_cost_kernel(
     groups: ti.i32,
     L: ti.template(),
 ):
-    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total, groups, False, L)
+    _rgbd_body(
+        tf,
+        rpts,
+        ridx,
+        rparts,
+        dpts,
+        didx,
+        dparts,
+        gray,
+        dimg,
+        cam,
+        scratch,
+        total,
+        eps_c,
+        eps_d,
+        total,
+        groups,
+        False,
+        L,
+    )
 
 
 @ti.kernel
@@ -252,7 +272,26 @@ def _rgbd_res_kernel(
     groups: ti.i32,
     L: ti.template(),
 ):
-    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals, residuals, residuals, groups, True, L)
+    _rgbd_body(
+        tf,
+        rpts,
+        ridx,
+        rparts,
+        dpts,
+        didx,
+        dparts,
+        gray,
+        dimg,
+        cam,
+        scratch,
+        residuals,
+        residuals,
+        residuals,
+        residuals,
+        groups,
+        True,
+        L,
+    )
 
 
 def _buffer(device, name, shape, dtype):
