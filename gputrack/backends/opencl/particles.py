@@ -7,6 +7,7 @@ import weakref
 import numpy as np
 
 _kernels = weakref.WeakKeyDictionary()
+_scratch = weakref.WeakKeyDictionary()
 _I, _U, _F = np.int32, np.uint32, np.float32
 # scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
 ARG_TYPES = {
@@ -37,16 +38,28 @@ def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidate
     return out
 
 
+def _keys(device, k):
+    """A scratch buffer for the k-list's keys, kept per device."""
+    import pyopencl as cl
+
+    per_device = _scratch.setdefault(device, {})
+    found = per_device.get("keys")
+    if found is None or found.size < 4 * k:
+        found = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, 4 * k)
+        per_device["keys"] = found
+    return found
+
+
 def best_k(device, scores, k, rows):
     idx = device.empty((k,), np.int32)
     val = device.empty((k,), np.float32)
-    keys = device.empty((k,), np.uint32)
+    keys = _keys(device, k)
     sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
     p = rows.shape[1] if rows is not None else 0
     rows_buf = rows.buffer.data if rows is not None else scores.buffer.data
     sel_buf = sel.buffer.data if sel is not None else val.buffer.data
     _kernel(device, "gt_best_k")(
         device.queue, (1,), None, scores.buffer.data, scores.shape[0], k, idx.buffer.data,
-        val.buffer.data, keys.buffer.data, rows_buf, p, sel_buf,
+        val.buffer.data, keys, rows_buf, p, sel_buf,
     )  # fmt: skip
     return idx, val, sel
