@@ -24,9 +24,17 @@ Conventions (every backend, exactly):
   sqrt(1 - lam) (RGB) or sqrt(lam) (depth).
 - Reductions are accurate in float32 for N up to thousands of points (blocked/pairwise sums).
 
-Hypotheses whose transforms on the device are not finite are not detected here (that would
-cost a download): every point of such a hypothesis is invalid, so it gets the maximum cost.
-Transforms given as NumPy arrays are checked and rejected when not finite.
+Transforms given as NumPy arrays are checked and rejected when not finite. Transforms already
+on the device are not checked (that would cost a download): a point under a non-finite
+transform is invalid (it adds 1), so such a hypothesis scores badly, never NaN.
+
+Steady-state use (a filter stage every frame): upload the frame once, keep the templates on
+the device, and reuse the result buffers::
+
+    rgb.to(dev); depth.to(dev)                         # once per template (cached per device)
+    gray_d, depth_d = dev.asarray(gray), dev.asarray(depth_mm)   # once per frame
+    cost = rgbd_cost(dev, transforms_d, rgb, depth, gray_d, depth_d, cam)
+    cost = rgbd_cost(dev, transforms_d, rgb, depth, gray_d, depth_d, cam, out=cost)  # no allocation
 """
 
 from __future__ import annotations
