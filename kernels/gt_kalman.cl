@@ -8,8 +8,8 @@
 //   DO_PREDICT    1: predict with F, Q before the update
 //   HAS_MASK, HAS_GAIN
 //   F_PT, Q_PT, H_PT, R_PT   1: per-track (T,r,c) matrix, 0: shared (r,c)
-//   FPAT, HPAT    comma-separated row bitmasks of the possibly non-zero entries of F and H
-//                 (all ones when unknown); known zeros are skipped at compile time
+//   FPAT, QPAT, HPAT, RPAT   comma-separated row bitmasks of the possibly non-zero entries of
+//                 F, Q, H and R (all ones when unknown); known zeros are skipped at compile time
 //   PD_TOL        PD_EPS_FACTOR * machine epsilon of REAL
 
 #if REAL_IS_DOUBLE
@@ -24,9 +24,16 @@
 #define AT(A, PT, R_, C_, t, i, j) ((PT) ? (A)[((size_t)(t) * (R_) + (i)) * (C_) + (j)] : (A)[(i) * (C_) + (j)])
 
 __constant uint gt_fpat[N] = {FPAT};
+__constant uint gt_qpat[N] = {QPAT};
 __constant uint gt_hpat[M] = {HPAT};
+__constant uint gt_rpat[M] = {RPAT};
 #define FNZ(i, k) ((gt_fpat[i] >> (k)) & 1u)
+#define QNZ(i, k) ((gt_qpat[i] >> (k)) & 1u)
 #define HNZ(i, k) ((gt_hpat[i] >> (k)) & 1u)
+#define RNZ(i, k) ((gt_rpat[i] >> (k)) & 1u)
+// (A + A^T)/2 at (i, j), reading only the entries that may be non-zero
+#define SYM(A, PT, NZ, R_, t, i, j) \
+    ((REAL)0.5 * ((NZ(i, j) ? AT(A, PT, R_, R_, t, i, j) : (REAL)0) + (NZ(j, i) ? AT(A, PT, R_, R_, t, j, i) : (REAL)0)))
 
 __kernel void gt_kf(
     __global const REAL *x, __global const REAL *P, __global const REAL *z,
@@ -81,7 +88,7 @@ __kernel void gt_kf(
             xv[i] = xp[i];
 #pragma unroll
             for (int j = i; j < N; j++) {
-                REAL s = (REAL)0.5 * (AT(Q, Q_PT, N, N, t, i, j) + AT(Q, Q_PT, N, N, t, j, i));
+                REAL s = SYM(Q, Q_PT, QNZ, N, t, i, j);
 #pragma unroll
                 for (int k = 0; k < N; k++)
                     if (FNZ(j, k))
@@ -125,12 +132,12 @@ __kernel void gt_kf(
         for (int i = 0; i < N; i++)
 #pragma unroll
             for (int j = 0; j < N; j++)
-                Ps[i][j] = (REAL)0.5 * (Pm[i][j] + Pm[j][i]);
+                Ps[i][j] = DO_PREDICT ? Pm[i][j] : (REAL)0.5 * (Pm[i][j] + Pm[j][i]);  // exact after a prediction
 #pragma unroll
         for (int a = 0; a < M; a++)
 #pragma unroll
             for (int c = 0; c < M; c++)
-                Rs[a][c] = (REAL)0.5 * (AT(R, R_PT, M, M, t, a, c) + AT(R, R_PT, M, M, t, c, a));
+                Rs[a][c] = SYM(R, R_PT, RNZ, M, t, a, c);
 #if MODE == 2
         // eq. 6 and its Jacobian at the (predicted) state
 #pragma unroll
@@ -346,7 +353,7 @@ __kernel void gt_gate(
             for (int k = 0; k < N; k++)
                 if (HNZ(c, k))
                     v += HP[a][k] * Hm[c][k];
-            S[a][c] = v + (REAL)0.5 * (AT(R, R_PT, M, M, t, a, c) + AT(R, R_PT, M, M, t, c, a));
+            S[a][c] = v + SYM(R, R_PT, RNZ, M, t, a, c);
         }
     int ok = 1;
 #pragma unroll

@@ -261,6 +261,15 @@ def _pattern(A, cols):
     return -1 if bits == (1 << (shape[0] * shape[1])) - 1 else bits  # dense: the same variant as a DeviceArray
 
 
+def _patterns(predict, H, R, dims):
+    """(F, Q, H, R) zero patterns for the kernels (see _pattern)."""
+    F = Q = None
+    if isinstance(predict, (tuple, list)) and len(predict) == 2:
+        F, Q = predict
+    n, m = dims["n"], dims["m"]
+    return (_pattern(F, n), _pattern(Q, n), _pattern(H, n), _pattern(R, m))
+
+
 def _empty_state(device, dims, dt, with_status=True, out=None):
     if out is not None:
         return KalmanState(*out) if with_status else tuple(out)
@@ -289,7 +298,7 @@ def kf_predict(device, x, P, F, Q, *, out=None):
     device = check_device(device)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
-    pats = (_pattern(F, dims["n"]), -1)
+    pats = (_pattern(F, dims["n"]), _pattern(Q, dims["n"]), -1, -1)
     F = _matrix(device, F, "F", "n", "n", dims, dt)
     Q = _matrix(device, Q, "Q", "n", "n", dims, dt)
     out = _outputs(device, out, dims, dt, False)
@@ -312,7 +321,7 @@ def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     z = _observations(device, z, dims, dt)
-    pats = (_pattern(predict[0], dims["n"]) if isinstance(predict, (tuple, list)) and predict else -1, _pattern(H, dims["n"]))
+    pats = _patterns(predict, H, R, dims)
     H = _matrix(device, H, "H", "m", "n", dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
     mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
@@ -347,7 +356,7 @@ def ekf_update_stereo(
     f = _scalar(f, "f", positive=True)
     b = _scalar(b, "b", positive=True)
     cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
-    pats = (_pattern(predict[0], 6) if isinstance(predict, (tuple, list)) and predict else -1, -1)
+    pats = _patterns(predict, None, R, dims)
     mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
     out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
@@ -373,7 +382,7 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
     z = arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
     if not 1 <= dims["m"] <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
-    pats = (-1, _pattern(H, dims["n"]))
+    pats = (-1, -1, _pattern(H, dims["n"]), _pattern(R, dims["m"]))
     H = _matrix(device, H, "H", "m", "n", dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
     if out is not None:

@@ -21,7 +21,7 @@ def _rows(pat: int, rows: int, cols: int):
     return [(pat >> (i * cols)) & ((1 << cols) - 1) for i in range(rows)]
 
 
-def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, fpat, hrows):
+def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows):
     real = "double" if dtype == np.float64 else "float"
     eps = float(np.finfo(dtype).eps) * PD_EPS_FACTOR
     defines = {
@@ -37,8 +37,10 @@ def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, fpat, 
         "Q_PT": pts[1],
         "H_PT": pts[2],
         "R_PT": pts[3],
-        "FPAT": ",".join(f"{r}u" for r in _rows(fpat, n, n)),
+        "FPAT": ",".join(f"{r}u" for r in _rows(pats[0], n, n)),
+        "QPAT": ",".join(f"{r}u" for r in _rows(pats[1], n, n)),
         "HPAT": ",".join(f"{r}u" for r in hrows),
+        "RPAT": ",".join(f"{r}u" for r in _rows(pats[3], m, m)),
         "PD_TOL": repr(eps),
     }
     return device.program("gt_kalman.cl", defines)
@@ -73,12 +75,13 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
     if mode == MODE_STEREO:
         hrows = _STEREO_ROWS
     elif mode == MODE_LINEAR:
-        hrows = _rows(pats[1], m, n)
+        hrows = _rows(pats[2], m, n)
     else:
         hrows = [0]
     prg = _program(
         device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None,
-        (_pt(F), _pt(Q), _pt(H), _pt(R)), pats[0] if F is not None else -1, hrows,
+        (_pt(F), _pt(Q), _pt(H), _pt(R)),
+        (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]), hrows,
     )
     real = dt.type
     _kernel(prg, "gt_kf")(
@@ -90,27 +93,30 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
     return (xo, Po) if mode == MODE_PREDICT else (xo, Po, st)
 
 
-def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1)):
+def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1, -1, -1)):
     return _run(device, x, P, None, F, Q, None, None, None, None, MODE_PREDICT, out, pats)
 
 
-def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1)):
+def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)):
     F, Q = predict if predict is not None else (None, None)
     return _run(device, x, P, z, F, Q, H, R, mask, gain_scale, MODE_LINEAR, out, pats)
 
 
 def ekf_update_stereo(
-    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1)
+    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)
 ):
     F, Q = predict if predict is not None else (None, None)
     return _run(device, x, P, z, F, Q, None, R, mask, gain_scale, MODE_STEREO, out, pats, (f, b, cx, cy))
 
 
-def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1)):
+def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     T, n = x.shape
     D, m = z.shape
     out = out if out is not None else device.empty((T, D), x.dtype)
-    prg = _program(device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), -1, _rows(pats[1], m, n))
+    prg = _program(
+        device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), (-1, -1, -1, pats[3]),
+        _rows(pats[2], m, n),
+    )  # fmt: skip
     _kernel(prg, "gt_gate")(
         device.queue, (T,), None,
         _data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D),

@@ -53,15 +53,21 @@ def _make(real, eps):
     """Kernels for one float type (scalar arguments need a fixed annotation)."""
 
     @ti.func
-    def load_sym(A: ti.template(), t, r: ti.template()):
-        """(A + A^T)/2 of the (r,r) matrix A (shared or per track)."""
+    def load_sym(A: ti.template(), t, r: ti.template(), pat: ti.template()):
+        """(A + A^T)/2 of the (r,r) matrix A (shared or per track); known zeros are not read."""
         S = ti.Matrix.zero(real, r, r)
         for i in ti.static(range(r)):
-            S[i, i] = _get(A, t, i, i)
+            if ti.static(_nz(pat, r, i, i)):
+                S[i, i] = _get(A, t, i, i)
             for j in ti.static(range(i + 1, r)):
-                v = 0.5 * (_get(A, t, i, j) + _get(A, t, j, i))
-                S[i, j] = v
-                S[j, i] = v
+                if ti.static(_nz(pat, r, i, j) or _nz(pat, r, j, i)):
+                    v = ti.cast(0, real)
+                    if ti.static(_nz(pat, r, i, j)):
+                        v += _get(A, t, i, j)
+                    if ti.static(_nz(pat, r, j, i)):
+                        v += _get(A, t, j, i)
+                    S[i, j] = 0.5 * v
+                    S[j, i] = 0.5 * v
         return S
 
     @ti.func
@@ -76,7 +82,7 @@ def _make(real, eps):
         return xn
 
     @ti.func
-    def predict_P(F: ti.template(), Q: ti.template(), t, Ps, n: ti.template(), fpat: ti.template()):
+    def predict_P(F: ti.template(), Q: ti.template(), t, Ps, n: ti.template(), fpat: ti.template(), qpat: ti.template()):
         """F Ps F^T + (Q + Q^T)/2 for symmetric Ps, known zeros of F skipped; exactly symmetric."""
         FP = ti.Matrix.zero(real, n, n)
         for i in ti.static(range(n)):
@@ -85,7 +91,7 @@ def _make(real, eps):
                     a = _get(F, t, i, k)
                     for j in ti.static(range(n)):
                         FP[i, j] += a * Ps[k, j]
-        Qs = load_sym(Q, t, n)
+        Qs = load_sym(Q, t, n, qpat)
         Pn = ti.Matrix.zero(real, n, n)
         for j in ti.static(range(n)):
             for k in ti.static(range(n)):
@@ -198,7 +204,9 @@ def _make(real, eps):
         has_mask: ti.template(),
         has_gain: ti.template(),
         fpat: ti.template(),
+        qpat: ti.template(),
         hpat: ti.template(),
+        rpat: ti.template(),
     ):
         for t in range(x.shape[0]):
             xv = ti.Vector.zero(real, n)
@@ -211,7 +219,7 @@ def _make(real, eps):
                 xp = predict_x(F, t, xv, n, fpat)
                 for i in ti.static(range(n)):
                     xv[i] = xp[i]
-                Pp = predict_P(F, Q, t, 0.5 * (Pm + Pm.transpose()), n, fpat)
+                Pp = predict_P(F, Q, t, 0.5 * (Pm + Pm.transpose()), n, fpat, qpat)
                 for i in ti.static(range(n)):
                     for j in ti.static(range(n)):
                         Pm[i, j] = Pp[i, j]
@@ -234,8 +242,14 @@ def _make(real, eps):
                     s = ti.cast(1, real)
                     if ti.static(has_gain):
                         s = gain[t]
-                    Ps = 0.5 * (Pm + Pm.transpose())  # already symmetric after a prediction
-                    Rs = load_sym(R, t, m)
+                    Ps = Pm  # exactly symmetric after a prediction
+                    if ti.static(not do_predict):
+                        for i in ti.static(range(n)):
+                            for j in ti.static(range(i + 1, n)):
+                                v = 0.5 * (Pm[i, j] + Pm[j, i])
+                                Ps[i, j] = v
+                                Ps[j, i] = v
+                    Rs = load_sym(R, t, m, rpat)
                     Hm = ti.Matrix.zero(real, m, n)
                     y = ti.Vector.zero(real, m)
                     if ti.static(mode == MODE_STEREO):
@@ -275,13 +289,15 @@ def _make(real, eps):
                         Po[t, i, j] = Pm[i, j]
 
     @ti.kernel
-    def gate(x: nd, P: nd, H: nd, R: nd, z: nd, out: nd, n: ti.template(), m: ti.template(), hpat: ti.template()):
+    def gate(
+        x: nd, P: nd, H: nd, R: nd, z: nd, out: nd, n: ti.template(), m: ti.template(), hpat: ti.template(), rpat: ti.template()
+    ):
         for t in range(x.shape[0]):
             Ps = ti.Matrix.zero(real, n, n)
             for i in ti.static(range(n)):
                 for j in ti.static(range(n)):
                     Ps[i, j] = 0.5 * (P[t, i, j] + P[t, j, i])
-            Rs = load_sym(R, t, m)
+            Rs = load_sym(R, t, m, rpat)
             Hm = ti.Matrix.zero(real, m, n)
             hx = ti.Vector.zero(real, m)
             for a in ti.static(range(m)):
@@ -357,7 +373,7 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
     def buf(a):
         return a.buffer if a is not None else d
 
-    fpat, hpat = pats
+    fpat, qpat, hpat, rpat = pats
     kf(
         d,
         P.buffer,
@@ -379,30 +395,32 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
         mask is not None,
         gain_scale is not None,
         fpat if F is not None else -1,
+        qpat if F is not None else -1,
         hpat if mode == MODE_LINEAR else (STEREO_PATTERN if mode == MODE_STEREO else -1),
+        rpat if mode != MODE_PREDICT else -1,
     )
     return (xo, Po) if mode == MODE_PREDICT else (xo, Po, st)
 
 
-def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1)):
+def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1, -1, -1)):
     return _run(device, x, P, None, F, Q, None, None, None, None, MODE_PREDICT, out, pats)
 
 
-def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1)):
+def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)):
     F, Q = predict if predict is not None else (None, None)
     return _run(device, x, P, z, F, Q, H, R, mask, gain_scale, MODE_LINEAR, out, pats)
 
 
 def ekf_update_stereo(
-    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1)
+    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)
 ):
     F, Q = predict if predict is not None else (None, None)
     return _run(device, x, P, z, F, Q, None, R, mask, gain_scale, MODE_STEREO, out, pats, (f, b, cx, cy))
 
 
-def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1)):
+def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     T, n = x.shape
     out = out if out is not None else device.empty((T, z.shape[0]), x.dtype)
     _, gate = _KERNELS[x.dtype.name]
-    gate(x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer, n, z.shape[1], pats[1])
+    gate(x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer, n, z.shape[1], pats[2], pats[3])
     return out
