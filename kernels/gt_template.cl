@@ -98,7 +98,9 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
         const intv ok = TO_INT(VLOADC(srow + i, valid));
         const realv d = beta * I - alpha * rpts[4 * i + 3];  // eq. 17: d_i
         const realv q = cc + d * d;
+#if !RESIDUALS
         blk += select((realv)1.0f, d * d / q, ok);  // rho_c(d_i); an invalid point adds 1
+#endif
 #if RESIDUALS
         const realv r = select((realv)wc, wc * d / sqrt(q), ok);  // eq. 20-21: r_i
         float tmp[LANES];
@@ -141,7 +143,9 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             const realv top = d00 + a * (d01 - d00), bot = d10 + a * (d11 - d10);
             const realv dd = select((realv)0.0f, top + bw * (bot - top) - Z, okd);  // eq. 18: d'_i = Zhat - Z
             const realv q = cd + dd * dd;
+#if !RESIDUALS
             blk += select((realv)1.0f, dd * dd / q, okd);
+#endif
 #if RESIDUALS
             const realv r = select((realv)wd, wd * dd / sqrt(q), okd);  // eq. 20-21: r'_i
             float tmp[LANES];

@@ -147,7 +147,8 @@ def _rgbd_body(
                 d = beta[l] * scratch[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
                 q = cc + d * d
                 ok = scratch[g, (n + i) * L + l] != 0.0
-                blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
+                if ti.static(not want_residuals):
+                    blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
                 if ti.static(want_residuals):
                     # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
                     col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
@@ -188,7 +189,8 @@ def _rgbd_body(
                     bot = d10 + a * (d11 - d10)
                     dd = ti.select(okd, top + bw * (bot - top) - Z, 0.0)  # eq. 18: d'_i = Zhat - Z
                     q = cd + dd * dd
-                    blk[l] += ti.select(okd, dd * dd / q, 1.0)
+                    if ti.static(not want_residuals):
+                        blk[l] += ti.select(okd, dd * dd / q, 1.0)
                     if ti.static(want_residuals):
                         col = n + didx[dparts + 1 + i]
                         residuals[ti.min(g * L + l, nb - 1), col] = ti.select(
