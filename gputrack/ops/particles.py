@@ -44,27 +44,25 @@ def sample_around(device, candidates, sigma, n, seed, *, keep_candidates=False):
     candidates: (C, P) float32; sigma: (P,) or (C, P) float32 standard deviations (>= 0), per
     parameter or per candidate and parameter; n: number of samples (>= 1); seed: integer in
     [0, 2**64), e.g. ``rng.integers(2**63)`` from the caller's seeded generator (use a new seed
-    per call). See the module docstring for the block layout and ``keep_candidates``.
+    per call). See the module docstring for the block layout and ``keep_candidates``. A sigma
+    already on the device is not checked for negative values (that would cost a download).
     """
     check_device(device)
-    dims = {}
-    cand = arg(device, candidates, "candidates", ("C", "P"), dims)
-    if dims["C"] == 0 or dims["P"] == 0:
-        raise ValueError(f"candidates: expected at least one candidate and one parameter, got shape {cand.shape}")
-    sig_shape = getattr(sigma, "shape", np.shape(sigma))
-    if len(sig_shape) == 1:
-        sig = arg(device, sigma, "sigma", ("P",), dims)
-        per_candidate = False
-    else:
-        sig = arg(device, sigma, "sigma", ("C", "P"), dims)
-        per_candidate = True
-    if not isinstance(sigma, DeviceArray) and (np.asarray(sigma) < 0).any():
-        raise ValueError(f"sigma: expected standard deviations >= 0, got {np.asarray(sigma).min()}")
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
         raise TypeError(f"n: expected an integer number of samples, got {type(n).__name__}")
     if int(n) < 1:
         raise ValueError(f"n: expected at least one sample, got {n}")
     lo, hi = _seed(seed)
+    if not isinstance(sigma, DeviceArray):
+        host = np.asarray(sigma)
+        if host.dtype.kind in "biuf" and (host < 0).any():
+            raise ValueError(f"sigma: expected standard deviations >= 0, got {host.min()}")
+    dims = {}
+    cand = arg(device, candidates, "candidates", ("C", "P"), dims)
+    if dims["C"] == 0 or dims["P"] == 0:
+        raise ValueError(f"candidates: expected at least one candidate and one parameter, got shape {cand.shape}")
+    per_candidate = len(getattr(sigma, "shape", np.shape(sigma))) != 1
+    sig = arg(device, sigma, "sigma", ("C", "P") if per_candidate else ("P",), dims)
     if int(n) * (dims["P"] + 1) >= 2**31 or int(n) * dims["C"] >= 2**31:
         raise ValueError(f"n: expected n * (P + 1) and n * C below 2**31 (the generator's counter), got n={n}")
     return backend_module(device, "particles").sample_around(
