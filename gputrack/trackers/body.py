@@ -1,0 +1,232 @@
+"""Upper-body RGB-D tracker of paper 000: coarse-to-fine particle filter + batched LM on the device.
+
+Per frame (Alg. 1-2 of the paper):
+
+1. upload the gray and depth images (the only per-frame inputs);
+2. when due, re-render the 3D sparse template at the previous estimate (sec. 2.3) and upload it;
+3. particle filter, ``stages`` times with sigma halved each stage (sec. 3.1, eq. 12): draw K samples
+   around the C candidates, forward kinematics, score eq. 17-19, keep the best C as the next
+   candidates — all on the device (optionally in cascade order: torso, right arm, left arm,
+   eq. 13-16, by sampling one group of parameters at a time);
+4. Levenberg-Marquardt on all C candidates at once (sec. 3.4, eq. 20-24), with the block-sparse
+   Jacobian of Fig. 2 (a part's residuals depend on its own and its ancestors' parameters),
+   optionally with the 6 shoulder parameters (sec. 3.6, eq. 25-27);
+5. download the best candidate's pose.
+
+The tracker never returns a NaN pose: a frame whose images are unusable (no valid depth, the
+model out of view) keeps the last pose and reports ``confidence = 0``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ..device import Device, to_numpy
+from ..models.upper_body import pf_sigma, upper_body
+from ..ops.kinematics import forward_kinematics
+from ..ops.lm import least_squares
+from ..ops.particles import best_k, sample_around
+from ..ops.template import Camera, rgbd_cost, rgbd_residuals
+from ..scheduler import Pipeline
+from ..sim.render import DEFAULT_CAMERA, DEFAULT_SIZE
+from .body_template import sparse_template
+
+log = logging.getLogger("gputrack")
+
+__all__ = ["BodyTracker", "BodyEstimate", "TrackerConfig"]
+
+DEG = np.pi / 180.0
+
+#: LM finite-difference steps eps_n (eq. 24) per kind of parameter: large enough to move template
+#: points by a fraction of a pixel (the residuals are float32 and bilinear), small enough to be local.
+LM_STEP = {"angle": 2e-3, "length": 1.0}
+
+
+@dataclasses.dataclass
+class TrackerConfig:
+    """Settings of :class:`BodyTracker` (defaults: the paper's, Tables 3-4)."""
+
+    candidates: int = 10  # C: candidate poses kept between stages and frames
+    samples: int = 1500  # K: samples per particle-filter stage
+    stages: int = 3  # coarse-to-fine stages, sigma halved each
+    cascade: bool = True  # torso, then right arm, then left arm (eq. 13-16); False: all at once
+    lm_iterations: int = 10  # m: LM iterations per frame (0: PF only)
+    sparse_jacobian: bool = False  # Fig. 2 block-sparse Jacobian (drops the coupling through eq. 17's beta)
+    shoulders: bool = False  # estimate the shoulder positions too (20 parameters)
+    n_rgb: int = 128  # N
+    n_depth: int = 128  # N'
+    lam: float = 0.9  # lambda of eq. 19 (Table 3)
+    c_depth: float = 5.0  # c' of eq. 18 (mm)
+    template_every: int = 1  # re-render the template every this many frames
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("candidates", "samples", "stages", "n_rgb", "n_depth", "template_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+        if isinstance(self.lm_iterations, bool) or not isinstance(self.lm_iterations, (int, np.integer)) or self.lm_iterations < 0:
+            raise ValueError(f"lm_iterations: expected an integer >= 0, got {self.lm_iterations!r}")
+        if self.candidates > self.samples:
+            raise ValueError(f"candidates: expected at most samples={self.samples}, got {self.candidates}")
+        if not 0.0 <= self.lam <= 1.0:
+            raise ValueError(f"lam: expected a value in [0, 1], got {self.lam}")
+
+
+@dataclasses.dataclass
+class BodyEstimate:
+    """One frame's result: the best pose, its cost (eq. 19), and whether it could be measured."""
+
+    params: np.ndarray  # (P,) float64
+    cost: float
+    confidence: float  # 1 = tracked; 0 = kept the last pose (unusable frame)
+    candidates: np.ndarray  # (C, P) the candidates carried to the next frame
+    message: str = ""
+
+
+class BodyTracker:
+    """Track the upper body of paper 000 in a sequence of gray + depth frames.
+
+    ``BodyTracker(device, initial_params, camera=..., config=TrackerConfig(...))``, then
+    ``track(gray, depth)`` per frame -> :class:`BodyEstimate`. ``pipeline`` holds the per-stage
+    timings and transfer counts (Tables 1-2 layout via ``pipeline.table()``).
+    """
+
+    def __init__(self, device: Device, initial_params, *, camera: Camera | None = None, size=DEFAULT_SIZE,
+                 config: TrackerConfig | None = None, chain=None):  # fmt: skip
+        if not isinstance(device, Device):
+            raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
+        self.device = device
+        self.config = cfg = config or TrackerConfig()
+        self.chain = chain or upper_body(shoulders=cfg.shoulders)
+        self.camera = camera or DEFAULT_CAMERA
+        self.size = tuple(int(s) for s in size)  # (width, height)
+        p0 = np.asarray(initial_params, dtype=np.float64)
+        if p0.shape != (self.chain.n_params,):
+            raise ValueError(f"initial_params: expected shape ({self.chain.n_params},), got {p0.shape}")
+        if not np.isfinite(p0).all():
+            raise ValueError("initial_params: expected finite values, got NaN or inf")
+        self.params = p0
+        self.candidates = np.repeat(p0[None], cfg.candidates, axis=0)
+        self.pipeline = Pipeline(device)
+        self.frame_index = 0
+        self._rng = np.random.default_rng(cfg.seed)
+        self._templates = None
+        # constant device data, uploaded once: per-stage (and per-cascade-group) sigmas
+        sigma = pf_sigma(self.chain)
+        groups = self._groups() if cfg.cascade else [np.ones(self.chain.n_params, bool)]
+        self._sigmas = [
+            [device.asarray((sigma * g / 2**s).astype(np.float32)) for g in groups] for s in range(cfg.stages)
+        ]
+        angle = np.zeros(self.chain.n_params, bool)
+        angle[[i for part in self.chain.parts for i in part.angles]] = True
+        self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
+        self._sparsity = None
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _groups(self) -> list[np.ndarray]:
+        """Cascade groups (eq. 13-16): the root part's parameters (torso), then, for each child of the
+        root (right arm, left arm), the joint angles of its subtree. Shoulder positions are not sampled."""
+        chain, P = self.chain, self.chain.n_params
+        root = [j for j, part in enumerate(chain.parts) if part.parent < 0]
+        groups = []
+        for r in root:
+            g = np.zeros(P, bool)
+            g[list(chain.parts[r].params)] = True
+            groups.append(g)
+            for c in (j for j, part in enumerate(chain.parts) if part.parent == r):
+                g = np.zeros(P, bool)
+                for j, part in enumerate(chain.parts):
+                    if j == c or c in chain.ancestors(j):
+                        g[list(part.angles)] = True
+                groups.append(g)
+        return groups
+
+    def _check_frame(self, gray, depth):
+        w, h = self.size
+        for name, img in (("gray", gray), ("depth", depth)):
+            if not isinstance(img, np.ndarray):
+                raise TypeError(f"{name}: expected a NumPy array of shape ({h}, {w}), got {type(img).__name__}")
+            if img.shape != (h, w):
+                raise ValueError(f"{name}: expected shape ({h}, {w}), got {img.shape}")
+            if img.dtype != np.float32:
+                raise TypeError(f"{name}: expected float32, got {img.dtype}")
+
+    def _update_template(self):
+        cfg = self.config
+        rgb, dep = sparse_template(self.chain, self.params, cfg.n_rgb, cfg.n_depth, camera=self.camera, size=self.size)
+        rgb.to(self.device)
+        dep.to(self.device)
+        self._templates = (rgb, dep)
+        parts = np.concatenate([rgb.part, dep.part])
+        self._sparsity = self.chain.jacobian_sparsity(parts)
+
+    def _cost(self, transforms, gray, depth):
+        rgb, dep = self._templates
+        return rgbd_cost(self.device, transforms, rgb, dep, gray, depth, self.camera, lam=self.config.lam,
+                         c_depth=self.config.c_depth)  # fmt: skip
+
+    def _residuals(self, gray, depth):
+        rgb, dep = self._templates
+        dev, chain, cfg = self.device, self.chain, self.config
+
+        def residuals(points):
+            transforms = forward_kinematics(dev, chain, points)
+            return rgbd_residuals(dev, transforms, rgb, dep, gray, depth, self.camera, lam=cfg.lam, c_depth=cfg.c_depth)
+
+        return residuals
+
+    # -- one frame ---------------------------------------------------------------------------------
+    def track(self, gray, depth) -> BodyEstimate:
+        """Estimate the pose in one frame (gray (H, W) float32, depth (H, W) float32 mm)."""
+        self._check_frame(gray, depth)
+        cfg, dev, pipe = self.config, self.device, self.pipeline
+        valid_depth = np.isfinite(depth) & (depth > 0)
+        with pipe.frame():
+            if not valid_depth.any():
+                return self._keep("no valid depth in the frame")
+            with pipe.stage("upload frame"):
+                g = dev.asarray(gray)
+                d = dev.asarray(depth)
+            if self._templates is None or self.frame_index % cfg.template_every == 0:
+                with pipe.stage("template"):
+                    try:
+                        self._update_template()
+                    except ValueError as e:  # the model is out of view at the last pose
+                        return self._keep(str(e))
+            with pipe.stage("upload candidates"):
+                cand = dev.asarray(self.candidates.astype(np.float32))
+            for s in range(cfg.stages):
+                for sigma in self._sigmas[s]:
+                    with pipe.stage(f"PF stage {s + 1}"):
+                        seed = int(self._rng.integers(2**63))
+                        samples = sample_around(dev, cand, sigma, cfg.samples, seed, keep_candidates=True)
+                        cost = self._cost(forward_kinematics(dev, self.chain, samples), g, d)
+                        best = best_k(dev, cost.total, cfg.candidates, rows=samples)
+                        cand = best.rows
+            if cfg.lm_iterations:
+                with pipe.stage("LM"):
+                    x0 = to_numpy(cand).astype(np.float64)
+                    res = least_squares(self._residuals(g, d), x0, device=dev, max_iter=cfg.lm_iterations,
+                                        step=self._lm_step, jac_sparsity=self._sparsity if cfg.sparse_jacobian else None, points_dtype=np.float32,
+                                        early_stop=False)  # fmt: skip
+                    order = np.argsort(res.cost, kind="stable")
+                    candidates, best_cost = res.x[order], float(res.cost[order[0]])
+            else:
+                with pipe.stage("download"):
+                    candidates = to_numpy(cand).astype(np.float64)
+                    best_cost = float(to_numpy(best.scores)[0])
+        if not np.isfinite(candidates).all():
+            return self._keep("the estimate is not finite")
+        self.candidates = candidates
+        self.params = candidates[0].copy()
+        self.frame_index += 1
+        return BodyEstimate(self.params.copy(), best_cost, 1.0, candidates.copy())
+
+    def _keep(self, why: str) -> BodyEstimate:
+        log.warning("frame %d: %s; keeping the last pose", self.frame_index, why)
+        self.frame_index += 1
+        return BodyEstimate(self.params.copy(), float("nan"), 0.0, self.candidates.copy(), why)
