@@ -93,10 +93,15 @@ class BodyTracker:
     ``BodyTracker(device, initial_params, camera=..., config=TrackerConfig(...))``, then
     ``track(gray, depth)`` per frame -> :class:`BodyEstimate`. ``pipeline`` holds the per-stage
     timings and transfer counts (Tables 1-2 layout via ``pipeline.table()``).
+
+    The same machinery tracks any chain: pass ``chain`` and the first-stage ``sigma`` (P,)
+    (default: Table 4 for :func:`gputrack.models.upper_body`), and give ``track`` the
+    templates when they do not come from rendering the model (e.g. a rigid scene whose
+    template is taken from the previous real frame, :func:`frame_template`).
     """
 
     def __init__(self, device: Device, initial_params, *, camera: Camera | None = None, size=DEFAULT_SIZE,
-                 config: TrackerConfig | None = None, chain=None):  # fmt: skip
+                 config: TrackerConfig | None = None, chain=None, sigma=None):  # fmt: skip
         if not isinstance(device, Device):
             raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
         self.device = device
@@ -116,7 +121,9 @@ class BodyTracker:
         self._rng = np.random.default_rng(cfg.seed)
         self._templates = None
         # constant device data, uploaded once: per-stage (and per-cascade-group) sigmas
-        sigma = pf_sigma(self.chain)
+        sigma = pf_sigma(self.chain) if sigma is None else np.asarray(sigma, dtype=np.float64)
+        if sigma.shape != (self.chain.n_params,) or not np.isfinite(sigma).all() or (sigma < 0).any():
+            raise ValueError(f"sigma: expected ({self.chain.n_params},) finite values >= 0, got {sigma!r}")
         groups = self._groups() if cfg.cascade else [np.ones(self.chain.n_params, bool)]
         self._sigmas = [
             [device.asarray((sigma * g / 2**s).astype(np.float32)) for g in groups] for s in range(cfg.stages)
@@ -157,7 +164,10 @@ class BodyTracker:
 
     def _update_template(self):
         cfg = self.config
-        rgb, dep = sparse_template(self.chain, self.params, cfg.n_rgb, cfg.n_depth, camera=self.camera, size=self.size)
+        self._set_templates(*sparse_template(self.chain, self.params, cfg.n_rgb, cfg.n_depth, camera=self.camera,
+                                             size=self.size))  # fmt: skip
+
+    def _set_templates(self, rgb, dep):
         rgb.to(self.device)
         dep.to(self.device)
         self._templates = (rgb, dep)
@@ -180,8 +190,12 @@ class BodyTracker:
         return residuals
 
     # -- one frame ---------------------------------------------------------------------------------
-    def track(self, gray, depth) -> BodyEstimate:
-        """Estimate the pose in one frame (gray (H, W) float32, depth (H, W) float32 mm)."""
+    def track(self, gray, depth, templates=None) -> BodyEstimate:
+        """Estimate the pose in one frame (gray (H, W) float32, depth (H, W) float32 mm).
+
+        ``templates``: (RGB, depth) SparseTemplates to use from now on instead of rendering the
+        model at the previous estimate.
+        """
         self._check_frame(gray, depth)
         cfg, dev, pipe = self.config, self.device, self.pipeline
         valid_depth = np.isfinite(depth) & (depth > 0)
@@ -191,7 +205,10 @@ class BodyTracker:
             with pipe.stage("upload frame"):
                 g = dev.asarray(gray)
                 d = dev.asarray(depth)
-            if self._templates is None or self.frame_index % cfg.template_every == 0:
+            if templates is not None:
+                with pipe.stage("template"):
+                    self._set_templates(*templates)
+            elif self._templates is None or self.frame_index % cfg.template_every == 0:
                 with pipe.stage("template"):
                     try:
                         self._update_template()

@@ -33,7 +33,7 @@ from ..models.chain import Chain
 from ..ops.template import SparseTemplate
 from ..sim.render import DEFAULT_SIZE, Rendering, Texture, render
 
-__all__ = ["TemplatePixels", "select_pixels", "sparse_template"]
+__all__ = ["TemplatePixels", "frame_template", "select_pixels", "sparse_template"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -244,4 +244,42 @@ def sparse_template(
         )
         xyz = rendering.local[px.rows, px.cols]
         out.append(SparseTemplate(xyz, px.part, values[px.rows, px.cols].astype(np.float32)))
+    return out[0], out[1]
+
+
+def frame_template(gray, depth, camera, n: int = 128, n_depth: int = 128, *, edge: float = 0.02,
+                   **select) -> tuple[SparseTemplate, SparseTemplate]:  # fmt: skip
+    """(RGB, depth) templates of a rigid scene from a real RGB-D frame, in that frame's camera coordinates.
+
+    The rigid case of sec. 2.3: the "model" is the measured surface itself, one part (0). Points
+    are local extrema of the gray image and of the depth map among the pixels with a depth
+    measurement (> 0 and finite) away from depth discontinuities (a 3x3 depth span over ``edge``
+    times the depth), back-projected with ``camera``
+    (X = (u - cx) Z / fx, Y = (v - cy) Z / fy, in the depth unit). Tracking the pose of this
+    part in a later frame (:func:`gputrack.models.rigid`, start at identity) gives the camera
+    motion between the two frames. ``select`` passes options to :func:`select_pixels`.
+    """
+    gray = np.asarray(gray, dtype=np.float32)
+    depth = np.asarray(depth, dtype=np.float32)
+    if gray.shape != depth.shape or gray.ndim != 2:
+        raise ValueError(f"gray and depth: expected the same (H, W) shape, got {gray.shape} and {depth.shape}")
+    valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        raise ValueError("frame_template: expected a frame with depth measurements, got none")
+    # depth discontinuities (occlusion edges) are not surface points: a small motion changes what
+    # is seen there, so pixels whose 3x3 neighbourhood spans more than ``edge`` of their depth are
+    # left out (with the border of select_pixels, the points stay away from them)
+    d = np.where(valid, depth, 0.0)
+    span = ndimage.maximum_filter(d, 3) - ndimage.minimum_filter(np.where(valid, depth, np.inf), 3)
+    smooth = valid & (span <= edge * np.where(valid, depth, 1.0))
+    part_img = np.where(smooth, 0, -1).astype(np.int32)
+    out = []
+    for count, values in ((n, gray), (n_depth, np.where(valid, depth, 0.0))):
+        px = select_pixels(values, part_img, count, n_parts=1, **select)
+        z = depth[px.rows, px.cols].astype(np.float64)
+        x = (px.cols - camera.cx) * z / camera.fx
+        y = (px.rows - camera.cy) * z / camera.fy
+        xyz = np.stack([x, y, z], axis=1).astype(np.float32)
+        value = gray[px.rows, px.cols] if values is gray else depth[px.rows, px.cols]
+        out.append(SparseTemplate(xyz, px.part, value.astype(np.float32)))
     return out[0], out[1]
