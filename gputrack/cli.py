@@ -54,6 +54,19 @@ def cmd_bench(args) -> int:
     return status
 
 
+def cmd_demo(args) -> int:
+    import gputrack
+
+    from . import demo
+
+    dev = gputrack.device(args.device)
+    report = demo.body(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
+                       shoulders=args.shoulders, seed=args.seed, template_every=args.template_every)  # fmt: skip
+    if args.json:
+        demo.write_json(report, args.json)
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="gputrack", description="GPU-portable compute primitives for visual tracking")
     parser.add_argument("-v", "--verbose", action="store_true", help="log what gputrack does")
@@ -62,6 +75,19 @@ def main(argv=None) -> int:
     p = sub.add_parser("devices", help="list every backend, available or not and why")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
     p.set_defaults(func=cmd_devices)
+
+    p = sub.add_parser("demo", help="simulate a sequence and track it (paper 000's upper body)")
+    p.add_argument("what", choices=["body"], help="which tracker")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--frames", type=int, default=30, help="frames to simulate (default 30)")
+    p.add_argument("--sequence", type=int, default=0, help="simulated motion sequence 0-8 (default 0)")
+    p.add_argument("--lm", type=int, default=10, help="LM iterations per frame (0: particle filter only)")
+    p.add_argument("--stages", type=int, default=3, help="coarse-to-fine particle-filter stages (default 3)")
+    p.add_argument("--shoulders", action="store_true", help="estimate the shoulder positions too (20 parameters)")
+    p.add_argument("--template-every", type=int, default=1, help="re-render the template every N frames")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON")
+    p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="time the ops on every device, with ratios against NumPy")
     p.add_argument("--device", action="append", help="spec, or 'all' (default; repeatable)")

@@ -137,13 +137,16 @@ class Pipeline:
         return [s.as_dict() for s in self.stats.values()]
 
     def table(self, title: str | None = None) -> str:
-        """The figures as a text table (ms per call, like the papers' Tables 1-2)."""
+        """The figures as a text table: ms per call (median, total) and, when frames were recorded,
+        ms per frame (total / frames, the papers' Tables 1-2 figure) and bytes each way."""
         rows = self.report()
-        head = f"{'stage':<24}{'calls':>7}{'median ms':>12}{'total ms':>12}{'H->D bytes':>14}{'D->H bytes':>14}"
+        nf = len(self.frames)
+        head = f"{'stage':<24}{'calls':>7}{'median ms':>12}{'total ms':>12}{'ms/frame':>10}{'H->D bytes':>14}{'D->H bytes':>14}"
         lines = [title or f"stages on {self.device.spec} ({self.device.name})", head, "-" * len(head)]
         for r in rows:
+            per_frame = f"{r['total_ms'] / nf:10.3f}" if nf else f"{'-':>10}"
             lines.append(
-                f"{r['name']:<24}{r['calls']:>7}{r['median_ms']:>12.3f}{r['total_ms']:>12.3f}"
+                f"{r['name']:<24}{r['calls']:>7}{r['median_ms']:>12.3f}{r['total_ms']:>12.3f}{per_frame}"
                 f"{r['h2d_bytes']:>14}{r['d2h_bytes']:>14}"
             )
         if self.frames:
