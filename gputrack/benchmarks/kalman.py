@@ -89,6 +89,7 @@ def _problem(T, rng):
 
 def cases(device, args):
     import gputrack
+
     from ..ops.kalman import ekf_update_stereo, kf_update, mahalanobis, shared_matrix
 
     ref = gputrack.device("numpy")
@@ -167,7 +168,9 @@ def cases(device, args):
                 f"ekf stereo predict+update T={T:.0e}",
                 run=stereo,
                 reference=stereo_ref,
-                peers={"python loop": lambda a=(xsl, Psl, F64, Q64, zs, Rs64, f, b): _stereo_textbook(*a)} if loop else {},
+                peers={"python loop": lambda a=(xsl, Psl, F64, Q64, zs, Rs64, f, b): _stereo_textbook(*a)}
+                if loop
+                else {},
                 params=params,
             )
         )

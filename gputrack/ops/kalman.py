@@ -39,8 +39,8 @@ Numerics (identical on every backend):
   x and P themselves (an in-place update: each track reads its own inputs before it writes).
   Allocating fresh outputs costs real time on some backends (a (1e5,6,6) Taichi ndarray is
   ~6 ms on a 2-core CPU), so a tracker that keeps its state on the device passes ``out``.
-- Shared model matrices: the device kernels skip the known zero entries of a shared F and H
-  (the constant-velocity F and a selection H are mostly zeros). They know them for a NumPy
+- Shared model matrices: the device kernels skip the known zero entries of a shared F, Q, H
+  and R (the constant-velocity F and Q, a selection H and a diagonal R are mostly zeros). They know them for a NumPy
   matrix, which is uploaded on every call, and for a :class:`SharedMatrix` from
   :func:`shared_matrix` (uploaded once, zero pattern recorded); a plain DeviceArray is treated
   as dense. Each zero pattern compiles its own kernel variant.
@@ -59,18 +59,18 @@ from typing import NamedTuple
 import numpy as np
 
 from . import backend_module
-from ._args import FLOAT, arg, check_device, match_shape
+from ._args import FLOAT, arg, check_device
 
 __all__ = [
     "KalmanState",
     "KalmanStatus",
     "SharedMatrix",
-    "shared_matrix",
     "constant_velocity",
     "ekf_update_stereo",
     "kf_predict",
     "kf_update",
     "mahalanobis",
+    "shared_matrix",
 ]
 
 MAX_N = 12
@@ -239,7 +239,9 @@ def _outputs(device, out, dims, dt, with_status):
             if not hasattr(a, "buffer"):
                 raise TypeError(f"out {name}: expected an array on {device.spec}, got {type(a).__name__}")
         if tuple(a.shape) != shape or a.dtype != dtype:
-            raise ValueError(f"out {name}: expected shape {shape} and dtype {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}")
+            raise ValueError(
+                f"out {name}: expected shape {shape} and dtype {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}"
+            )
     return tuple(out)
 
 
@@ -439,8 +441,8 @@ def _selftest(device) -> None:
         "gating": (ref.mahalanobis(None, x, P, H, R, det),),
     }
     worst, where = 0.0, ""
-    for key in got:
-        for g, w in zip(got[key], want[key]):
+    for key, results in got.items():
+        for g, w in zip(results, want[key]):
             g = to_np(g).astype(np.float64)
             err = float(np.max(np.abs(g - w) / (1.0 + np.abs(w))))
             if not err <= worst:

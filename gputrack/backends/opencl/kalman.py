@@ -46,7 +46,7 @@ def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, 
     return device.program("gt_kalman.cl", defines)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernel(program, name: str):
     """One kernel object per built program (retrieving it anew each call is costly in PyOpenCL)."""
     import pyopencl as cl
@@ -79,9 +79,17 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
     else:
         hrows = [0]
     prg = _program(
-        device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None,
+        device,
+        dt,
+        n,
+        m,
+        mode,
+        F is not None,
+        mask is not None,
+        gain_scale is not None,
         (_pt(F), _pt(Q), _pt(H), _pt(R)),
-        (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]), hrows,
+        (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]),
+        hrows,
     )
     real = dt.type
     _kernel(prg, "gt_kf")(

@@ -82,7 +82,9 @@ def _make(real, eps):
         return xn
 
     @ti.func
-    def predict_P(F: ti.template(), Q: ti.template(), t, Ps, n: ti.template(), fpat: ti.template(), qpat: ti.template()):
+    def predict_P(
+        F: ti.template(), Q: ti.template(), t, Ps, n: ti.template(), fpat: ti.template(), qpat: ti.template()
+    ):
         """F Ps F^T + (Q + Q^T)/2 for symmetric Ps, known zeros of F skipped; exactly symmetric."""
         FP = ti.Matrix.zero(real, n, n)
         for i in ti.static(range(n)):
@@ -227,7 +229,7 @@ def _make(real, eps):
                 xn = xv
                 Pn = Pm
                 code = UPDATED
-                if ti.static(has_mask):
+                if ti.static(has_mask):  # noqa: SIM102 - a compile-time branch around a run-time one
                     if mask[t] == 0:
                         code = SKIPPED
                 zv = ti.Vector.zero(real, m)
@@ -235,7 +237,7 @@ def _make(real, eps):
                     zv[a] = z[t, a]
                     if _nonfinite(zv[a], real):
                         code = SKIPPED
-                if ti.static(mode == MODE_STEREO):
+                if ti.static(mode == MODE_STEREO):  # noqa: SIM102 - compile-time around run-time
                     if code == UPDATED and not (xv[4] > 0):
                         code = BAD_DEPTH
                 if code == UPDATED:
@@ -290,7 +292,16 @@ def _make(real, eps):
 
     @ti.kernel
     def gate(
-        x: nd, P: nd, H: nd, R: nd, z: nd, out: nd, n: ti.template(), m: ti.template(), hpat: ti.template(), rpat: ti.template()
+        x: nd,
+        P: nd,
+        H: nd,
+        R: nd,
+        z: nd,
+        out: nd,
+        n: ti.template(),
+        m: ti.template(),
+        hpat: ti.template(),
+        rpat: ti.template(),
     ):
         for t in range(x.shape[0]):
             Ps = ti.Matrix.zero(real, n, n)
@@ -354,7 +365,10 @@ def _make(real, eps):
     return kf, gate
 
 
-_KERNELS = {"float32": _make(ti.f32, float(np.finfo(np.float32).eps)), "float64": _make(ti.f64, float(np.finfo(np.float64).eps))}
+_KERNELS = {
+    "float32": _make(ti.f32, float(np.finfo(np.float32).eps)),
+    "float64": _make(ti.f64, float(np.finfo(np.float64).eps)),
+}
 
 
 def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0)):
