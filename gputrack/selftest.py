@@ -16,6 +16,8 @@ from .device import Device
 
 CHECKS = [
     ("arrays", "gputrack.selftest:check_arrays"),
+    ("kinematics", "gputrack.ops.kinematics:_selftest"),
+    ("template", "gputrack.ops.template:_selftest"),
 ]
 
 
