@@ -90,6 +90,28 @@ def test_lm_step_and_solve_match_reference(device, B, P):
     assert (gputrack.to_numpy(ok2) == 1).all()
 
 
+def test_ops_write_into_out(device):
+    dt = _fdt(device)
+    rng = np.random.default_rng(5)
+    J = rng.normal(size=(3, 8, 4)).astype(dt)
+    r = rng.normal(size=(3, 8)).astype(dt)
+    C = np.full(3, 0.1, dt)
+    want_d, want_ok = lm.lm_solve(REF, J, r, C)
+    o = (device.empty((3, 4), dt), device.empty((3,), np.int32))
+    got = lm.lm_solve(device, J, r, C, out=o)
+    assert got[0] is o[0] and got[1] is o[1]
+    assert_matches(device, o[0], want_d, dt, scale=10)
+    ne = (device.empty((3, 4, 4), dt), device.empty((3, 4), dt))
+    JtJ, Jtr = lm.normal_equations(device, J, r, out=ne)
+    assert JtJ is ne[0]
+    d, ok = lm.lm_step(device, JtJ, Jtr, C, out=o)
+    assert_matches(device, d, want_d, dt, scale=10)
+    with pytest.raises(ValueError, match="out delta: expected shape"):
+        lm.lm_solve(device, J, r, C, out=(device.empty((3, 5), dt), o[1]))
+    with pytest.raises(TypeError, match="out: expected a tuple of 2"):
+        lm.lm_solve(device, J, r, C, out=o[0])
+
+
 def test_lm_step_flags_not_positive_definite(device):
     dt = _fdt(device)
     P = 4

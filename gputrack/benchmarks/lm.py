@@ -3,7 +3,8 @@
 Cases per (P, M), each timed on the device with the NumPy reference in the same run:
 
 - ``lm_solve``: normal equations + damped Cholesky step (the public fused op, J given as
-  (B, M, P) on the device); peer: the same in batched NumPy (einsum + np.linalg.solve).
+  (B, M, P) on the device, outputs preallocated with ``out=``); peer: the same in batched NumPy
+  (einsum + np.linalg.solve).
 - ``lm iteration``: the solver's fused per-iteration launch (Jacobian from the stacked residuals,
   J^T J, J^T r, acceptance, damping, damped Cholesky step, next points), residuals on the device.
 - ``least_squares 10 it RGB-D``: a whole 10-iteration solve (``early_stop=False``: exactly 11
@@ -94,10 +95,12 @@ def cases(device, args):
                 A = np.einsum("bmi,bmj->bij", J, J) + C[:, None, None] * np.eye(P)
                 return np.linalg.solve(A, np.einsum("bmi,bm->bi", J, r)[..., None])[..., 0]
 
+            res_d = (device.empty((B, P), dt), device.empty((B,), np.int32))
+            res_r = (np.empty((B, P), dt), np.empty(B, np.int32))
             out.append(Case(
                 f"lm_solve B={B} M={M} P={P}",
-                run=lambda Jd=Jd, rd=rd, Cd=Cd: lm.lm_solve(device, Jd, rd, Cd),
-                reference=lambda J=J, r=r, C=C: lm.lm_solve(ref, J, r, C),
+                run=lambda Jd=Jd, rd=rd, Cd=Cd, o=res_d: lm.lm_solve(device, Jd, rd, Cd, out=o),
+                reference=lambda J=J, r=r, C=C, o=res_r: lm.lm_solve(ref, J, r, C, out=o),
                 peers={"numpy batched": numpy_batched},
                 params=params,
             ))

@@ -189,26 +189,30 @@ def _float_dtypes(device):
     return (np.float32, np.float64) if device.fp64 else (np.float32,)
 
 
-def normal_equations(device: Device, J, r):
+def normal_equations(device: Device, J, r, *, out=None):
     """J^T J and J^T r for every problem (one launch).
 
     J: (B, M, P) float32 or float64 (float64 only on a device with fp64); r: (B, M), same dtype.
-    Returns (JtJ (B, P, P) symmetric, Jtr (B, P)) on the device, in J's dtype.
+    Returns (JtJ (B, P, P) symmetric, Jtr (B, P)) on the device, in J's dtype. ``out``: a
+    (JtJ, Jtr) pair of arrays on the device to write into (saves the allocations, ~0.2 ms each
+    for Taichi ndarrays, in a loop).
     """
     device = check_device(device)
     dims: dict = {}
     J = arg(device, J, "J", ("B", "M", "P"), dims, dtype=_float_dtypes(device))
     r = arg(device, r, "r", ("B", "M"), dims, dtype=J.dtype)
     _nonempty(dims, "J")
-    return backend_module(device, "lm").normal_equations(device, J, r)
+    out = _out(device, out, (("JtJ", (dims["B"], dims["P"], dims["P"]), J.dtype), ("Jtr", (dims["B"], dims["P"]), J.dtype)))
+    return backend_module(device, "lm").normal_equations(device, J, r, out)
 
 
-def lm_step(device: Device, JtJ, Jtr, damping):
+def lm_step(device: Device, JtJ, Jtr, damping, *, out=None):
     """Solve (J^T J + C I) delta = J^T r per problem by Cholesky (eq. 22; new point = x - delta).
 
     JtJ: (B, P, P) symmetric (the lower triangle is read); Jtr: (B, P); damping: (B,) C >= 0, all
     in one float dtype. Returns (delta (B, P), ok (B,) int32): ok = 0 flags a problem whose damped
-    matrix is not positive definite; its delta is 0, never NaN.
+    matrix is not positive definite; its delta is 0, never NaN. ``out``: a (delta, ok) pair of
+    arrays on the device to write into.
     """
     device = check_device(device)
     dims: dict = {}
@@ -216,18 +220,40 @@ def lm_step(device: Device, JtJ, Jtr, damping):
     Jtr = arg(device, Jtr, "Jtr", ("B", "P"), dims, dtype=JtJ.dtype)
     damping = _damping_arg(device, damping, dims, JtJ.dtype)
     _nonempty(dims, "JtJ")
-    return backend_module(device, "lm").lm_step(device, JtJ, Jtr, damping)
+    out = _out(device, out, (("delta", (dims["B"], dims["P"]), JtJ.dtype), ("ok", (dims["B"],), np.int32)))
+    return backend_module(device, "lm").lm_step(device, JtJ, Jtr, damping, out)
 
 
-def lm_solve(device: Device, J, r, damping):
-    """normal_equations + lm_step fused in one launch: (J (B,M,P), r (B,M), damping (B,)) -> (delta, ok)."""
+def lm_solve(device: Device, J, r, damping, *, out=None):
+    """normal_equations + lm_step fused in one launch: (J (B,M,P), r (B,M), damping (B,)) -> (delta, ok).
+
+    ``out``: a (delta (B, P), ok (B,) int32) pair of arrays on the device to write into.
+    """
     device = check_device(device)
     dims: dict = {}
     J = arg(device, J, "J", ("B", "M", "P"), dims, dtype=_float_dtypes(device))
     r = arg(device, r, "r", ("B", "M"), dims, dtype=J.dtype)
     damping = _damping_arg(device, damping, dims, J.dtype)
     _nonempty(dims, "J")
-    return backend_module(device, "lm").lm_solve(device, J, r, damping)
+    out = _out(device, out, (("delta", (dims["B"], dims["P"]), J.dtype), ("ok", (dims["B"],), np.int32)))
+    return backend_module(device, "lm").lm_solve(device, J, r, damping, out)
+
+
+def _out(device, out, specs):
+    """Validate ``out`` (a tuple of arrays on the device matching ``specs``) or allocate the outputs."""
+    if out is None:
+        return tuple(device.empty(shape, dtype) for _, shape, dtype in specs)
+    if not isinstance(out, (tuple, list)) or len(out) != len(specs):
+        raise TypeError(f"out: expected a tuple of {len(specs)} arrays ({', '.join(n for n, _, _ in specs)}), got {type(out).__name__}")
+    for a, (name, shape, dtype) in zip(out, specs):
+        on_device = isinstance(a, DeviceArray) and a.device is device
+        if device.backend == "numpy":
+            on_device = isinstance(a, np.ndarray) and a.flags.c_contiguous and a.flags.writeable
+        if not on_device:
+            raise TypeError(f"out {name}: expected a writable array on {device.spec}, got {type(a).__name__}")
+        if tuple(a.shape) != tuple(shape) or a.dtype != np.dtype(dtype):
+            raise ValueError(f"out {name}: expected shape {tuple(shape)} {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}")
+    return tuple(out)
 
 
 def _nonempty(dims, name):

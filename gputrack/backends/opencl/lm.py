@@ -63,10 +63,9 @@ def _work(device, shape, dtype):
     return w
 
 
-def normal_equations(device, J, r):
+def normal_equations(device, J, r, out):
     B, M, P = J.shape
-    JtJ = device.empty((B, P, P), J.dtype)
-    Jtr = device.empty((B, P), J.dtype)
+    JtJ, Jtr = out
     prg = _program(device, J.dtype)
     n = B * P
     _kernel(prg, "gt_normal_equations")(
@@ -76,10 +75,9 @@ def normal_equations(device, J, r):
     return JtJ, Jtr
 
 
-def lm_step(device, JtJ, Jtr, damping):
+def lm_step(device, JtJ, Jtr, damping, out):
     B, P = Jtr.shape
-    delta = device.empty((B, P), Jtr.dtype)
-    ok = device.empty((B,), np.int32)
+    delta, ok = out
     W = _work(device, (B, P, P), Jtr.dtype)
     prg = _program(device, Jtr.dtype)
     _kernel(prg, "gt_lm_step")(
@@ -89,10 +87,9 @@ def lm_step(device, JtJ, Jtr, damping):
     return delta, ok
 
 
-def lm_solve(device, J, r, damping):
+def lm_solve(device, J, r, damping, out):
     B, M, P = J.shape
-    delta = device.empty((B, P), J.dtype)
-    ok = device.empty((B,), np.int32)
+    delta, ok = out
     W = _work(device, (B, P, P), J.dtype)
     prg = _program(device, J.dtype)
     ls = _local_size(device, P)

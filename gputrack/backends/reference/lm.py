@@ -16,9 +16,13 @@ R_FTOL, R_XTOL, R_GTOL, R_MAXIT, R_NONFINITE, R_NOTPD, R_DAMPING = 1, 2, 3, 4, 5
 MAX_CHOL_TRIES = 40
 
 
-def normal_equations(device, J, r):
+def normal_equations(device, J, r, out=None):
     JtJ = np.einsum("bmi,bmj->bij", J, J)  # eq. 22: J^T J
     Jtr = np.einsum("bmi,bm->bi", J, r)  # eq. 22: J^T r
+    if out is not None:
+        out[0][...] = JtJ
+        out[1][...] = Jtr
+        return out
     return JtJ, Jtr
 
 
@@ -47,10 +51,11 @@ def chol_solve(L, b):
     return x
 
 
-def lm_step(device, JtJ, Jtr, damping):
+def lm_step(device, JtJ, Jtr, damping, out=None):
     B, P = Jtr.shape
-    delta = np.zeros_like(Jtr)
-    ok = np.zeros(B, np.int32)
+    delta, ok = out if out is not None else (np.empty_like(Jtr), np.empty(B, np.int32))
+    delta[...] = 0
+    ok[...] = 0
     eye = np.eye(P, dtype=JtJ.dtype)
     for b in range(B):
         L = cholesky(JtJ[b] + damping[b] * eye)  # eq. 22: J^T J + C I
@@ -60,9 +65,9 @@ def lm_step(device, JtJ, Jtr, damping):
     return delta, ok
 
 
-def lm_solve(device, J, r, damping):
+def lm_solve(device, J, r, damping, out=None):
     JtJ, Jtr = normal_equations(device, J, r)
-    return lm_step(device, JtJ, Jtr, damping)
+    return lm_step(device, JtJ, Jtr, damping, out)
 
 
 # ------------------------------------------------------------------------------------------------

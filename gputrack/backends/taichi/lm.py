@@ -188,28 +188,25 @@ def _work(device, shape, dtype):
     return w
 
 
-def normal_equations(device, J, r):
+def normal_equations(device, J, r, out):
     B, M, P = J.shape
-    JtJ = device.empty((B, P, P), J.dtype)
-    Jtr = device.empty((B, P), J.dtype)
+    JtJ, Jtr = out
     W = _work(device, (B, P * M + P * P), J.dtype)
     _normal_equations(J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W.buffer, _ti_dtype(J.dtype))
     return JtJ, Jtr
 
 
-def lm_step(device, JtJ, Jtr, damping):
+def lm_step(device, JtJ, Jtr, damping, out):
     B, P = Jtr.shape
-    delta = device.empty((B, P), Jtr.dtype)
-    ok = device.empty((B,), np.int32)
+    delta, ok = out
     W = _work(device, (B, P * P), Jtr.dtype)
     _lm_step(JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer, _ti_dtype(Jtr.dtype))
     return delta, ok
 
 
-def lm_solve(device, J, r, damping):
+def lm_solve(device, J, r, damping, out):
     B, M, P = J.shape
-    delta = device.empty((B, P), J.dtype)
-    ok = device.empty((B,), np.int32)
+    delta, ok = out
     W = _work(device, (B, P * P + P * M), J.dtype)
     _lm_solve(J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer, _ti_dtype(J.dtype))
     return delta, ok
