@@ -201,6 +201,23 @@ def test_float32_fallback(device):
     assert set(res.status.tolist()) <= {Status.CONVERGED, Status.MAX_ITER}
 
 
+def test_device_without_fp64_runs_in_float32(device, monkeypatch):
+    monkeypatch.setattr(type(device), "fp64", property(lambda self: False))
+    calls = []
+
+    def res(X):
+        calls.append(X.dtype)
+        Xn = gputrack.to_numpy(X)
+        return expfit(Xn.astype(np.float64))  # float64 NumPy: converted to float32 by the solver
+
+    out = least_squares(res, np.array([[1.0, 0.0], [4.0, -3.0]]), device=device, max_iter=50)
+    assert out.dtype == np.float32 and set(calls) == {np.dtype(np.float32)}
+    want = scipy.optimize.least_squares(lambda p: expfit(p[None])[0], [1.0, 0.0], method="lm").x
+    np.testing.assert_allclose(out.x, np.broadcast_to(want, out.x.shape), rtol=2e-3)
+    with pytest.raises(TypeError, match="points_dtype: expected float32"):
+        least_squares(res, np.zeros((1, 2)), device=device, points_dtype=np.float64)
+
+
 def test_points_dtype_float32(device):
     seen = []
 
@@ -443,6 +460,23 @@ def test_x0_on_the_device(device):
         other = gputrack.device("numpy")
         with pytest.raises(ValueError, match="x0: expected an array on numpy"):
             least_squares(host_residual(rosenbrock), device.asarray(x0), device=other)
+
+
+def test_nested_and_repeated_solves_reuse_buffers_safely(device):
+    x0 = np.array([[-1.2, 1.0], [2.0, 2.0]])
+    alone = least_squares(host_residual(rosenbrock), x0, device=device, max_iter=40)
+    inner_results = []
+
+    def res(X):
+        # a solve of the same shapes inside the residual function must not disturb the outer one
+        inner_results.append(least_squares(host_residual(rosenbrock), x0, device=device, max_iter=2).x)
+        return host_residual(rosenbrock)(X)
+
+    outer = least_squares(res, x0, device=device, max_iter=40)
+    np.testing.assert_array_equal(outer.x, alone.x)
+    assert all(np.array_equal(r, inner_results[0]) for r in inner_results)
+    again = least_squares(host_residual(rosenbrock), x0, device=device, max_iter=40)
+    np.testing.assert_array_equal(again.x, alone.x)
 
 
 def test_solver_bad_input(device):
