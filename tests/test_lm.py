@@ -7,8 +7,8 @@ from tolerances import assert_matches
 
 import gputrack
 from gputrack.ops import lm
-from gputrack.ops.lm import LMStatus as Status
 from gputrack.ops.lm import Layout, least_squares
+from gputrack.ops.lm import LMStatus as Status
 
 REF = gputrack.device("numpy")
 
@@ -96,7 +96,7 @@ def test_ops_write_into_out(device):
     J = rng.normal(size=(3, 8, 4)).astype(dt)
     r = rng.normal(size=(3, 8)).astype(dt)
     C = np.full(3, 0.1, dt)
-    want_d, want_ok = lm.lm_solve(REF, J, r, C)
+    want_d, _ = lm.lm_solve(REF, J, r, C)
     o = (device.empty((3, 4), dt), device.empty((3,), np.int32))
     got = lm.lm_solve(device, J, r, C, out=o)
     assert got[0] is o[0] and got[1] is o[1]
@@ -104,7 +104,7 @@ def test_ops_write_into_out(device):
     ne = (device.empty((3, 4, 4), dt), device.empty((3, 4), dt))
     JtJ, Jtr = lm.normal_equations(device, J, r, out=ne)
     assert JtJ is ne[0]
-    d, ok = lm.lm_step(device, JtJ, Jtr, C, out=o)
+    d, _ = lm.lm_step(device, JtJ, Jtr, C, out=o)
     assert_matches(device, d, want_d, dt, scale=10)
     with pytest.raises(ValueError, match="out delta: expected shape"):
         lm.lm_solve(device, J, r, C, out=(device.empty((3, 5), dt), o[1]))
@@ -340,7 +340,9 @@ def test_fixed_parameter_and_clipped_start(device):
     assert out.x0_clipped.tolist() == [True, False]
     np.testing.assert_array_equal(out.x[:, 1], 0.3)
     # min over x1 of 100 (0.3 - x1^2)^2 + (1 - x1)^2
-    want = scipy.optimize.minimize_scalar(lambda a: 100 * (0.3 - a * a) ** 2 + (1 - a) ** 2, bounds=(0, 2), method="bounded", options={"xatol": 1e-12}).x
+    want = scipy.optimize.minimize_scalar(
+        lambda a: 100 * (0.3 - a * a) ** 2 + (1 - a) ** 2, bounds=(0, 2), method="bounded", options={"xatol": 1e-12}
+    ).x
     np.testing.assert_allclose(out.x[:, 0], want, atol=1e-5)
 
 
@@ -391,7 +393,7 @@ def test_sparse_jacobian_gives_the_dense_steps(device):
     np.testing.assert_array_equal(sparse.iterations, dense.iterations)
     assert_matches(device, sparse.cost, dense.cost, np.float64)
     # the perturbations of parameter n evaluated only the rows that depend on it
-    B, P, M = 2, 4, 12
+    B, M = 2, 12
     per_call = B * (M + 2 * int(CHAIN_MASK.sum()))
     assert counted["entries"] == 8 * per_call + B * M
     assert counted["entries"] < sparse.npoints * M
@@ -418,8 +420,9 @@ def test_jacobian_callable(device):
     x0 = np.array([[1.0, 0.0], [4.0, -3.0]])
     res = least_squares(host_residual(expfit), x0, device=device, jacobian=jac, max_iter=50)
     # a float32 Jacobian with float64 residuals is accepted (converted where it is read)
-    res32 = least_squares(host_residual(expfit), x0, device=device, max_iter=50,
-                          jacobian=lambda X: jac(X).astype(np.float32))
+    res32 = least_squares(
+        host_residual(expfit), x0, device=device, max_iter=50, jacobian=lambda X: jac(X).astype(np.float32)
+    )
     np.testing.assert_allclose(res32.x, res.x, rtol=1e-4)
     central = least_squares(host_residual(expfit), x0, device=device, max_iter=50)
     np.testing.assert_allclose(res.x, central.x, rtol=1e-7)
@@ -522,7 +525,9 @@ def test_empty_batch_and_underdetermined(device):
     out = least_squares(lambda X: called.append(1), np.zeros((0, 3)), device=device)
     assert out.x.shape == (0, 3) and not called and out.nfev == 0
     # M = 1 < P = 3: the damped step still reduces the cost to zero
-    res = least_squares(host_residual(lambda X: (X.sum(axis=1, keepdims=True) - 1)), np.zeros((2, 3)), device=device, max_iter=20)
+    res = least_squares(
+        host_residual(lambda X: X.sum(axis=1, keepdims=True) - 1), np.zeros((2, 3)), device=device, max_iter=20
+    )
     np.testing.assert_allclose(res.x.sum(axis=1), 1.0, atol=1e-8)
     assert (res.status == Status.CONVERGED).all()
 

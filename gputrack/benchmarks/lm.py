@@ -45,7 +45,14 @@ def _scene(P, M, rng):
     xyz[torso] = rng.uniform([-150, -270, -90], [150, 290, 0], (int(torso.sum()), 3))
     arm = ~torso
     length = np.where(part[arm] <= 2, 290.0, 265.0)
-    xyz[arm] = np.stack([rng.uniform(0, 1, int(arm.sum())) * length, rng.uniform(-40, 40, int(arm.sum())), rng.uniform(-40, 0, int(arm.sum()))], 1)
+    xyz[arm] = np.stack(
+        [
+            rng.uniform(0, 1, int(arm.sum())) * length,
+            rng.uniform(-40, 40, int(arm.sum())),
+            rng.uniform(-40, 0, int(arm.sum())),
+        ],
+        1,
+    )
     rgb = SparseTemplate(xyz[:n], part[:n], rng.uniform(20, 230, n))
     dep = SparseTemplate(xyz[n:], part[n:])
     h, w = 480, 640
@@ -75,6 +82,7 @@ def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
 
 def cases(device, args):
     import gputrack
+
     from ..ops import lm
     from ..ops.lm import Layout, _first_den, _initial_points, _pack, least_squares
 
@@ -97,13 +105,15 @@ def cases(device, args):
 
             res_d = (device.empty((B, P), dt), device.empty((B,), np.int32))
             res_r = (np.empty((B, P), dt), np.empty(B, np.int32))
-            out.append(Case(
-                f"lm_solve B={B} M={M} P={P}",
-                run=lambda Jd=Jd, rd=rd, Cd=Cd, o=res_d: lm.lm_solve(device, Jd, rd, Cd, out=o),
-                reference=lambda J=J, r=r, C=C, o=res_r: lm.lm_solve(ref, J, r, C, out=o),
-                peers={"numpy batched": numpy_batched},
-                params=params,
-            ))
+            out.append(
+                Case(
+                    f"lm_solve B={B} M={M} P={P}",
+                    run=lambda Jd=Jd, rd=rd, Cd=Cd, o=res_d: lm.lm_solve(device, Jd, rd, Cd, out=o),
+                    reference=lambda J=J, r=r, C=C, o=res_r: lm.lm_solve(ref, J, r, C, out=o),
+                    peers={"numpy batched": numpy_batched},
+                    params=params,
+                )
+            )
             # 2. the solver's per-iteration launch, residuals already on the device
             lay = Layout(B, P, M)
             x0 = rng.normal(size=(B, P))
@@ -116,19 +126,23 @@ def cases(device, args):
             st, st_ref = be.solver_state(device, lay, S, I), be_ref.solver_state(ref, lay, S, I)
             Xd, Rd = device.asarray(pts), device.asarray(R)
             Xr = pts.copy()
-            out.append(Case(
-                f"lm iteration B={B} M={M} P={P}",
-                run=lambda st=st, Rd=Rd, Xd=Xd: be.solver_update(st, Rd, Xd, first=True, final=False),
-                reference=lambda st=st_ref, R=R, Xr=Xr: be_ref.solver_update(st, R, Xr, first=True, final=False),
-                params={**params, "residual dtype": "float32"},
-            ))
+            out.append(
+                Case(
+                    f"lm iteration B={B} M={M} P={P}",
+                    run=lambda st=st, Rd=Rd, Xd=Xd, be=be: be.solver_update(st, Rd, Xd, first=True, final=False),
+                    reference=lambda st=st_ref, R=R, Xr=Xr, be=be_ref: be.solver_update(
+                        st, R, Xr, first=True, final=False
+                    ),
+                    params={**params, "residual dtype": "float32"},
+                )
+            )
             # 3. a whole solve with the RGB-D template residuals
             if M % 2:
                 continue
             chain, rgb, dep, gray, depth, cam, x0 = _scene(P, M, rng)
             fn = _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam)
             fn_ref = _rgbd_residual_fn(ref, chain, rgb, dep, gray, depth, cam)
-            kw = dict(max_iter=args.iterations, points_dtype=np.float32, early_stop=False)
+            kw = {"max_iter": args.iterations, "points_dtype": np.float32, "early_stop": False}
             peers = {}
             if not args.no_scipy:
                 import scipy.optimize
@@ -138,16 +152,26 @@ def cases(device, args):
 
                 def scipy_loop(x0=x0, P=P, one=one):
                     for b in range(B):
-                        scipy.optimize.least_squares(one, x0[b], method="trf", jac="3-point", max_nfev=args.iterations + 1)
+                        scipy.optimize.least_squares(
+                            one, x0[b], method="trf", jac="3-point", max_nfev=args.iterations + 1
+                        )
 
                 peers["scipy least_squares x10"] = scipy_loop
-            out.append(Case(
-                f"least_squares {args.iterations} it RGB-D B={B} M={M} P={P}",
-                run=lambda fn=fn, x0=x0: least_squares(fn, x0, device=device, **kw),
-                reference=lambda fn=fn_ref, x0=x0: least_squares(fn, x0, device=ref, **kw),
-                peers=peers,
-                params={**params, "N": M // 2, "N'": M // 2, "iterations": args.iterations, "points dtype": "float32"},
-            ))
+            out.append(
+                Case(
+                    f"least_squares {args.iterations} it RGB-D B={B} M={M} P={P}",
+                    run=lambda fn=fn, x0=x0, kw=kw: least_squares(fn, x0, device=device, **kw),
+                    reference=lambda fn=fn_ref, x0=x0, kw=kw: least_squares(fn, x0, device=ref, **kw),
+                    peers=peers,
+                    params={
+                        **params,
+                        "N": M // 2,
+                        "N'": M // 2,
+                        "iterations": args.iterations,
+                        "points dtype": "float32",
+                    },
+                )
+            )
     return out
 
 

@@ -27,6 +27,7 @@ import enum
 import inspect
 import logging
 import weakref
+from typing import ClassVar
 
 import numpy as np
 
@@ -37,9 +38,9 @@ from ._args import arg, check_device
 log = logging.getLogger("gputrack")
 
 __all__ = [
+    "REASONS",
     "LMStatus",
     "LeastSquaresResult",
-    "REASONS",
     "least_squares",
     "lm_solve",
     "lm_step",
@@ -48,7 +49,10 @@ __all__ = [
 
 #: relative finite-difference step (of max(|x|, 1)) used when ``step=None``: cbrt(machine eps),
 #: the usual optimum for central differences (scipy uses the same).
-DEFAULT_REL_STEP = {"float64": float(np.finfo(np.float64).eps ** (1 / 3)), "float32": float(np.finfo(np.float32).eps ** (1 / 3))}
+DEFAULT_REL_STEP = {
+    "float64": float(np.finfo(np.float64).eps ** (1 / 3)),
+    "float32": float(np.finfo(np.float32).eps ** (1 / 3)),
+}
 
 #: smallest damping tried after a failed Cholesky, relative to 1 + max diag(J^T J).
 _CTINY = {"float64": 1e-12, "float32": 1e-6}
@@ -202,7 +206,9 @@ def normal_equations(device: Device, J, r, *, out=None):
     J = arg(device, J, "J", ("B", "M", "P"), dims, dtype=_float_dtypes(device))
     r = arg(device, r, "r", ("B", "M"), dims, dtype=J.dtype)
     _nonempty(dims, "J")
-    out = _out(device, out, (("JtJ", (dims["B"], dims["P"], dims["P"]), J.dtype), ("Jtr", (dims["B"], dims["P"]), J.dtype)))
+    out = _out(
+        device, out, (("JtJ", (dims["B"], dims["P"], dims["P"]), J.dtype), ("Jtr", (dims["B"], dims["P"]), J.dtype))
+    )
     return backend_module(device, "lm").normal_equations(device, J, r, out)
 
 
@@ -244,7 +250,9 @@ def _out(device, out, specs):
     if out is None:
         return tuple(device.empty(shape, dtype) for _, shape, dtype in specs)
     if not isinstance(out, (tuple, list)) or len(out) != len(specs):
-        raise TypeError(f"out: expected a tuple of {len(specs)} arrays ({', '.join(n for n, _, _ in specs)}), got {type(out).__name__}")
+        raise TypeError(
+            f"out: expected a tuple of {len(specs)} arrays ({', '.join(n for n, _, _ in specs)}), got {type(out).__name__}"
+        )
     for a, (name, shape, dtype) in zip(out, specs):
         on_device = isinstance(a, DeviceArray) and a.device is device
         if device.backend == "numpy":
@@ -252,7 +260,9 @@ def _out(device, out, specs):
         if not on_device:
             raise TypeError(f"out {name}: expected a writable array on {device.spec}, got {type(a).__name__}")
         if tuple(a.shape) != tuple(shape) or a.dtype != np.dtype(dtype):
-            raise ValueError(f"out {name}: expected shape {tuple(shape)} {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}")
+            raise ValueError(
+                f"out {name}: expected shape {tuple(shape)} {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}"
+            )
     return tuple(out)
 
 
@@ -400,7 +410,9 @@ def least_squares(
         raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
     if isinstance(x0, DeviceArray):
         if x0.device is not device:
-            raise ValueError(f"x0: expected an array on {device.spec} or a NumPy array, got an array on {x0.device.spec}")
+            raise ValueError(
+                f"x0: expected an array on {device.spec} or a NumPy array, got an array on {x0.device.spec}"
+            )
         x0 = x0.numpy()  # B x P values, downloaded once (counted)
     x0 = np.asarray(x0)
     if x0.dtype.kind not in "fiu":
@@ -460,12 +472,25 @@ def least_squares(
     x0c = np.clip(x0.astype(np.float64), lo, hi)
     clipped = (x0c != x0).any(axis=1)
     if clipped.any():
-        log.info("least_squares: x0 of problems %s was outside the bounds and was clipped", np.flatnonzero(clipped).tolist())
+        log.info(
+            "least_squares: x0 of problems %s was outside the bounds and was clipped", np.flatnonzero(clipped).tolist()
+        )
 
     if B == 0:
         e = np.empty(0)
-        return LeastSquaresResult(np.empty((0, P), dt), e.astype(dt), e.astype(np.int32), e.astype(np.int8),
-                                  e.astype(np.int8), e.astype(dt), 0, 0, 0, dt, e.astype(bool))
+        return LeastSquaresResult(
+            np.empty((0, P), dt),
+            e.astype(dt),
+            e.astype(np.int32),
+            e.astype(np.int8),
+            e.astype(np.int8),
+            e.astype(dt),
+            0,
+            0,
+            0,
+            dt,
+            e.astype(bool),
+        )
 
     solver = _Solver(device, residuals, jacobian if not central else None, B, P, dt, pdt, mask)
     return solver.run(x0c, lo, hi, h, c0, max_iter, (ftol, xtol, gtol), early_stop, clipped)
@@ -600,7 +625,7 @@ class _Pool:
     at the end. Uploads into a reused buffer are counted in ``device.transfers`` like any other.
     """
 
-    _free: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+    _free: ClassVar[weakref.WeakKeyDictionary] = weakref.WeakKeyDictionary()
 
     def __init__(self, device):
         self.device = device
@@ -728,4 +753,6 @@ def _selftest(device) -> None:
     err = float(np.max(np.abs(a.x - b.x)))
     tol = 1e-7 if a.dtype == np.float64 else 1e-2
     if not err <= tol or not np.array_equal(a.status, b.status):
-        raise AssertionError(f"least_squares on {device.spec}: max error {err:.3g} > {tol:g} vs reference or statuses differ")
+        raise AssertionError(
+            f"least_squares on {device.spec}: max error {err:.3g} > {tol:g} vs reference or statuses differ"
+        )

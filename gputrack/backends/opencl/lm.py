@@ -22,7 +22,12 @@ def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False):
         "XTYPE": _CTYPE[np.dtype(xtype).name],
         "JTYPE": _CTYPE[np.dtype(jtype).name],
     }
-    for key, dt in (("REAL_IS_DOUBLE", real), ("RTYPE_IS_DOUBLE", rtype), ("XTYPE_IS_DOUBLE", xtype), ("JTYPE_IS_DOUBLE", jtype)):
+    for key, dt in (
+        ("REAL_IS_DOUBLE", real),
+        ("RTYPE_IS_DOUBLE", rtype),
+        ("XTYPE_IS_DOUBLE", xtype),
+        ("JTYPE_IS_DOUBLE", jtype),
+    ):
         if np.dtype(dt) == np.float64:
             defines[key] = 1
     if use_jac:
@@ -69,8 +74,16 @@ def normal_equations(device, J, r, out):
     prg = _program(device, J.dtype)
     n = B * P
     _kernel(prg, "gt_normal_equations")(
-        device.queue, (n,), None, J.buffer.data, r.buffer.data, JtJ.buffer.data, Jtr.buffer.data,
-        np.int32(B), np.int32(M), np.int32(P),
+        device.queue,
+        (n,),
+        None,
+        J.buffer.data,
+        r.buffer.data,
+        JtJ.buffer.data,
+        Jtr.buffer.data,
+        np.int32(B),
+        np.int32(M),
+        np.int32(P),
     )
     return JtJ, Jtr
 
@@ -81,8 +94,17 @@ def lm_step(device, JtJ, Jtr, damping, out):
     W = _work(device, (B, P, P), Jtr.dtype)
     prg = _program(device, Jtr.dtype)
     _kernel(prg, "gt_lm_step")(
-        device.queue, (B,), None, JtJ.buffer.data, Jtr.buffer.data, damping.buffer.data, delta.buffer.data,
-        ok.buffer.data, W.buffer.data, np.int32(B), np.int32(P),
+        device.queue,
+        (B,),
+        None,
+        JtJ.buffer.data,
+        Jtr.buffer.data,
+        damping.buffer.data,
+        delta.buffer.data,
+        ok.buffer.data,
+        W.buffer.data,
+        np.int32(B),
+        np.int32(P),
     )
     return delta, ok
 
@@ -94,8 +116,17 @@ def lm_solve(device, J, r, damping, out):
     prg = _program(device, J.dtype)
     ls = _local_size(device, P)
     _kernel(prg, "gt_lm_solve")(
-        device.queue, (B * ls,), (ls,), J.buffer.data, r.buffer.data, damping.buffer.data, delta.buffer.data,
-        ok.buffer.data, W.buffer.data, np.int32(M), np.int32(P),
+        device.queue,
+        (B * ls,),
+        (ls,),
+        J.buffer.data,
+        r.buffer.data,
+        damping.buffer.data,
+        delta.buffer.data,
+        ok.buffer.data,
+        W.buffer.data,
+        np.int32(M),
+        np.int32(P),
     )
     return delta, ok
 
@@ -121,12 +152,23 @@ def solver_state(device, lay, S, I):
 def solver_update(state, R, X, *, first, final, jac=None):
     dev, lay = state.device, state.lay
     B = lay.B
-    prg = _program(dev, state.S.dtype, R.dtype, X.dtype, jac.dtype if jac is not None else None, use_jac=jac is not None)
+    prg = _program(
+        dev, state.S.dtype, R.dtype, X.dtype, jac.dtype if jac is not None else None, use_jac=jac is not None
+    )
     Jg = jac if jac is not None else R
     _kernel(prg, "gt_lm_update")(
-        dev.queue, (B * state.ls,), (state.ls,), state.S.buffer.data, state.I.buffer.data, X.buffer.data,
-        R.buffer.data, Jg.buffer.data, np.int32(R.shape[0] // B), np.int32(X.shape[0] // B),
-        np.int32(bool(first)), np.int32(bool(final)),
+        dev.queue,
+        (B * state.ls,),
+        (state.ls,),
+        state.S.buffer.data,
+        state.I.buffer.data,
+        X.buffer.data,
+        R.buffer.data,
+        Jg.buffer.data,
+        np.int32(R.shape[0] // B),
+        np.int32(X.shape[0] // B),
+        np.int32(bool(first)),
+        np.int32(bool(final)),
     )
 
 

@@ -59,7 +59,9 @@ def _transpose(J: ti.template(), W: ti.template(), b, i, off, M, P):
 
 
 @ti.func
-def _gram_row(W: ti.template(), r: ti.template(), A: ti.template(), g: ti.template(), b, i, off, aoff, M, P, dt: ti.template()):
+def _gram_row(
+    W: ti.template(), r: ti.template(), A: ti.template(), g: ti.template(), b, i, off, aoff, M, P, dt: ti.template()
+):
     """Row i of J^T J (both triangles) into A[b, aoff + i*P + j] and J^T r into g[b, i] (eq. 22),
     from the contiguous rows of J^T in W; four columns per pass over row i."""
     ri = off + i * M
@@ -222,7 +224,16 @@ def _sb(P, M):
 
 
 @ti.func
-def _phase_jacobian(S: ti.template(), I: ti.template(), R: ti.template(), Jg: ti.template(), b, n, dt: ti.template(), use_jac: ti.template()):
+def _phase_jacobian(
+    S: ti.template(),
+    I: ti.template(),
+    R: ti.template(),
+    Jg: ti.template(),
+    b,
+    n,
+    dt: ti.template(),
+    use_jac: ti.template(),
+):
     """Jt[b, n, :] at the evaluated trial (eq. 24 or given) and its finite flag."""
     P, M, B = I[3], I[4], I[1]
     SB = _sb(P, M)
@@ -250,7 +261,9 @@ def _phase_jacobian(S: ti.template(), I: ti.template(), R: ti.template(), Jg: ti
         mag = ti.cast(0, dt)
         if I[2]:
             for m in range(M):
-                d = ti.select(S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt), ti.cast(0, dt))
+                d = ti.select(
+                    S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt), ti.cast(0, dt)
+                )
                 mag += ti.abs(d)
                 S[jt + m] = d * inv  # eq. 24, only where the mask is set
         else:
@@ -263,7 +276,15 @@ def _phase_jacobian(S: ti.template(), I: ti.template(), R: ti.template(), Jg: ti
 
 
 @ti.func
-def _phase_accept(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: ti.template(), first: ti.template(), final: ti.template()):
+def _phase_accept(
+    S: ti.template(),
+    I: ti.template(),
+    R: ti.template(),
+    b,
+    dt: ti.template(),
+    first: ti.template(),
+    final: ti.template(),
+):
     P, M, B = I[3], I[4], I[1]
     SB = _sb(P, M)
     base = b * SB
@@ -344,7 +365,7 @@ def _phase_accept(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: t
                     elif sn <= xtol * (xtol + ti.sqrt(xn)):
                         I[ib + 0] = CONVERGED
                         I[ib + 3] = R_XTOL
-        if ti.static(final):
+        if ti.static(final):  # noqa: SIM102 - a compile-time branch
             if I[ib + 0] == RUNNING:
                 I[ib + 0] = MAX_ITER
                 I[ib + 3] = R_MAXIT
@@ -417,7 +438,15 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
     gtol, rel, ctiny, cmax = S[G + 2], S[G + 3], S[G + 4], S[G + 5]
     A = base + 7 * P
     L = A + P * P
-    xo, xto, go, deno, loo, hio, ho = base, base + P, base + 2 * P, base + 3 * P, base + 4 * P, base + 5 * P, base + 6 * P
+    xo, xto, go, deno, loo, hio, ho = (
+        base,
+        base + P,
+        base + 2 * P,
+        base + 3 * P,
+        base + 4 * P,
+        base + 5 * P,
+        base + 6 * P,
+    )
     if I[ib + 0] == RUNNING and I[ib + 2]:
         # projected gradient (components pushing against an active bound removed)
         gmax = ti.cast(0, dt)
