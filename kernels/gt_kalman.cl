@@ -392,3 +392,309 @@ __kernel void gt_gate(
         out[(size_t)t * D + e] = ok ? acc : (REAL)INFINITY;
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// gt_kf_v: the same filter, VW tracks per work-item in the lanes of REAL vectors (VW = 4, 8, 16).
+// For CPU devices: the arithmetic runs in SIMD lanes (one track per lane), the loads and stores
+// stay per track. No branches: every lane is computed and the result selected per lane.
+#if defined(VW) && VW > 1
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#define REALV CAT(REAL, VW)
+#if REAL_IS_DOUBLE
+#define MASKV CAT(long, VW)
+#else
+#define MASKV CAT(int, VW)
+#endif
+#define LOADV(tmp) CAT(vload, VW)(0, tmp)
+#define STOREV(v, tmp) CAT(vstore, VW)(v, 0, tmp)
+#define INTV CAT(int, VW)
+
+// lanes of A[t * stride + off] for tracks t0 .. t0 + VW - 1 (clamped to T - 1)
+inline REALV gt_gather(__global const REAL *A, const size_t stride, const size_t off, const int t0, const int T)
+{
+    REAL tmp[VW];
+#pragma unroll
+    for (int l = 0; l < VW; l++)
+        tmp[l] = A[(size_t)min(t0 + l, T - 1) * stride + off];
+    return LOADV(tmp);
+}
+
+inline void gt_scatter(__global REAL *A, const size_t stride, const size_t off, const int t0, const int T, const REALV v)
+{
+    REAL tmp[VW];
+    STOREV(v, tmp);
+#pragma unroll
+    for (int l = 0; l < VW; l++)
+        if (t0 + l < T)
+            A[(size_t)(t0 + l) * stride + off] = tmp[l];
+}
+
+// entry (i, j) of a shared (scalar, broadcast) or per-track (gathered) matrix
+#define ATV(A, PT, R_, C_, t0, i, j) \
+    ((PT) ? gt_gather((A), (size_t)(R_) * (C_), (size_t)(i) * (C_) + (j), (t0), T) : (REALV)((A)[(i) * (C_) + (j)]))
+#define SYMV(A, PT, NZ, R_, t0, i, j) \
+    ((REAL)0.5 * ((NZ(i, j) ? ATV(A, PT, R_, R_, t0, i, j) : (REALV)0) + (NZ(j, i) ? ATV(A, PT, R_, R_, t0, j, i) : (REALV)0)))
+
+__kernel void gt_kf_v(
+    __global const REAL *x, __global const REAL *P, __global const REAL *z,
+    __global const REAL *F, __global const REAL *Q, __global const REAL *H, __global const REAL *R,
+    __global const uchar *mask, __global const REAL *gain,
+    __global REAL *xo, __global REAL *Po, __global uchar *st,
+    const REAL f, const REAL b, const REAL cx, const REAL cy, const int T)
+{
+    const int t0 = get_global_id(0) * VW;
+    if (t0 >= T)
+        return;
+    REALV xv[N], Pm[N][N];
+#pragma unroll
+    for (int i = 0; i < N; i++) {
+        xv[i] = gt_gather(x, N, i, t0, T);
+#pragma unroll
+        for (int j = 0; j < N; j++)
+            Pm[i][j] = gt_gather(P, N * N, i * N + j, t0, T);
+    }
+#if DO_PREDICT
+    {
+        REALV xp[N], Ps[N][N], FP[N][N];
+#pragma unroll
+        for (int i = 0; i < N; i++) {
+            REALV s = 0;
+#pragma unroll
+            for (int k = 0; k < N; k++)
+                if (FNZ(i, k))
+                    s += ATV(F, F_PT, N, N, t0, i, k) * xv[k];
+            xp[i] = s;
+#pragma unroll
+            for (int j = 0; j < N; j++)
+                Ps[i][j] = (REAL)0.5 * (Pm[i][j] + Pm[j][i]);
+        }
+#pragma unroll
+        for (int i = 0; i < N; i++) {
+#pragma unroll
+            for (int j = 0; j < N; j++)
+                FP[i][j] = 0;
+#pragma unroll
+            for (int k = 0; k < N; k++)
+                if (FNZ(i, k)) {
+                    const REALV a = ATV(F, F_PT, N, N, t0, i, k);
+#pragma unroll
+                    for (int j = 0; j < N; j++)
+                        FP[i][j] += a * Ps[k][j];
+                }
+        }
+#pragma unroll
+        for (int i = 0; i < N; i++) {
+            xv[i] = xp[i];
+#pragma unroll
+            for (int j = i; j < N; j++) {
+                REALV s = SYMV(Q, Q_PT, QNZ, N, t0, i, j);
+#pragma unroll
+                for (int k = 0; k < N; k++)
+                    if (FNZ(j, k))
+                        s += FP[i][k] * ATV(F, F_PT, N, N, t0, j, k);
+                Pm[i][j] = s;
+                Pm[j][i] = s;
+            }
+        }
+    }
+#endif
+#if MODE == 0
+#pragma unroll
+    for (int i = 0; i < N; i++) {
+        gt_scatter(xo, N, i, t0, T, xv[i]);
+#pragma unroll
+        for (int j = 0; j < N; j++)
+            gt_scatter(Po, N * N, i * N + j, t0, T, Pm[i][j]);
+    }
+#else
+    // lane masks (all bits set = true): valid (mask and finite z), depth ok, S positive definite
+    MASKV valid = (MASKV)(-1);
+#if HAS_MASK
+    {
+        int tmp[VW];
+#pragma unroll
+        for (int l = 0; l < VW; l++)
+            tmp[l] = mask[min(t0 + l, T - 1)] ? -1 : 0;
+        valid = CAT(convert_, MASKV)(CAT(vload, VW)(0, tmp));
+    }
+#endif
+    REALV zv[M];
+#pragma unroll
+    for (int a = 0; a < M; a++) {
+        zv[a] = gt_gather(z, M, a, t0, T);
+        valid &= isfinite(zv[a]);  // a non-finite observation is missing
+        zv[a] = select((REALV)0, zv[a], valid);
+    }
+    MASKV depth_ok = (MASKV)(-1);
+#if MODE == 2
+    depth_ok = xv[4] > 0;
+#endif
+    const REALV s = HAS_GAIN ? gt_gather(gain, 1, 0, t0, T) : (REALV)1;
+    REALV Ps[N][N], Hm[M][N], y[M], Rs[M][M];
+#pragma unroll
+    for (int i = 0; i < N; i++)
+#pragma unroll
+        for (int j = 0; j < N; j++)
+            Ps[i][j] = DO_PREDICT ? Pm[i][j] : (REAL)0.5 * (Pm[i][j] + Pm[j][i]);
+#pragma unroll
+    for (int a = 0; a < M; a++)
+#pragma unroll
+        for (int c = 0; c < M; c++)
+            Rs[a][c] = SYMV(R, R_PT, RNZ, M, t0, a, c);
+#if MODE == 2
+#pragma unroll
+    for (int a = 0; a < M; a++)
+#pragma unroll
+        for (int k = 0; k < N; k++)
+            Hm[a][k] = 0;
+    const REALV iz = (REAL)1 / select((REALV)1, xv[4], depth_ok);
+    Hm[0][0] = f * iz;
+    Hm[0][4] = -f * xv[0] * iz * iz;
+    Hm[1][2] = f * iz;
+    Hm[1][4] = -f * xv[2] * iz * iz;
+    Hm[2][4] = -f * b * iz * iz;
+    y[0] = zv[0] - (f * xv[0] * iz + cx);
+    y[1] = zv[1] - (f * xv[2] * iz + cy);
+    y[2] = zv[2] - f * b * iz;
+#else
+#pragma unroll
+    for (int a = 0; a < M; a++) {
+        REALV v = zv[a];
+#pragma unroll
+        for (int k = 0; k < N; k++) {
+            Hm[a][k] = HNZ(a, k) ? ATV(H, H_PT, M, N, t0, a, k) : (REALV)0;
+            if (HNZ(a, k))
+                v -= Hm[a][k] * xv[k];
+        }
+        y[a] = v;
+    }
+#endif
+    REALV HP[M][N], S[M][M], L[M][M], inv[M];
+#pragma unroll
+    for (int a = 0; a < M; a++) {
+#pragma unroll
+        for (int j = 0; j < N; j++)
+            HP[a][j] = 0;
+#pragma unroll
+        for (int k = 0; k < N; k++)
+            if (HNZ(a, k)) {
+#pragma unroll
+                for (int j = 0; j < N; j++)
+                    HP[a][j] += Hm[a][k] * Ps[k][j];
+            }
+    }
+#pragma unroll
+    for (int a = 0; a < M; a++)
+#pragma unroll
+        for (int c = 0; c <= a; c++) {
+            REALV v = 0;
+#pragma unroll
+            for (int k = 0; k < N; k++)
+                if (HNZ(c, k))
+                    v += HP[a][k] * Hm[c][k];
+            S[a][c] = v + Rs[a][c];
+        }
+    MASKV pd_ok = (MASKV)(-1);
+#pragma unroll
+    for (int j = 0; j < M; j++) {
+        REALV d = S[j][j];
+#pragma unroll
+        for (int k = 0; k < j; k++)
+            d -= L[j][k] * L[j][k];
+        const MASKV good = d > (REAL)PD_TOL * S[j][j];
+        pd_ok &= good;
+        d = sqrt(select((REALV)1, d, good));
+        L[j][j] = d;
+        inv[j] = (REAL)1 / d;
+#pragma unroll
+        for (int i = j + 1; i < M; i++) {
+            REALV v = S[i][j];
+#pragma unroll
+            for (int k = 0; k < j; k++)
+                v -= L[i][k] * L[j][k];
+            L[i][j] = v * inv[j];
+        }
+    }
+    REALV Kt[M][N];
+#pragma unroll
+    for (int c = 0; c < N; c++) {
+#pragma unroll
+        for (int i = 0; i < M; i++) {
+            REALV v = HP[i][c];
+#pragma unroll
+            for (int k = 0; k < i; k++)
+                v -= L[i][k] * Kt[k][c];
+            Kt[i][c] = v * inv[i];
+        }
+#pragma unroll
+        for (int i = M - 1; i >= 0; i--) {
+            REALV v = Kt[i][c];
+#pragma unroll
+            for (int k = i + 1; k < M; k++)
+                v -= L[k][i] * Kt[k][c];
+            Kt[i][c] = v * inv[i];
+        }
+    }
+    const MASKV upd = valid & depth_ok & pd_ok;
+    REALV K[N][M], B[N][N], C[N][M];
+#pragma unroll
+    for (int i = 0; i < N; i++) {
+        REALV v = xv[i];
+#pragma unroll
+        for (int a = 0; a < M; a++) {
+            K[i][a] = s * Kt[a][i];
+            v += K[i][a] * y[a];
+        }
+        gt_scatter(xo, N, i, t0, T, select(xv[i], v, upd));
+    }
+#pragma unroll
+    for (int i = 0; i < N; i++) {
+#pragma unroll
+        for (int j = 0; j < N; j++) {
+            REALV v = Ps[i][j];
+#pragma unroll
+            for (int a = 0; a < M; a++)
+                v -= K[i][a] * HP[a][j];
+            B[i][j] = v;
+        }
+#pragma unroll
+        for (int a = 0; a < M; a++) {
+            REALV v = 0;
+#pragma unroll
+            for (int c = 0; c < M; c++)
+                v += K[i][c] * Rs[c][a];
+#pragma unroll
+            for (int k = 0; k < N; k++)
+                if (HNZ(a, k))
+                    v -= B[i][k] * Hm[a][k];
+            C[i][a] = v;
+        }
+    }
+#pragma unroll
+    for (int i = 0; i < N; i++)
+#pragma unroll
+        for (int j = i; j < N; j++) {
+            REALV v = B[i][j];
+#pragma unroll
+            for (int a = 0; a < M; a++)
+                v += C[i][a] * K[j][a];
+            gt_scatter(Po, N * N, i * N + j, t0, T, select(Pm[i][j], v, upd));
+            if (j != i)
+                gt_scatter(Po, N * N, j * N + i, t0, T, select(Pm[j][i], v, upd));
+        }
+    {
+        // status: SKIPPED where not valid, else BAD_DEPTH, else NOT_PD, else UPDATED
+        const INTV code = CAT(convert_, INTV)(select(select(select((MASKV)GT_NOT_PD, (MASKV)GT_UPDATED, pd_ok),
+                                                           (MASKV)GT_BAD_DEPTH, depth_ok == 0),
+                                                    (MASKV)GT_SKIPPED, valid == 0));
+        int tmp[VW];
+        CAT(vstore, VW)(code, 0, tmp);
+#pragma unroll
+        for (int l = 0; l < VW; l++)
+            if (t0 + l < T)
+                st[t0 + l] = (uchar)tmp[l];
+    }
+#endif
+}
+#endif

@@ -27,7 +27,8 @@ Numerics (identical on every backend):
   positive semi-definite and is the exact covariance for any gain, so with ``gain_scale`` s
   (paper 002: trust strongly occluded, shrunken segments less) the gain is s K and the same
   formula gives the consistent covariance: s = 0 returns the prediction unchanged, s = 1 the
-  plain update.
+  plain update. NumPy ``gain_scale`` must be >= 0 (device arrays are not inspected; the
+  covariance stays positive semi-definite for any s).
 - Observations: NaN (or any non-finite value) in a row of z means "missing": that track is
   SKIPPED. NumPy observations with +-inf are rejected (ValueError); device arrays are not
   inspected on the host.

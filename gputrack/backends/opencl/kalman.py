@@ -1,7 +1,9 @@
 """OpenCL launchers of the batched Kalman filter ops (kernels/gt_kalman.cl): one work-item per track.
 
-Sizes, dtype, layout (shared or per-track matrices), options and the known zero patterns of F
-and H are build defines, so each combination is built once per device (cached by
+On a CPU device each work-item runs VW = 8 tracks in the lanes of vector types (gt_kf_v: SIMD
+arithmetic, per-track loads and stores, per-lane selection instead of branches); on a GPU one
+track per work-item (gt_kf). Sizes, dtype, layout (shared or per-track matrices), options and the
+known zero patterns of F, Q, H and R are build defines, so each combination is built once per device (cached by
 ``device.program``). Arguments an op does not use are passed as NULL.
 """
 
@@ -21,7 +23,12 @@ def _rows(pat: int, rows: int, cols: int):
     return [(pat >> (i * cols)) & ((1 << cols) - 1) for i in range(rows)]
 
 
-def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows):
+def lanes(device) -> int:
+    """Tracks per work-item: SIMD lanes on a CPU device (gt_kf_v), one on a GPU (gt_kf)."""
+    return 8 if device.info.kind == "cpu" else 1
+
+
+def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, vw=1):
     real = "double" if dtype == np.float64 else "float"
     eps = float(np.finfo(dtype).eps) * PD_EPS_FACTOR
     defines = {
@@ -42,6 +49,7 @@ def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, 
         "HPAT": ",".join(f"{r}u" for r in hrows),
         "RPAT": ",".join(f"{r}u" for r in _rows(pats[3], m, m)),
         "PD_TOL": repr(eps),
+        "VW": vw,
     }
     return device.program("gt_kalman.cl", defines)
 
@@ -90,10 +98,11 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
         (_pt(F), _pt(Q), _pt(H), _pt(R)),
         (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]),
         hrows,
+        vw := lanes(device),
     )
     real = dt.type
-    _kernel(prg, "gt_kf")(
-        device.queue, (T,), None,
+    _kernel(prg, "gt_kf_v" if vw > 1 else "gt_kf")(
+        device.queue, ((T + vw - 1) // vw,), None,
         _data(x), _data(P), _data(z), _data(F), _data(Q), _data(H), _data(R), _data(mask), _data(gain_scale),
         _data(xo), _data(Po), _data(st),
         real(cam[0]), real(cam[1]), real(cam[2]), real(cam[3]), np.int32(T),
