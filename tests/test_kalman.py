@@ -411,6 +411,8 @@ def test_bad_input(device):
             device, x, P, z, H, R, out=(device.empty((4, 6)), device.empty((5, 6, 6)), device.empty((5,), np.uint8))
         )
     if device.backend != "numpy":
+        with pytest.raises(TypeError, match="out x: expected an array on"):
+            kf_update(device, x, P, z, H, R, out=(x.copy(), P.copy(), np.zeros(5, np.uint8)))
         with pytest.raises(TypeError, match="float64 or float32|expected dtype float32"):
             kf_predict(device, x, device.asarray(P.astype(np.float64)) if device.fp64 else P.astype(np.int32), F, Q)
 

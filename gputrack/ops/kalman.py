@@ -59,6 +59,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..device import DeviceArray
 from . import backend_module
 from ._args import FLOAT, arg, check_device
 
@@ -154,27 +155,47 @@ def constant_velocity(dim: int = 3, dt: float = 1.0, q=1.0, dtype=np.float32):
 
 
 # -- validation ------------------------------------------------------------------------------------
+def _arg(device, a, name, shape=None, dims=None, *, dtype=np.float32, **kw):
+    """``arg`` with a fast path for an array already on ``device`` with an accepted dtype and the
+    expected shape (the common case of a tracker's per-frame call); anything else goes to
+    ``arg``, which validates and reports."""
+    if type(a) is DeviceArray and a.device is device and shape is not None:
+        accepted = dtype if isinstance(dtype, tuple) else (dtype,)
+        if a.dtype in accepted and len(a.shape) == len(shape):
+            for got, want in zip(a.shape, shape):
+                if isinstance(want, str):
+                    if want not in dims:
+                        dims[want] = got
+                    elif dims[want] != got:
+                        break
+                elif want is not None and want != got:
+                    break
+            else:
+                return a
+    return arg(device, a, name, shape, dims, dtype=dtype, **kw)
+
+
 def _state(device, x, P, dims):
-    x = arg(device, x, "x", ("T", "n"), dims, dtype=FLOAT)
+    x = _arg(device, x, "x", ("T", "n"), dims, dtype=FLOAT)
     dt = x.dtype
     n = dims["n"]
     if not 1 <= n <= MAX_N:
         raise ValueError(f"x: expected a state size n between 1 and {MAX_N}, got n={n}")
-    P = arg(device, P, "P", ("T", "n", "n"), dims, dtype=dt, cast=True)
+    P = _arg(device, P, "P", ("T", "n", "n"), dims, dtype=dt, cast=True)
     return x, P, dt
 
 
 def _matrix(device, A, name, rows, cols, dims, dt):
     """A shared (rows, cols) matrix or a per-track (T, rows, cols) one."""
     if isinstance(A, SharedMatrix):
-        return arg(device, A.array, name, (rows, cols), dims, dtype=dt, cast=True)
+        return _arg(device, A.array, name, (rows, cols), dims, dtype=dt, cast=True)
     nd = getattr(A, "ndim", None)
     if nd is None:
         nd = np.ndim(A)
     if nd == 3:
-        return arg(device, A, name, ("T", rows, cols), dims, dtype=dt, cast=True)
+        return _arg(device, A, name, ("T", rows, cols), dims, dtype=dt, cast=True)
     if nd == 2:
-        return arg(device, A, name, (rows, cols), dims, dtype=dt, cast=True)
+        return _arg(device, A, name, (rows, cols), dims, dtype=dt, cast=True)
     shape = getattr(A, "shape", np.shape(A))
     want = f"({rows}={dims.get(rows, '?')}, {cols}={dims.get(cols, '?')})"
     raise ValueError(f"{name}: expected shape {want} shared or (T={dims['T']}, ...) per track, got {tuple(shape)}")
@@ -195,7 +216,7 @@ def _observations(device, z, dims, dt):
         raise ValueError(
             f"z: expected finite values or NaN (missing), got {h[tuple(bad)]} at index {tuple(int(i) for i in bad)}"
         )
-    z = arg(device, z, "z", ("T", "m"), dims, dtype=dt, cast=True, finite=False)
+    z = _arg(device, z, "z", ("T", "m"), dims, dtype=dt, cast=True, finite=False)
     m = dims["m"]
     if not 1 <= m <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={m}")
@@ -204,13 +225,13 @@ def _observations(device, z, dims, dt):
 
 def _options(device, mask, gain_scale, predict, dims, dt):
     if mask is not None:
-        mask = arg(device, mask, "mask", ("T",), dims, dtype=np.uint8, cast=True)
+        mask = _arg(device, mask, "mask", ("T",), dims, dtype=np.uint8, cast=True)
     if gain_scale is not None:
         h = _host(gain_scale)
         if h is not None and h.ndim == 1 and (h < 0).any():
             i = int(np.argmax(h < 0))
             raise ValueError(f"gain_scale: expected values >= 0, got {h[i]} at index {i}")
-        gain_scale = arg(device, gain_scale, "gain_scale", ("T",), dims, dtype=dt, cast=True)
+        gain_scale = _arg(device, gain_scale, "gain_scale", ("T",), dims, dtype=dt, cast=True)
     if predict is not None:
         if not isinstance(predict, (tuple, list)) or len(predict) != 2:
             raise TypeError(f"predict: expected a pair (F, Q) or None, got {type(predict).__name__}")
@@ -235,10 +256,9 @@ def _outputs(device, out, dims, dt, with_status):
         if device.backend == "numpy":
             if not isinstance(a, np.ndarray) or not a.flags.c_contiguous or not a.flags.writeable:
                 raise TypeError(f"out {name}: expected a writeable C-contiguous NumPy array, got {type(a).__name__}")
-        else:
-            arg(device, a, f"out {name}", dtype=dtype)  # on this device
-            if not hasattr(a, "buffer"):
-                raise TypeError(f"out {name}: expected an array on {device.spec}, got {type(a).__name__}")
+        elif not isinstance(a, DeviceArray) or a.device is not device:
+            where = f"an array on {a.device.spec}" if isinstance(a, DeviceArray) else type(a).__name__
+            raise TypeError(f"out {name}: expected an array on {device.spec}, got {where}")
         if tuple(a.shape) != shape or a.dtype != dtype:
             raise ValueError(
                 f"out {name}: expected shape {shape} and dtype {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}"
@@ -382,7 +402,7 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
     device = check_device(device)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
-    z = arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
+    z = _arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
     if not 1 <= dims["m"] <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
     pats = (-1, -1, _pattern(H, dims["n"]), _pattern(R, dims["m"]))

@@ -29,29 +29,36 @@ def lanes(device) -> int:
 
 
 def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, vw=1):
-    real = "double" if dtype == np.float64 else "float"
+    defines = _defines(np.dtype(dtype).name, n, m, mode, predict, has_mask, has_gain, pts, pats, tuple(hrows), vw)
+    return device.program("gt_kalman.cl", dict(defines))
+
+
+@functools.cache
+def _defines(dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, vw):
+    """Build defines of one kernel variant (cached: it is asked for on every call)."""
     eps = float(np.finfo(dtype).eps) * PD_EPS_FACTOR
-    defines = {
-        "REAL": real,
-        "REAL_IS_DOUBLE": int(dtype == np.float64),
-        "N": n,
-        "M": m,
-        "MODE": mode,
-        "DO_PREDICT": int(predict),
-        "HAS_MASK": int(has_mask),
-        "HAS_GAIN": int(has_gain),
-        "F_PT": pts[0],
-        "Q_PT": pts[1],
-        "H_PT": pts[2],
-        "R_PT": pts[3],
-        "FPAT": ",".join(f"{r}u" for r in _rows(pats[0], n, n)),
-        "QPAT": ",".join(f"{r}u" for r in _rows(pats[1], n, n)),
-        "HPAT": ",".join(f"{r}u" for r in hrows),
-        "RPAT": ",".join(f"{r}u" for r in _rows(pats[3], m, m)),
-        "PD_TOL": repr(eps),
-        "VW": vw,
-    }
-    return device.program("gt_kalman.cl", defines)
+    return tuple(
+        {
+            "REAL": "double" if dtype == "float64" else "float",
+            "REAL_IS_DOUBLE": int(dtype == "float64"),
+            "N": n,
+            "M": m,
+            "MODE": mode,
+            "DO_PREDICT": int(predict),
+            "HAS_MASK": int(has_mask),
+            "HAS_GAIN": int(has_gain),
+            "F_PT": pts[0],
+            "Q_PT": pts[1],
+            "H_PT": pts[2],
+            "R_PT": pts[3],
+            "FPAT": ",".join(f"{r}u" for r in _rows(pats[0], n, n)),
+            "QPAT": ",".join(f"{r}u" for r in _rows(pats[1], n, n)),
+            "HPAT": ",".join(f"{r}u" for r in hrows),
+            "RPAT": ",".join(f"{r}u" for r in _rows(pats[3], m, m)),
+            "PD_TOL": repr(eps),
+            "VW": vw,
+        }.items()
+    )
 
 
 @functools.cache
