@@ -1,0 +1,140 @@
+"""Paper 000's upper-body tracker end to end on every backend, and its rigid case on real RGB-D data."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import gputrack
+from gputrack.metrics import arm_axis_errors, shoulder_errors
+from gputrack.models import rigid
+from gputrack.models.chain import joint_transform
+from gputrack.sim import sequence
+from gputrack.trackers.body import BodyTracker, TrackerConfig
+from gputrack.trackers.body_template import frame_template
+
+ICL = Path(__file__).resolve().parents[2] / "shared" / "data" / "icl_nuim_rgbd"
+FRAMES = 7
+
+
+def track(device, seq, **config):
+    tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(**config))
+    estimates = [tracker.track(f.gray, f.depth) for f in list(seq)[1:]]
+    return tracker, estimates
+
+
+@pytest.fixture(scope="module")
+def arm_cross():
+    seq = sequence("arm_cross", frames=FRAMES, seed=0)
+    return seq, list(seq)
+
+
+def test_pf_then_lm_track_the_arms(device, arm_cross):
+    seq, frames = arm_cross
+    _, pf = track(device, seq, lm_iterations=0)
+    _, both = track(device, seq, lm_iterations=10)
+    err_pf = arm_axis_errors(seq.chain, np.array([e.params for e in pf]), seq.params[1:]).mean(axis=0)
+    err_lm = arm_axis_errors(seq.chain, np.array([e.params for e in both]), seq.params[1:]).mean(axis=0)
+    # issue bounds: PF 3 stages <= 1.0 deg per part; PF + LM 10 lower than PF alone
+    assert (err_pf <= 1.0).all(), err_pf
+    assert err_lm.mean() < err_pf.mean(), (err_lm, err_pf)
+    assert (err_lm <= 0.5).all(), err_lm
+    assert all(e.confidence == 1.0 and np.isfinite(e.params).all() for e in pf + both)
+
+
+def test_steady_state_frame_moves_only_frame_and_poses(device, arm_cross):
+    seq, frames = arm_cross
+    cfg = TrackerConfig(lm_iterations=3, template_every=1000, samples=300)
+    tracker = BodyTracker(device, seq.params[0], config=cfg)
+    tracker.track(frames[1].gray, frames[1].depth)  # builds and uploads the template
+    tracker.track(frames[2].gray, frames[2].depth)
+    frame = tracker.pipeline.frames[-1]
+    if device.backend == "numpy":
+        assert (frame.h2d, frame.d2h) == (0, 0)
+        return
+    image_bytes = frames[2].gray.nbytes + frames[2].depth.nbytes
+    poses = cfg.candidates * seq.chain.n_params * 4  # the C candidate poses, float32
+    assert frame.stages["upload frame"][1] == image_bytes
+    assert "template" not in frame.stages
+    assert frame.h2d <= image_bytes + 2 * poses, frame.stages
+    assert frame.d2h <= 2 * poses * 2, frame.stages
+
+
+def test_shoulders_estimated_from_30mm_off(device):
+    seq = sequence("shoulder_spread", frames=FRAMES, seed=0, shoulders=True)
+    start = seq.params[0].copy()
+    start[14:] += np.array([12.0, -10.0, 14.0, -13.0, 11.0, -12.0])  # about 20-30 mm off per shoulder
+    cfg = TrackerConfig(shoulders=True, stages=1, lm_iterations=50)  # Table 7: PF 1 stage + LM 50
+    tracker = BodyTracker(device, start, config=cfg)
+    for f in list(seq)[1:]:
+        est = tracker.track(f.gray, f.depth)
+    err = shoulder_errors(est.params, seq.params[-1])[0]
+    start_err = shoulder_errors(start, seq.params[0])[0]
+    # Measured: 0-3 mm per axis after 6 frames (the paper reaches 0.16-0.31 mm; the depth axis
+    # converges slowest here). This pins what the tracker achieves now.
+    assert (err <= 5.0).all(), err
+    assert err.sum() < start_err.sum() / 3, (err, start_err)
+
+
+def test_bad_frames_keep_the_last_pose(device, arm_cross):
+    seq, frames = arm_cross
+    tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(lm_iterations=2, samples=200))
+    gray, depth = frames[1].gray, frames[1].depth
+    with pytest.raises(ValueError, match=r"gray: expected shape \(480, 640\), got \(240, 320\)"):
+        tracker.track(gray[::2, ::2], depth)
+    with pytest.raises(TypeError, match="depth: expected float32, got float64"):
+        tracker.track(gray, depth.astype(np.float64))
+    est = tracker.track(gray, np.zeros_like(depth))
+    assert est.confidence == 0.0 and "no valid depth" in est.message
+    np.testing.assert_array_equal(est.params, seq.params[0])
+    # a pose that puts the person out of view: no template can be made, the pose is kept
+    lost = BodyTracker(device, seq.params[0] + np.r_[0, 0, 0, 20000.0, 0, 0, np.zeros(8)],
+                       config=TrackerConfig(lm_iterations=0, samples=100))  # fmt: skip
+    est = lost.track(gray, depth)
+    assert est.confidence == 0.0 and np.isfinite(est.params).all()
+    with pytest.raises(ValueError, match="initial_params: expected shape"):
+        BodyTracker(device, np.zeros(3))
+    with pytest.raises(ValueError, match="initial_params: expected finite"):
+        BodyTracker(device, np.full(14, np.nan))
+
+
+def _icl_frames():
+    if not ICL.is_dir():
+        pytest.skip(f"real data not found at {ICL}")
+    cv2 = pytest.importorskip("cv2")
+    frames = []
+    for i in range(5):
+        bgr = cv2.imread(str(ICL / "color" / f"{i:05d}.jpg"))
+        gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+        depth = cv2.imread(str(ICL / "depth" / f"{i:05d}.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)  # mm
+        frames.append((gray, depth))
+    rows = [line.split() for line in (ICL / "trajectory.log").read_text().splitlines() if line.strip()]
+    poses = [np.array([[float(v) for v in rows[5 * k + r]] for r in range(1, 5)]) for k in range(len(rows) // 5)]
+    return frames, poses
+
+
+def test_icl_nuim_camera_motion(device):
+    """Rigid case of the same tracker: template from frame i, PF + LM to frame i+1, vs trajectory.log."""
+    frames, poses = _icl_frames()
+    camera = gputrack.ops.Camera(525.0, 525.0, 319.5, 239.5)  # camera_primesense.json
+    chain = rigid()
+    deg = np.pi / 180
+    sigma = np.array([1 * deg, 1 * deg, 1 * deg, 10.0, 10.0, 10.0])
+    # ICL-NUIM depth carries simulated sensor noise of 1-2 % (20-50 mm at 2.5 m): c' = 50 mm, lambda = 0.5
+    cfg = TrackerConfig(lm_iterations=10, c_depth=50.0, lam=0.5)
+    errors = []
+    for i in range(4):
+        tracker = BodyTracker(device, np.zeros(6), camera=camera, chain=chain, sigma=sigma, config=cfg)
+        est = tracker.track(*frames[i + 1], templates=frame_template(*frames[i], camera))
+        T = np.eye(4)
+        T[:3] = joint_transform(chain.parts[0], est.params[None])[0]
+        truth = np.linalg.inv(poses[i + 1]) @ poses[i]  # camera i -> camera i+1
+        truth[:3, 3] *= 1000.0  # m -> mm
+        t_err = np.linalg.norm(T[:3, 3] - truth[:3, 3])
+        R = T[:3, :3].T @ truth[:3, :3]
+        r_err = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+        errors.append((t_err, r_err, np.linalg.norm(truth[:3, 3])))
+    errors = np.array(errors)
+    # the camera moves ~24 mm a frame; tracked to within 10 mm and 0.5 deg
+    assert (errors[:, 0] <= 10.0).all() and (errors[:, 1] <= 0.5).all(), errors
+    assert errors[:, 0].mean() < 0.5 * errors[:, 2].mean(), errors
