@@ -370,7 +370,9 @@ def least_squares(
     ``max_iter`` trial steps; failed when its residuals or Jacobian (at the start or at a trial)
     are not finite — the problem keeps its last accepted x and cost, the batch goes on — or when
     the damping needed exceeds 1e16 (float32: 1e10) x (1 + max diag J^T J). The batch stops when
-    every problem has stopped. ``iterations`` counts the trial steps each problem evaluated.
+    every problem has stopped. ``iterations`` counts the trial steps each problem evaluated. The
+    last trial of a solve that reaches ``max_iter`` is evaluated without its Jacobian, so only
+    ftol and xtol can mark it converged.
 
     **Bounds**: ``lower``/``upper`` scalar, (P,) or (B, P), +-inf allowed, lower == upper fixes a
     parameter. Perturbed points are clipped into the box too (the difference quotient then uses
