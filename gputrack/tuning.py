@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import importlib
 import json
 import logging
 import os
 import threading
 import warnings
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,24 +28,30 @@ log = logging.getLogger("gputrack")
 
 CACHE_VERSION = 1
 
+#: modules that declare tunables (a ``TUNABLES`` dict of :class:`Tunable`), searched by :func:`tunables`
+TUNABLE_MODULES = ("gputrack.ops.template",)
+
 
 @dataclasses.dataclass(frozen=True)
 class Tunable:
     """Launch parameters of one op on one backend.
 
-    ``candidates`` maps a parameter name to the values to try, ``default`` gives the value used
-    without a cache entry; ``sizes`` are representative problem sizes (dicts) and
-    ``problem(device, size, params)`` returns a zero-argument callable that runs the op once.
-    ``sources`` are the kernel files whose contents key the cache (an edit makes entries stale).
+    ``candidates`` maps a parameter name to the values to try; ``default`` gives the values used
+    without a cache entry: a dict, or a callable ``default(device) -> dict`` (read at every call,
+    so it may depend on the device kind); ``sizes`` are representative problem sizes (dicts) and
+    ``problem(device, size, params)`` returns a zero-argument callable that runs the op once with
+    ``params``. ``sources`` are the kernel files whose contents key the cache (an edit makes
+    entries stale): names in kernels/, or absolute paths (e.g. a Taichi kernel module).
     """
 
     op: str
     backend: str
     candidates: dict
-    default: dict
+    default: dict | Callable
     sizes: tuple
     problem: Callable
     sources: tuple = ()
+    _fingerprint: list = dataclasses.field(default_factory=list, compare=False, hash=False, repr=False)
 
     def grid(self) -> list[dict]:
         """Every combination of candidate values."""
@@ -52,17 +60,36 @@ class Tunable:
             combos = [{**c, name: v} for c in combos for v in values]
         return combos
 
+    def default_for(self, device) -> dict:
+        """The parameters used on ``device`` without a cache entry."""
+        return dict(self.default(device) if callable(self.default) else self.default)
+
     def fingerprint(self) -> str:
-        """Hash of the kernel sources and the candidate grid; a change makes cache entries stale."""
+        """Hash of the kernel sources and the candidate grid; a change makes cache entries stale.
+
+        Computed once per process (the ops ask for it at call time)."""
+        if self._fingerprint:
+            return self._fingerprint[0]
         h = hashlib.sha256(json.dumps(self.candidates, sort_keys=True).encode())
         if self.sources:
             from .backends.opencl.program import kernel_dir
 
             for name in self.sources:
-                p = kernel_dir() / name
+                p = Path(name) if os.path.isabs(name) else kernel_dir() / name
                 if p.is_file():
                     h.update(p.read_bytes())
-        return h.hexdigest()[:16]
+        self._fingerprint.append(h.hexdigest()[:16])
+        return self._fingerprint[0]
+
+
+def tunables(backend: str | None = None, op: str | None = None) -> list[Tunable]:
+    """Every declared tunable (of ``backend`` / for ``op`` when given), from :data:`TUNABLE_MODULES`."""
+    found = []
+    for name in TUNABLE_MODULES:
+        for t in importlib.import_module(name).TUNABLES.values():
+            if (backend is None or t.backend == backend) and (op is None or t.op == op):
+                found.append(t)
+    return found
 
 
 def size_bucket(size: dict) -> str:
@@ -82,14 +109,26 @@ def cache_path() -> Path:
     return Path(base) / "gputrack" / "tuning.json"
 
 
+_device_keys = weakref.WeakKeyDictionary()
+
+
 def device_key(device) -> str:
-    """Device name and driver version: a new driver gets new measurements."""
+    """Device name and driver version: a new driver gets new measurements (cached per device)."""
+    try:
+        return _device_keys[device]
+    except (KeyError, TypeError):
+        pass
     driver = device.info.driver
     if not driver and device.backend == "taichi":
         from importlib.metadata import version
 
         driver = f"taichi {version('taichi')}"
-    return f"{device.spec}|{device.name}|{driver}"
+    key = f"{device.spec}|{device.name}|{driver}"
+    try:
+        _device_keys[device] = key
+    except TypeError:  # not weak-referenceable: computed each time
+        pass
+    return key
 
 
 class TuningCache:
@@ -99,6 +138,9 @@ class TuningCache:
         self.path = Path(path) if path else cache_path()
         self._lock = threading.Lock()
         self._data: dict | None = None
+        # (device key, op, fingerprint, bucket) -> params or None: what get() answered, so that an
+        # op asking at every call costs a dict lookup (and a bad entry warns once per process)
+        self._memo: dict = {}
 
     def _load(self) -> dict:
         if self._data is not None:
@@ -117,13 +159,22 @@ class TuningCache:
 
     def get(self, device, tunable: Tunable, size: dict) -> dict | None:
         """The stored parameters for this device, op and size bucket, or None (with a warning if unusable)."""
+        key = (device_key(device), tunable.op, tunable.fingerprint(), size_bucket(size))
+        try:
+            found = self._memo[key]
+        except KeyError:
+            found = self._memo[key] = self._lookup(device, tunable, key)
+        return dict(found) if found is not None else None
+
+    def _lookup(self, device, tunable: Tunable, key) -> dict | None:
+        dkey, op, fingerprint, bucket = key
         with self._lock:
-            entry = self._load()["devices"].get(device_key(device), {}).get(tunable.op, {}).get(size_bucket(size))
+            entry = self._load()["devices"].get(dkey, {}).get(op, {}).get(bucket)
         if entry is None:
             return None
         try:
             params = entry["params"]
-            if entry.get("fingerprint") != tunable.fingerprint():
+            if entry.get("fingerprint") != fingerprint:
                 raise ValueError("it was measured on other kernel sources (stale)")
             if set(params) != set(tunable.candidates):
                 raise ValueError(f"expected parameters {sorted(tunable.candidates)}, got {sorted(params)}")
@@ -131,12 +182,13 @@ class TuningCache:
                 if value not in tunable.candidates[name]:
                     raise ValueError(f"{name}={value!r} is not one of {tunable.candidates[name]}")
             return dict(params)
-        except (KeyError, TypeError, ValueError) as e:
-            warnings.warn(f"ignoring tuning entry for {tunable.op} on {device.spec}: {e}", RuntimeWarning, stacklevel=3)
+        except (AttributeError, KeyError, TypeError, ValueError) as e:
+            warnings.warn(f"ignoring tuning entry for {op} on {device.spec}: {e}", RuntimeWarning, stacklevel=4)
             return None
 
     def put(self, device, tunable: Tunable, size: dict, params: dict, timings_ms: dict | None = None) -> None:
         with self._lock:
+            self._memo.clear()
             data = self._load()
             ops = data["devices"].setdefault(device_key(device), {})
             ops.setdefault(tunable.op, {})[size_bucket(size)] = {
@@ -156,36 +208,72 @@ class TuningCache:
 
 
 _cache: TuningCache | None = None
+_cache_env: tuple | None = None
 
 
 def _default_cache() -> TuningCache:
-    global _cache
-    if _cache is None or _cache.path != cache_path():
-        _cache = TuningCache()
+    """The cache at :func:`cache_path` (re-opened when the environment names another file)."""
+    global _cache, _cache_env
+    env = (os.environ.get("GPUTRACK_TUNING_CACHE"), os.environ.get("XDG_CACHE_HOME"))
+    if _cache is None or env != _cache_env:
+        _cache, _cache_env = TuningCache(), env
     return _cache
 
 
 def choose(device, tunable: Tunable, size: dict) -> dict:
-    """The parameters an op should launch with: the cached choice, else the default."""
-    return _default_cache().get(device, tunable, size) or dict(tunable.default)
+    """The parameters an op should launch with: the cached choice for this size bucket, else the default."""
+    return _default_cache().get(device, tunable, size) or tunable.default_for(device)
 
 
-def tune(device, tunable: Tunable, *, cache: TuningCache | None = None, min_time: float = 0.1, progress=None) -> dict:
-    """Time every candidate for every size on ``device``; store and return {bucket: best params}."""
+@dataclasses.dataclass
+class Trial:
+    """One candidate's timing in :func:`tune` (``timing`` None and ``error`` set when it failed)."""
+
+    params: dict
+    timing: object = None
+    error: str | None = None
+
+
+def tune(
+    device,
+    tunable: Tunable,
+    *,
+    cache: TuningCache | None = None,
+    min_time: float = 0.1,
+    progress=None,
+    report=None,
+) -> dict:
+    """Time every candidate for every size on ``device``; store and return {bucket: best params}.
+
+    ``progress(message)`` is called after each candidate; ``report(size, trials, best)`` after
+    each size with the :class:`Trial` list. A candidate that fails to build or launch (e.g. a
+    work-group size the device does not support) is skipped; a size where every candidate fails
+    stores nothing.
+    """
     from .benchmark import time_call
 
     cache = cache or _default_cache()
     chosen = {}
     for size in tunable.sizes:
-        timings = {}
+        trials = []
         for params in tunable.grid():
-            fn = tunable.problem(device, size, params)
-            t = time_call(fn, device.synchronize, min_time=min_time)
-            timings[json.dumps(params, sort_keys=True)] = t.median_s * 1e3
+            try:
+                fn = tunable.problem(device, size, params)
+                trial = Trial(params, time_call(fn, device.synchronize, min_time=min_time))
+                msg = f"{trial.timing.median_s * 1e3:.3f} ms"
+            except Exception as e:  # noqa: BLE001 - a candidate the device cannot run
+                trial = Trial(params, error=f"{type(e).__name__}: {e}".splitlines()[0][:200])
+                msg = f"failed ({trial.error})"
+            trials.append(trial)
             if progress:
-                progress(f"{tunable.op} {size_bucket(size)} {params}: {t.median_s * 1e3:.3f} ms")
-        best = json.loads(min(timings, key=timings.get))
-        cache.put(device, tunable, size, best, timings)
-        chosen[size_bucket(size)] = best
+                progress(f"{tunable.op} on {device.spec} {size_bucket(size)} {params}: {msg}")
+        ok = [t for t in trials if t.timing is not None]
+        best = min(ok, key=lambda t: t.timing.median_s).params if ok else None
+        if best is not None:
+            timings = {json.dumps(t.params, sort_keys=True): t.timing.median_s * 1e3 for t in ok}
+            cache.put(device, tunable, size, best, timings)
+            chosen[size_bucket(size)] = best
+        if report:
+            report(size, trials, best)
     cache.save()
     return chosen

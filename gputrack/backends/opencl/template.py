@@ -18,8 +18,13 @@ _kernels = weakref.WeakKeyDictionary()
 
 
 def lanes(device) -> int:
-    """Hypotheses per work-item on ``device``."""
+    """Hypotheses per work-item on ``device`` (the default; ``gputrack tune`` may choose another)."""
     return CPU_LANES if device.info.kind == "cpu" else 1
+
+
+def default_params(device) -> dict:
+    """Launch parameters without a tuning-cache entry: lanes per work-item and work-group size."""
+    return {"lanes": lanes(device), "work_group": WORK_GROUP if device.info.kind == "cpu" else 64}
 
 
 def _buffer(device, name, nbytes):
@@ -58,8 +63,10 @@ def _kernel(device, name, **defines):
     return found
 
 
-def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, residuals):
-    nl = lanes(device)
+def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, residuals, params):
+    params = params or default_params(device)
+    nl = int(params["lanes"])
+    wg = int(params["work_group"])
     kernel = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=int(residuals))
     nb, nj = tf.shape[:2]
     n = rgb["pts"].shape[0]
@@ -76,7 +83,6 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, 
         res_buf = dummy
         outs = tuple(o.buffer.data for o in outs)
     fx, fy, cx, cy = (float(c) for c in camera)
-    wg = WORK_GROUP if device.info.kind == "cpu" else 64
     kernel(
         device.queue, ((groups + wg - 1) // wg * wg,), (wg,),
         tf.buffer.data, nb, nj,
@@ -88,12 +94,13 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, 
     )  # fmt: skip
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth):
-    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (total, eps_c, eps_d), False)
+def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None):
+    """``params``: {"lanes", "work_group"} (gputrack/ops/template.py TUNABLES); None = default_params."""
+    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (total, eps_c, eps_d), False, params)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth):
-    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (out,), True)
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
+    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (out,), True, params)
 
 
 def patch_ncc(device, pts, tpl, img, *, per_point):

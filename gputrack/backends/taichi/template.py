@@ -35,6 +35,11 @@ def lanes(device) -> int:
     return CPU_LANES if getattr(device, "arch", "") == "cpu" else 1
 
 
+def default_params(device) -> dict:
+    """Launch parameters without a tuning-cache entry (``gputrack tune`` may choose others)."""
+    return {"lanes": lanes(device)}
+
+
 @ti.func
 def _project(P: ti.template(), l: ti.template(), x, y, z, fx, fy, cx, cy, wm1, hm1):
     """Lane l's camera-frame Z, pixel (u, v) (0 where invalid) and in-image flag of one point."""
@@ -306,8 +311,8 @@ def _buffer(device, name, shape, dtype):
     return found[1]
 
 
-def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth):
-    nl = lanes(device)
+def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params):
+    nl = int((params or default_params(device))["lanes"])
     nb = tf.shape[0]
     n = rgb["pts"].shape[0]
     groups = (nb + nl - 1) // nl
@@ -320,13 +325,14 @@ def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth):
     return args, groups, nl
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth):
-    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth)
+def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None):
+    """``params``: {"lanes"} (gputrack/ops/template.py TUNABLES); None = default_params."""
+    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
     _rgbd_cost_kernel(*args, total.buffer, eps_c.buffer, eps_d.buffer, groups, nl)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth):
-    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth)
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
+    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
     _rgbd_res_kernel(*args, out.buffer, groups, nl)
 
 
