@@ -20,10 +20,50 @@ from .device import (
     to_numpy,
 )
 from .scheduler import FrameStats, Pipeline, StageStats
+from .ops import (
+    BestK,
+    Camera,
+    LeastSquaresResult,
+    LMStatus,
+    RgbdCost,
+    SparseTemplate,
+    best_k,
+    forward_kinematics,
+    least_squares,
+    patch_ncc,
+    patch_ncc_per_point,
+    rgbd_cost,
+    rgbd_residuals,
+    sample_around,
+)
+from .models import Chain, Part, Shape, rigid, upper_body
+from .trackers.body import BodyEstimate, BodyTracker, TrackerConfig
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "BestK",
+    "BodyEstimate",
+    "BodyTracker",
+    "Camera",
+    "Chain",
+    "LMStatus",
+    "LeastSquaresResult",
+    "Part",
+    "RgbdCost",
+    "Shape",
+    "SparseTemplate",
+    "TrackerConfig",
+    "best_k",
+    "forward_kinematics",
+    "least_squares",
+    "patch_ncc",
+    "patch_ncc_per_point",
+    "rgbd_cost",
+    "rgbd_residuals",
+    "rigid",
+    "sample_around",
+    "upper_body",
     "Device",
     "DeviceArray",
     "DeviceInfo",

@@ -18,6 +18,7 @@ CHECKS = [
     ("arrays", "gputrack.selftest:check_arrays"),
     ("kinematics", "gputrack.ops.kinematics:_selftest"),
     ("template", "gputrack.ops.template:_selftest"),
+    ("lm", "gputrack.ops.lm:_selftest"),
 ]
 
 

@@ -22,17 +22,24 @@ def backend_module(device: Device, primitive: str):
 
 
 from .kinematics import forward_kinematics  # noqa: E402
+from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
 from .particles import BestK, best_k, sample_around  # noqa: E402
 from .template import Camera, RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals  # noqa: E402
 
 __all__ = [
     "BestK",
     "Camera",
+    "LMStatus",
+    "LeastSquaresResult",
     "RgbdCost",
     "SparseTemplate",
     "backend_module",
     "best_k",
     "forward_kinematics",
+    "least_squares",
+    "lm_solve",
+    "lm_step",
+    "normal_equations",
     "patch_ncc",
     "patch_ncc_per_point",
     "rgbd_cost",

@@ -1,5 +1,19 @@
-"""Trackers, one module per paper; ``body_template`` builds paper 000's 3D sparse template."""
+"""Trackers, one module per paper.
 
-from .body_template import TemplatePixels, select_pixels, sparse_template
+- :mod:`.body` — paper 000's upper-body RGB-D tracker (particle filter + batched LM on the device);
+  :mod:`.body_template` builds its 3D sparse template (from a rendering of the model, or from a
+  real RGB-D frame for rigid scenes).
+"""
 
-__all__ = ["TemplatePixels", "select_pixels", "sparse_template"]
+from .body import BodyEstimate, BodyTracker, TrackerConfig
+from .body_template import TemplatePixels, frame_template, select_pixels, sparse_template
+
+__all__ = [
+    "BodyEstimate",
+    "BodyTracker",
+    "TemplatePixels",
+    "TrackerConfig",
+    "frame_template",
+    "select_pixels",
+    "sparse_template",
+]
