@@ -1,4 +1,4 @@
-"""The ``gputrack`` command line: ``gputrack devices [--json]`` and ``gputrack bench``."""
+"""The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack bench``, ``gputrack tune``, ``gputrack demo``."""
 
 from __future__ import annotations
 
@@ -67,6 +67,67 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def format_trials(tunable, size, trials, best, default) -> str:
+    """One size of a ``gputrack tune`` sweep: each candidate's median and spread, the choice and the default."""
+    from .tuning import size_bucket
+
+    head = f"{'params':<36}{'median ms':>11}{'p10-p90 ms':>17}{'x default':>11}"
+    lines = [f"{tunable.op} on {tunable.backend}, size {size} (bucket {size_bucket(size)})", head, "-" * len(head)]
+    base = next((t.timing.median_s for t in trials if t.timing is not None and t.params == default), None)
+    for t in trials:
+        label = ", ".join(f"{k}={v}" for k, v in t.params.items())
+        mark = ("  <- chosen" if t.params == best else "") + ("  (default)" if t.params == default else "")
+        if t.timing is None:
+            lines.append(f"{label:<36}{'failed':>11}  {t.error}{mark}")
+            continue
+        m = t.timing
+        ratio = f"{base / m.median_s:.2f}" if base else "-"
+        spread = f"{m.p10_s * 1e3:.3f}-{m.p90_s * 1e3:.3f}"
+        lines.append(f"{label:<36}{m.median_s * 1e3:>11.3f}{spread:>17}{ratio:>11}{mark}")
+    if best is None:
+        lines.append("every candidate failed: nothing stored")
+    return "\n".join(lines)
+
+
+def cmd_tune(args) -> int:
+    import gputrack
+
+    from . import tuning
+
+    if args.min_time <= 0:
+        print(f"gputrack tune: --min-time: expected seconds > 0, got {args.min_time}", file=sys.stderr)
+        return 2
+    dev = gputrack.device(args.device)
+    found = tuning.tunables(dev.backend)
+    names = sorted({t.op for t in found})
+    if args.op:
+        unknown = sorted(set(args.op) - set(names))
+        if unknown:
+            expected = ", ".join(names) if names else f"none (no tunables on backend {dev.backend})"
+            print(f"gputrack tune: unknown --op {', '.join(unknown)} for {dev.spec}; expected one of: {expected}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        found = [t for t in found if t.op in args.op]
+    if not found:
+        print(f"gputrack tune: nothing to tune on {dev.spec} (backend {dev.backend} has no launch parameters)")
+        return 0
+    cache = tuning.default_cache()  # the one the ops read: they see the new choices at once
+    print(f"gputrack tune: {dev.spec} ({dev.name}); cache {cache.path}", flush=True)
+    for t in found:
+        n = len(t.grid()) * len(t.sizes)
+        runs = f"{n} runs ({len(t.grid())} candidates x {len(t.sizes)} sizes)"
+        print(f"[tune] {t.op}: {runs}", file=sys.stderr, flush=True)
+        default = t.default_for(dev)
+
+        def report(size, trials, best, t=t, default=default):
+            print(format_trials(t, size, trials, best, default) + "\n", flush=True)
+
+        tuning.tune(dev, t, cache=cache, min_time=args.min_time, report=report,
+                    progress=lambda m: print(f"[tune] {m}", file=sys.stderr, flush=True))  # fmt: skip
+    print(f"stored in {cache.path}; the ops use these choices on {dev.spec} from now on")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="gputrack", description="GPU-portable compute primitives for visual tracking")
     parser.add_argument("-v", "--verbose", action="store_true", help="log what gputrack does")
@@ -95,6 +156,12 @@ def main(argv=None) -> int:
     p.add_argument("--json", metavar="FILE", help="write results as JSON (FILE.<op>.json with several ops)")
     p.add_argument("--min-time", type=float, default=0.2, help="seconds of timed calls per figure")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("tune", help="time the kernels' launch parameters on a device and store the fastest")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--op", action="append", help="op to tune (default: every tunable op; repeatable)")
+    p.add_argument("--min-time", type=float, default=0.1, help="seconds of timed calls per candidate (default 0.1)")
+    p.set_defaults(func=cmd_tune)
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")

@@ -2,10 +2,14 @@
 
 import json
 
+import numpy as np
 import pytest
+from tolerances import assert_matches
 
 import gputrack
 from gputrack import tuning
+from gputrack.ops import template as template_ops
+from gputrack.ops.template import rgbd_cost, rgbd_residuals
 
 
 def make_tunable(op="demo", candidates=None, runs=None):
@@ -90,3 +94,198 @@ def test_wrong_version_is_ignored(tmp_path, numpy_device):
     (tmp_path / "t.json").write_text(json.dumps({"version": 99, "devices": {}}))
     with pytest.warns(RuntimeWarning, match="expected a version 1 tuning cache"):
         assert tuning.TuningCache(tmp_path / "t.json").get(numpy_device, make_tunable(), {"B": 1}) is None
+
+
+# -- the template ops' tunables ----------------------------------------------------------------
+
+
+REF = gputrack.device("numpy")
+
+
+def _scene(b=37, n=29, m=31):
+    rng = np.random.default_rng(b * 1000 + n)
+    return template_ops._selftest_scene(rng, b=b, j=3, n=n, m=m, h=48, w=64)
+
+
+def test_every_backend_has_tunables_with_the_default_among_the_candidates(device):
+    found = tuning.tunables(device.backend)
+    if device.backend == "numpy":
+        assert found == []
+        return
+    assert {t.op for t in found} == {"rgbd_cost", "rgbd_residuals"}
+    for t in found:
+        default = t.default_for(device)
+        assert default in t.grid(), f"{t.op}: default {default} is not a candidate"
+        assert len(t.grid()) > 1
+        assert t.fingerprint() == t.fingerprint() and len(t.fingerprint()) == 16
+
+
+def test_every_candidate_matches_the_reference(device, monkeypatch):
+    """Results do not depend on the launch parameters: every candidate, through the public ops."""
+    if device.backend == "numpy":
+        pytest.skip("the reference has no launch parameters")
+    tf, rgb, dep, gray, depth, cam = _scene()
+    want = rgbd_cost(REF, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+    want_res = rgbd_residuals(REF, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+    launched = []
+    backend = template_ops.backend_module(device, "template")
+    real_cost, real_res = backend.rgbd_cost, backend.rgbd_residuals
+
+    def spy(real):
+        def run(*a, **kw):
+            launched.append(kw["params"])
+            return real(*a, **kw)
+
+        return run
+
+    monkeypatch.setattr(backend, "rgbd_cost", spy(real_cost))
+    monkeypatch.setattr(backend, "rgbd_residuals", spy(real_res))
+    for op in ("rgbd_cost", "rgbd_residuals"):
+        for params in template_ops.TUNABLES[(device.backend, op)].grid():
+            monkeypatch.setattr(tuning, "choose", lambda dev, t, size, params=params: dict(params))
+            launched.clear()
+            if op == "rgbd_cost":
+                got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+                for f in ("total", "rgb", "depth"):
+                    assert_matches(device, getattr(got, f), getattr(want, f), err_msg=f"{op} {f} {params}")
+            else:
+                got = rgbd_residuals(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+                assert_matches(device, got, want_res, scale=5.0, err_msg=f"{op} {params}")
+            assert launched == [params]
+
+
+def _fake_fast(tunable, winner):
+    """The real tunable on a tiny size, with a problem where ``winner`` is clearly the fastest."""
+    import dataclasses
+    import time
+
+    def problem(device, size, params):
+        def run():
+            time.sleep(0.0002 if params == winner else 0.002)
+
+        return run
+
+    return dataclasses.replace(tunable, sizes=({"B": 37, "N": 29},), problem=problem)
+
+
+def test_cli_tune_stores_a_choice_and_the_op_uses_it(device, tmp_path, monkeypatch, capsys):
+    from gputrack import cli
+
+    if device.backend == "numpy":
+        assert cli.main(["tune", "--device", "numpy"]) == 0
+        assert "nothing to tune" in capsys.readouterr().out
+        return
+    monkeypatch.setenv("GPUTRACK_TUNING_CACHE", str(tmp_path / "tuning.json"))
+    key = (device.backend, "rgbd_cost")
+    real = template_ops.TUNABLES[key]
+    default = real.default_for(device)
+    winner = next(p for p in reversed(real.grid()) if p != default)
+    monkeypatch.setitem(template_ops.TUNABLES, key, _fake_fast(real, winner))
+
+    tf, rgb, dep, gray, depth, cam = _scene()
+    backend = template_ops.backend_module(device, "template")
+    launched = []
+    real_cost = backend.rgbd_cost
+
+    def spy(*a, **kw):
+        launched.append(kw["params"])
+        return real_cost(*a, **kw)
+
+    monkeypatch.setattr(backend, "rgbd_cost", spy)
+    rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
+    assert launched == [default]  # no cache entry yet
+
+    assert cli.main(["tune", "--device", device.spec, "--op", "rgbd_cost", "--min-time", "0.001"]) == 0
+    captured = capsys.readouterr()
+    assert "<- chosen" in captured.out and "[tune]" in captured.err  # table, and progress while it ran
+    doc = json.loads((tmp_path / "tuning.json").read_text())
+    (entry,) = doc["devices"].values()
+    assert entry["rgbd_cost"]["B=64,N=32"]["params"] == winner
+
+    launched.clear()
+    got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
+    assert launched == [winner]
+    want = rgbd_cost(REF, tf, rgb, dep, gray, depth, cam)
+    assert_matches(device, got.total, want.total)
+    # another size bucket keeps the default
+    launched.clear()
+    rgbd_cost(device, tf[:3], rgb, dep, gray, depth, cam)
+    assert launched == [default]
+
+
+def test_cli_tune_unknown_op_is_an_error(device, capsys):
+    from gputrack import cli
+
+    assert cli.main(["tune", "--device", device.spec, "--op", "no_such_op"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown --op no_such_op" in err
+    if device.backend != "numpy":
+        assert "rgbd_cost" in err
+
+
+def test_cli_tune_rejects_a_bad_min_time(capsys):
+    from gputrack import cli
+
+    assert cli.main(["tune", "--device", "numpy", "--min-time", "0"]) == 2
+    assert "--min-time" in capsys.readouterr().err
+
+
+def test_a_failing_candidate_is_skipped(tmp_path, numpy_device):
+    runs = []
+    t = make_tunable(runs=runs)
+    ok_problem = t.problem
+
+    def problem(device, size, params):
+        if params["wg"] == 64:
+            raise RuntimeError("work-group size not supported")
+        return ok_problem(device, size, params)
+
+    import dataclasses
+
+    t = dataclasses.replace(t, problem=problem)
+    reports = []
+    cache = tuning.TuningCache(tmp_path / "t.json")
+    chosen = tuning.tune(numpy_device, t, cache=cache, min_time=0.002, report=lambda *a: reports.append(a))
+    assert chosen["B=2048,N=128"] in ({"wg": 32}, {"wg": 128})
+    ((_size, trials, _best),) = reports
+    failed = [tr for tr in trials if tr.timing is None]
+    assert [tr.params for tr in failed] == [{"wg": 64}] and "not supported" in failed[0].error
+    assert 64 not in runs
+
+
+@pytest.mark.parametrize("fast, expected", [(0.99, 128), (0.5, 32)])
+def test_the_default_is_kept_unless_clearly_faster(tmp_path, numpy_device, monkeypatch, fast, expected):
+    """A candidate 1% faster than the default (noise) does not replace it; one 2x faster does."""
+    import dataclasses
+
+    from gputrack import benchmark
+
+    ms = {32: fast, 64: 1.2, 128: 1.0}  # the default is wg=128
+
+    def problem(device, size, params):
+        def run():
+            pass
+
+        run.wg = params["wg"]
+        return run
+
+    def fake_time_call(fn, sync=None, **kw):
+        s = ms[fn.wg] * 1e-3
+        return benchmark.Timing(s, s, s, 5)
+
+    monkeypatch.setattr(benchmark, "time_call", fake_time_call)
+    t = dataclasses.replace(make_tunable(), problem=problem)
+    chosen = tuning.tune(numpy_device, t, cache=tuning.TuningCache(tmp_path / "t.json"), min_time=0.002)
+    assert chosen == {"B=2048,N=128": {"wg": expected}}
+
+
+def test_op_with_a_corrupt_cache_warns_and_uses_the_default(device, tmp_path, monkeypatch):
+    if device.backend == "numpy":
+        pytest.skip("the reference has no launch parameters")
+    path = tmp_path / "tuning.json"
+    path.write_text('{"version": 1, "devices": ')
+    monkeypatch.setenv("GPUTRACK_TUNING_CACHE", str(path))
+    tf, rgb, dep, gray, depth, cam = _scene()
+    with pytest.warns(RuntimeWarning, match="ignoring the tuning cache"):
+        got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
+    assert_matches(device, got.total, rgbd_cost(REF, tf, rgb, dep, gray, depth, cam).total)
