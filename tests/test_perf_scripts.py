@@ -1,0 +1,135 @@
+"""perf/sweep.py: the sweep cases on every backend, the JSON it writes, the plot and the Tables 1/2
+layout (no timing assertions: figures are whatever the machine gives)."""
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tolerances import assert_matches
+
+import gputrack
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "perf" / "sweep.py"
+
+
+def load_sweep():
+    spec = importlib.util.spec_from_file_location("perf_sweep_under_test", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+sweep = load_sweep()
+
+
+def args_for(**kw):
+    parser = argparse.ArgumentParser()
+    sweep.add_arguments(parser)
+    argv = []
+    for k, v in kw.items():
+        for item in v if isinstance(v, list) else [v]:
+            argv += [f"--{k.replace('_', '-')}", str(item)]
+    return parser.parse_args(argv)
+
+
+def test_sweep_cases_run_on_every_backend(device):
+    """Every sweep point builds and runs on the device; its result matches the reference's."""
+    args = args_for(k=[7, 33], n=[16], t=[13], reference_max_k=7, reference_max_tracks=13)
+    cases = sweep.cases(device, args)
+    assert [c.params["sweep"] for c in cases] == ["K", "K", "N", "T"]
+    assert [c.params["x"] for c in cases] == [7, 33, 16, 13]
+    # the reference is timed up to the --reference-max-* sizes only
+    assert [c.reference is not None for c in cases] == [True, False, True, True]
+    for c in cases:
+        got = c.run()
+        device.synchronize()
+        if c.params["sweep"] in "KN" and c.reference is not None:
+            want = c.reference()
+            assert_matches(device, got.total, want.total)
+    k7 = cases[0]
+    assert gputrack.to_numpy(k7.end_to_end()).shape == (7,)
+
+
+def test_unknown_sweep_is_an_error():
+    with pytest.raises(SystemExit, match="expected some of K,N,T, got X"):
+        sweep.cases(gputrack.device("numpy"), args_for(sweep="K,X"))
+
+
+def test_scaled_batch_keeps_the_poses_and_adds_noise():
+    rng = np.random.default_rng(0)
+    tf = rng.normal(size=(5, 2, 3, 4)).astype(np.float32)
+    out = sweep._scaled(tf, 12, rng)
+    assert out.shape == (12, 2, 3, 4) and out.dtype == np.float32
+    np.testing.assert_array_equal(out[7, :, :, :3], tf[2, :, :, :3])  # rotations repeat
+    assert not np.array_equal(out[7, :, :, 3], tf[2, :, :, 3])  # translations get fresh noise
+
+
+def fake_doc():
+    def row(spec, s, x, ms, ref=None):
+        r = {"case": f"{s} {x}", "spec": spec, "params": {"sweep": s, "x": x},
+             "device": {"median_ms": ms, "p10_ms": ms * 0.9, "p90_ms": ms * 1.2, "reps": 5}}  # fmt: skip
+        if ref is not None:
+            r["reference"] = {"median_ms": ref, "p10_ms": ref, "p90_ms": ref, "reps": 5}
+        return r
+
+    runs = [
+        {"results": [row(spec, "K", x, f * x / 100, ref=x / 10) for x in (100, 1000)] + [row(spec, "T", 1000, f)]}
+        for spec, f in (("opencl", 1.0), ("taichi:cpu", 2.0))
+    ]
+    return {"commit": "abc1234", "date": "2026-01-01T00:00:00+00:00", "runs": runs}
+
+
+def test_plot_writes_a_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    path = tmp_path / "sweep.png"
+    assert sweep.plot(fake_doc(), str(path)) is True
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plot_without_matplotlib_is_skipped_with_a_message(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    path = tmp_path / "sweep.png"
+    assert sweep.plot(fake_doc(), str(path)) is False
+    assert not path.exists()
+    assert "matplotlib is not installed: skipping the plot" in capsys.readouterr().err
+
+
+def test_tables_layout_has_one_column_per_device_and_ms_per_frame():
+    def doc(spec, scale):
+        stages = [{"name": "upload frame", "total_ms": 2.0 * scale}, {"name": "PF stage 1", "total_ms": 10.0 * scale}]
+        if spec != "numpy":
+            stages.append({"name": "LM", "total_ms": 4.0 * scale})
+        return {"device": {"spec": spec}, "config": {"frames": 2}, "stages": stages, "frame_ms": [7.0, 9.0, 100.0]}
+
+    text = sweep.format_tables([doc("numpy", 10), doc("opencl", 1)])
+    lines = text.splitlines()
+    assert lines[0].split()[-2:] == ["numpy", "opencl"]
+    assert lines[2].split()[-2:] == ["10.000", "1.000"]  # upload frame: total / frames
+    assert lines[3].split()[-2:] == ["50.000", "5.000"]
+    assert lines[4].split()[-2:] == ["-", "2.000"]  # a stage a device did not run
+    assert lines[5].split()[-2:] == ["9.000", "9.000"]  # median frame
+
+
+def test_sweep_script_end_to_end_json(tmp_path):
+    """The script as users run it: one subprocess per device, JSON with the harness's schema."""
+    out = tmp_path / "sweep.json"
+    cmd = [sys.executable, str(SCRIPT), "--device", "numpy", "--sweep", "K,T", "--k", "5", "--t", "7",
+           "--min-time", "0.001", "--json", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "K: rgbd_cost K=5" in proc.stdout and "x numpy" in proc.stdout
+    doc = json.loads(out.read_text())
+    assert doc["schema"] == "gputrack-bench/1" and doc["bench"] == "sweep"
+    assert {"commit", "date", "versions", "host"} <= set(doc)
+    (run,) = doc["runs"]
+    assert run["device"]["spec"] == "numpy"
+    assert [(r["params"]["sweep"], r["params"]["x"]) for r in run["results"]] == [("K", 5), ("T", 7)]
+    for r in run["results"]:
+        assert {"median_ms", "p10_ms", "p90_ms", "reps"} <= set(r["device"])
+        assert r["device"]["p10_ms"] <= r["device"]["median_ms"] <= r["device"]["p90_ms"]
