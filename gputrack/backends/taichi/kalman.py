@@ -3,11 +3,15 @@
 The small matrix algebra (n <= 12, m <= 6) is unrolled at compile time (n, m are template
 arguments), so each (n, m, dtype, shared/per-track layout, options) combination compiles once.
 Shared matrices are (n,n) ndarrays and per-track ones (T,n,n); the kernel reads either through
-:func:`_get`, chosen at compile time from the ndarray's dimension. Zero entries of F and H are
-skipped at run time (a branch that is perfectly predicted for shared matrices): the
-constant-velocity F and a selection H are mostly zeros, which cuts the work by about three.
+:func:`_get`, chosen at compile time from the ndarray's dimension. The known zero entries of a
+shared F, Q, H and R (bitmask template arguments ``fpat`` .. ``rpat``, -1 = dense) are left out
+at compile time: the constant-velocity F and Q, a selection H and a diagonal R are mostly zeros,
+which removes about half of the work. Run-time branches on zero entries were tried and were
+slower (they keep LLVM from optimising the unrolled code).
 The numerics follow gputrack/backends/reference/kalman.py step for step (see its docstring).
-Arguments an op does not use are passed as ``x`` (never read).
+Arguments an op does not use are passed as ``x`` (never read). Note: a whole local matrix
+re-assigned inside an ``if ti.static(...)`` block did not reach the code after the block in
+Taichi 1.7.4; results computed in such blocks are copied element by element.
 """
 
 import numpy as np
