@@ -132,6 +132,7 @@ class BodyTracker:
         angle[[i for part in self.chain.parts for i in part.angles]] = True
         self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
         self._sparsity = None
+        self._buffers = {}  # device arrays reused as out= of the ops, keyed by op and shape
 
     # -- helpers ---------------------------------------------------------------------------------
     def _groups(self) -> list[np.ndarray]:
@@ -174,18 +175,31 @@ class BodyTracker:
         parts = np.concatenate([rgb.part, dep.part])
         self._sparsity = self.chain.jacobian_sparsity(parts)
 
+    def _reuse(self, key, value):
+        """Keep an op's result as the ``out=`` buffer of the next call with the same key (saves allocations)."""
+        self._buffers[key] = value
+        return value
+
+    def _poses(self, params):
+        key = ("fk", params.shape, np.dtype(params.dtype).name)
+        return self._reuse(key, forward_kinematics(self.device, self.chain, params, out=self._buffers.get(key)))
+
     def _cost(self, transforms, gray, depth):
         rgb, dep = self._templates
-        return rgbd_cost(self.device, transforms, rgb, dep, gray, depth, self.camera, lam=self.config.lam,
-                         c_depth=self.config.c_depth)  # fmt: skip
+        key = ("cost", transforms.shape[0])
+        return self._reuse(key, rgbd_cost(self.device, transforms, rgb, dep, gray, depth, self.camera,
+                                          lam=self.config.lam, c_depth=self.config.c_depth,
+                                          out=self._buffers.get(key)))  # fmt: skip
 
     def _residuals(self, gray, depth):
         rgb, dep = self._templates
-        dev, chain, cfg = self.device, self.chain, self.config
+        dev, cfg = self.device, self.config
 
         def residuals(points):
-            transforms = forward_kinematics(dev, chain, points)
-            return rgbd_residuals(dev, transforms, rgb, dep, gray, depth, self.camera, lam=cfg.lam, c_depth=cfg.c_depth)
+            key = ("residuals", points.shape[0], rgb.n + dep.n)
+            r = rgbd_residuals(dev, self._poses(points), rgb, dep, gray, depth, self.camera, lam=cfg.lam,
+                               c_depth=cfg.c_depth, out=self._buffers.get(key))  # fmt: skip
+            return self._reuse(key, r)
 
         return residuals
 
@@ -221,7 +235,7 @@ class BodyTracker:
                     with pipe.stage(f"PF stage {s + 1}"):
                         seed = int(self._rng.integers(2**63))
                         samples = sample_around(dev, cand, sigma, cfg.samples, seed, keep_candidates=True)
-                        cost = self._cost(forward_kinematics(dev, self.chain, samples), g, d)
+                        cost = self._cost(self._poses(samples), g, d)
                         best = best_k(dev, cost.total, cfg.candidates, rows=samples)
                         cand = best.rows
             if cfg.lm_iterations:
