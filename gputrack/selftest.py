@@ -19,6 +19,7 @@ CHECKS = [
     ("kinematics", "gputrack.ops.kinematics:_selftest"),
     ("template", "gputrack.ops.template:_selftest"),
     ("lm", "gputrack.ops.lm:_selftest"),
+    ("kalman", "gputrack.ops.kalman:_selftest"),
 ]
 
 

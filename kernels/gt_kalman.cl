@@ -12,6 +12,46 @@
 //                 F, Q, H and R (all ones when unknown); known zeros are skipped at compile time
 //   PD_TOL        PD_EPS_FACTOR * machine epsilon of REAL
 
+// Defaults: a plain build (no -D options, as host/doctor.py does) gives the float32 linear update
+// of the papers' constant-velocity model (N = 6, M = 3, shared dense matrices).
+#ifndef REAL
+#define REAL float
+#define REAL_IS_DOUBLE 0
+#endif
+#ifndef N
+#define N 6
+#endif
+#ifndef M
+#define M 3
+#endif
+#ifndef MODE
+#define MODE 1
+#endif
+#ifndef DO_PREDICT
+#define DO_PREDICT 0
+#endif
+#ifndef HAS_MASK
+#define HAS_MASK 0
+#endif
+#ifndef HAS_GAIN
+#define HAS_GAIN 0
+#endif
+#ifndef F_PT
+#define F_PT 0
+#define Q_PT 0
+#define H_PT 0
+#define R_PT 0
+#endif
+#ifndef FPAT
+#define FPAT 63u, 63u, 63u, 63u, 63u, 63u
+#define QPAT 63u, 63u, 63u, 63u, 63u, 63u
+#define HPAT 63u, 63u, 63u
+#define RPAT 7u, 7u, 7u
+#endif
+#ifndef PD_TOL
+#define PD_TOL 4.7683716e-07
+#endif
+
 #if REAL_IS_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #endif

@@ -21,6 +21,17 @@ def backend_module(device: Device, primitive: str):
     return importlib.import_module(f"gputrack.backends.{backend}.{primitive}")
 
 
+from .kalman import (  # noqa: E402
+    KalmanState,
+    KalmanStatus,
+    SharedMatrix,
+    constant_velocity,
+    ekf_update_stereo,
+    kf_predict,
+    kf_update,
+    mahalanobis,
+    shared_matrix,
+)
 from .kinematics import forward_kinematics  # noqa: E402
 from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
 from .particles import BestK, best_k, sample_around  # noqa: E402
@@ -29,20 +40,29 @@ from .template import Camera, RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per
 __all__ = [
     "BestK",
     "Camera",
+    "KalmanState",
+    "KalmanStatus",
     "LMStatus",
     "LeastSquaresResult",
     "RgbdCost",
+    "SharedMatrix",
     "SparseTemplate",
     "backend_module",
     "best_k",
+    "constant_velocity",
+    "ekf_update_stereo",
     "forward_kinematics",
+    "kf_predict",
+    "kf_update",
     "least_squares",
     "lm_solve",
     "lm_step",
+    "mahalanobis",
     "normal_equations",
     "patch_ncc",
     "patch_ncc_per_point",
     "rgbd_cost",
     "rgbd_residuals",
     "sample_around",
+    "shared_matrix",
 ]
