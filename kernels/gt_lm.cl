@@ -1,9 +1,26 @@
 // Batched Levenberg-Marquardt (paper 000 eq. 22-24; paper 003 eq. 8-9): the same steps as
 // gputrack/backends/reference/lm.py. Built with -DREAL=float|double (solver precision),
-// -DRTYPE (residual input type), -DJTYPE (Jacobian input type, with USE_JAC) and -DXTYPE
-// (points output type).
+// -DRTYPE (residual input type), -DJTYPE (Jacobian input type, with USE_JAC), -DXTYPE
+// (points output type) and -DX0TYPE (start points input type); each defaults to float (a plain
+// build, as host/doctor.py makes, gives the all-float32 variant).
 // One work-group per problem; its work-items share the O(P^2 M) normal equations by rows.
-#if defined(REAL_IS_DOUBLE) || defined(RTYPE_IS_DOUBLE) || defined(XTYPE_IS_DOUBLE) || defined(JTYPE_IS_DOUBLE)
+#ifndef REAL
+#define REAL float
+#endif
+#ifndef RTYPE
+#define RTYPE REAL
+#endif
+#ifndef XTYPE
+#define XTYPE REAL
+#endif
+#ifndef JTYPE
+#define JTYPE RTYPE
+#endif
+#ifndef X0TYPE
+#define X0TYPE REAL
+#endif
+
+#if defined(X0TYPE_IS_DOUBLE) || defined(REAL_IS_DOUBLE) || defined(RTYPE_IS_DOUBLE) || defined(XTYPE_IS_DOUBLE) || defined(JTYPE_IS_DOUBLE)
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #endif
 
@@ -157,7 +174,89 @@ static REAL gt_dot(__global const REAL *a, __global const REAL *b, const int M)
     return (s0 + s1) + (s2 + s3);
 }
 
-#define SB_(P, M) (7 * (P) + 2 * (P) * (P) + (P) * (M) + 8)
+#define SB_(P) (7 * (P) + 8)
+#define WB_(P, M) (2 * (P) * (P) + (P) * (M))
+
+// Rows of Xb (SX rows of P): the point src and, when SX > 1, its perturbed copies (eq. 24);
+// their denominators (over the stored, possibly rounded, points) into den.
+static void gt_lm_points(__global const REAL *src, __global REAL *den, __global const REAL *lo,
+                         __global const REAL *hi, __global const REAL *h, __global XTYPE *Xb, const int SX,
+                         const int P, const REAL rel)
+{
+    for (int row = 0; row < SX; ++row)
+        for (int n = 0; n < P; ++n)
+            Xb[row * P + n] = (XTYPE)src[n];
+    if (SX > 1) {
+        for (int n = 0; n < P; ++n) {
+            const REAL p = src[n];
+            REAL eps = h[n];
+            if (eps <= 0)
+                eps = rel * fmax(fabs(p), (REAL)1);
+            __global XTYPE *xp = Xb + (1 + 2 * n) * P;
+            xp[n] = (XTYPE)fmin(p + eps, hi[n]);
+            xp[P + n] = (XTYPE)fmax(p - eps, lo[n]);
+            den[n] = (REAL)xp[n] - (REAL)xp[P + n];
+        }
+    } else {
+        for (int n = 0; n < P; ++n)
+            den[n] = 0;
+    }
+}
+
+// Out[b] = x, F, C, status, iterations, reason
+static void gt_lm_export(__global const REAL *x, __global const REAL *sc, __global const int *ib,
+                         __global REAL *Ob, const int P)
+{
+    for (int n = 0; n < P; ++n)
+        Ob[n] = x[n];
+    Ob[P] = sc[0];
+    Ob[P + 1] = sc[1];
+    Ob[P + 2] = (REAL)ib[0];
+    Ob[P + 3] = (REAL)ib[1];
+    Ob[P + 4] = (REAL)ib[3];
+}
+
+// S and I from the start points X0 (B, P) and the constants K (gputrack.ops.lm.Layout); the
+// first points to evaluate into X (B*SX, P). One work-item per problem; nk = number of globals
+// and mask values in K.
+__kernel void gt_lm_init(__global const X0TYPE *X0, __global const REAL *K, __global REAL *S, __global int *I,
+                         __global XTYPE *X, const int B, const int P, const int SX, const int nk)
+{
+    const int b = get_global_id(0);
+    if (b >= B)
+        return;
+    const int SB = SB_(P), KB = 2 * P + 1;
+    __global const REAL *kh = K + (long)B * KB, *kg = kh + P;
+    if (b == 0) {
+        for (int t = 0; t < 8; ++t)
+            I[t] = 0;
+        I[1] = B;
+        I[2] = nk > 8;
+        I[3] = P;
+        for (int t = 0; t < nk; ++t)
+            S[(long)B * SB + t] = kg[t];
+    }
+    __global int *ib = I + 8 + b * (4 + P);
+    for (int t = 0; t < 4 + P; ++t)
+        ib[t] = 0;
+    __global REAL *Sb = S + (long)b * SB;
+    __global const REAL *Kb = K + (long)b * KB;
+    for (int n = 0; n < P; ++n) {
+        const REAL x = (REAL)X0[(long)b * P + n];
+        Sb[n] = x;
+        Sb[P + n] = x;
+        Sb[2 * P + n] = 0;
+        Sb[4 * P + n] = Kb[n];
+        Sb[5 * P + n] = Kb[P + n];
+        Sb[6 * P + n] = kh[n];
+    }
+    __global REAL *sc = Sb + 7 * P;
+    for (int k = 0; k < 8; ++k)
+        sc[k] = 0;
+    sc[1] = Kb[2 * P];  // C
+    sc[2] = 2;  // nu
+    gt_lm_points(Sb, Sb + 3 * P, Sb + 4 * P, Sb + 5 * P, Sb + 6 * P, X + (long)b * SX * P, SX, P, kg[3]);
+}
 
 // 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group)
 static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __global REAL *den,
@@ -218,41 +317,26 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
             sc[3] = pr;
         }
     }
-    __global const REAL *src = ib[0] == RUNNING ? xt : x;
-    for (int row = 0; row < SX; ++row)
-        for (int n = 0; n < P; ++n)
-            Xb[row * P + n] = (XTYPE)src[n];
-    if (SX > 1) {
-        for (int n = 0; n < P; ++n) {
-            const REAL p = src[n];
-            REAL eps = h[n];
-            if (eps <= 0)
-                eps = rel * fmax(fabs(p), (REAL)1);
-            __global XTYPE *xp = Xb + (1 + 2 * n) * P;
-            xp[n] = (XTYPE)fmin(p + eps, hi[n]);
-            xp[P + n] = (XTYPE)fmax(p - eps, lo[n]);
-            den[n] = (REAL)xp[n] - (REAL)xp[P + n];
-        }
-    } else {
-        for (int n = 0; n < P; ++n)
-            den[n] = 0;
-    }
+    gt_lm_points(ib[0] == RUNNING ? xt : x, den, lo, hi, h, Xb, SX, P, rel);
 }
 
 // One LM iteration for every running problem. R: (B*SR, M) residuals of the last call
 // (SR = 2P+1: trial point and perturbed copies; SR = 1: trial point only, with Jg its Jacobian
 // (B, M, P) when USE_JAC, or the last call when FINAL). X: (B*SX, P) receives the next points.
-__kernel void gt_lm_update(__global REAL *S, __global int *I, __global XTYPE *X, __global const RTYPE *R,
-                           __global const JTYPE *Jg, const int SR, const int SX, const int first, const int final_)
+// S small state, W workspace (device only), Out (B, P + 5) the result (gputrack.ops.lm.Layout).
+__kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, __global XTYPE *X,
+                           __global const RTYPE *R, __global const JTYPE *Jg, __global REAL *Out, const int M,
+                           const int SR, const int SX, const int first, const int final_)
 {
     const int b = get_group_id(0), lid = get_local_id(0), ls = get_local_size(0);
-    const int B = I[1], has_mask = I[2], P = I[3], M = I[4];
-    const int SB = SB_(P, M);
+    const int B = I[1], has_mask = I[2], P = I[3];
+    const int SB = SB_(P);
     __global REAL *Sb = S + (long)b * SB;
     __global REAL *x = Sb, *xt = Sb + P, *g = Sb + 2 * P, *den = Sb + 3 * P;
     __global REAL *lo = Sb + 4 * P, *hi = Sb + 5 * P, *h = Sb + 6 * P;
-    __global REAL *A = Sb + 7 * P, *L = Sb + 7 * P + P * P, *Jt = Sb + 7 * P + 2 * P * P;
-    __global REAL *sc = Jt + P * M;  // F, C, nu, pred, Ft, snorm
+    __global REAL *Wb = W + (long)b * WB_(P, M);
+    __global REAL *A = Wb, *L = Wb + P * P, *Jt = Wb + 2 * P * P;
+    __global REAL *sc = Sb + 7 * P;  // F, C, nu, pred, Ft, snorm
     __global const REAL *G = S + (long)B * SB;
     __global const REAL *mask = G + 8;
     __global int *ib = I + 8 + b * (4 + P);  // status, iterations, accepted, reason, fin[P]
@@ -404,6 +488,9 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global XTYPE *X,
         }
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
-    if (lid == 0 && !final_)
-        gt_lm_next(x, xt, g, den, lo, hi, h, A, L, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax);
+    if (lid == 0) {
+        if (!final_)
+            gt_lm_next(x, xt, g, den, lo, hi, h, A, L, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax);
+        gt_lm_export(x, sc, ib, Out + (long)b * (P + 5), P);
+    }
 }

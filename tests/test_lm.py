@@ -450,8 +450,91 @@ def test_device_residual_and_no_download_per_iteration(device):
     if device.backend != "numpy":
         lay = Layout(2, 2, 2)
         dt = np.dtype(out.dtype)
-        assert moved_d2h == moved["d2h"] + lay.s_size(False) * dt.itemsize + lay.i_size() * 4
+        assert moved_d2h == moved["d2h"] + 2 * lay.OB * dt.itemsize  # the result block only
     np.testing.assert_allclose(out.x, 1.0, atol=1e-6)
+
+
+def _linear_problems(B, P, M, seed=3):
+    """B linear least-squares problems r = X A_b^T - y_b with M residuals (host residual function
+    that records its own traffic: X downloaded, its NumPy output uploaded by the solver)."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(B, M, P))
+    y = rng.normal(size=(B, M))
+    own = {"h2d": 0, "d2h": 0}
+
+    def res(X):
+        Xn = gputrack.to_numpy(X)
+        n = Xn.shape[0]
+        b = np.arange(n) // (n // B)
+        out = (np.einsum("bmp,bp->bm", A[b], Xn.astype(np.float64)) - y[b]).astype(Xn.dtype)
+        if not isinstance(X, np.ndarray):
+            own["d2h"] += Xn.nbytes
+            own["h2d"] += out.nbytes
+        return out
+
+    return res, own
+
+
+def _moved(device, fn, own, x0, **kw):
+    """Bytes the solver itself moved (the residual function's own traffic taken out)."""
+    before, own0 = device.transfers.copy(), dict(own)
+    out = least_squares(fn, x0, device=device, **kw)
+    d = device.transfers - before
+    return {"h2d": d.h2d - (own["h2d"] - own0["h2d"]), "d2h": d.d2h - (own["d2h"] - own0["d2h"])}, out
+
+
+@pytest.mark.parametrize("early_stop", [False, True])
+def test_a_solve_moves_its_inputs_and_results_only_independent_of_M(device, early_stop):
+    B, P = 3, 5
+    x0 = np.random.default_rng(0).normal(size=(B, P))  # not exact in float32
+    x0_32 = x0.astype(np.float32).astype(np.float64)  # exact in float32: uploaded as float32
+    moved = {}
+    for M in (256, 1280):
+        fn, own = _linear_problems(B, P, M)
+        kw = {"max_iter": 4, "early_stop": early_stop}
+        _moved(device, fn, own, x0, damping=1e-3, **kw)  # other constants in the pooled buffer
+        first, out = _moved(device, fn, own, x0, **kw)
+        again, out2 = _moved(device, fn, own, x0, **kw)  # same constants: not uploaded again
+        as32, _ = _moved(device, fn, own, x0_32, **kw)
+        np.testing.assert_array_equal(out.x, out2.x)
+        if device.backend == "numpy":
+            assert first == again == as32 == {"h2d": 0, "d2h": 0}
+            continue
+        dt = np.dtype(out.dtype)
+        lay = Layout(B, P, M)
+        checks = 0
+        if early_stop:  # one int-block download per iteration that did not end the loop
+            checks = out.nfev if out.nfev - 1 < kw["max_iter"] else out.nfev - 1
+        down = B * lay.OB * dt.itemsize + checks * lay.i_size() * 4
+        assert first == {"h2d": B * P * dt.itemsize + lay.k_size() * dt.itemsize, "d2h": down}
+        assert again == {"h2d": B * P * dt.itemsize, "d2h": down}
+        assert as32 == {"h2d": B * P * 4, "d2h": down}
+        moved[M] = (first, again, as32)
+    if device.backend != "numpy" and not early_stop:
+        assert moved[256] == moved[1280]
+
+
+def test_the_mask_is_part_of_the_cached_constants(device):
+    B, P, M = 2, 3, 13
+    fn, own = _linear_problems(B, P, M)
+    mask = np.ones((M, P), bool)
+    mask[::2, 0] = False
+    x0 = np.full((B, P), 0.5)
+    kw = {"max_iter": 3, "early_stop": False}
+    _moved(device, fn, own, x0, **kw)  # other constants (no mask: another K size)
+    first, out = _moved(device, fn, own, x0, jac_sparsity=mask, **kw)
+    again, _ = _moved(device, fn, own, x0, jac_sparsity=mask, **kw)
+    mask2 = mask.copy()
+    mask2[1, 1] = False
+    changed, _ = _moved(device, fn, own, x0, jac_sparsity=mask2, **kw)
+    if device.backend == "numpy":
+        assert first == again == changed == {"h2d": 0, "d2h": 0}
+        return
+    dt = np.dtype(out.dtype)
+    k = Layout(B, P, M, has_mask=True).k_size() * dt.itemsize
+    assert k == (B * (2 * P + 1) + P + 8 + M * P) * dt.itemsize
+    x = B * P * 4  # 0.5 is exact in float32
+    assert (first["h2d"], again["h2d"], changed["h2d"]) == (x + k, x, x + k)
 
 
 def test_x0_on_the_device(device):

@@ -5,8 +5,11 @@ Cases per (P, M), each timed on the device with the NumPy reference in the same 
 - ``lm_solve``: normal equations + damped Cholesky step (the public fused op, J given as
   (B, M, P) on the device, outputs preallocated with ``out=``); peer: the same in batched NumPy
   (einsum + np.linalg.solve).
+- ``lm init``: the solver's per-solve initialisation launch (state from x0 and the constants,
+  the first 2P + 1 points per problem), inputs on the device.
 - ``lm iteration``: the solver's fused per-iteration launch (Jacobian from the stacked residuals,
-  J^T J, J^T r, acceptance, damping, damped Cholesky step, next points), residuals on the device.
+  J^T J, J^T r, acceptance, damping, damped Cholesky step, next points, result block), residuals
+  on the device.
 - ``least_squares 10 it RGB-D``: a whole 10-iteration solve (``early_stop=False``: exactly 11
   residual calls) whose residuals are paper 000's RGB-D template residuals (eq. 20-21) of the
   upper-body model (forward kinematics + ``rgbd_residuals``, float32 points, N = N' = M / 2), on a
@@ -84,7 +87,7 @@ def cases(device, args):
     import gputrack
 
     from ..ops import lm
-    from ..ops.lm import Layout, _first_den, _initial_points, _pack, least_squares
+    from ..ops.lm import Layout, _constants, least_squares
 
     ref = gputrack.device("numpy")
     dt = np.float64 if device.fp64 else np.float32
@@ -116,16 +119,33 @@ def cases(device, args):
             )
             # 2. the solver's per-iteration launch, residuals already on the device
             lay = Layout(B, P, M)
-            x0 = rng.normal(size=(B, P))
+            x0 = rng.normal(size=(B, P)).astype(dt)
             lo, hi, h = np.full((B, P), -np.inf), np.full((B, P), np.inf), np.zeros(P)
-            S, I = _pack(lay, x0, lo, hi, h, np.full(B, 1e-5), (1e-8, 1e-8, 1e-8), np.dtype(dt), None)
-            pts = _initial_points(x0, lo, hi, h, np.dtype(dt), np.dtype(dt), 2 * P + 1)
-            _first_den(lay, S, pts, 2 * P + 1)
+            K = _constants(lay, lo, hi, h, np.full(B, 1e-5), (1e-8, 1e-8, 1e-8), np.dtype(dt))
             R = rng.normal(size=(B * (2 * P + 1), M)).astype(np.float32)
             be, be_ref = lm.backend_module(device, "lm"), lm.backend_module(ref, "lm")
-            st, st_ref = be.solver_state(device, lay, S, I), be_ref.solver_state(ref, lay, S, I)
-            Xd, Rd = device.asarray(pts), device.asarray(R)
-            Xr = pts.copy()
+
+            def state(dev, be, empty):
+                st = be.solver_state(
+                    dev, lay, empty((lay.s_size(),), dt), empty((lay.i_size(),), np.int32), empty((B, lay.OB), dt)
+                )
+                be.solver_workspace(st, lay, empty((lay.w_size(),), dt))
+                return st
+
+            st, st_ref = state(device, be, device.empty), state(ref, be_ref, np.empty)
+            Kd, X0d, Rd = device.asarray(K), device.asarray(x0), device.asarray(R)
+            Xd, Xr = device.empty((B * (2 * P + 1), P), dt), np.empty((B * (2 * P + 1), P), dt)
+            be.solver_init(st, X0d, Kd, Xd)
+            be_ref.solver_init(st_ref, x0, K, Xr)
+            if M == (args.residuals or [256])[0]:
+                out.append(
+                    Case(
+                        f"lm init B={B} P={P}",
+                        run=lambda st=st, X0d=X0d, Kd=Kd, Xd=Xd, be=be: be.solver_init(st, X0d, Kd, Xd),
+                        reference=lambda st=st_ref, x0=x0, K=K, Xr=Xr, be=be_ref: be.solver_init(st, x0, K, Xr),
+                        params={"B": B, "P": P, "dtype": np.dtype(dt).name},
+                    )
+                )
             out.append(
                 Case(
                     f"lm iteration B={B} M={M} P={P}",

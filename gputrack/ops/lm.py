@@ -123,44 +123,82 @@ class LeastSquaresResult:
 
 
 class Layout:
-    """Offsets of the solver state packed into one float array S and one int32 array I.
+    """Offsets of the solver's arrays (shared by every backend).
 
-    Packing keeps a solver launch at four array arguments (S, I, X, R) whatever the problem:
-    on taichi:cpu every ndarray argument costs ~25 us of launch overhead.
+    A solve moves only what carries information. Up: X0 and K (K only when it differs from the
+    last K uploaded into the same pooled buffer, see :meth:`_Pool.upload_cached`: a solve with
+    the settings of the previous one, e.g. a tracker's next frame, uploads X0 only). Down: Out at
+    the end, and with ``early_stop`` the int block I after each iteration. S, W and I live only
+    on the device: ``solver_init`` fills S and I from X0 and K in one launch (and writes the first
+    points to evaluate), W is written by the iterations before it is read.
 
-    S (float, solver dtype), per problem b a block of ``SB`` values at ``b*SB``:
-    x[P] accepted point, xt[P] trial point, g[P] = J^T r at x, den[P] finite-difference
-    denominators of the pending points, lo[P], hi[P] bounds, h[P] absolute steps (0: relative),
-    A[P*P] = J^T J at x (lower triangle used), L[P*P] Cholesky factor, Jt[P*M] = J^T at the
-    last evaluated point, then 8 scalars F (cost at x), C (damping), nu (damping growth),
-    pred (predicted reduction of the trial), Ft (trial cost), snorm, spare, spare.
-    After the B blocks, 8 globals: ftol, xtol, gtol, rel (relative step), ctiny, cmax, spare,
-    spare; then the Jacobian mask M*P (1.0 where computed) when ``has_mask``.
+    K (float, solver dtype; uploaded, ``k_size()`` values): per problem b a block of
+    ``KB = 2P + 1`` values at ``b*KB``: lo[P], hi[P] bounds (clamped to the dtype's finite range),
+    c0 initial damping; then h[P] absolute steps (0: relative); then 8 globals ftol, xtol, gtol,
+    rel (relative step), ctiny, cmax, spare, spare; then the Jacobian mask M*P (1.0 where
+    computed) when ``has_mask``.
 
-    I (int32): 8 globals [active, B, has_mask, P, M, spare...], then per problem ``IB = 4 + P``
-    values: status, iterations, accepted, reason, fin[P] (finite flags of the perturbed rows).
+    X0 (B, P) start points (uploaded): float32 when every value is exactly a float32 (a
+    tracker's float32 poses), else the solver dtype.
+
+    S (float; device only, ``s_size()`` values): per problem b a block of ``SB = 7P + 8`` values
+    at ``b*SB``: x[P] accepted point, xt[P] trial point, g[P] = J^T r at x, den[P]
+    finite-difference denominators of the pending points, lo[P], hi[P], h[P] (copied from K),
+    then 8 scalars F (cost at x), C (damping), nu (damping growth), pred (predicted reduction of
+    the trial), Ft (trial cost), snorm, spare, spare. After the B blocks the 8 globals (copied
+    from K); then the mask M*P when ``has_mask``.
+
+    W (float; device only, ``w_size()`` values, allocated once M is known): per problem b a
+    block of ``WB = 2 P^2 + P M`` values at ``b*WB``: A[P*P] = J^T J at x (both triangles),
+    L[P*P] Cholesky factor, Jt[P*M] = J^T at the last evaluated point (rows of J^T contiguous).
+
+    I (int32; device only, downloaded whole by each ``early_stop`` check, ``i_size()`` values):
+    8 globals [spare, B, has_mask, P, spare...], then per problem ``IB = 4 + P`` values: status,
+    iterations, accepted, reason, fin[P] (finite flags of the perturbed rows). The kernels take
+    M from the residual array, not from I (I is written before the first call fixes M).
+
+    Out (B, OB = P + 5) (float; downloaded once at the end): x[P], F, C, status, iterations,
+    reason of each problem (the codes are small integers, exact in float32); every update
+    launch rewrites it, so it is current whenever the loop stops.
+
+    Bytes per solve on a device: up ``X0.nbytes`` + (``k_size() * itemsize`` unless cached);
+    down ``B * OB * itemsize`` + ``i_size() * 4`` per ``early_stop`` check. Independent of M
+    without a mask.
     """
 
     NSCAL = 8
     NGLOB = 8
 
-    def __init__(self, B: int, P: int, M: int):
-        self.B, self.P, self.M = B, P, M
+    def __init__(self, B: int, P: int, M: int = 0, has_mask: bool = False):
+        self.B, self.P, self.M, self.has_mask = B, P, M, bool(has_mask)
         self.x, self.xt, self.g, self.den = 0, P, 2 * P, 3 * P
         self.lo, self.hi, self.h = 4 * P, 5 * P, 6 * P
-        self.A = 7 * P
-        self.L = 7 * P + P * P
-        self.Jt = 7 * P + 2 * P * P
-        self.scal = self.Jt + P * M
+        self.scal = 7 * P
         self.F, self.C, self.nu, self.pred, self.Ft, self.snorm = (self.scal + i for i in range(6))
         self.SB = self.scal + self.NSCAL
         self.glob = B * self.SB
         self.mask = self.glob + self.NGLOB
+        # W
+        self.A, self.L, self.Jt = 0, P * P, 2 * P * P
+        self.WB = 2 * P * P + P * M
+        # K
+        self.KB = 2 * P + 1
+        self.kh = B * self.KB
+        self.kglob = self.kh + P
+        self.kmask = self.kglob + self.NGLOB
+        # I, Out
         self.IB = 4 + P
         self.ib = 8  # first per-problem int block
+        self.OB = P + 5
 
-    def s_size(self, has_mask: bool) -> int:
-        return self.mask + (self.M * self.P if has_mask else 0)
+    def s_size(self) -> int:
+        return self.mask + (self.M * self.P if self.has_mask else 0)
+
+    def w_size(self) -> int:
+        return self.B * self.WB
+
+    def k_size(self) -> int:
+        return self.kmask + (self.M * self.P if self.has_mask else 0)
 
     def i_size(self) -> int:
         return self.ib + self.B * self.IB
@@ -172,17 +210,20 @@ class Layout:
     def vec(self, S, off, n=None):
         return self.block(S)[:, off : off + (self.P if n is None else n)]
 
-    def mat(self, S, off, rows, cols):
-        return self.block(S)[:, off : off + rows * cols].reshape(self.B, rows, cols)
-
     def sc(self, S, off):
         return self.block(S)[:, off]
+
+    def wmat(self, W, off, rows, cols):
+        return W.reshape(self.B, self.WB)[:, off : off + rows * cols].reshape(self.B, rows, cols)
 
     def iblock(self, I: np.ndarray) -> np.ndarray:
         return I[self.ib : self.ib + self.B * self.IB].reshape(self.B, self.IB)
 
     def maskview(self, S):
         return S[self.mask : self.mask + self.M * self.P].reshape(self.M, self.P)
+
+    def kblock(self, K):
+        return K[: self.kh].reshape(self.B, self.KB)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -334,7 +375,7 @@ def least_squares(
     """Minimise sum_m r_m(x_b)^2 for B problems at once by Levenberg-Marquardt.
 
     x0: (B, P) start points, NumPy (or a DeviceArray of ``device``, downloaded once: the
-    bounds are applied and the state packed on the host). Returns a :class:`LeastSquaresResult`
+    bounds are applied on the host). Returns a :class:`LeastSquaresResult`
     (NumPy arrays).
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
@@ -391,12 +432,18 @@ def least_squares(
     elsewhere; ``result.dtype`` says which. ``points_dtype=np.float32`` hands float32 points to a
     float32 residual function (the differences are then taken over the rounded points).
 
-    **Traffic**: state lives on the device; x0, bounds and settings are uploaded once. Per
-    iteration the residual function's output stays on the device (a NumPy output is uploaded,
-    counted) and, with ``early_stop`` (default), the small int32 status block (8 + B (P + 4)
-    values) is downloaded to decide whether every problem has stopped. ``early_stop=False``
-    downloads nothing until the end (stopped problems stay frozen on the device; the batch runs
-    ``max_iter`` iterations). The result is downloaded once at the end.
+    **Traffic**: the solver state and its workspace (J^T J, the Cholesky factor, J^T: O(B P M)
+    values) live only on the device and are initialised there; the first points to evaluate are
+    computed there too. A solve uploads x0 (B P values, as float32 when that is exact) and the
+    constants (bounds, steps, initial damping, tolerances, the Jacobian mask), the constants only
+    when they differ from those of the previous solve of the same shapes on the device (cached
+    in its buffer pool). Per iteration the residual function's output stays on the device (a
+    NumPy output is uploaded, counted) and, with ``early_stop`` (default), the small int32
+    status block (8 + B (P + 4) values) is downloaded to decide whether every problem has
+    stopped. ``early_stop=False`` downloads nothing until the end (stopped problems stay frozen
+    on the device; the batch runs ``max_iter`` iterations). The result, B (P + 5) values (x,
+    cost, damping, status, iterations, reason), is downloaded once at the end. Exact sizes:
+    :class:`Layout`.
 
     **Bad input**: NaN/inf in x0, a non-float x0, x0 not (B, P), P = 0, a residual output of the
     wrong shape or dtype (cannot be attributed to one problem) and invalid settings raise
@@ -553,28 +600,33 @@ class _Solver:
 
     # -- loop ------------------------------------------------------------------------------------
     def run(self, x0, lo, hi, h, c0, max_iter, tols, early_stop, clipped):
-        B, P, dev, be = self.B, self.P, self.device, self.be
+        B, P, dev, be, dt = self.B, self.P, self.device, self.be, self.dt
         central = self.jac is None
         S_rows = 2 * P + 1 if central else 1
-        pts = _initial_points(x0, lo, hi, h, self.dt, self.pdt, S_rows)
+        mask = self.mask
+        lay = Layout(B, P, mask.shape[0] if mask is not None else 0, mask is not None)
+        K = _constants(lay, lo, hi, h, c0, tols, dt, self.pdt, mask)
+        x0_32 = x0.astype(np.float32)
+        x0_up = x0_32 if np.array_equal(x0_32, x0) else x0.astype(dt)  # float32 when exact
         pool = _Pool(dev)
         try:
-            X_full = pool.upload(pts)
+            K_d = pool.upload_cached(K)
+            X0_d = pool.upload(x0_up)
+            X_full = pool.empty((B * S_rows, P), self.pdt)
             X_last = X_full if S_rows == 1 else pool.empty((B, P), self.pdt)
+            state = be.solver_state(
+                dev, lay, pool.empty((lay.s_size(),), dt), pool.empty((lay.i_size(),), np.int32),
+                pool.empty((B, lay.OB), dt),
+            )  # fmt: skip
             need_full = need_last = None
             if self.rows_protocol:
                 need_full, need_last = (pool.upload(a) for a in self._need(S_rows))
-            # the first call fixes M; its points are x0 (and the perturbed points around it)
-            if max_iter > 0:
-                first_X, first_need = X_full, need_full
-            else:
-                first_X, first_need = pool.upload(np.ascontiguousarray(pts[::S_rows])), need_last
-            R = self._call(first_X, first_need)
-            lay = Layout(B, P, self.M)
-            S, I = _pack(lay, x0, lo, hi, h, c0, tols, self.dt, self.mask, self.pdt)
-            # denominators of the first points (same rounding as the kernels: over the stored points)
-            _first_den(lay, S, pts, S_rows)
-            state = be.solver_state(dev, lay, pool.upload(S), pool.upload(I))
+            # the first points: x0 (and the perturbed points around it), written on the device
+            first_X, first_need = (X_full, need_full) if max_iter > 0 else (X_last, need_last)
+            be.solver_init(state, X0_d, K_d, first_X)
+            R = self._call(first_X, first_need)  # fixes M
+            lay = Layout(B, P, self.M, mask is not None)
+            be.solver_workspace(state, lay, pool.empty((lay.w_size(),), dt))
             Jg = self._call_jac(first_X) if not central else None
             for it in range(max_iter + 1):
                 final = it == max_iter
@@ -587,25 +639,24 @@ class _Solver:
                 R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
                 if not central:
                     Jg = self._call_jac(nxt)
-            S, I = be.solver_result(state)
+            out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
         finally:
             pool.release()
-        ib = lay.iblock(I)
-        status = ib[:, 0].astype(np.int8)
+        status = out[:, P + 2].astype(np.int8)
         status[status == Status.RUNNING] = Status.MAX_ITER  # stopped early only when none is running
-        reason = ib[:, 3].astype(np.int8)
+        reason = out[:, P + 4].astype(np.int8)
         reason[(reason == 0)] = 4
         return LeastSquaresResult(
-            x=lay.vec(S, lay.x).astype(self.dt, copy=True),
-            cost=lay.sc(S, lay.F).astype(self.dt, copy=True),
-            iterations=ib[:, 1].astype(np.int32),
+            x=out[:, :P].astype(dt, copy=True),
+            cost=out[:, P].astype(dt, copy=True),
+            iterations=out[:, P + 3].astype(np.int32),
             status=status,
             reason=reason,
-            damping=lay.sc(S, lay.C).astype(self.dt, copy=True),
+            damping=out[:, P + 1].astype(dt, copy=True),
             nfev=self.nfev,
             njev=self.njev,
             npoints=self.npoints,
-            dtype=self.dt,
+            dtype=dt,
             x0_clipped=clipped,
         )
 
@@ -622,20 +673,21 @@ class _Solver:
 class _Pool:
     """Device buffers of a solve, reused by the next solve of the same shapes on the same device.
 
-    Allocating a Taichi ndarray costs ~0.5 ms, a solve needs four. Buffers are taken out of the
+    Allocating a Taichi ndarray costs ~0.5 ms, a solve needs seven. Buffers are taken out of the
     per-device pool for the duration of a solve (a nested solve allocates its own) and put back
     at the end. Uploads into a reused buffer are counted in ``device.transfers`` like any other.
     """
 
     _free: ClassVar[weakref.WeakKeyDictionary] = weakref.WeakKeyDictionary()
+    _sent: ClassVar[weakref.WeakKeyDictionary] = weakref.WeakKeyDictionary()  # cached uploads
 
     def __init__(self, device):
         self.device = device
         self.taken: list = []
 
-    def _take(self, shape, dtype):
+    def _take(self, shape, dtype, kind="work"):
         dev = self.device
-        key = (tuple(shape), np.dtype(dtype).name)
+        key = (kind, tuple(shape), np.dtype(dtype).name)
         free = self._free.setdefault(dev, {}).get(key)
         arr = free.pop() if free else dev.empty(shape, dtype)
         self.taken.append((key, arr))
@@ -655,6 +707,27 @@ class _Pool:
         dev.transfers.h2d += host.nbytes
         return arr
 
+    def upload_cached(self, host):
+        """Like :meth:`upload`, but skips the copy when the buffer handed out already holds ``host``.
+
+        Buffers for cached uploads come from their own free list (never written by a kernel);
+        each remembers the host copy it was last given. A solve with the same shapes and the same
+        constants as an earlier one on this device then uploads nothing for them.
+        """
+        dev = self.device
+        if dev.backend == "numpy":
+            return host
+        host = np.ascontiguousarray(host)
+        arr = self._take(host.shape, host.dtype, "cached")
+        sent = self._sent.setdefault(dev, {})
+        prev = sent.get(id(arr))
+        if prev is not None and prev[0] is arr and np.array_equal(prev[1], host):
+            return arr
+        backend_module(dev, "lm").upload_into(dev, arr, host)
+        dev.transfers.h2d += host.nbytes
+        sent[id(arr)] = (arr, host.copy())
+        return arr
+
     def release(self):
         if self.device.backend == "numpy" or self.device.closed:
             return
@@ -670,51 +743,25 @@ def _rel_step(dt, pdt=None) -> float:
     return DEFAULT_REL_STEP[np.dtype(low).name]
 
 
-def _initial_points(x0, lo, hi, h, dt, pdt, S_rows):
-    """(B*S_rows, P) points: x0 and, when S_rows > 1, its perturbed copies (same rule as the kernels)."""
-    x = x0.astype(dt)
-    B, P = x.shape
-    out = np.repeat(x.astype(pdt), S_rows, axis=0).reshape(B, S_rows, P)
-    if S_rows > 1:
-        xp, xm = perturbed(x, lo.astype(dt), hi.astype(dt), h.astype(dt), _rel_step(dt, pdt))
-        for n in range(P):
-            out[:, 1 + 2 * n, n] = xp[:, n]
-            out[:, 2 + 2 * n, n] = xm[:, n]
-    return out.reshape(B * S_rows, P)
-
-
 def perturbed(x, lo, hi, h, rel):
     """eq. 24 points x_n +- eps_n clipped into the box; eps_n = h_n, or rel * max(|x_n|, 1) when h_n = 0."""
     eps = np.where(h > 0, h, rel * np.maximum(np.abs(x), 1).astype(x.dtype)).astype(x.dtype)
     return np.minimum(x + eps, hi).astype(x.dtype), np.maximum(x - eps, lo).astype(x.dtype)
 
 
-def _first_den(lay, S, pts, S_rows):
-    den = lay.vec(S, lay.den)
-    if S_rows == 1:
-        den[:] = 0
-        return
-    X = pts.reshape(lay.B, S_rows, lay.P).astype(S.dtype)
-    for n in range(lay.P):
-        den[:, n] = X[:, 1 + 2 * n, n] - X[:, 2 + 2 * n, n]
-
-
-def _pack(lay, x0, lo, hi, h, c0, tols, dt, mask, pdt=None):
-    S = np.zeros(lay.s_size(mask is not None), dtype=dt)
-    I = np.zeros(lay.i_size(), dtype=np.int32)
-    lay.vec(S, lay.x)[:] = x0
-    lay.vec(S, lay.xt)[:] = x0
-    lay.vec(S, lay.lo)[:] = np.maximum(lo, np.finfo(dt).min)
-    lay.vec(S, lay.hi)[:] = np.minimum(hi, np.finfo(dt).max)
-    lay.vec(S, lay.h)[:] = h
-    lay.sc(S, lay.C)[:] = c0
-    lay.sc(S, lay.nu)[:] = 2.0
-    g = S[lay.glob : lay.glob + lay.NGLOB]
-    g[:6] = (*tols, _rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
+def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None):
+    """The constants array K of a solve (see :class:`Layout`), on the host."""
+    K = np.zeros(lay.k_size(), dtype=dt)
+    kb = lay.kblock(K)
+    P = lay.P
+    kb[:, :P] = np.maximum(lo, np.finfo(dt).min)
+    kb[:, P : 2 * P] = np.minimum(hi, np.finfo(dt).max)
+    kb[:, 2 * P] = c0
+    K[lay.kh : lay.kh + P] = h
+    K[lay.kglob : lay.kglob + 6] = (*tols, _rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
     if mask is not None:
-        lay.maskview(S)[:] = mask
-    I[1], I[2], I[3], I[4] = lay.B, int(mask is not None), lay.P, lay.M
-    return S, I
+        K[lay.kmask : lay.kmask + lay.M * P] = np.asarray(mask, dtype=dt).ravel()
+    return K
 
 
 # ------------------------------------------------------------------------------------------------

@@ -12,21 +12,24 @@ RUNNING = 0
 _CTYPE = {"float32": "float", "float64": "double"}
 
 
-def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False):
+def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0type=None):
     rtype = rtype or real
     xtype = xtype or real
     jtype = jtype or rtype
+    x0type = x0type or real
     defines = {
         "REAL": _CTYPE[np.dtype(real).name],
         "RTYPE": _CTYPE[np.dtype(rtype).name],
         "XTYPE": _CTYPE[np.dtype(xtype).name],
         "JTYPE": _CTYPE[np.dtype(jtype).name],
+        "X0TYPE": _CTYPE[np.dtype(x0type).name],
     }
     for key, dt in (
         ("REAL_IS_DOUBLE", real),
         ("RTYPE_IS_DOUBLE", rtype),
         ("XTYPE_IS_DOUBLE", xtype),
         ("JTYPE_IS_DOUBLE", jtype),
+        ("X0TYPE_IS_DOUBLE", x0type),
     ):
         if np.dtype(dt) == np.float64:
             defines[key] = 1
@@ -132,12 +135,12 @@ def lm_solve(device, J, r, damping, out):
 
 
 class State:
-    def __init__(self, device, lay, S, I):
-        self.device, self.lay = device, lay
-        self.S = S if not isinstance(S, np.ndarray) else device.asarray(S)
-        self.I = I if not isinstance(I, np.ndarray) else device.asarray(I)
+    """Arrays of one solve (gputrack.ops.lm.Layout); W is set by ``solver_workspace``."""
+
+    def __init__(self, device, lay, S, I, Out):
+        self.device, self.lay, self.S, self.I, self.Out = device, lay, S, I, Out
+        self.W = None
         self.ls = _local_size(device, lay.P)
-        self.n_status = lay.ib + lay.B * lay.IB
 
 
 def upload_into(device, arr, host):
@@ -145,15 +148,44 @@ def upload_into(device, arr, host):
     arr.buffer.set(host, queue=device.queue)
 
 
-def solver_state(device, lay, S, I):
-    return State(device, lay, S, I)
+def solver_state(device, lay, S, I, Out):
+    return State(device, lay, S, I, Out)
+
+
+def solver_workspace(state, lay, W):
+    state.lay, state.W = lay, W
+
+
+def solver_init(state, X0, K, X):
+    dev, lay = state.device, state.lay
+    B = lay.B
+    prg = _program(dev, state.S.dtype, None, X.dtype, None, x0type=X0.dtype)
+    _kernel(prg, "gt_lm_init")(
+        dev.queue,
+        (B,),
+        None,
+        X0.buffer.data,
+        K.buffer.data,
+        state.S.buffer.data,
+        state.I.buffer.data,
+        X.buffer.data,
+        np.int32(B),
+        np.int32(lay.P),
+        np.int32(X.shape[0] // B),
+        np.int32(K.shape[0] - lay.kglob),
+    )
 
 
 def solver_update(state, R, X, *, first, final, jac=None):
     dev, lay = state.device, state.lay
     B = lay.B
     prg = _program(
-        dev, state.S.dtype, R.dtype, X.dtype, jac.dtype if jac is not None else None, use_jac=jac is not None
+        dev,
+        state.S.dtype,
+        R.dtype,
+        X.dtype,
+        jac.dtype if jac is not None else None,
+        use_jac=jac is not None,
     )
     Jg = jac if jac is not None else R
     _kernel(prg, "gt_lm_update")(
@@ -162,9 +194,12 @@ def solver_update(state, R, X, *, first, final, jac=None):
         (state.ls,),
         state.S.buffer.data,
         state.I.buffer.data,
+        state.W.buffer.data,
         X.buffer.data,
         R.buffer.data,
         Jg.buffer.data,
+        state.Out.buffer.data,
+        np.int32(R.shape[1]),
         np.int32(R.shape[0] // B),
         np.int32(X.shape[0] // B),
         np.int32(bool(first)),
@@ -178,4 +213,4 @@ def solver_active(state) -> int:
 
 
 def solver_result(state):
-    return state.S.numpy(), state.I.numpy()
+    return state.Out.numpy()

@@ -75,12 +75,44 @@ def lm_solve(device, J, r, damping, out=None):
 
 
 class State:
-    def __init__(self, device, lay, S, I):
-        self.device, self.lay, self.S, self.I = device, lay, S.copy(), I.copy()
+    """Arrays of one solve (see gputrack.ops.lm.Layout); W is set by ``solver_workspace``."""
+
+    def __init__(self, device, lay, S, I, Out):
+        self.device, self.lay, self.S, self.I, self.Out = device, lay, S, I, Out
+        self.W = None
 
 
-def solver_state(device, lay, S, I):
-    return State(device, lay, S, I)
+def solver_state(device, lay, S, I, Out):
+    return State(device, lay, S, I, Out)
+
+
+def solver_workspace(state, lay, W):
+    state.lay, state.W = lay, W
+
+
+def solver_init(state, X0, K, X):
+    """S and I from the start points X0 and the constants K; the first points to evaluate into X."""
+    lay, S, I = state.lay, state.S, state.I
+    B, P = lay.B, lay.P
+    dt = S.dtype
+    S[:] = 0
+    I[:] = 0
+    I[1], I[2], I[3] = B, int(lay.has_mask), P
+    kb = lay.kblock(K)
+    x0 = np.asarray(X0).astype(dt)
+    lay.vec(S, lay.x)[:] = x0
+    lay.vec(S, lay.xt)[:] = x0
+    lay.vec(S, lay.lo)[:] = kb[:, :P]
+    lay.vec(S, lay.hi)[:] = kb[:, P : 2 * P]
+    lay.vec(S, lay.h)[:] = K[lay.kh : lay.kh + P]
+    lay.sc(S, lay.C)[:] = kb[:, 2 * P]
+    lay.sc(S, lay.nu)[:] = 2.0
+    n_const = lay.NGLOB + (lay.M * P if lay.has_mask else 0)
+    S[lay.glob : lay.glob + n_const] = K[lay.kglob : lay.kglob + n_const]
+    rel = S[lay.glob + 3]
+    SX = X.shape[0] // B
+    for b in range(B):
+        _points(lay, S, X, b, x0[b], SX, rel)
 
 
 def solver_active(state) -> int:
@@ -88,7 +120,7 @@ def solver_active(state) -> int:
 
 
 def solver_result(state):
-    return state.S.copy(), state.I.copy()
+    return state.Out.copy()
 
 
 def _finite(a):
@@ -103,15 +135,15 @@ def solver_update(state, R, X, *, first, final, jac=None):
     copies, eq. 24) or SR = 1 (trial point only; then ``jac`` (B, M, P) is its Jacobian or the
     call was the last one). X: (B * SX, P) receives the next points (SX = 2P + 1 or 1).
     """
-    lay, S, I = state.lay, state.S, state.I
+    lay, S, I, W = state.lay, state.S, state.I, state.W
     B, P, M = lay.B, lay.P, lay.M
     dt = S.dtype
     R = np.asarray(R)
     SR, SX = R.shape[0] // B, X.shape[0] // B
     x, xt, g, den = lay.vec(S, lay.x), lay.vec(S, lay.xt), lay.vec(S, lay.g), lay.vec(S, lay.den)
     lo, hi, h = lay.vec(S, lay.lo), lay.vec(S, lay.hi), lay.vec(S, lay.h)
-    A = lay.mat(S, lay.A, P, P)
-    Jt = lay.mat(S, lay.Jt, P, M)
+    A = lay.wmat(W, lay.A, P, P)
+    Jt = lay.wmat(W, lay.Jt, P, M)
     F, C, nu, pred, Ft, snorm = (lay.sc(S, o) for o in (lay.F, lay.C, lay.nu, lay.pred, lay.Ft, lay.snorm))
     ftol, xtol, gtol, rel, ctiny, cmax = S[lay.glob : lay.glob + 6]
     mask = lay.maskview(S) if I[2] else np.ones((M, P), dt)
@@ -186,6 +218,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
             status[b], reason[b] = MAX_ITER, R_MAXIT
 
     if final:
+        _export(state)
         return
     eye = np.eye(P, dtype=dt)
     for b in range(B):
@@ -211,17 +244,40 @@ def solver_update(state, R, X, *, first, final, jac=None):
                 s = x[b] - xt[b]
                 pred[b] = 2.0 * (s @ g[b]) - s @ (A[b] @ s)  # predicted reduction of the model ||r - J s||^2
         # next points: the trial and its perturbed copies (eq. 24), or the accepted x when stopped
-        p = xt[b] if status[b] == RUNNING else x[b]
-        rows = X[b * SX : (b + 1) * SX]
-        rows[:] = p
-        if SX > 1:
-            xp, xm = _perturbed(p, lo[b], hi[b], h[b], rel)
-            for n in range(P):
-                rows[1 + 2 * n, n] = xp[n]
-                rows[2 + 2 * n, n] = xm[n]
-                den[b, n] = dt.type(rows[1 + 2 * n, n]) - dt.type(rows[2 + 2 * n, n])
-        else:
-            den[b] = 0
+        _points(lay, S, X, b, xt[b] if status[b] == RUNNING else x[b], SX, rel)
+    _export(state)
+
+
+def _points(lay, S, X, b, p, SX, rel):
+    """Rows b*SX .. of X: the point p and, when SX > 1, its perturbed copies (eq. 24); their
+    denominators (over the stored, possibly rounded, points) into den[b]."""
+    dt = S.dtype
+    P = lay.P
+    lo, hi, h, den = (lay.vec(S, o)[b] for o in (lay.lo, lay.hi, lay.h, lay.den))
+    p = p.copy()
+    rows = X[b * SX : (b + 1) * SX]
+    rows[:] = p
+    if SX > 1:
+        xp, xm = _perturbed(p, lo, hi, h, rel)
+        for n in range(P):
+            rows[1 + 2 * n, n] = xp[n]
+            rows[2 + 2 * n, n] = xm[n]
+            den[n] = dt.type(rows[1 + 2 * n, n]) - dt.type(rows[2 + 2 * n, n])
+    else:
+        den[:] = 0
+
+
+def _export(state):
+    """Out (B, P + 5): x, F, C, status, iterations, reason."""
+    lay, S, Out = state.lay, state.S, state.Out
+    P = lay.P
+    ib = lay.iblock(state.I)
+    Out[:, :P] = lay.vec(S, lay.x)
+    Out[:, P] = lay.sc(S, lay.F)
+    Out[:, P + 1] = lay.sc(S, lay.C)
+    Out[:, P + 2] = ib[:, 0]
+    Out[:, P + 3] = ib[:, 1]
+    Out[:, P + 4] = ib[:, 3]
 
 
 def _perturbed(p, lo, hi, h, rel):

@@ -221,14 +221,20 @@ def lm_solve(device, J, r, damping, out):
 
 
 @ti.func
-def _sb(P, M):
-    return 7 * P + 2 * P * P + P * M + 8
+def _sb(P):
+    return 7 * P + 8
+
+
+@ti.func
+def _wb(P, M):
+    return 2 * P * P + P * M
 
 
 @ti.func
 def _phase_jacobian(
     S: ti.template(),
     I: ti.template(),
+    W: ti.template(),
     R: ti.template(),
     Jg: ti.template(),
     b,
@@ -237,19 +243,19 @@ def _phase_jacobian(
     use_jac: ti.template(),
 ):
     """Jt[b, n, :] at the evaluated trial (eq. 24 or given) and its finite flag."""
-    P, M, B = I[3], I[4], I[1]
-    SB = _sb(P, M)
+    P, M, B = I[3], R.shape[1], I[1]
+    SB = _sb(P)
     base = b * SB
     IB = 4 + P
     ibase = 8 + b * IB
-    jt = base + 7 * P + 2 * P * P + n * M
+    jt = b * _wb(P, M) + 2 * P * P + n * M
     ok = 1
     if ti.static(use_jac):
         mag = ti.cast(0, dt)
         for m in range(M):
             v = ti.cast(Jg[b, m, n], dt)
             mag += ti.abs(v)
-            S[jt + m] = v
+            W[jt + m] = v
         ok = _finite(mag, dt)
     else:
         SR = R.shape[0] // B
@@ -267,12 +273,12 @@ def _phase_jacobian(
                     S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt), ti.cast(0, dt)
                 )
                 mag += ti.abs(d)
-                S[jt + m] = d * inv  # eq. 24, only where the mask is set
+                W[jt + m] = d * inv  # eq. 24, only where the mask is set
         else:
             for m in range(M):
                 d = ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt)  # r(x + eps e_n) - r(x - eps e_n)
                 mag += ti.abs(d)
-                S[jt + m] = d * inv  # eq. 24
+                W[jt + m] = d * inv  # eq. 24
         ok = _finite(mag, dt)
     I[ibase + 4 + n] = ok
 
@@ -281,16 +287,18 @@ def _phase_jacobian(
 def _phase_accept(
     S: ti.template(),
     I: ti.template(),
+    W: ti.template(),
     R: ti.template(),
     b,
     dt: ti.template(),
     first: ti.template(),
     final: ti.template(),
 ):
-    P, M, B = I[3], I[4], I[1]
-    SB = _sb(P, M)
+    P, M, B = I[3], R.shape[1], I[1]
+    SB = _sb(P)
     base = b * SB
-    sc = base + 7 * P + 2 * P * P + P * M
+    sc = base + 7 * P
+    A = b * _wb(P, M)
     IB = 4 + P
     ib = 8 + b * IB
     G = B * SB
@@ -337,7 +345,7 @@ def _phase_accept(
                     sn = ti.cast(0, dt)
                     xn = ti.cast(0, dt)
                     for i in range(P):
-                        dmax = ti.max(dmax, S[base + 7 * P + i * P + i])
+                        dmax = ti.max(dmax, W[A + i * P + i])
                         d = S[base + P + i] - S[base + i]
                         sn += d * d
                         xn += S[base + i] * S[base + i]
@@ -374,16 +382,18 @@ def _phase_accept(
 
 
 @ti.func
-def _phase_normal(S: ti.template(), I: ti.template(), R: ti.template(), b, i, dt: ti.template()):
+def _phase_normal(
+    S: ti.template(), I: ti.template(), W: ti.template(), R: ti.template(), b, i, dt: ti.template()
+):
     """Row i of J^T J and J^T r at the accepted point (eq. 22)."""
-    P, M, B = I[3], I[4], I[1]
-    SB = _sb(P, M)
+    P, M, B = I[3], R.shape[1], I[1]
+    SB = _sb(P)
     base = b * SB
-    jt = base + 7 * P + 2 * P * P
+    A = b * _wb(P, M)
+    jt = A + 2 * P * P
     SR = R.shape[0] // B
     if I[8 + b * (4 + P) + 2]:
         ri = jt + i * M
-        A = base + 7 * P
         # eq. 22: J^T J, four columns per pass over row i (contiguous rows of J^T)
         j = 0
         while j + 3 <= i:
@@ -393,31 +403,31 @@ def _phase_normal(S: ti.template(), I: ti.template(), R: ti.template(), b, i, dt
             s3 = ti.cast(0, dt)
             r0 = jt + j * M
             for m in range(M):
-                a = S[ri + m]
-                s0 += a * S[r0 + m]
-                s1 += a * S[r0 + M + m]
-                s2 += a * S[r0 + 2 * M + m]
-                s3 += a * S[r0 + 3 * M + m]
-            S[A + i * P + j] = s0
-            S[A + i * P + j + 1] = s1
-            S[A + i * P + j + 2] = s2
-            S[A + i * P + j + 3] = s3
-            S[A + j * P + i] = s0
-            S[A + (j + 1) * P + i] = s1
-            S[A + (j + 2) * P + i] = s2
-            S[A + (j + 3) * P + i] = s3
+                a = W[ri + m]
+                s0 += a * W[r0 + m]
+                s1 += a * W[r0 + M + m]
+                s2 += a * W[r0 + 2 * M + m]
+                s3 += a * W[r0 + 3 * M + m]
+            W[A + i * P + j] = s0
+            W[A + i * P + j + 1] = s1
+            W[A + i * P + j + 2] = s2
+            W[A + i * P + j + 3] = s3
+            W[A + j * P + i] = s0
+            W[A + (j + 1) * P + i] = s1
+            W[A + (j + 2) * P + i] = s2
+            W[A + (j + 3) * P + i] = s3
             j += 4
         while j <= i:
             rj = jt + j * M
             s = ti.cast(0, dt)
             for m in range(M):
-                s += S[ri + m] * S[rj + m]
-            S[A + i * P + j] = s
-            S[A + j * P + i] = s
+                s += W[ri + m] * W[rj + m]
+            W[A + i * P + j] = s
+            W[A + j * P + i] = s
             j += 1
         s = ti.cast(0, dt)
         for m in range(M):
-            s += S[ri + m] * ti.cast(R[b * SR, m], dt)  # eq. 22: J^T r
+            s += W[ri + m] * ti.cast(R[b * SR, m], dt)  # eq. 22: J^T r
         S[base + 2 * P + i] = s
 
 
@@ -429,16 +439,18 @@ def _active(S: ti.template(), xo, loo, hio, go, i) -> ti.i32:
 
 
 @ti.func
-def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.template()):
+def _phase_step(
+    S: ti.template(), I: ti.template(), W: ti.template(), X: ti.template(), b, M, dt: ti.template()
+):
     """gtol test, damped Cholesky step, trial point and the next points to evaluate."""
-    P, M, B = I[3], I[4], I[1]
-    SB = _sb(P, M)
+    P, B = I[3], I[1]
+    SB = _sb(P)
     base = b * SB
-    sc = base + 7 * P + 2 * P * P + P * M
+    sc = base + 7 * P
     ib = 8 + b * (4 + P)
     G = B * SB
     gtol, rel, ctiny, cmax = S[G + 2], S[G + 3], S[G + 4], S[G + 5]
-    A = base + 7 * P
+    A = b * _wb(P, M)
     L = A + P * P
     xo, xto, go, deno, loo, hio, ho = (
         base,
@@ -463,7 +475,7 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
     if I[ib + 0] == RUNNING:
         dmax = ti.cast(0, dt)
         for i in range(P):
-            dmax = ti.max(dmax, S[A + i * P + i])
+            dmax = ti.max(dmax, W[A + i * P + i])
         dmax += 1
         C = S[sc + 1]
         ok = 0
@@ -474,23 +486,23 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
             for j in range(P):
                 if ok:
                     aj = _active(S, xo, loo, hio, go, j)
-                    s = S[A + j * P + j] + C
+                    s = W[A + j * P + j] + C
                     if aj:
                         s = 1 + C
                     for k in range(j):
-                        s -= S[L + j * P + k] * S[L + j * P + k]
+                        s -= W[L + j * P + k] * W[L + j * P + k]
                     if s <= 0 or not _finite(s, dt):
                         ok = 0
                     else:
                         d = ti.sqrt(s)
-                        S[L + j * P + j] = d
+                        W[L + j * P + j] = d
                         for i in range(j + 1, P):
-                            v = S[A + i * P + j]
+                            v = W[A + i * P + j]
                             if aj or _active(S, xo, loo, hio, go, i):
                                 v = ti.cast(0, dt)
                             for k in range(j):
-                                v -= S[L + i * P + k] * S[L + j * P + k]
-                            S[L + i * P + j] = v / d
+                                v -= W[L + i * P + k] * W[L + j * P + k]
+                            W[L + i * P + j] = v / d
             if ok or C > cmax * dmax:
                 break
             C = ti.max(10 * C, ctiny * dmax)  # not PD: raise C tenfold and try again
@@ -506,14 +518,14 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
                 if _active(S, xo, loo, hio, go, i):
                     v = ti.cast(0, dt)
                 for k in range(i):
-                    v -= S[L + i * P + k] * S[xto + k]
-                S[xto + i] = v / S[L + i * P + i]
+                    v -= W[L + i * P + k] * S[xto + k]
+                S[xto + i] = v / W[L + i * P + i]
             for ii in range(P):
                 i = P - 1 - ii
                 v = S[xto + i]
                 for k in range(i + 1, P):
-                    v -= S[L + k * P + i] * S[xto + k]
-                S[xto + i] = v / S[L + i * P + i]
+                    v -= W[L + k * P + i] * S[xto + k]
+                S[xto + i] = v / W[L + i * P + i]
             for i in range(P):
                 # eq. 22 step, projected into the box (paper 003 eq. 8-9)
                 S[xto + i] = ti.min(ti.max(S[xo + i] - S[xto + i], S[loo + i]), S[hio + i])
@@ -523,14 +535,23 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
                 si = S[xo + i] - S[xto + i]
                 As = ti.cast(0, dt)
                 for j in range(P):
-                    As += S[A + i * P + j] * (S[xo + j] - S[xto + j])
+                    As += W[A + i * P + j] * (S[xo + j] - S[xto + j])
                 pr += 2 * si * S[go + i] - si * As
             S[sc + 3] = pr
     # next points: the trial and its perturbed copies (eq. 24), or the accepted x when stopped
-    SX = X.shape[0] // B
     src = xto
     if I[ib + 0] != RUNNING:
         src = xo
+    _points(S, X, b, src, B, P, rel, dt)
+
+
+@ti.func
+def _points(S: ti.template(), X: ti.template(), b, src, B, P, rel, dt: ti.template()):
+    """Rows b*SX .. of X: the point S[src : src + P] and, when SX > 1, its perturbed copies
+    (eq. 24); their denominators (over the stored, possibly rounded, points) into den."""
+    base = b * _sb(P)
+    deno, loo, hio, ho = base + 3 * P, base + 4 * P, base + 5 * P, base + 6 * P
+    SX = X.shape[0] // B
     for row in range(SX):
         for n in range(P):
             X[b * SX + row, n] = S[src + n]
@@ -549,49 +570,120 @@ def _phase_step(S: ti.template(), I: ti.template(), X: ti.template(), b, dt: ti.
             S[deno + n] = ti.cast(0, dt)
 
 
+@ti.func
+def _export(S: ti.template(), I: ti.template(), Out: ti.template(), b, P):
+    """Out[b] = x, F, C, status, iterations, reason."""
+    base = b * _sb(P)
+    ib = 8 + b * (4 + P)
+    for n in range(P):
+        Out[b, n] = S[base + n]
+    Out[b, P] = S[base + 7 * P]
+    Out[b, P + 1] = S[base + 7 * P + 1]
+    Out[b, P + 2] = I[ib + 0]
+    Out[b, P + 3] = I[ib + 1]
+    Out[b, P + 4] = I[ib + 3]
+
+
 @ti.kernel
-def _update(S: nd, I: nd, X: nd, R: nd, dt: ti.template(), first: ti.template(), final: ti.template()):
-    B, P = I[1], I[3]
+def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
+    """S and I from the start points X0 and the constants K (gputrack.ops.lm.Layout); the
+    first points to evaluate into X."""
+    B, P = X0.shape[0], X0.shape[1]
+    SB = _sb(P)
+    KB = 2 * P + 1
+    kh = B * KB
+    kg = kh + P
+    nk = K.shape[0] - kg  # globals and mask
+    G = B * SB
+    for t in range(8 + B * (4 + P)):
+        I[t] = 0
+    for t in range(nk):
+        S[G + t] = K[kg + t]
+    I[1] = B
+    I[2] = ti.i32(nk > 8)
+    I[3] = P
+    rel = K[kg + 3]
+    ti.loop_config(serialize=True)
+    for b in range(B):
+        base = b * SB
+        for n in range(P):
+            x = ti.cast(X0[b, n], dt)
+            S[base + n] = x
+            S[base + P + n] = x
+            S[base + 2 * P + n] = ti.cast(0, dt)
+            S[base + 4 * P + n] = K[b * KB + n]
+            S[base + 5 * P + n] = K[b * KB + P + n]
+            S[base + 6 * P + n] = K[kh + n]
+        for k in range(8):
+            S[base + 7 * P + k] = ti.cast(0, dt)
+        S[base + 7 * P + 1] = K[b * KB + 2 * P]  # C
+        S[base + 7 * P + 2] = ti.cast(2, dt)  # nu
+        _points(S, X, b, base, B, P, rel, dt)
+
+
+@ti.kernel
+def _update(
+    S: nd, I: nd, W: nd, X: nd, R: nd, Out: nd, dt: ti.template(), first: ti.template(), final: ti.template()
+):
+    B, P, M = I[1], I[3], R.shape[1]
     if ti.static(not final):
         for t in range(B * P):
             b, n = t // P, t % P
             if I[8 + b * (4 + P)] == RUNNING:
-                _phase_jacobian(S, I, R, R, b, n, dt, False)
+                _phase_jacobian(S, I, W, R, R, b, n, dt, False)
     ti.loop_config(serialize=True)
     for b in range(B):
-        _phase_accept(S, I, R, b, dt, first, final)
+        _phase_accept(S, I, W, R, b, dt, first, final)
+        if ti.static(final):
+            _export(S, I, Out, b, P)
     if ti.static(not final):
         for t in range(B * P):
-            _phase_normal(S, I, R, t // P, t % P, dt)
+            _phase_normal(S, I, W, R, t // P, t % P, dt)
         ti.loop_config(serialize=True)
         for b in range(B):
-            _phase_step(S, I, X, b, dt)
+            _phase_step(S, I, W, X, b, M, dt)
+            _export(S, I, Out, b, P)
 
 
 @ti.kernel
-def _update_jac(S: nd, I: nd, X: nd, R: nd, Jg: nd, dt: ti.template(), first: ti.template(), final: ti.template()):
-    B, P = I[1], I[3]
+def _update_jac(
+    S: nd,
+    I: nd,
+    W: nd,
+    X: nd,
+    R: nd,
+    Jg: nd,
+    Out: nd,
+    dt: ti.template(),
+    first: ti.template(),
+    final: ti.template(),
+):
+    B, P, M = I[1], I[3], R.shape[1]
     if ti.static(not final):
         for t in range(B * P):
             b, n = t // P, t % P
             if I[8 + b * (4 + P)] == RUNNING:
-                _phase_jacobian(S, I, R, Jg, b, n, dt, True)
+                _phase_jacobian(S, I, W, R, Jg, b, n, dt, True)
     ti.loop_config(serialize=True)
     for b in range(B):
-        _phase_accept(S, I, R, b, dt, first, final)
+        _phase_accept(S, I, W, R, b, dt, first, final)
+        if ti.static(final):
+            _export(S, I, Out, b, P)
     if ti.static(not final):
         for t in range(B * P):
-            _phase_normal(S, I, R, t // P, t % P, dt)
+            _phase_normal(S, I, W, R, t // P, t % P, dt)
         ti.loop_config(serialize=True)
         for b in range(B):
-            _phase_step(S, I, X, b, dt)
+            _phase_step(S, I, W, X, b, M, dt)
+            _export(S, I, Out, b, P)
 
 
 class State:
-    def __init__(self, device, lay, S, I):
-        self.device, self.lay = device, lay
-        self.S = S if not isinstance(S, np.ndarray) else device.asarray(S)
-        self.I = I if not isinstance(I, np.ndarray) else device.asarray(I)
+    """Arrays of one solve (gputrack.ops.lm.Layout); W is set by ``solver_workspace``."""
+
+    def __init__(self, device, lay, S, I, Out):
+        self.device, self.lay, self.S, self.I, self.Out = device, lay, S, I, Out
+        self.W = None
         self.dt = _ti_dtype(S.dtype)
 
 
@@ -600,15 +692,24 @@ def upload_into(device, arr, host):
     arr.buffer.from_numpy(host)
 
 
-def solver_state(device, lay, S, I):
-    return State(device, lay, S, I)
+def solver_state(device, lay, S, I, Out):
+    return State(device, lay, S, I, Out)
+
+
+def solver_workspace(state, lay, W):
+    state.lay, state.W = lay, W
+
+
+def solver_init(state, X0, K, X):
+    _init(X0.buffer, K.buffer, state.S.buffer, state.I.buffer, X.buffer, state.dt)
 
 
 def solver_update(state, R, X, *, first, final, jac=None):
+    S, I, W, Out = state.S.buffer, state.I.buffer, state.W.buffer, state.Out.buffer
     if jac is None:
-        _update(state.S.buffer, state.I.buffer, X.buffer, R.buffer, state.dt, bool(first), bool(final))
+        _update(S, I, W, X.buffer, R.buffer, Out, state.dt, bool(first), bool(final))
     else:
-        _update_jac(state.S.buffer, state.I.buffer, X.buffer, R.buffer, jac.buffer, state.dt, bool(first), bool(final))
+        _update_jac(S, I, W, X.buffer, R.buffer, jac.buffer, Out, state.dt, bool(first), bool(final))
 
 
 def solver_active(state) -> int:
@@ -617,4 +718,4 @@ def solver_active(state) -> int:
 
 
 def solver_result(state):
-    return state.S.numpy(), state.I.numpy()
+    return state.Out.numpy()
