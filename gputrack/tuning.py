@@ -29,7 +29,7 @@ log = logging.getLogger("gputrack")
 CACHE_VERSION = 1
 
 #: modules that declare tunables (a ``TUNABLES`` dict of :class:`Tunable`), searched by :func:`tunables`
-TUNABLE_MODULES = ("gputrack.ops.template",)
+TUNABLE_MODULES = ("gputrack.ops.template", "gputrack.ops.kalman")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -112,7 +112,8 @@ def test_every_backend_has_tunables_with_the_default_among_the_candidates(device
     if device.backend == "numpy":
         assert found == []
         return
-    assert {t.op for t in found} == {"rgbd_cost", "rgbd_residuals"}
+    want = {"rgbd_cost", "rgbd_residuals"} | ({"kalman"} if device.backend == "opencl" else set())
+    assert {t.op for t in found} == want
     for t in found:
         default = t.default_for(device)
         assert default in t.grid(), f"{t.op}: default {default} is not a candidate"
@@ -289,3 +290,38 @@ def test_op_with_a_corrupt_cache_warns_and_uses_the_default(device, tmp_path, mo
     with pytest.warns(RuntimeWarning, match="ignoring the tuning cache"):
         got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
     assert_matches(device, got.total, rgbd_cost(REF, tf, rgb, dep, gray, depth, cam).total)
+
+
+def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):
+    """The OpenCL filter kernels' tracks per work-item and work-group sizes: identical results."""
+    from gputrack.ops import kalman
+
+    if (device.backend, "kalman") not in kalman.TUNABLES:
+        pytest.skip(f"no Kalman launch parameters on {device.backend}")
+    rng = np.random.default_rng(11)
+    T = 37  # not a multiple of any lane count or work-group size
+    F, Q = kalman.constant_velocity(3, 1.0 / 30, 1.0)
+    H = np.zeros((3, 6), np.float32)
+    H[0, 0] = H[1, 2] = H[2, 4] = 1
+    R = (0.05 * np.eye(3)).astype(np.float32)
+    x = rng.normal(0, 1, (T, 6)).astype(np.float32)
+    x[:, 4] += 5.0  # positive depth for the stereo EKF
+    P = np.tile(np.diag([0.1, 1.0] * 3).astype(np.float32), (T, 1, 1))
+    z = rng.normal(0, 1, (T, 3)).astype(np.float32)
+    zs = np.stack([400 * x[:, 0] / x[:, 4], 400 * x[:, 2] / x[:, 4], 40 / x[:, 4]], 1).astype(np.float32)
+    mask = np.arange(T) % 5 != 2
+    want = kalman.kf_update(REF, x, P, z, H, R, mask=mask, predict=(F, Q))
+    want_p = kalman.kf_predict(REF, x, P, F, Q)
+    want_s = kalman.ekf_update_stereo(REF, x, P, zs + 0.3, R, f=400.0, b=0.1)
+    for params in kalman.TUNABLES[(device.backend, "kalman")].grid():
+        monkeypatch.setattr(tuning, "choose", lambda dev, t, size, params=params: dict(params))
+        got = kalman.kf_update(device, x, P, z, H, R, mask=mask, predict=(F, Q))
+        for g, w, name in zip(got, want, ("x", "P", "status")):
+            if name == "status":
+                np.testing.assert_array_equal(gputrack.to_numpy(g), w, err_msg=f"{params}")
+            else:
+                assert_matches(device, g, w, err_msg=f"kf_update {name} {params}")
+        for g, w in zip(kalman.kf_predict(device, x, P, F, Q), want_p):
+            assert_matches(device, g, w, err_msg=f"kf_predict {params}")
+        for g, w in zip(kalman.ekf_update_stereo(device, x, P, zs + 0.3, R, f=400.0, b=0.1)[:2], want_s[:2]):
+            assert_matches(device, g, w, err_msg=f"ekf_update_stereo {params}")

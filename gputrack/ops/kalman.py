@@ -423,6 +423,52 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
     return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z, out=out, pats=pats)
 
 
+# -- tuning (gputrack tune) ----------------------------------------------------------------------
+# The OpenCL filter kernel (kf_predict, kf_update, ekf_update_stereo) launches with ``lanes``
+# tracks per work-item (gt_kf for 1, gt_kf_v in VW-wide vectors for 4, 8, 16) and a work-group
+# size (None: the driver's choice). Every track is computed alike whatever the choice (each
+# lane runs its own track), only the speed differs. Defaults: backends/opencl/kalman.py.
+def _kalman_default(device) -> dict:
+    return backend_module(device, "kalman").default_params(device)
+
+
+def _kalman_problem(device, size, params):
+    """One fused constant-velocity predict+update (n = 6, m = 3) of size["T"] tracks, in place."""
+    from ..benchmarks.kalman import _problem
+
+    F, Q, H, R, x0, P0, z, _det = _problem(int(size["T"]), np.random.default_rng(0))
+    Fs, Qs, Hs, Rs = (shared_matrix(device, a) for a in (F, Q, H, R))
+    x, P, zd = device.asarray(x0), device.asarray(P0), device.asarray(z)
+    st = device.empty((x0.shape[0],), np.uint8)
+    be = backend_module(device, "kalman")
+    dims = {"T": x0.shape[0], "n": 6, "m": 3}
+    pats = _patterns((Fs, Qs), Hs, Rs, dims)
+    return lambda: be.kf_update(device, x, P, zd, Hs.array, Rs.array, None, None, (Fs.array, Qs.array),
+                                (x, P, st), pats, params=dict(params))  # fmt: skip
+
+
+def _kalman_tunables() -> dict:
+    from pathlib import Path
+
+    from .. import tuning
+
+    return {
+        ("opencl", "kalman"): tuning.Tunable(
+            op="kalman",
+            backend="opencl",
+            candidates={"lanes": [1, 4, 8, 16], "work_group": [None, 16, 64, 256]},
+            default=_kalman_default,
+            sizes=({"T": 10_000, "n": 6}, {"T": 100_000, "n": 6}, {"T": 1_000_000, "n": 6}),
+            problem=_kalman_problem,
+            sources=("gt_kalman.cl", str(Path(__file__).resolve().parent.parent / "backends/opencl/kalman.py")),
+        )
+    }
+
+
+#: (backend, op) -> Tunable, read by the OpenCL launcher at every call and swept by ``gputrack tune``
+TUNABLES = _kalman_tunables()
+
+
 def _selftest(device) -> None:
     """Run a tiny random problem on ``device`` and compare with the NumPy reference.
 

@@ -28,6 +28,20 @@ def lanes(device) -> int:
     return 8 if device.info.kind == "cpu" else 1
 
 
+def default_params(device) -> dict:
+    """Launch parameters of the filter kernels without a tuning-cache entry (``gputrack tune``
+    may choose others: gputrack/ops/kalman.py TUNABLES): tracks per work-item and work-group
+    size (None: the driver's choice)."""
+    return {"lanes": lanes(device), "work_group": None}
+
+
+def _launch_params(device, T, n) -> dict:
+    from ... import tuning
+    from ...ops.kalman import TUNABLES
+
+    return tuning.choose(device, TUNABLES[("opencl", "kalman")], {"T": T, "n": n})
+
+
 def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, vw=1):
     defines = _defines(np.dtype(dtype).name, n, m, mode, predict, has_mask, has_gain, pts, pats, tuple(hrows), vw)
     return device.program("gt_kalman.cl", dict(defines))
@@ -77,8 +91,10 @@ def _data(a):
     return a.buffer.data if a is not None else None
 
 
-def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0)):
+def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0), params=None):
     T, n = x.shape
+    params = params or _launch_params(device, T, n)
+    vw, wg = int(params["lanes"]), params["work_group"]
     m = z.shape[1] if z is not None else 1
     dt = x.dtype
     if out is None:
@@ -105,11 +121,12 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
         (_pt(F), _pt(Q), _pt(H), _pt(R)),
         (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]),
         hrows,
-        vw := lanes(device),
+        vw,
     )
     real = dt.type
+    items = (T + vw - 1) // vw
     _kernel(prg, "gt_kf_v" if vw > 1 else "gt_kf")(
-        device.queue, ((T + vw - 1) // vw,), None,
+        device.queue, ((items + wg - 1) // wg * wg,) if wg else (items,), (wg,) if wg else None,
         _data(x), _data(P), _data(z), _data(F), _data(Q), _data(H), _data(R), _data(mask), _data(gain_scale),
         _data(xo), _data(Po), _data(st),
         real(cam[0]), real(cam[1]), real(cam[2]), real(cam[3]), np.int32(T),
@@ -121,9 +138,11 @@ def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1, -1, -1)):
     return _run(device, x, P, None, F, Q, None, None, None, None, MODE_PREDICT, out, pats)
 
 
-def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)):
+def kf_update(
+    device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1), params=None
+):
     F, Q = predict if predict is not None else (None, None)
-    return _run(device, x, P, z, F, Q, H, R, mask, gain_scale, MODE_LINEAR, out, pats)
+    return _run(device, x, P, z, F, Q, H, R, mask, gain_scale, MODE_LINEAR, out, pats, params=params)
 
 
 def ekf_update_stereo(
