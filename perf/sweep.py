@@ -72,6 +72,40 @@ def _scaled(tf, b, rng):
     return out
 
 
+def _k_cases(device, args, ref, rng):
+    """rgbd_cost of K hypotheses around 10 candidates, N = N' = 128 (its own scope: the lambdas
+    below must not see the N sweep's templates)."""
+    from gputrack.benchmark import Case
+    from gputrack.benchmarks.template import pf_scene
+    from gputrack.ops.template import rgbd_cost
+
+    tf0, rgb, dep, gray, depth, cam = pf_scene(rng, 1500, 128, 128)
+    d_gray, d_depth = device.asarray(gray), device.asarray(depth)
+    rgb.to(device)
+    dep.to(device)
+    out = []
+    for k in args.k or K_VALUES:
+        tf = _scaled(tf0, k, rng)
+        d_tf = device.asarray(tf)
+        keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+
+        def e2e(tf=tf):
+            return device.to_numpy(rgbd_cost(device, tf, rgb, dep, d_gray, d_depth, cam).total)
+
+        out.append(
+            Case(
+                f"K: rgbd_cost K={k} N=N'=128",
+                run=lambda d_tf=d_tf, keep=keep: rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep),
+                end_to_end=e2e,
+                reference=(lambda tf=tf: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam))
+                if k <= args.reference_max_k
+                else None,
+                params={"sweep": "K", "x": k, "K": k, "N": 128, "N'": 128, "J": 5, "H": 480, "W": 640},
+            )
+        )
+    return out
+
+
 def cases(device, args):
     """The sweep points on ``device`` (called in the device's subprocess by the harness)."""
     import gputrack
@@ -86,29 +120,7 @@ def cases(device, args):
     which = _sweeps(args)
     out = []
     if "K" in which:
-        tf0, rgb, dep, gray, depth, cam = pf_scene(rng, 1500, 128, 128)
-        d_gray, d_depth = device.asarray(gray), device.asarray(depth)
-        rgb.to(device)
-        dep.to(device)
-        for k in args.k or K_VALUES:
-            tf = _scaled(tf0, k, rng)
-            d_tf = device.asarray(tf)
-            keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
-
-            def e2e(tf=tf):
-                return device.to_numpy(rgbd_cost(device, tf, rgb, dep, d_gray, d_depth, cam).total)
-
-            out.append(
-                Case(
-                    f"K: rgbd_cost K={k} N=N'=128",
-                    run=lambda d_tf=d_tf, keep=keep: rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep),
-                    end_to_end=e2e,
-                    reference=(lambda tf=tf: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam))
-                    if k <= args.reference_max_k
-                    else None,
-                    params={"sweep": "K", "x": k, "K": k, "N": 128, "N'": 128, "J": 5, "H": 480, "W": 640},
-                )
-            )
+        out += _k_cases(device, args, ref, rng)
     if "N" in which:
         for n in args.n or N_VALUES:
             tf, rgb, dep, gray, depth, cam = pf_scene(np.random.default_rng(n), 1500, n, n)

@@ -56,6 +56,16 @@ def test_sweep_cases_run_on_every_backend(device):
     assert gputrack.to_numpy(k7.end_to_end()).shape == (7,)
 
 
+def test_k_cases_do_not_depend_on_the_other_sweeps():
+    """A K point computes the same costs whether or not the N sweep is built after it (the
+    closures keep their own templates)."""
+    dev = gputrack.device("numpy")
+    alone = sweep.cases(dev, args_for(sweep="K", k=9))
+    both = sweep.cases(dev, args_for(sweep="K,N", k=9, n=[16, 64]))
+    np.testing.assert_array_equal(alone[0].run().total, both[0].run().total)
+    np.testing.assert_array_equal(alone[0].reference().total, both[0].reference().total)
+
+
 def test_unknown_sweep_is_an_error():
     with pytest.raises(SystemExit, match="expected some of K,N,T, got X"):
         sweep.cases(gputrack.device("numpy"), args_for(sweep="K,X"))
