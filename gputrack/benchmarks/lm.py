@@ -125,7 +125,7 @@ def cases(device, args):
             R = rng.normal(size=(B * (2 * P + 1), M)).astype(np.float32)
             be, be_ref = lm.backend_module(device, "lm"), lm.backend_module(ref, "lm")
 
-            def state(dev, be, empty):
+            def state(dev, be, empty, lay=lay):
                 st = be.solver_state(
                     dev, lay, empty((lay.s_size(),), dt), empty((lay.i_size(),), np.int32), empty((B, lay.OB), dt)
                 )

@@ -4,13 +4,21 @@ One launch per op call and one per solver iteration. Measured on taichi:cpu (2 s
 2026-11-22; figures vary 2-3x with the machine's load): a kernel launch costs ~27-40 us with one
 ndarray argument (~100 us under load), ~2-25 us more per extra ndarray argument, ~3-10 us per
 scalar argument and ~15 us per parallel top-level loop (thread-pool dispatch); a 1-element
-download ~60-140 us. So the solver packs its state into two arrays (S float, I int32), runs the
-light per-problem phases as serial loops, and only the O(B P M) Jacobian rows and the O(B P^2 M)
-normal equations as parallel loops over (problem, row). The normal equations read contiguous rows
+download ~60-140 us. So the solver packs its state into few arrays (gputrack.ops.lm.Layout: S
+small float state, I int32, W workspace, Out result), runs the light per-problem phases as
+serial loops, and only the O(B P M) Jacobian rows and the O(B P^2 M) normal equations as
+parallel loops over (problem, row). The normal equations read contiguous rows
 of J^T (``lm_solve`` transposes J (B, M, P) first): strided dot products were 3-4x slower.
 For B = 10, M = 256, P = 20 (float64): ``lm_solve`` ~0.25-0.3 ms (launch ~35-90 us, transposing
 J ~65 us, J^T J ~70 us, Cholesky ~5 us, all of it 2-3x slower when the cores are shared); a
 solver iteration ~0.2-0.4 ms.
+
+Keeping the workspace and the result block in their own arrays (so that a solve never moves the
+O(B P M) workspace) costs the update launch two more ndarray arguments (6 instead of 4): measured
+with a trivial kernel on taichi:cpu, 36.2 / 40.7 / 45.1 us per launch with 4 / 5 / 6 ndarray
+arguments, i.e. ~4.5 us each, ~9 us per iteration. The per-solve ``_init`` launch (one serial
+task) takes ~0.05 ms for B = 10, P = 14; it replaces uploading ~340 KB and downloading ~330 KB
+per solve for B = 10, P = 14, M = 256 in float64.
 
 On taichi:vulkan (lavapipe, a CPU) the same kernels take ~10 ms per iteration: its invocations
 run the long per-row loops in SIMD lanes with gathers; one item per entry was slower still
@@ -382,9 +390,7 @@ def _phase_accept(
 
 
 @ti.func
-def _phase_normal(
-    S: ti.template(), I: ti.template(), W: ti.template(), R: ti.template(), b, i, dt: ti.template()
-):
+def _phase_normal(S: ti.template(), I: ti.template(), W: ti.template(), R: ti.template(), b, i, dt: ti.template()):
     """Row i of J^T J and J^T r at the accepted point (eq. 22)."""
     P, M, B = I[3], R.shape[1], I[1]
     SB = _sb(P)
@@ -439,9 +445,7 @@ def _active(S: ti.template(), xo, loo, hio, go, i) -> ti.i32:
 
 
 @ti.func
-def _phase_step(
-    S: ti.template(), I: ti.template(), W: ti.template(), X: ti.template(), b, M, dt: ti.template()
-):
+def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.template(), b, M, dt: ti.template()):
     """gtol test, damped Cholesky step, trial point and the next points to evaluate."""
     P, B = I[3], I[1]
     SB = _sb(P)
@@ -452,15 +456,7 @@ def _phase_step(
     gtol, rel, ctiny, cmax = S[G + 2], S[G + 3], S[G + 4], S[G + 5]
     A = b * _wb(P, M)
     L = A + P * P
-    xo, xto, go, deno, loo, hio, ho = (
-        base,
-        base + P,
-        base + 2 * P,
-        base + 3 * P,
-        base + 4 * P,
-        base + 5 * P,
-        base + 6 * P,
-    )
+    xo, xto, go, loo, hio = base, base + P, base + 2 * P, base + 4 * P, base + 5 * P
     if I[ib + 0] == RUNNING and I[ib + 2]:
         # projected gradient (components pushing against an active bound removed)
         gmax = ti.cast(0, dt)
@@ -595,16 +591,19 @@ def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
     kg = kh + P
     nk = K.shape[0] - kg  # globals and mask
     G = B * SB
-    for t in range(8 + B * (4 + P)):
-        I[t] = 0
-    for t in range(nk):
-        S[G + t] = K[kg + t]
-    I[1] = B
-    I[2] = ti.i32(nk > 8)
-    I[3] = P
-    rel = K[kg + 3]
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=True)  # one task: B is small, the work is O(B P + M P)
     for b in range(B):
+        rel = K[kg + 3]
+        if b == 0:
+            for t in range(8):
+                I[t] = 0
+            I[1] = B
+            I[2] = ti.i32(nk > 8)
+            I[3] = P
+            for t in range(nk):
+                S[G + t] = K[kg + t]
+        for t in range(4 + P):
+            I[8 + b * (4 + P) + t] = 0
         base = b * SB
         for n in range(P):
             x = ti.cast(X0[b, n], dt)
@@ -622,9 +621,7 @@ def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
 
 
 @ti.kernel
-def _update(
-    S: nd, I: nd, W: nd, X: nd, R: nd, Out: nd, dt: ti.template(), first: ti.template(), final: ti.template()
-):
+def _update(S: nd, I: nd, W: nd, X: nd, R: nd, Out: nd, dt: ti.template(), first: ti.template(), final: ti.template()):
     B, P, M = I[1], I[3], R.shape[1]
     if ti.static(not final):
         for t in range(B * P):
