@@ -289,7 +289,7 @@ def tables_main(args) -> int:
         cfg = docs[0]["config"]
         n_depth = cfg["N'"]
         print(f"paper 000 Tables 1/2 layout: PF {cfg['stages']} stages x K={cfg['K']}, LM {cfg['lm_iterations']} "
-              f"iterations, N={cfg['N']} N'={n_depth}, {cfg['frames']} frames after the first; "
+              f"iterations, N={cfg['N']} N'={n_depth}, {cfg['frames']} frames after a warm-up frame; "
               f"commit {docs[0]['commit']}")  # fmt: skip
         print(format_tables(docs))
     if args.json:
