@@ -138,8 +138,8 @@ class TuningCache:
         self.path = Path(path) if path else cache_path()
         self._lock = threading.Lock()
         self._data: dict | None = None
-        # (device key, op, fingerprint, bucket) -> params or None: what get() answered, so that an
-        # op asking at every call costs a dict lookup (and a bad entry warns once per process)
+        # (device key, op, fingerprint, *size items) -> params or None: what get() answered, so
+        # that an op asking at every call costs a dict lookup (and a bad entry warns once per size)
         self._memo: dict = {}
 
     def _load(self) -> dict:
@@ -163,11 +163,17 @@ class TuningCache:
 
     def get(self, device, tunable: Tunable, size: dict) -> dict | None:
         """The stored parameters for this device, op and size bucket, or None (with a warning if unusable)."""
-        key = (device_key(device), tunable.op, tunable.fingerprint(), size_bucket(size))
+        memo_key = (device_key(device), tunable.op, tunable.fingerprint(), *size.items())
         try:
-            found = self._memo[key]
-        except KeyError:
-            found = self._memo[key] = self._lookup(device, tunable, key)
+            found = self._memo[memo_key]
+        except (KeyError, TypeError):
+            found = self._lookup(device, tunable, (*memo_key[:3], size_bucket(size)))
+            if len(self._memo) > 4096:  # many distinct sizes: start over rather than grow
+                self._memo.clear()
+            try:
+                self._memo[memo_key] = found
+            except TypeError:  # unhashable size values: not memoised
+                pass
         return dict(found) if found is not None else None
 
     def _lookup(self, device, tunable: Tunable, key) -> dict | None:

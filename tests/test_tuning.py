@@ -325,3 +325,25 @@ def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):
             assert_matches(device, g, w, err_msg=f"kf_predict {params}")
         for g, w in zip(kalman.ekf_update_stereo(device, x, P, zs + 0.3, R, f=400.0, b=0.1)[:2], want_s[:2]):
             assert_matches(device, g, w, err_msg=f"ekf_update_stereo {params}")
+
+
+def test_a_bad_entry_warns_once_and_lookups_are_memoised(tmp_path, numpy_device):
+    import warnings
+
+    cache = tuning.TuningCache(tmp_path / "t.json")
+    t = make_tunable()
+    cache.put(numpy_device, t, {"B": 1500, "N": 128}, {"wg": 64})
+    cache.save()
+    doc = json.loads((tmp_path / "t.json").read_text())
+    next(iter(doc["devices"].values()))["demo"]["B=2048,N=128"]["fingerprint"] = "0" * 16
+    (tmp_path / "t.json").write_text(json.dumps(doc))
+    fresh = tuning.TuningCache(tmp_path / "t.json")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for b in (1500, 1500, 1100, 2048):  # one bucket, several sizes
+            assert fresh.get(numpy_device, t, {"B": b, "N": 128}) is None
+    # one warning per distinct size asked for, none for repeats
+    assert len([w for w in caught if "stale" in str(w.message)]) == 3
+    # put() forgets the memo: the new choice is seen at once
+    fresh.put(numpy_device, t, {"B": 1500, "N": 128}, {"wg": 32})
+    assert fresh.get(numpy_device, t, {"B": 1500, "N": 128}) == {"wg": 32}
