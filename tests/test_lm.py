@@ -536,6 +536,17 @@ def test_the_mask_is_part_of_the_cached_constants(device):
     x = B * P * 4  # 0.5 is exact in float32
     assert (first["h2d"], again["h2d"], changed["h2d"]) == (x + k, x, x + k)
 
+    # a residual function taking the row masks: they are cached with the constants
+    def res_rows(X, rows):
+        return fn(X)
+
+    _moved(device, res_rows, own, x0, jac_sparsity=mask2, **kw)  # other row masks in the buffers
+    first, _ = _moved(device, res_rows, own, x0, jac_sparsity=mask, **kw)
+    again, out = _moved(device, res_rows, own, x0, jac_sparsity=mask, **kw)
+    need = B * (2 * P + 1) * M  # uint8; the (B, M) all-ones mask of the last call is unchanged
+    assert (first["h2d"], again["h2d"]) == (x + k + need, x)
+    assert again["d2h"] == B * (P + 5) * dt.itemsize
+
 
 def test_x0_on_the_device(device):
     x0 = np.array([[-1.2, 1.0], [2.0, 2.0]])

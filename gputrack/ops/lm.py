@@ -161,7 +161,9 @@ class Layout:
     reason of each problem (the codes are small integers, exact in float32); every update
     launch rewrites it, so it is current whenever the loop stops.
 
-    Bytes per solve on a device: up ``X0.nbytes`` + (``k_size() * itemsize`` unless cached);
+    Bytes per solve on a device: up ``X0.nbytes`` + (``k_size() * itemsize`` unless cached)
+    (+ with a mask and a residual function taking ``rows``, its two uint8 row masks, (B (2P + 1),
+    M) and (B, M), unless cached the same way);
     down ``B * OB * itemsize`` + ``i_size() * 4`` per ``early_stop`` check. Independent of M
     without a mask.
     """
@@ -423,7 +425,8 @@ def least_squares(
     **Sparsity**: ``jac_sparsity`` (M, P) bool: J[m, n] is computed only where it is True (paper
     000 Fig. 2), 0 elsewhere. If ``residuals`` has a ``rows`` keyword parameter it is called as
     ``residuals(X, rows=need)`` with ``need`` an (n, M) uint8 array on the device (NumPy for
-    numpy; uploaded once per solve): it only has to compute r[i, m] where ``need[i, m]`` is 1
+    numpy; uploaded like the mask: only when it differs from the previous solve's, so the
+    function must not modify it): it only has to compute r[i, m] where ``need[i, m]`` is 1
     (point rows: all ones; the rows of parameter n: ``jac_sparsity[:, n]``); other entries are
     ignored and may hold anything. Without a ``rows`` parameter every residual is computed.
 
@@ -620,7 +623,7 @@ class _Solver:
             )  # fmt: skip
             need_full = need_last = None
             if self.rows_protocol:
-                need_full, need_last = (pool.upload(a) for a in self._need(S_rows))
+                need_full, need_last = (pool.upload_cached(a) for a in self._need(S_rows))
             # the first points: x0 (and the perturbed points around it), written on the device
             first_X, first_need = (X_full, need_full) if max_iter > 0 else (X_last, need_last)
             be.solver_init(state, X0_d, K_d, first_X)
