@@ -746,12 +746,6 @@ def _rel_step(dt, pdt=None) -> float:
     return DEFAULT_REL_STEP[np.dtype(low).name]
 
 
-def perturbed(x, lo, hi, h, rel):
-    """eq. 24 points x_n +- eps_n clipped into the box; eps_n = h_n, or rel * max(|x_n|, 1) when h_n = 0."""
-    eps = np.where(h > 0, h, rel * np.maximum(np.abs(x), 1).astype(x.dtype)).astype(x.dtype)
-    return np.minimum(x + eps, hi).astype(x.dtype), np.maximum(x - eps, lo).astype(x.dtype)
-
-
 def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None):
     """The constants array K of a solve (see :class:`Layout`), on the host."""
     K = np.zeros(lay.k_size(), dtype=dt)
