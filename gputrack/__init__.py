@@ -19,6 +19,7 @@ from .device import (
     devices,
     to_numpy,
 )
+from . import tuning
 from .scheduler import FrameStats, Pipeline, StageStats
 from .ops import (
     BestK,
@@ -89,5 +90,6 @@ __all__ = [
     "device",
     "devices",
     "to_numpy",
+    "tuning",
     "__version__",
 ]

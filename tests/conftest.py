@@ -35,6 +35,11 @@ def pytest_report_header(config):
 
 
 def pytest_configure(config):
+    # tests use the default launch parameters, not a tuning cache the user may have
+    if "GPUTRACK_TUNING_CACHE" not in os.environ:
+        import tempfile
+
+        os.environ["GPUTRACK_TUNING_CACHE"] = os.path.join(tempfile.mkdtemp(prefix="gputrack-tests-"), "tuning.json")
     unknown = _required() - set(_infos())
     if unknown:
         raise pytest.UsageError(f"GPUTRACK_REQUIRE names unknown specs {sorted(unknown)}; known: {sorted(_infos())}")
