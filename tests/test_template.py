@@ -11,6 +11,7 @@ import pytest
 from tolerances import assert_matches
 
 import gputrack
+from gputrack.models.chain import rotation_zyx
 from gputrack.ops.template import Camera, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals
 
 REF = gputrack.device("numpy")
@@ -52,12 +53,8 @@ def make_scene(rng, b, n, m, *, j=3, h=48, w=64, holes=True, spread=0.05, candid
 
 
 def _rot(a):
-    cx, cy, cz = np.cos(a)
-    sx, sy, sz = np.sin(a)
-    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return rz @ ry @ rx
+    """Rz(a[2]) Ry(a[1]) Rx(a[0])."""
+    return rotation_zyx(a[2], a[1], a[0])
 
 
 def run_cost(device, tf, rgb, dep, gray, depth, cam, **kw):

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 
 from ..benchmark import Case, bench_main
+from ..models.chain import rotation_zyx
 
 NAME = "template"
 
@@ -22,12 +23,8 @@ def add_arguments(parser):
 
 
 def _rot(a):
-    cx, cy, cz = np.cos(a)
-    sx, sy, sz = np.sin(a)
-    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return rz @ ry @ rx
+    """Rz(a[2]) Ry(a[1]) Rx(a[0])."""
+    return rotation_zyx(a[2], a[1], a[0])
 
 
 def pf_scene(rng, b=1500, n=128, m=128, *, parts=5, candidates=10, h=480, w=640):

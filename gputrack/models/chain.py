@@ -220,6 +220,11 @@ def rotation(axis: str, angle) -> np.ndarray:
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
+def rotation_zyx(th, ph, ps) -> np.ndarray:
+    """Rz(th) Ry(ph) Rx(ps) (eq. 6): (..., 3, 3) for arrays of angles."""
+    return rotation("z", th) @ rotation("y", ph) @ rotation("x", ps)
+
+
 def joint_transform(part: Part, params: np.ndarray) -> np.ndarray:
     """Parent-from-part transforms (B, 3, 4) of one joint for parameters (B, P) (eq. 6, 10, 11)."""
     params = np.asarray(params)
