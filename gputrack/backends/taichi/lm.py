@@ -621,29 +621,7 @@ def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
 
 
 @ti.kernel
-def _update(S: nd, I: nd, W: nd, X: nd, R: nd, Out: nd, dt: ti.template(), first: ti.template(), final: ti.template()):
-    B, P, M = I[1], I[3], R.shape[1]
-    if ti.static(not final):
-        for t in range(B * P):
-            b, n = t // P, t % P
-            if I[8 + b * (4 + P)] == RUNNING:
-                _phase_jacobian(S, I, W, R, R, b, n, dt, False)
-    ti.loop_config(serialize=True)
-    for b in range(B):
-        _phase_accept(S, I, W, R, b, dt, first, final)
-        if ti.static(final):
-            _export(S, I, Out, b, P)
-    if ti.static(not final):
-        for t in range(B * P):
-            _phase_normal(S, I, W, R, t // P, t % P, dt)
-        ti.loop_config(serialize=True)
-        for b in range(B):
-            _phase_step(S, I, W, X, b, M, dt)
-            _export(S, I, Out, b, P)
-
-
-@ti.kernel
-def _update_jac(
+def _update(
     S: nd,
     I: nd,
     W: nd,
@@ -654,13 +632,15 @@ def _update_jac(
     dt: ti.template(),
     first: ti.template(),
     final: ti.template(),
+    use_jac: ti.template(),
 ):
+    """One solver iteration; ``Jg`` is the user's Jacobian when ``use_jac``, else unused (pass R)."""
     B, P, M = I[1], I[3], R.shape[1]
     if ti.static(not final):
         for t in range(B * P):
             b, n = t // P, t % P
             if I[8 + b * (4 + P)] == RUNNING:
-                _phase_jacobian(S, I, W, R, Jg, b, n, dt, True)
+                _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
     ti.loop_config(serialize=True)
     for b in range(B):
         _phase_accept(S, I, W, R, b, dt, first, final)
@@ -703,10 +683,8 @@ def solver_init(state, X0, K, X):
 
 def solver_update(state, R, X, *, first, final, jac=None):
     S, I, W, Out = state.S.buffer, state.I.buffer, state.W.buffer, state.Out.buffer
-    if jac is None:
-        _update(S, I, W, X.buffer, R.buffer, Out, state.dt, bool(first), bool(final))
-    else:
-        _update_jac(S, I, W, X.buffer, R.buffer, jac.buffer, Out, state.dt, bool(first), bool(final))
+    Jg = R if jac is None else jac  # unused without a Jacobian callable
+    _update(S, I, W, X.buffer, R.buffer, Jg.buffer, Out, state.dt, bool(first), bool(final), jac is not None)
 
 
 def solver_active(state) -> int:
