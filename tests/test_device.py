@@ -29,6 +29,36 @@ def test_asarray_dtypes(device, dtype):
     np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(x)), x)
 
 
+@pytest.mark.parametrize("shape", [(7,), (5, 3), (2, 3, 4), (3, 5, 3, 4), (2, 1, 3, 2, 2), (480, 640)])
+def test_asarray_roundtrip_shapes(device, shape):
+    """Every rank round-trips exactly (ranks 1-4 take the device's copy kernels, 5 the fallback)."""
+    x = np.random.default_rng(1).normal(size=shape).astype(np.float32)
+    np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(x)), x)
+    # a non-contiguous view is uploaded as its values
+    y = x[..., ::-1] if x.ndim > 1 else x[::-2]
+    np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(y)), y)
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_taichi_allocation_paths(device, fast, monkeypatch):
+    """Both ways of allocating Taichi arrays (Taichi's program object, or ti.ndarray) give arrays
+    that kernels write and read correctly."""
+    if device.backend != "taichi":
+        pytest.skip("Taichi allocation")
+    from gputrack.backends.taichi import runtime
+
+    if not fast:
+        monkeypatch.setattr(runtime, "_fast_alloc", False)
+    x = np.arange(3 * 129, dtype=np.float32).reshape(3, 129)
+    a = device.empty(x.shape, np.float32)
+    assert isinstance(a.buffer, runtime.ti.Ndarray) and a.buffer.shape == x.shape
+    from gputrack.backends.taichi.arrays import COPY
+
+    COPY[2](x if device.arch == "cpu" else device.asarray(x).buffer, a.buffer)  # a kernel writes a
+    np.testing.assert_array_equal(a.numpy(), x)
+    np.testing.assert_array_equal(device.asarray(x).numpy(), x)
+
+
 def test_asarray_rejects_bad_input(device):
     with pytest.raises(TypeError, match="expected an array of dtype .*got complex128"):
         device.asarray(np.zeros(3, dtype=complex))

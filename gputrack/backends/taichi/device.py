@@ -87,6 +87,16 @@ def open_taichi(arch: str) -> "TaichiDevice":
     return TaichiDevice(arch, DeviceInfo(f"taichi:{arch}", "taichi", True, name=name, fp64=fp64, kind=kind))
 
 
+def _copy(src, dst) -> bool:
+    """dst[...] = src[...] in one kernel (gputrack/backends/taichi/arrays.py); False if ndim > 4."""
+    from .arrays import COPY
+
+    kernel = COPY.get(len(dst.shape))
+    if kernel is not None:
+        kernel(src, dst)
+    return kernel is not None
+
+
 class TaichiDevice(Device):
     """Arrays are ``taichi.Ndarray`` objects; kernels live in this package's modules."""
 
@@ -97,24 +107,29 @@ class TaichiDevice(Device):
         self.arch = arch
 
     def _upload(self, host: np.ndarray):
-        from .runtime import DTYPES, ti
+        from .runtime import DTYPES, ndarray
 
         if host.size == 0:
             return None  # Taichi cannot allocate empty ndarrays; ops reject empty inputs anyway
-        arr = ti.ndarray(DTYPES[host.dtype.name], host.shape)
-        arr.from_numpy(host)
+        arr = ndarray(DTYPES[host.dtype.name], host.shape)
+        if not (self.arch == "cpu" and _copy(host, arr)):  # CPU: the kernel reads the NumPy memory in place
+            arr.from_numpy(host)
         return arr
 
     def _empty(self, shape, dtype):
-        from .runtime import DTYPES, ti
+        from .runtime import DTYPES, ndarray
 
         if int(np.prod(shape)) == 0:
             return None
-        return ti.ndarray(DTYPES[np.dtype(dtype).name], shape)
+        return ndarray(DTYPES[np.dtype(dtype).name], shape)
 
     def _download(self, buffer, shape, dtype) -> np.ndarray:
         if buffer is None:
             return np.empty(shape, dtype)
+        if self.arch == "cpu":
+            out = np.empty(shape, dtype)
+            if _copy(buffer, out):  # writes the NumPy memory in place
+                return out
         return np.ascontiguousarray(buffer.to_numpy(), dtype=dtype).reshape(shape)
 
     def synchronize(self) -> None:

@@ -5,14 +5,9 @@ serial task (an ordered k-list over the B scores, O(B k)), which on CPUs costs a
 microseconds for the filter's sizes and saves a second launch.
 """
 
-import weakref
-
 import numpy as np
 
-from .runtime import ti
-
-# per-device scratch buffers (raw Taichi ndarrays), dropped with the device
-_scratch = weakref.WeakKeyDictionary()
+from .runtime import scratch, ti
 
 
 @ti.func
@@ -140,22 +135,12 @@ def _best_k(
                     sel[r, q] = rows[idx[r], q]
 
 
-def _scratch_buffer(device, name, shape, dtype):
-    """A scratch Taichi ndarray kept per device (reallocated when the shape changes)."""
-    per_device = _scratch.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None or found[0] != shape:
-        found = (shape, ti.ndarray(dtype, shape))
-        per_device[name] = found
-    return found[1]
-
-
 def best_k(device, scores, k, rows):
     idx = device.empty((k,), np.int32)
     val = device.empty((k,), np.float32)
-    keys = _scratch_buffer(device, "keys", (k,), ti.u32)
+    keys = scratch(device, "keys", (k,), ti.u32)
     if rows is None:
-        dummy = _scratch_buffer(device, "dummy", (1, 1), ti.f32)
+        dummy = scratch(device, "dummy", (1, 1), ti.f32)
         _best_k(scores.buffer, idx.buffer, val.buffer, keys, dummy, dummy, False)
         return idx, val, None
     sel = device.empty((k, rows.shape[1]), np.float32)

@@ -13,21 +13,15 @@ Block-shared-memory reductions compile only on CUDA; this one-group-per-thread f
 every arch (on a GPU each thread then handles LANES hypotheses, LANES = 1 there).
 """
 
-import weakref
-
 import numpy as np
 
-from .runtime import DTYPES, ti
+from .runtime import scratch, ti
 
 CHUNK = 64
 CPU_LANES = 8
 TINY = 1e-12
 BIG = 3.0e38
 FLAT = 1e-6
-
-# per-device scratch buffers (raw Taichi ndarrays), dropped with the device
-_scratch = weakref.WeakKeyDictionary()
-
 
 def lanes(device) -> int:
     """Hypotheses per thread: CPU_LANES on taichi:cpu; 1 on GPUs and on Vulkan (lavapipe already
@@ -46,8 +40,9 @@ def _project(P: ti.template(), l: ti.template(), x, y, z, fx, fy, cx, cy, wm1, h
     X = P[l, 0] * x + P[l, 1] * y + P[l, 2] * z + P[l, 3]  # eq. 4: M_C = D M_O
     Y = P[l, 4] * x + P[l, 5] * y + P[l, 6] * z + P[l, 7]
     Z = P[l, 8] * x + P[l, 9] * y + P[l, 10] * z + P[l, 11]
-    u = fx * (X / Z) + cx  # eq. 5
-    v = fy * (Y / Z) + cy
+    iz = 1.0 / Z
+    u = fx * X * iz + cx  # eq. 5
+    v = fy * Y * iz + cy
     ok = (Z > 0.0) & (Z < BIG) & (u >= 0.0) & (u <= wm1) & (v >= 0.0) & (v <= hm1)
     return Z, ti.select(ok, u, 0.0), ti.select(ok, v, 0.0), ok
 
@@ -301,26 +296,16 @@ def _rgbd_res_kernel(
     )
 
 
-def _buffer(device, name, shape, dtype):
-    """A scratch Taichi ndarray of ``shape`` kept per device (reallocated when the shape changes)."""
-    per_device = _scratch.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None or found[0] != shape:
-        found = (shape, ti.ndarray(DTYPES[np.dtype(dtype).name], shape))
-        per_device[name] = found
-    return found[1]
-
-
 def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params):
     nl = int((params or default_params(device))["lanes"])
     nb = tf.shape[0]
     n = rgb["pts"].shape[0]
     groups = (nb + nl - 1) // nl
-    scratch = _buffer(device, "scratch", (groups, 2 * n * nl), np.float32)
+    work = scratch(device, "rgbd", (groups, 2 * n * nl), ti.f32)
     cam = [float(c) for c in camera] + [float(lam), float(c_rgb), float(c_depth)]
     args = (
         tf.buffer, rgb["pts"].buffer, rgb["index"].buffer, rgb["parts"], depth["pts"].buffer, depth["index"].buffer,
-        depth["parts"], gray.buffer, dimg.buffer, cam, scratch,
+        depth["parts"], gray.buffer, dimg.buffer, cam, work,
     )  # fmt: skip
     return args, groups, nl
 

@@ -1,0 +1,39 @@
+"""Taichi array kernels used by the device itself: copies between NumPy and Taichi arrays.
+
+On the CPU arch a NumPy array passed to a kernel is read and written in place, so one parallel
+copy kernel moves several GB/s, where ``Ndarray.from_numpy``/``to_numpy`` move about 0.7 GB/s.
+Loops are nested per dimension (outermost parallel): Taichi's ``ti.grouped`` loop over an
+external array recomputes the multi-index per element and runs ten times slower.
+"""
+
+from .runtime import ti
+
+
+@ti.kernel
+def _copy1(src: ti.types.ndarray(ndim=1), dst: ti.types.ndarray(ndim=1)):
+    for i in range(src.shape[0]):
+        dst[i] = src[i]
+
+
+@ti.kernel
+def _copy2(src: ti.types.ndarray(ndim=2), dst: ti.types.ndarray(ndim=2)):
+    for i in range(src.shape[0]):
+        for j in range(src.shape[1]):
+            dst[i, j] = src[i, j]
+
+
+@ti.kernel
+def _copy3(src: ti.types.ndarray(ndim=3), dst: ti.types.ndarray(ndim=3)):
+    for i in range(src.shape[0]):
+        for j, k in ti.ndrange(src.shape[1], src.shape[2]):
+            dst[i, j, k] = src[i, j, k]
+
+
+@ti.kernel
+def _copy4(src: ti.types.ndarray(ndim=4), dst: ti.types.ndarray(ndim=4)):
+    for i in range(src.shape[0]):
+        for j, k, m in ti.ndrange(src.shape[1], src.shape[2], src.shape[3]):
+            dst[i, j, k, m] = src[i, j, k, m]
+
+
+COPY = {1: _copy1, 2: _copy2, 3: _copy3, 4: _copy4}
