@@ -223,6 +223,17 @@ def _check_scalar(value, name, *, low=None, high=None, positive=False):
 
 def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth):
     check_device(device)
+    dims = {}
+    tf = arg(device, transforms, "transforms", ("B", "J", 3, 4), dims)
+    if dims["B"] == 0:
+        raise ValueError("transforms: expected at least one hypothesis, got B = 0")
+    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, dims["J"])
+    return tf, g, d, p
+
+
+def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, n_parts):
+    """Check what the RGB-D cost scores against (templates on ``n_parts`` parts, images, camera,
+    eq. 17-19 constants); return (gray, depth image) on the device and the constants."""
     _check_template(rgb, "rgb")
     _check_template(depth, "depth")
     if not isinstance(camera, Camera):
@@ -230,22 +241,18 @@ def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c
     lam = _check_scalar(lam, "lam", low=0.0, high=1.0)
     c_rgb = 0.5 / rgb.n if c_rgb is None else _check_scalar(c_rgb, "c_rgb", positive=True)  # eq. 17: c = 0.5/N
     c_depth = _check_scalar(c_depth, "c_depth", positive=True)
-    dims = {}
-    tf = arg(device, transforms, "transforms", ("B", "J", 3, 4), dims)
-    if dims["B"] == 0:
-        raise ValueError("transforms: expected at least one hypothesis, got B = 0")
-    if dims["J"] == 0:
+    if n_parts == 0:
         raise ValueError("transforms: expected at least one part, got J = 0")
     for t, name in ((rgb, "rgb"), (depth, "depth")):
-        if t.n_parts > dims["J"]:
-            raise ValueError(f"{name}.part: expected part indices in [0, J={dims['J']}), got {t.n_parts - 1}")
+        if t.n_parts > n_parts:
+            raise ValueError(f"{name}.part: expected part indices in [0, J={n_parts}), got {t.n_parts - 1}")
     img = {}
     # depth images may hold non-finite values: they mean "no measurement"
     g = arg(device, gray, "gray", ("H", "W"), img)
     d = arg(device, depth_image, "depth_image", ("H", "W"), img, finite=False)
     if img["H"] < 2 or img["W"] < 2:
         raise ValueError(f"gray: expected an image of at least 2 x 2 pixels, got {img['H']} x {img['W']}")
-    return tf, g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth}
+    return g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth}
 
 
 def _out(device, out, name, shape):

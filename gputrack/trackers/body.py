@@ -28,8 +28,8 @@ from ..device import Device, to_numpy
 from ..models.upper_body import pf_sigma, upper_body
 from ..ops.kinematics import forward_kinematics
 from ..ops.lm import least_squares
-from ..ops.particles import best_k, sample_around
-from ..ops.template import Camera, rgbd_cost, rgbd_residuals
+from ..ops.pf import pf_stage
+from ..ops.template import Camera, rgbd_residuals
 from ..scheduler import Pipeline
 from ..sim.render import DEFAULT_CAMERA, DEFAULT_SIZE
 from .body_template import sparse_template
@@ -125,9 +125,7 @@ class BodyTracker:
         if sigma.shape != (self.chain.n_params,) or not np.isfinite(sigma).all() or (sigma < 0).any():
             raise ValueError(f"sigma: expected ({self.chain.n_params},) finite values >= 0, got {sigma!r}")
         groups = self._groups() if cfg.cascade else [np.ones(self.chain.n_params, bool)]
-        self._sigmas = [
-            [device.asarray((sigma * g / 2**s).astype(np.float32)) for g in groups] for s in range(cfg.stages)
-        ]
+        self._sigmas = [[(sigma * g / 2**s).astype(np.float32) for g in groups] for s in range(cfg.stages)]
         angle = np.zeros(self.chain.n_params, bool)
         angle[[i for part in self.chain.parts for i in part.angles]] = True
         self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
@@ -184,13 +182,6 @@ class BodyTracker:
         key = ("fk", params.shape, np.dtype(params.dtype).name)
         return self._reuse(key, forward_kinematics(self.device, self.chain, params, out=self._buffers.get(key)))
 
-    def _cost(self, transforms, gray, depth):
-        rgb, dep = self._templates
-        key = ("cost", transforms.shape[0])
-        return self._reuse(key, rgbd_cost(self.device, transforms, rgb, dep, gray, depth, self.camera,
-                                          lam=self.config.lam, c_depth=self.config.c_depth,
-                                          out=self._buffers.get(key)))  # fmt: skip
-
     def _residuals(self, gray, depth):
         rgb, dep = self._templates
         dev, cfg = self.device, self.config
@@ -230,13 +221,13 @@ class BodyTracker:
                         return self._keep(str(e))
             with pipe.stage("upload candidates"):
                 cand = dev.asarray(self.candidates.astype(np.float32))
+            rgb, dep = self._templates
             for s in range(cfg.stages):
                 for sigma in self._sigmas[s]:
                     with pipe.stage(f"PF stage {s + 1}"):
                         seed = int(self._rng.integers(2**63))
-                        samples = sample_around(dev, cand, sigma, cfg.samples, seed, keep_candidates=True)
-                        cost = self._cost(self._poses(samples), g, d)
-                        best = best_k(dev, cost.total, cfg.candidates, rows=samples)
+                        best = pf_stage(dev, self.chain, cand, sigma, cfg.samples, seed, rgb, dep, g, d, self.camera,
+                                        k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth)  # fmt: skip
                         cand = best.rows
             if cfg.lm_iterations:
                 with pipe.stage("LM"):

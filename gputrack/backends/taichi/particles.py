@@ -30,7 +30,7 @@ def _pair(key, cnt):
 
 
 @ti.func
-def _sample_body(
+def sample_body(
     cand: ti.template(), sig: ti.template(), out: ti.template(), lo, hi, keep, per_candidate: ti.template()
 ):
     n = out.shape[0]
@@ -68,7 +68,7 @@ def _sample_p(
     hi: ti.u32,
     keep: ti.i32,
 ):
-    _sample_body(cand, sig, out, lo, hi, keep, False)
+    sample_body(cand, sig, out, lo, hi, keep, False)
 
 
 @ti.kernel
@@ -80,7 +80,7 @@ def _sample_cp(
     hi: ti.u32,
     keep: ti.i32,
 ):
-    _sample_body(cand, sig, out, lo, hi, keep, True)
+    sample_body(cand, sig, out, lo, hi, keep, True)
 
 
 def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
@@ -102,16 +102,10 @@ def _key(s):
     return key
 
 
-@ti.kernel
-def _best_k(
-    scores: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    idx: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    val: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    keys: ti.types.ndarray(dtype=ti.u32, ndim=1),
-    rows: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    sel: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    with_rows: ti.template(),
-):
+@ti.func
+def best_k_body(scores: ti.template(), idx: ti.template(), val: ti.template(), keys: ti.template(),
+                rows: ti.template(), sel: ti.template(), with_rows: ti.template()):  # fmt: skip
+    """The k = idx.shape[0] lowest scores, ascending, as one serial task (also for fused kernels)."""
     nb = scores.shape[0]
     k = idx.shape[0]
     for _ in range(1):  # one serial task
@@ -133,6 +127,19 @@ def _best_k(
             if ti.static(with_rows):
                 for q in range(rows.shape[1]):
                     sel[r, q] = rows[idx[r], q]
+
+
+@ti.kernel
+def _best_k(
+    scores: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    idx: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    val: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    keys: ti.types.ndarray(dtype=ti.u32, ndim=1),
+    rows: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    sel: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    with_rows: ti.template(),
+):
+    best_k_body(scores, idx, val, keys, rows, sel, with_rows)
 
 
 def best_k(device, scores, k, rows):

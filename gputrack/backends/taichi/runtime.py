@@ -107,7 +107,7 @@ def ndarray(dtype, shape):
     return ti.ndarray(dtype, shape)
 
 
-_scratch: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # device -> {name: (shape, dtype, array)}
+_scratch: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {name: (shape, dtype, array)}
 
 
 def scratch(device, name: str, shape, dtype):

@@ -48,6 +48,99 @@ def _project(P: ti.template(), l: ti.template(), x, y, z, fx, fy, cx, cy, wm1, h
 
 
 @ti.func
+def _gray_at(P: ti.template(), l: ti.template(), x, y, z, gray: ti.template(), fx, fy, cx, cy):
+    """Lane l's bilinear intensity I(M_i; D) (sec. 3.5) of one RGB point, and its validity."""
+    h = gray.shape[0]
+    w = gray.shape[1]
+    Z, u, v, ok = _project(P, l, x, y, z, fx, fy, cx, cy, ti.f32(w - 1), ti.f32(h - 1))
+    x0 = ti.min(ti.cast(u, ti.i32), w - 2)
+    y0 = ti.min(ti.cast(v, ti.i32), h - 2)
+    a = u - ti.cast(x0, ti.f32)
+    bw = v - ti.cast(y0, ti.f32)
+    i00 = gray[y0, x0]
+    i01 = gray[y0, x0 + 1]
+    i10 = gray[y0 + 1, x0]
+    i11 = gray[y0 + 1, x0 + 1]
+    top = i00 + a * (i01 - i00)
+    bot = i10 + a * (i11 - i10)
+    return top + bw * (bot - top), ok  # sec. 3.5: bilinear
+
+
+@ti.func
+def _depth_term(P: ti.template(), l: ti.template(), x, y, z, dimg: ti.template(), fx, fy, cx, cy, cd):
+    """Lane l's d'_i = Zhat - Z (eq. 18; 0 where invalid), its validity and rho_c'(d'_i) (1 if invalid)."""
+    h = dimg.shape[0]
+    w = dimg.shape[1]
+    Z, u, v, ok = _project(P, l, x, y, z, fx, fy, cx, cy, ti.f32(w - 1), ti.f32(h - 1))
+    x0 = ti.min(ti.cast(u, ti.i32), w - 2)
+    y0 = ti.min(ti.cast(v, ti.i32), h - 2)
+    d00 = dimg[y0, x0]
+    d01 = dimg[y0, x0 + 1]
+    d10 = dimg[y0 + 1, x0]
+    d11 = dimg[y0 + 1, x0 + 1]
+    # a measurement is > 0 and finite (NaN fails both tests)
+    okd = ok & (ti.min(ti.min(d00, d01), ti.min(d10, d11)) > 0.0)
+    okd = okd & (d00 < BIG) & (d01 < BIG) & (d10 < BIG) & (d11 < BIG)
+    a = u - ti.cast(x0, ti.f32)
+    bw = v - ti.cast(y0, ti.f32)
+    top = d00 + a * (d01 - d00)
+    bot = d10 + a * (d11 - d10)
+    dd = ti.select(okd, top + bw * (bot - top) - Z, 0.0)  # eq. 18: d'_i = Zhat - Z
+    q = cd + dd * dd
+    return dd, q, okd, ti.select(okd, dd * dd / q, 1.0)
+
+
+@ti.func
+def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
+    for e in ti.static(range(12)):
+        P[l, e] = tf[b, j, e // 4, e % 4]
+
+
+@ti.func
+def _candidate_cache(
+    tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
+    dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), active: ti.template(), cache: ti.template(),
+):  # fmt: skip
+    """Partial evaluation, first task: for each candidate c, the parts no sampled parameter moves
+    (active[j] == 0) look the same in every sample of c's block, so they are evaluated once, here,
+    with the block's first sample: cache[c] = [I_i (n), valid_i (n), sum T, sum T^2, sum T I over
+    those valid RGB points, sum of rho_c' over those depth points]."""
+    nb = tf.shape[0]
+    nc = cache.shape[0]
+    n = rpts.shape[0]
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    cd = cam[6] * cam[6]
+    for c in range(nc):
+        b = (c * nb + nc - 1) // nc  # the first sample of candidate c's block
+        P = ti.Matrix([[0.0] * 12], dt=ti.f32)
+        s = ti.Vector([0.0, 0.0, 0.0, 0.0], dt=ti.f32)
+        for j in range(rparts):
+            if active[j] == 0:
+                _load_pose(P, 0, tf, b, j)
+                blk = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
+                for i in range(ridx[j], ridx[j + 1]):
+                    T = rpts[i, 3]
+                    I, ok = _gray_at(P, 0, rpts[i, 0], rpts[i, 1], rpts[i, 2], gray, fx, fy, cx, cy)
+                    Tv = ti.select(ok, T, 0.0)
+                    blk += ti.Vector([Tv, Tv * T, Tv * I])
+                    cache[c, i] = I
+                    cache[c, n + i] = ti.select(ok, 1.0, 0.0)
+                s[0] += blk[0]
+                s[1] += blk[1]
+                s[2] += blk[2]
+        for j in range(dparts):
+            if active[j] == 0:
+                _load_pose(P, 0, tf, b, j)
+                blk = ti.f32(0.0)
+                for i in range(didx[j], didx[j + 1]):
+                    dd, q, okd, rho = _depth_term(P, 0, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
+                    blk += rho
+                s[3] += blk
+        for e in ti.static(range(4)):
+            cache[c, 2 * n + e] = s[e]
+
+
+@ti.func
 def _rgbd_body(
     tf: ti.template(),
     rpts: ti.template(),
@@ -67,71 +160,80 @@ def _rgbd_body(
     groups,
     want_residuals: ti.template(),
     L: ti.template(),
+    partial: ti.template(),
+    active: ti.template(),
+    cache: ti.template(),
 ):
-    """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)]."""
+    """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
+
+    ``partial`` (static): evaluate only the parts with active[j] != 0 and take the others from
+    ``cache`` (filled by _candidate_cache for the candidate that owns each sample)."""
     nb = tf.shape[0]
     n = rpts.shape[0]
-    h = gray.shape[0]
-    w = gray.shape[1]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lam = cam[4]
-    wm1 = ti.f32(w - 1)
-    hm1 = ti.f32(h - 1)
     cc = cam[5] * cam[5]
     cd = cam[6] * cam[6]
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
     for g in range(groups):  # groups = ceil(B / L), computed by the caller (SPIR-V needs a plain bound)
         P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
+        own = ti.Vector([0] * L, dt=ti.i32)  # partial: the candidate that owns each lane's sample
         # ---- RGB pass 1: samples I_i, validity, sums over the valid points (eq. 17)
         sT = ti.Vector([0.0] * L, dt=ti.f32)
         sTT = ti.Vector([0.0] * L, dt=ti.f32)
         sTI = ti.Vector([0.0] * L, dt=ti.f32)
+        eD = ti.Vector([0.0] * L, dt=ti.f32)
+        if ti.static(partial):
+            for l in ti.static(range(L)):
+                own[l] = ti.min(g * L + l, nb - 1) * cache.shape[0] // nb  # as in sample_around
         bT = ti.Vector([0.0] * L, dt=ti.f32)
         bTT = ti.Vector([0.0] * L, dt=ti.f32)
         bTI = ti.Vector([0.0] * L, dt=ti.f32)
         cnt = 0
         for j in range(rparts):
-            for l in ti.static(range(L)):
-                b = ti.min(g * L + l, nb - 1)  # lanes past the batch repeat the last hypothesis
-                for e in ti.static(range(12)):
-                    P[l, e] = tf[b, j, e // 4, e % 4]
-            for i in range(ridx[j], ridx[j + 1]):
-                x = rpts[i, 0]
-                y = rpts[i, 1]
-                z = rpts[i, 2]
-                T = rpts[i, 3]
+            moved = 1
+            if ti.static(partial):
+                moved = active[j]
+            if moved == 0:
+                for i in range(ridx[j], ridx[j + 1]):  # the owner's samples, for pass 2
+                    for l in ti.static(range(L)):
+                        scratch[g, i * L + l] = cache[own[l], i]
+                        scratch[g, (n + i) * L + l] = cache[own[l], n + i]
+            else:
                 for l in ti.static(range(L)):
-                    Z, u, v, ok = _project(P, l, x, y, z, fx, fy, cx, cy, wm1, hm1)
-                    x0 = ti.min(ti.cast(u, ti.i32), w - 2)
-                    y0 = ti.min(ti.cast(v, ti.i32), h - 2)
-                    a = u - ti.cast(x0, ti.f32)
-                    bw = v - ti.cast(y0, ti.f32)
-                    i00 = gray[y0, x0]
-                    i01 = gray[y0, x0 + 1]
-                    i10 = gray[y0 + 1, x0]
-                    i11 = gray[y0 + 1, x0 + 1]
-                    top = i00 + a * (i01 - i00)
-                    bot = i10 + a * (i11 - i10)
-                    I = top + bw * (bot - top)  # sec. 3.5: bilinear
-                    Tv = ti.select(ok, T, 0.0)
-                    bT[l] += Tv
-                    bTT[l] += Tv * T
-                    bTI[l] += Tv * I
-                    scratch[g, i * L + l] = I  # samples, then validity flags: contiguous lanes
-                    scratch[g, (n + i) * L + l] = ti.select(ok, 1.0, 0.0)
-                cnt += 1
-                if cnt == CHUNK:
-                    sT += bT
-                    sTT += bTT
-                    sTI += bTI
-                    bT.fill(0.0)
-                    bTT.fill(0.0)
-                    bTI.fill(0.0)
-                    cnt = 0
+                    _load_pose(P, l, tf, ti.min(g * L + l, nb - 1), j)  # lanes past the batch repeat the last
+                for i in range(ridx[j], ridx[j + 1]):
+                    x = rpts[i, 0]
+                    y = rpts[i, 1]
+                    z = rpts[i, 2]
+                    T = rpts[i, 3]
+                    for l in ti.static(range(L)):
+                        I, ok = _gray_at(P, l, x, y, z, gray, fx, fy, cx, cy)
+                        Tv = ti.select(ok, T, 0.0)
+                        bT[l] += Tv
+                        bTT[l] += Tv * T
+                        bTI[l] += Tv * I
+                        scratch[g, i * L + l] = I  # samples, then validity flags: contiguous lanes
+                        scratch[g, (n + i) * L + l] = ti.select(ok, 1.0, 0.0)
+                    cnt += 1
+                    if cnt == CHUNK:
+                        sT += bT
+                        sTT += bTT
+                        sTI += bTI
+                        bT.fill(0.0)
+                        bTT.fill(0.0)
+                        bTI.fill(0.0)
+                        cnt = 0
         sT += bT
         sTT += bTT
         sTI += bTI
+        if ti.static(partial):  # the parts that did not move: the owner's sums
+            for l in ti.static(range(L)):
+                sT[l] += cache[own[l], 2 * n]
+                sTT[l] += cache[own[l], 2 * n + 1]
+                sTI[l] += cache[own[l], 2 * n + 2]
+                eD[l] = cache[own[l], 2 * n + 3]
         alpha = ti.Vector([0.0] * L, dt=ti.f32)
         beta = ti.Vector([0.0] * L, dt=ti.f32)
         for l in ti.static(range(L)):
@@ -160,47 +262,33 @@ def _rgbd_body(
                 cnt = 0
         eC += blk
         # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
-        eD = ti.Vector([0.0] * L, dt=ti.f32)
         blk.fill(0.0)
         cnt = 0
         for j in range(dparts):
-            for l in ti.static(range(L)):
-                b = ti.min(g * L + l, nb - 1)
-                for e in ti.static(range(12)):
-                    P[l, e] = tf[b, j, e // 4, e % 4]
-            for i in range(didx[j], didx[j + 1]):
-                x = dpts[i, 0]
-                y = dpts[i, 1]
-                z = dpts[i, 2]
+            moved = 1
+            if ti.static(partial):
+                moved = active[j]
+            if moved != 0:
                 for l in ti.static(range(L)):
-                    Z, u, v, ok = _project(P, l, x, y, z, fx, fy, cx, cy, wm1, hm1)
-                    x0 = ti.min(ti.cast(u, ti.i32), w - 2)
-                    y0 = ti.min(ti.cast(v, ti.i32), h - 2)
-                    d00 = dimg[y0, x0]
-                    d01 = dimg[y0, x0 + 1]
-                    d10 = dimg[y0 + 1, x0]
-                    d11 = dimg[y0 + 1, x0 + 1]
-                    # a measurement is > 0 and finite (NaN fails both tests)
-                    okd = ok & (ti.min(ti.min(d00, d01), ti.min(d10, d11)) > 0.0)
-                    okd = okd & (d00 < BIG) & (d01 < BIG) & (d10 < BIG) & (d11 < BIG)
-                    a = u - ti.cast(x0, ti.f32)
-                    bw = v - ti.cast(y0, ti.f32)
-                    top = d00 + a * (d01 - d00)
-                    bot = d10 + a * (d11 - d10)
-                    dd = ti.select(okd, top + bw * (bot - top) - Z, 0.0)  # eq. 18: d'_i = Zhat - Z
-                    q = cd + dd * dd
-                    if ti.static(not want_residuals):
-                        blk[l] += ti.select(okd, dd * dd / q, 1.0)
-                    if ti.static(want_residuals):
-                        col = n + didx[dparts + 1 + i]
-                        residuals[ti.min(g * L + l, nb - 1), col] = ti.select(
-                            okd, wd * dd / ti.sqrt(q), wd
-                        )  # eq. 20-21
-                cnt += 1
-                if cnt == CHUNK:
-                    eD += blk
-                    blk.fill(0.0)
-                    cnt = 0
+                    _load_pose(P, l, tf, ti.min(g * L + l, nb - 1), j)
+                for i in range(didx[j], didx[j + 1]):
+                    x = dpts[i, 0]
+                    y = dpts[i, 1]
+                    z = dpts[i, 2]
+                    for l in ti.static(range(L)):
+                        dd, q, okd, rho = _depth_term(P, l, x, y, z, dimg, fx, fy, cx, cy, cd)
+                        if ti.static(not want_residuals):
+                            blk[l] += rho
+                        if ti.static(want_residuals):
+                            col = n + didx[dparts + 1 + i]
+                            residuals[ti.min(g * L + l, nb - 1), col] = ti.select(
+                                okd, wd * dd / ti.sqrt(q), wd
+                            )  # eq. 20-21
+                    cnt += 1
+                    if cnt == CHUNK:
+                        eD += blk
+                        blk.fill(0.0)
+                        cnt = 0
         eD += blk
         if ti.static(not want_residuals):
             for l in ti.static(range(L)):
@@ -212,88 +300,27 @@ def _rgbd_body(
 
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+F4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 CAM = ti.types.vector(7, ti.f32)
 
 
 @ti.kernel
 def _rgbd_cost_kernel(
-    tf: ti.types.ndarray(dtype=ti.f32, ndim=4),
-    rpts: F2,
-    ridx: I1,
-    rparts: ti.i32,
-    dpts: F2,
-    didx: I1,
-    dparts: ti.i32,
-    gray: F2,
-    dimg: F2,
-    cam: CAM,
-    scratch: F2,
-    total: F1,
-    eps_c: F1,
-    eps_d: F1,
-    groups: ti.i32,
-    L: ti.template(),
-):
-    _rgbd_body(
-        tf,
-        rpts,
-        ridx,
-        rparts,
-        dpts,
-        didx,
-        dparts,
-        gray,
-        dimg,
-        cam,
-        scratch,
-        total,
-        eps_c,
-        eps_d,
-        total,
-        groups,
-        False,
-        L,
-    )
+    tf: F4, rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
+    scratch: F2, total: F1, eps_c: F1, eps_d: F1, groups: ti.i32, L: ti.template(),
+):  # fmt: skip
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total,
+               groups, False, L, False, ridx, scratch)  # fmt: skip
 
 
 @ti.kernel
 def _rgbd_res_kernel(
-    tf: ti.types.ndarray(dtype=ti.f32, ndim=4),
-    rpts: F2,
-    ridx: I1,
-    rparts: ti.i32,
-    dpts: F2,
-    didx: I1,
-    dparts: ti.i32,
-    gray: F2,
-    dimg: F2,
-    cam: CAM,
-    scratch: F2,
-    residuals: F2,
-    groups: ti.i32,
-    L: ti.template(),
-):
-    _rgbd_body(
-        tf,
-        rpts,
-        ridx,
-        rparts,
-        dpts,
-        didx,
-        dparts,
-        gray,
-        dimg,
-        cam,
-        scratch,
-        residuals,
-        residuals,
-        residuals,
-        residuals,
-        groups,
-        True,
-        L,
-    )
+    tf: F4, rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
+    scratch: F2, residuals: F2, groups: ti.i32, L: ti.template(),
+):  # fmt: skip
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
+               residuals, residuals, groups, True, L, False, ridx, scratch)  # fmt: skip
 
 
 def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params):

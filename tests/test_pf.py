@@ -1,0 +1,119 @@
+"""One particle-filter stage (gputrack.ops.pf.pf_stage) against its composition and the reference.
+
+The composition sample_around -> forward_kinematics -> rgbd_cost -> best_k on the same device is
+what pf_stage promises to compute; Taichi runs it fused with a partial evaluation of the parts no
+sampled parameter moves (cascade stages), which must not change the scores beyond float rounding.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from tolerances import assert_matches, tolerance
+
+import gputrack
+from gputrack.models.upper_body import pf_sigma
+from gputrack.ops.kinematics import forward_kinematics
+from gputrack.ops.particles import best_k, sample_around
+from gputrack.ops.pf import pf_stage
+from gputrack.ops.template import rgbd_cost
+from gputrack.sim import sequence
+from gputrack.trackers.body import BodyTracker, TrackerConfig
+
+REF = gputrack.device("numpy")
+SEED = 2**40 + 12345
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Frame 1 of a simulated sequence, the template at frame 0, and 10 candidates near the truth."""
+    seq = sequence("arm_cross", frames=2, seed=0)
+    tracker = BodyTracker(REF, seq.params[0], config=TrackerConfig(lm_iterations=0, samples=200))
+    tracker.track(seq[1].gray, seq[1].depth)
+    rgb, dep = tracker._templates
+    rng = np.random.default_rng(3)
+    cand = (seq.params[1][None] + rng.normal(0, 0.01, (10, seq.chain.n_params))).astype(np.float32)
+    groups = tracker._groups()
+    return seq.chain, seq[1], rgb, dep, tracker.camera, cand, groups
+
+
+def _sigma(chain, group):
+    return (pf_sigma(chain) * group).astype(np.float32)
+
+
+def _composed(device, chain, cand, sigma, n, frame, rgb, dep, camera, k):
+    samples = sample_around(device, cand, sigma, n, SEED, keep_candidates=True)
+    cost = rgbd_cost(device, forward_kinematics(device, chain, samples), rgb, dep, frame.gray, frame.depth, camera)
+    return samples, cost, best_k(device, cost.total, k, rows=samples)
+
+
+@pytest.mark.parametrize("which", ["torso", "right arm", "left arm", "all", "none"])
+@pytest.mark.parametrize("n,k", [(1500, 10), (13, 3), (129, 10)])
+def test_pf_stage_equals_its_composition(device, scene, which, n, k):
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    group = {"torso": groups[0], "right arm": groups[1], "left arm": groups[2]}.get(which)
+    if which == "all":
+        group = np.ones(chain.n_params, bool)
+    if which == "none":
+        group = np.zeros(chain.n_params, bool)
+    sigma = _sigma(chain, group)
+    c = cand[: min(10, n)]
+    got = pf_stage(device, chain, c, sigma, n, SEED, rgb, dep, frame.gray, frame.depth, camera, k=k)
+    samples, cost, want = _composed(device, chain, c, sigma, n, frame, rgb, dep, camera, k)
+    # scores: the k lowest of the composition's costs (sums of 256 terms: scale as rgbd_cost's tests)
+    assert_matches(device, got.scores, gputrack.to_numpy(want.scores), scale=50)
+    idx = gputrack.to_numpy(got.indices)
+    total = gputrack.to_numpy(cost.total)
+    assert_matches(device, got.scores, total[idx], scale=50)
+    np.testing.assert_array_equal(gputrack.to_numpy(got.rows), gputrack.to_numpy(samples)[idx])
+    assert got.rows.shape == (k, chain.n_params) and got.indices.shape == (k,)
+
+
+def test_pf_stage_matches_reference(device, scene):
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    for group in groups:
+        sigma = _sigma(chain, group)
+        got = pf_stage(device, chain, cand, sigma, 1500, SEED, rgb, dep, frame.gray, frame.depth, camera)
+        want = pf_stage(REF, chain, cand, sigma, 1500, SEED, rgb, dep, frame.gray, frame.depth, camera)
+        assert_matches(device, got.scores, want.scores, scale=50)
+        # the same samples win (the generator is shared; rounding may swap near-ties only)
+        same = gputrack.to_numpy(got.indices) == want.indices
+        assert same.mean() >= 0.8, (gputrack.to_numpy(got.indices), want.indices)
+        rtol, atol = tolerance(device, scale=10)
+        np.testing.assert_allclose(gputrack.to_numpy(got.rows)[same], want.rows[same], rtol=rtol, atol=atol)
+
+
+def test_pf_stage_keeps_the_best_candidate(device, scene):
+    """The first sample of each block is its candidate: a stage never returns a worse best score."""
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    base = rgbd_cost(device, forward_kinematics(device, chain, cand), rgb, dep, frame.gray, frame.depth, camera)
+    got = pf_stage(device, chain, cand, _sigma(chain, groups[1]), 300, SEED, rgb, dep, frame.gray, frame.depth, camera)
+    rtol, atol = tolerance(device, scale=50)
+    assert gputrack.to_numpy(got.scores)[0] <= gputrack.to_numpy(base.total).min() * (1 + rtol) + atol
+
+
+def test_pf_stage_rejects_bad_input(device, scene):
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    sigma = _sigma(chain, groups[0])
+    args = (rgb, dep, frame.gray, frame.depth, camera)
+    with pytest.raises(TypeError, match="chain"):
+        pf_stage(device, "upper body", cand, sigma, 100, 1, *args)
+    with pytest.raises(ValueError, match="candidates"):
+        pf_stage(device, chain, cand[:, :5], sigma, 100, 1, *args)
+    with pytest.raises(ValueError, match="sigma"):
+        pf_stage(device, chain, cand, -sigma - 1, 100, 1, *args)
+    with pytest.raises(ValueError, match="sigma"):
+        pf_stage(device, chain, cand, sigma[:3], 100, 1, *args)
+    if device.backend != "numpy":
+        with pytest.raises(TypeError, match="sigma"):
+            pf_stage(device, chain, cand, device.asarray(sigma), 100, 1, *args)
+    with pytest.raises(ValueError, match="n:"):
+        pf_stage(device, chain, cand, sigma, 5, 1, *args)
+    with pytest.raises(ValueError, match="k:"):
+        pf_stage(device, chain, cand, sigma, 100, 1, *args, k=0)
+    with pytest.raises(ValueError, match="seed"):
+        pf_stage(device, chain, cand, sigma, 100, -1, *args)
+    two_parts = dataclasses.replace(chain, parts=chain.parts[:2], n_params=8, param_names=chain.param_names[:8],
+                                    rest=chain.rest[:8])  # fmt: skip
+    with pytest.raises(ValueError, match="part indices"):
+        pf_stage(device, two_parts, cand[:, :8], sigma[:8], 100, 1, *args)
