@@ -112,6 +112,46 @@ def test_ops_write_into_out(device):
         lm.lm_solve(device, J, r, C, out=o[0])
 
 
+@pytest.mark.parametrize("P", [14, 20])
+def test_repeated_calls_read_and_write_their_own_arrays(device, P):
+    """Calls after the first with the same shapes take Taichi's direct launch path
+    (gputrack/backends/taichi/launch.py): each must use the arrays it is given."""
+    rng = np.random.default_rng(P + 1)
+    B, M = 10, 256
+    for dt in {np.float32, _fdt(device)}:
+        calls = []
+        for _ in range(3):
+            J = rng.normal(size=(B, M, P)).astype(dt)
+            r = rng.normal(size=(B, M)).astype(dt)
+            C = rng.uniform(1e-3, 1, size=B).astype(dt)
+            o = (device.empty((B, P), dt), device.empty((B,), np.int32))
+            ne = (device.empty((B, P, P), dt), device.empty((B, P), dt))
+            lm.lm_solve(device, device.asarray(J), device.asarray(r), device.asarray(C), out=o)
+            lm.normal_equations(device, J, r, out=ne)
+            calls.append((o, ne, lm.lm_solve(REF, J, r, C), lm.normal_equations(REF, J, r)))
+        for o, ne, (want_d, want_ok), (want_A, want_g) in calls:
+            assert_matches(device, o[0], want_d, dt, scale=1e3 if dt == np.float32 else 1e2)
+            np.testing.assert_array_equal(gputrack.to_numpy(o[1]), want_ok)
+            assert_matches(device, ne[0], want_A, dt, scale=M)
+            assert_matches(device, ne[1], want_g, dt, scale=M)
+
+
+def test_taichi_direct_launch_takes_numpy_arrays(device):
+    if device.spec != "taichi:cpu":
+        pytest.skip("NumPy arrays are passed to Taichi kernels by address on taichi:cpu only")
+    from gputrack.backends.taichi import lm as tlm
+    from gputrack.backends.taichi.launch import launch
+
+    for seed, order in enumerate("CCFC"):  # the F-ordered array goes through kernel(...)
+        src = np.asarray(np.random.default_rng(seed).normal(size=(5, 7)), order=order)
+        dst = device.empty((5, 7), np.float64)
+        launch(tlm._copy, (src, dst.buffer))
+        back = np.empty((5, 7), np.float64)
+        launch(tlm._copy, (dst.buffer, back))
+        np.testing.assert_array_equal(back, src)
+        np.testing.assert_array_equal(dst.numpy(), src)
+
+
 def test_lm_step_flags_not_positive_definite(device):
     dt = _fdt(device)
     P = 4

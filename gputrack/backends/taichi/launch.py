@@ -10,8 +10,8 @@ and one template argument: ~38 us per call through ``kernel(...)``, ~13 us throu
 template values (last, hashable) separately. The first call with a given kernel, template values
 and dtypes and ranks of the arrays goes through ``kernel(...)``, which compiles and checks
 everything, and remembers the compiled kernel; later calls launch it directly. Only calls whose
-arrays are all Taichi ndarrays without gradients are remembered; others always go through
-``kernel(...)``. A launch context is not reused between launches (Taichi's LLVM launcher does not
+arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (passed by address,
+as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch context is not reused between launches (Taichi's LLVM launcher does not
 support that). If Taichi's internal interface is not what this module expects (another Taichi
 version), every call goes through ``kernel(...)`` from then on.
 """
@@ -20,9 +20,20 @@ from __future__ import annotations
 
 import logging
 
+import numpy as np
+
 from .runtime import ti
 
 log = logging.getLogger("gputrack")
+
+
+def _direct(a) -> bool:
+    """``a`` can be passed by :func:`launch` itself: a Taichi ndarray without gradient, or a
+    C-contiguous NumPy array (which Taichi reads and writes in place on the CPU arch)."""
+    if type(a) is np.ndarray:
+        return a.flags.c_contiguous
+    return isinstance(a, ti.lang._ndarray.Ndarray) and a.grad is None
+
 
 _cache: dict = {}  # (kernel, templates, (dtype, rank) of each array) -> (kernel, compiled, program)
 _enabled = True
@@ -39,11 +50,17 @@ def launch(kernel, arrays: tuple, templates: tuple = ()) -> None:
             if prog is ti.lang.impl.get_runtime().prog:  # not a restarted Taichi
                 ctx = tk.make_launch_context()
                 for i, a in enumerate(arrays):
-                    ctx.set_arg_ndarray((i,), a.arr)
-                prog.launch_kernel(ckd, ctx)
-                return
+                    if type(a) is np.ndarray:
+                        if not a.flags.c_contiguous:
+                            break
+                        ctx.set_arg_external_array_with_shape((i,), a.ctypes.data, a.nbytes, a.shape, 0)
+                    else:
+                        ctx.set_arg_ndarray((i,), a.arr)
+                else:
+                    prog.launch_kernel(ckd, ctx)
+                    return
     kernel(*arrays, *templates)
-    if _enabled and all(isinstance(a, ti.lang._ndarray.Ndarray) and a.grad is None for a in arrays):
+    if _enabled and all(_direct(a) for a in arrays):
         try:
             primal = kernel._primal
             tk = primal.compiled_kernels[primal.ensure_compiled(*arrays, *templates)]
