@@ -1,18 +1,28 @@
-"""Taichi kernels of the batched Kalman filter ops: one thread per track, one launch per call.
+"""Taichi kernels of the batched Kalman filter ops: one launch per call, L tracks per thread.
 
-The small matrix algebra (n <= 12, m <= 6) is unrolled at compile time (n, m are template
-arguments), so each (n, m, dtype, shared/per-track layout, options) combination compiles once.
-Shared matrices are (n,n) ndarrays and per-track ones (T,n,n); the kernel reads either through
-:func:`_get`, chosen at compile time from the ndarray's dimension. The known zero entries of a
-shared F, Q, H and R (bitmask template arguments ``fpat`` .. ``rpat``, -1 = dense) are left out
-at compile time: the constant-velocity F and Q, a selection H and a diagonal R are mostly zeros,
-which removes about half of the work. Run-time branches on zero entries were tried and were
-slower (they keep LLVM from optimising the unrolled code).
+The per-track math (n <= 12, m <= 6) is traced at compile time by the plain Python functions of
+:class:`_Tracer`: every matrix is a Python list of Taichi values, every loop over its entries
+is unrolled, and the known zero entries of a shared F, Q, H and R (bitmask ``pats``, -1 =
+dense; the constant-velocity F and Q, a selection H and a diagonal R are mostly zeros) are left
+out of the traced code. The code has no branches: every track computes its update and a
+per-track select keeps the input where the status is not UPDATED (run-time branches were
+tried and were slower: they keep LLVM from optimising the unrolled code).
+
+Lanes. On taichi:cpu a value is a ``ti.types.vector(L, real)`` holding L tracks (L = 8 for
+float32, 4 for float64) and the kernels are compiled with ``real_matrix_scalarize`` off, so
+that LLVM emits SIMD instructions across the L tracks (each lane's loads and stores stay
+per track in the (T,n,n) layout). The last group of a batch repeats track T-1 in its spare
+lanes; every lane loads its inputs before any lane stores, and the repeated lanes store the
+same values. On the GPU archs (vulkan, cuda) L = 1: one scalar track per thread.
+
 The numerics follow gputrack/backends/reference/kalman.py step for step (see its docstring).
-Arguments an op does not use are passed as ``x`` (never read). Note: a whole local matrix
-re-assigned inside an ``if ti.static(...)`` block did not reach the code after the block in
-Taichi 1.7.4; results computed in such blocks are copied element by element.
+Launch cost on taichi:cpu is about 30 us plus about 8 us per ndarray argument, so the common
+call of a tracker (in place, no mask, no gain_scale) has a kernel with 8 ndarray arguments
+instead of 12, and the compile-time options travel as one hashable :class:`_Variant`.
 """
+
+import dataclasses
+import weakref
 
 import numpy as np
 
@@ -21,358 +31,423 @@ from .runtime import ti
 UPDATED, SKIPPED, NOT_PD, BAD_DEPTH = 0, 1, 2, 3
 PD_EPS_FACTOR = 4.0
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
+#: batches of at most this many tracks run on the calling thread (a thread-pool wake-up costs
+#: more than the work: ~10-30 us on a busy 2-core CPU)
+SERIAL_MAX = 512
 
 nd = ti.types.ndarray()
-
-
-@ti.func
-def _get(A: ti.template(), t, i: ti.template(), j: ti.template()):
-    """A[i, j] of a shared (r,c) matrix or A[t, i, j] of a per-track (T,r,c) one."""
-    if ti.static(len(A.shape) == 3):
-        return A[t, i, j]
-    else:
-        return A[i, j]
-
-
-@ti.func
-def _nonfinite(v, real: ti.template()):
-    """True for NaN or +-inf, from the bits (robust under fast math)."""
-    r = False
-    if ti.static(real == ti.f64):
-        r = (ti.bit_cast(v, ti.u64) & ti.u64(0x7FF0000000000000)) == ti.u64(0x7FF0000000000000)
-    else:
-        r = (ti.bit_cast(v, ti.u32) & ti.u32(0x7F800000)) == ti.u32(0x7F800000)
-    return r
-
-
-def _nz(pat, n, i, k):
-    """Whether entry (i, k) of a matrix with n columns may be non-zero (pat: bitmask, -1 = dense)."""
-    return (pat >> (i * n + k)) & 1 == 1
-
+_impl = ti.lang.impl
 
 STEREO_PATTERN = sum(1 << (i * 6 + k) for i, k in ((0, 0), (0, 4), (1, 2), (1, 4), (2, 4)))
 
 
-def _make(real, eps):
-    """Kernels for one float type (scalar arguments need a fixed annotation)."""
+@dataclasses.dataclass(frozen=True)
+class _Variant:
+    """Compile-time options of one kernel variant (one template argument, hashed by value)."""
 
-    @ti.func
-    def load_sym(A: ti.template(), t, r: ti.template(), pat: ti.template()):
-        """(A + A^T)/2 of the (r,r) matrix A (shared or per track); known zeros are not read."""
-        S = ti.Matrix.zero(real, r, r)
-        for i in ti.static(range(r)):
-            if ti.static(_nz(pat, r, i, i)):
-                S[i, i] = _get(A, t, i, i)
-            for j in ti.static(range(i + 1, r)):
-                if ti.static(_nz(pat, r, i, j) or _nz(pat, r, j, i)):
-                    v = ti.cast(0, real)
-                    if ti.static(_nz(pat, r, i, j)):
-                        v += _get(A, t, i, j)
-                    if ti.static(_nz(pat, r, j, i)):
-                        v += _get(A, t, j, i)
-                    S[i, j] = 0.5 * v
-                    S[j, i] = 0.5 * v
+    real: str  # "float32" or "float64"
+    lanes: int
+    n: int
+    m: int
+    mode: int
+    predict: bool = False
+    mask: bool = False
+    gain: bool = False
+    pats: tuple = (-1, -1, -1, -1)  # F, Q, H, R zero patterns (-1 = dense)
+    serial: bool = False  # one thread runs the whole loop (small batches: no thread-pool wake-up)
+
+
+def _nz(pat, cols, i, k):
+    """Whether entry (i, k) of a matrix with ``cols`` columns may be non-zero (pat -1 = dense)."""
+    return (pat >> (i * cols + k)) & 1 == 1
+
+
+def _sum(terms):
+    """Sum of a list of traced values; None for an empty list (a structural zero)."""
+    acc = None
+    for t in terms:
+        acc = t if acc is None else acc + t
+    return acc
+
+
+class _Tracer:
+    """Traces the per-track algebra of one kernel variant for a group of L tracks.
+
+    Values are Taichi scalars (L = 1) or L-lane vectors; ``None`` stands for a known zero.
+    Called from the kernels inside ``ti.static(...)`` (plain Python run at compile time).
+    """
+
+    def __init__(self, v: _Variant, g, T):
+        self.v = v
+        self.real = ti.f64 if v.real == "float64" else ti.f32
+        self.eps = float(np.finfo(v.real).eps)
+        self.L = v.lanes
+        if self.L == 1:
+            self.ts = [g]
+        else:
+            self.ts = [self.init(ti.min(g * self.L + lane, T - 1)) for lane in range(self.L)]
+
+    # -- values ------------------------------------------------------------------------------
+    @staticmethod
+    def init(e):
+        """A new local variable holding e (so that it is computed once)."""
+        return _impl.expr_init(e)
+
+    def lanes(self, per_track, dtype=None):
+        """One value from per_track(t) of each lane's track t."""
+        dtype = dtype or self.real
+        if self.L == 1:
+            return self.init(ti.cast(per_track(self.ts[0]), dtype))
+        return self.init(ti.types.vector(self.L, dtype)([per_track(t) for t in self.ts]))
+
+    def splat(self, c, dtype=None):
+        dtype = dtype or self.real
+        if self.L == 1:
+            return self.init(ti.cast(c, dtype))
+        return self.init(ti.types.vector(self.L, dtype)([c] * self.L))
+
+    def lane(self, val, k):
+        return val if self.L == 1 else _impl.subscript(None, val, k)
+
+    def sel(self, cond, a, b):
+        """Per lane a where cond else b (Python numbers are splat to the type of the other)."""
+        if isinstance(a, (int, float)):
+            a = self.splat(a, ti.i32 if isinstance(a, int) else None)
+        if isinstance(b, (int, float)):
+            b = self.splat(b, ti.i32 if isinstance(b, int) else None)
+        return self.init(ti.select(cond, a, b))
+
+    def zero(self, v, like):
+        """v, or a zero of like's shape where v is None (a structural zero)."""
+        return v if v is not None else self.init(0.0 * like)
+
+    @staticmethod
+    def at(A, *idx):
+        return _impl.subscript(None, A, *idx)
+
+    def mat(self, A, i, j, pat, cols):
+        """Entry (i, j) of a shared (r,c) or per-track (T,r,c) matrix; None for a known zero."""
+        if len(A.shape) == 3:
+            return self.lanes(lambda t: self.at(A, t, i, j))
+        if not _nz(pat, cols, i, j):
+            return None
+        return self.init(self.at(A, i, j))
+
+    def nonfinite(self, A, i):
+        """Per lane: A[t, i] is NaN or +-inf (all exponent bits set; robust under fast math)."""
+        itype, shift, ones = (ti.u64, 52, 0x7FF) if self.real == ti.f64 else (ti.u32, 23, 0xFF)
+        return self.lanes(lambda t: ((ti.bit_cast(self.at(A, t, i), itype) >> shift) & ones) == ones, ti.i32)
+
+    # -- loads and stores --------------------------------------------------------------------
+    def load_state(self, x, P):
+        n = self.v.n
+        xv = [self.lanes(lambda t, i=i: self.at(x, t, i)) for i in range(n)]
+        Pm = [[self.lanes(lambda t, i=i, j=j: self.at(P, t, i, j)) for j in range(n)] for i in range(n)]
+        return xv, Pm
+
+    def store(self, xo, Po, st, xv, Pm, code):
+        n = self.v.n
+        for k, t in enumerate(self.ts):
+            for i in range(n):
+                self.at(xo, t, i)._assign(self.lane(xv[i], k))
+                for j in range(n):
+                    self.at(Po, t, i, j)._assign(self.lane(Pm[i][j], k))
+            if code is not None:
+                self.at(st, t)._assign(ti.cast(self.lane(code, k), ti.u8))
+
+    def sym(self, A, r, pat=-1, get=None):
+        """(A + A^T)/2 of an (r,r) matrix given as a list (get None) or read by get(i, j)."""
+        get = get or (lambda i, j: A[i][j])
+        S = [[None] * r for _ in range(r)]
+        for i in range(r):
+            S[i][i] = get(i, i) if _nz(pat, r, i, i) else None
+            for j in range(i + 1, r):
+                a = get(i, j) if _nz(pat, r, i, j) else None
+                b = get(j, i) if _nz(pat, r, j, i) else None
+                v = _sum([e for e in (a, b) if e is not None])
+                S[i][j] = S[j][i] = None if v is None else self.init(0.5 * v)
         return S
 
-    @ti.func
-    def predict_x(F: ti.template(), t, xv, n: ti.template(), fpat: ti.template()):
-        xn = ti.Vector.zero(real, n)
-        for i in ti.static(range(n)):
-            s = ti.cast(0, real)
-            for k in ti.static(range(n)):
-                if ti.static(_nz(fpat, n, i, k)):
-                    s += _get(F, t, i, k) * xv[k]
-            xn[i] = s
-        return xn
+    def shared_sym(self, A, r, pat):
+        """(A + A^T)/2 of a shared or per-track (r,r) matrix, known zeros as None."""
+        if len(A.shape) == 3:
+            pat = -1
+        return self.sym(None, r, pat, lambda i, j: self.mat(A, i, j, -1, r))
 
-    @ti.func
-    def predict_P(
-        F: ti.template(), Q: ti.template(), t, Ps, n: ti.template(), fpat: ti.template(), qpat: ti.template()
-    ):
-        """F Ps F^T + (Q + Q^T)/2 for symmetric Ps, known zeros of F skipped; exactly symmetric."""
-        FP = ti.Matrix.zero(real, n, n)
-        for i in ti.static(range(n)):
-            for k in ti.static(range(n)):
-                if ti.static(_nz(fpat, n, i, k)):
-                    a = _get(F, t, i, k)
-                    for j in ti.static(range(n)):
-                        FP[i, j] += a * Ps[k, j]
-        Qs = load_sym(Q, t, n, qpat)
-        Pn = ti.Matrix.zero(real, n, n)
-        for j in ti.static(range(n)):
-            for k in ti.static(range(n)):
-                if ti.static(_nz(fpat, n, j, k)):
-                    a = _get(F, t, j, k)
-                    for i in ti.static(range(j + 1)):
-                        Pn[i, j] += FP[i, k] * a
-        for i in ti.static(range(n)):
-            for j in ti.static(range(i, n)):
-                v = Pn[i, j] + Qs[i, j]
-                Pn[i, j] = v
-                Pn[j, i] = v
-        return Pn
+    # -- eq. 2-3: prediction -----------------------------------------------------------------
+    def predict(self, F, Q, xv, Ps):
+        """x' = F x, P' = F Ps F^T + (Q + Q^T)/2 for a symmetric Ps; P' exactly symmetric."""
+        n, fpat = self.v.n, self.v.pats[0]
+        Fm = [[self.mat(F, i, k, fpat, n) for k in range(n)] for i in range(n)]
+        xp = [self.init(self.zero(_sum([Fm[i][k] * xv[k] for k in range(n) if Fm[i][k] is not None]), xv[i]))
+              for i in range(n)]  # fmt: skip
+        FP = [[_sum([Fm[i][k] * Ps[k][j] for k in range(n) if Fm[i][k] is not None]) for j in range(n)]
+              for i in range(n)]  # fmt: skip
+        FP = [[None if e is None else self.init(e) for e in row] for row in FP]
+        Qs = self.shared_sym(Q, n, self.v.pats[1])
+        Pn = [[None] * n for _ in range(n)]
+        for i in range(n):
+            for j in range(i, n):
+                terms = [FP[i][k] * Fm[j][k] for k in range(n) if Fm[j][k] is not None and FP[i][k] is not None]
+                if Qs[i][j] is not None:
+                    terms.append(Qs[i][j])
+                Pn[i][j] = Pn[j][i] = self.init(self.zero(_sum(terms), xv[0]))
+        return xp, Pn
 
-    @ti.func
-    def update(xv, Ps, y, Hm, Rs, s, n: ti.template(), m: ti.template(), hpat: ti.template()):
-        """Joseph-form update with innovation y; returns (x+, P+, ok) packed as a tuple matrix."""
-        # H P (m,n), zero entries of H skipped
-        HP = ti.Matrix.zero(real, m, n)
-        for a in ti.static(range(m)):
-            for k in ti.static(range(n)):
-                if ti.static(_nz(hpat, n, a, k)):
-                    for j in ti.static(range(n)):
-                        HP[a, j] += Hm[a, k] * Ps[k, j]
-        # S = H P H^T + R (lower triangle)
-        S = ti.Matrix.zero(real, m, m)
-        for c in ti.static(range(m)):
-            for k in ti.static(range(n)):
-                if ti.static(_nz(hpat, n, c, k)):
-                    for a in ti.static(range(c, m)):
-                        S[a, c] += HP[a, k] * Hm[c, k]
-        for a in ti.static(range(m)):
-            for c in ti.static(range(a + 1)):
-                S[a, c] += Rs[a, c]
-        # Cholesky S = L L^T with the positive-definiteness test of the reference
-        L = ti.Matrix.zero(real, m, m)
-        inv = ti.Vector.zero(real, m)
-        ok = 1
-        for j in ti.static(range(m)):
-            d = S[j, j]
-            for k in ti.static(range(j)):
-                d -= L[j, k] * L[j, k]
-            if not (d > PD_EPS_FACTOR * eps * S[j, j]):
-                ok = 0
-                d = ti.cast(1, real)
-            d = ti.sqrt(d)
-            L[j, j] = d
-            inv[j] = 1.0 / d
-            for i in ti.static(range(j + 1, m)):
-                v = S[i, j]
-                for k in ti.static(range(j)):
-                    v -= L[i, k] * L[j, k]
-                L[i, j] = v * inv[j]
-        # K^T = S^-1 (H P): forward then backward substitution, column by column
-        Kt = HP
-        for c in ti.static(range(n)):
-            for i in ti.static(range(m)):
-                v = Kt[i, c]
-                for k in ti.static(range(i)):
-                    v -= L[i, k] * Kt[k, c]
-                Kt[i, c] = v * inv[i]
-            for ii in ti.static(range(m)):
-                i = ti.static(m - 1 - ii)
-                v = Kt[i, c]
-                for k in ti.static(range(i + 1, m)):
-                    v -= L[k, i] * Kt[k, c]
-                Kt[i, c] = v * inv[i]
-        K = s * Kt.transpose()  # (n,m), scaled gain (paper 002 eq. 4-6)
-        xn = xv + K @ y
-        # Joseph form: B = (I - K H) P = P - K (H P); P+ = B - (B H^T) K^T + K R K^T
-        B = Ps - K @ HP
-        C = K @ Rs  # (n,m)
-        for i in ti.static(range(n)):
-            for a in ti.static(range(m)):
-                for k in ti.static(range(n)):
-                    if ti.static(_nz(hpat, n, a, k)):
-                        C[i, a] -= B[i, k] * Hm[a, k]
-        Pn = ti.Matrix.zero(real, n, n)
-        for i in ti.static(range(n)):
-            for j in ti.static(range(i, n)):
-                v = B[i, j]
-                for a in ti.static(range(m)):
-                    v += C[i, a] * K[j, a]
-                Pn[i, j] = v
-                Pn[j, i] = v
+    # -- S = H P H^T + R and its Cholesky factor ---------------------------------------------
+    def innovation(self, Ps, Hm, Rs):
+        """H Ps (m,n), the lower triangle of S = H Ps H^T + R, and S's Cholesky factor.
+
+        Returns (HP, Lf, inv, ok): Lf lower triangular, inv[j] = 1 / Lf[j][j], ok per lane 1
+        where S is positive definite (pivot d_j > PD_EPS_FACTOR eps S_jj)."""
+        n, m = self.v.n, len(Hm)
+        zero = self.init(0.0 * Ps[0][0])
+        HP = [[self.init(self.zero(_sum([Hm[a][k] * Ps[k][j] for k in range(n) if Hm[a][k] is not None]), zero))
+               for j in range(n)] for a in range(m)]  # fmt: skip
+        S = [[None] * m for _ in range(m)]
+        for a in range(m):
+            for c in range(a + 1):
+                terms = [HP[a][k] * Hm[c][k] for k in range(n) if Hm[c][k] is not None]
+                if Rs[a][c] is not None:
+                    terms.append(Rs[a][c])
+                S[a][c] = self.init(self.zero(_sum(terms), zero))
+        Lf = [[None] * m for _ in range(m)]
+        inv = [None] * m
+        ok = None
+        tol = PD_EPS_FACTOR * self.eps
+        for j in range(m):
+            d = self.init(S[j][j] - _sum([Lf[j][k] * Lf[j][k] for k in range(j)]) if j else S[j][j])
+            good = self.init(d > tol * S[j][j])
+            ok = good if ok is None else self.init(ok & good)
+            Lf[j][j] = self.init(ti.sqrt(self.sel(good, d, 1.0)))
+            inv[j] = self.init(1.0 / Lf[j][j])
+            for i in range(j + 1, m):
+                v = S[i][j] - _sum([Lf[i][k] * Lf[j][k] for k in range(j)]) if j else S[i][j]
+                Lf[i][j] = self.init(v * inv[j])
+        return HP, Lf, inv, ok
+
+    def forward(self, Lf, inv, b):
+        """Solve Lf w = b (m-vector)."""
+        w = []
+        for i in range(len(b)):
+            v = b[i] - _sum([Lf[i][k] * w[k] for k in range(i)]) if i else b[i]
+            w.append(self.init(v * inv[i]))
+        return w
+
+    def backward(self, Lf, inv, w):
+        """Solve Lf^T u = w (m-vector)."""
+        m = len(w)
+        u = [None] * m
+        for i in reversed(range(m)):
+            v = w[i] - _sum([Lf[k][i] * u[k] for k in range(i + 1, m)]) if i < m - 1 else w[i]
+            u[i] = self.init(v * inv[i])
+        return u
+
+    # -- Joseph-form update ------------------------------------------------------------------
+    def update(self, xv, Ps, y, Hm, Rs, s):
+        """x+ = x + K y, P+ = (I - K H) Ps (I - K H)^T + K R K^T with K = s P H^T S^-1.
+
+        Returns (x+, P+, ok). As in the reference: B = Ps - K (H Ps), C = K R - B H^T,
+        P+ = B + C K^T (upper triangle, mirrored)."""
+        n, m = self.v.n, len(y)
+        HP, Lf, inv, ok = self.innovation(Ps, Hm, Rs)
+        Kt = [[None] * n for _ in range(m)]  # K^T = S^-1 (H P), column by column
+        for c in range(n):
+            col = self.backward(Lf, inv, self.forward(Lf, inv, [HP[a][c] for a in range(m)]))
+            for a in range(m):
+                Kt[a][c] = col[a]
+        K = [[self.init(Kt[a][i] * s) if s is not None else Kt[a][i] for a in range(m)] for i in range(n)]
+        xn = [self.init(xv[i] + _sum([K[i][a] * y[a] for a in range(m)])) for i in range(n)]
+        B = [[self.init(Ps[i][j] - _sum([K[i][a] * HP[a][j] for a in range(m)])) for j in range(n)] for i in range(n)]
+        C = [[None] * m for _ in range(n)]
+        for i in range(n):
+            for a in range(m):
+                kr = _sum([K[i][b] * Rs[b][a] for b in range(m) if Rs[b][a] is not None])
+                bh = _sum([B[i][k] * Hm[a][k] for k in range(n) if Hm[a][k] is not None])
+                C[i][a] = self.init(self.zero(kr, xv[0]) - self.zero(bh, xv[0]))
+        Pn = [[None] * n for _ in range(n)]
+        for i in range(n):
+            for j in range(i, n):
+                Pn[i][j] = Pn[j][i] = self.init(B[i][j] + _sum([C[i][a] * K[j][a] for a in range(m)]))
         return xn, Pn, ok
 
-    @ti.kernel
-    def kf(
-        x: nd,
-        P: nd,
-        z: nd,
-        F: nd,
-        Q: nd,
-        H: nd,
-        R: nd,
-        mask: nd,
-        gain: nd,
-        xo: nd,
-        Po: nd,
-        st: nd,
-        f: real,
-        b: real,
-        cx: real,
-        cy: real,
-        n: ti.template(),
-        m: ti.template(),
-        mode: ti.template(),
-        do_predict: ti.template(),
-        has_mask: ti.template(),
-        has_gain: ti.template(),
-        fpat: ti.template(),
-        qpat: ti.template(),
-        hpat: ti.template(),
-        rpat: ti.template(),
-    ):
-        for t in range(x.shape[0]):
-            xv = ti.Vector.zero(real, n)
-            Pm = ti.Matrix.zero(real, n, n)
-            for i in ti.static(range(n)):
-                xv[i] = x[t, i]
-                for j in ti.static(range(n)):
-                    Pm[i, j] = P[t, i, j]
-            if ti.static(do_predict):
-                xp = predict_x(F, t, xv, n, fpat)
-                for i in ti.static(range(n)):
-                    xv[i] = xp[i]
-                Pp = predict_P(F, Q, t, 0.5 * (Pm + Pm.transpose()), n, fpat, qpat)
-                for i in ti.static(range(n)):
-                    for j in ti.static(range(n)):
-                        Pm[i, j] = Pp[i, j]
-            if ti.static(mode != MODE_PREDICT):
-                xn = xv
-                Pn = Pm
-                code = UPDATED
-                if ti.static(has_mask):  # noqa: SIM102 - a compile-time branch around a run-time one
-                    if mask[t] == 0:
-                        code = SKIPPED
-                zv = ti.Vector.zero(real, m)
-                for a in ti.static(range(m)):
-                    zv[a] = z[t, a]
-                    if _nonfinite(zv[a], real):
-                        code = SKIPPED
-                if ti.static(mode == MODE_STEREO):  # noqa: SIM102 - compile-time around run-time
-                    if code == UPDATED and not (xv[4] > 0):
-                        code = BAD_DEPTH
-                if code == UPDATED:
-                    s = ti.cast(1, real)
-                    if ti.static(has_gain):
-                        s = gain[t]
-                    Ps = Pm  # exactly symmetric after a prediction
-                    if ti.static(not do_predict):
-                        for i in ti.static(range(n)):
-                            for j in ti.static(range(i + 1, n)):
-                                v = 0.5 * (Pm[i, j] + Pm[j, i])
-                                Ps[i, j] = v
-                                Ps[j, i] = v
-                    Rs = load_sym(R, t, m, rpat)
-                    Hm = ti.Matrix.zero(real, m, n)
-                    y = ti.Vector.zero(real, m)
-                    if ti.static(mode == MODE_STEREO):
-                        iz = 1.0 / xv[4]  # eq. 6 and its Jacobian at the predicted state
-                        Hm[0, 0] = f * iz
-                        Hm[0, 4] = -f * xv[0] * iz * iz
-                        Hm[1, 2] = f * iz
-                        Hm[1, 4] = -f * xv[2] * iz * iz
-                        Hm[2, 4] = -f * b * iz * iz
-                        y[0] = zv[0] - (f * xv[0] * iz + cx)
-                        y[1] = zv[1] - (f * xv[2] * iz + cy)
-                        y[2] = zv[2] - f * b * iz
-                    else:
-                        for a in ti.static(range(m)):
-                            v = zv[a]
-                            for k in ti.static(range(n)):
-                                if ti.static(_nz(hpat, n, a, k)):
-                                    h = _get(H, t, a, k)
-                                    Hm[a, k] = h
-                                    v -= h * xv[k]
-                            y[a] = v
-                    xu, Pu, ok = update(xv, Ps, y, Hm, Rs, s, n, m, hpat)
-                    if ok:
-                        xn = xu
-                        Pn = Pu
-                    else:
-                        code = NOT_PD
-                for i in ti.static(range(n)):
-                    xo[t, i] = xn[i]
-                    for j in ti.static(range(n)):
-                        Po[t, i, j] = Pn[i, j]
-                st[t] = ti.cast(code, ti.u8)
-            if ti.static(mode == MODE_PREDICT):
-                for i in ti.static(range(n)):
-                    xo[t, i] = xv[i]
-                    for j in ti.static(range(n)):
-                        Po[t, i, j] = Pm[i, j]
+    # -- whole kernels -----------------------------------------------------------------------
+    def filter(self, x, P, z, F, Q, H, R, mask, gain, xo, Po, st, cam):
+        """kf_predict / kf_update / ekf_update_stereo of this group of tracks."""
+        v = self.v
+        n, m = v.n, v.m
+        xv, Pm = self.load_state(x, P)
+        if v.predict:
+            xv, Pm = self.predict(F, Q, xv, self.sym(Pm, n))
+            Ps = Pm  # exactly symmetric after a prediction
+        elif v.mode != MODE_PREDICT:
+            Ps = self.sym(Pm, n)
+        if v.mode == MODE_PREDICT:
+            self.store(xo, Po, st, xv, Pm, None)
+            return
+        zv = [self.lanes(lambda t, a=a: self.at(z, t, a)) for a in range(m)]
+        bad = [self.nonfinite(z, a) for a in range(m)]
+        if v.mask:
+            bad.append(self.lanes(lambda t: self.at(mask, t) == 0, ti.i32))
+        code = self.sel(_sum(bad) > 0, SKIPPED, UPDATED)
+        s = self.lanes(lambda t: self.at(gain, t)) if v.gain else None
+        Rs = self.shared_sym(R, m, v.pats[3])
+        if v.mode == MODE_STEREO:  # eq. 6 and its Jacobian at the predicted state
+            f, b, cx, cy = (self.init(ti.cast(c, self.real)) for c in cam)
+            good_z = self.init(xv[4] > 0)
+            code = self.sel(good_z == 0, self.sel(code == UPDATED, BAD_DEPTH, code), code)
+            iz = self.init(1.0 / self.sel(good_z, xv[4], 1.0))
+            fz = self.init(f * iz)
+            nfz = self.init((-f) * iz * iz)  # (no unary minus on lane vectors: it does not compile)
+            Hm = [[None] * 6 for _ in range(3)]
+            Hm[0][0] = Hm[1][2] = fz
+            Hm[0][4] = self.init(nfz * xv[0])
+            Hm[1][4] = self.init(nfz * xv[2])
+            Hm[2][4] = self.init(nfz * b)
+            y = [self.init(zv[0] - (fz * xv[0] + cx)), self.init(zv[1] - (fz * xv[2] + cy)),
+                 self.init(zv[2] - fz * b)]  # fmt: skip
+        else:
+            Hm = [[self.mat(H, a, k, v.pats[2], n) for k in range(n)] for a in range(m)]
+            y = [self.init(zv[a] - self.zero(_sum([Hm[a][k] * xv[k] for k in range(n) if Hm[a][k] is not None]), xv[0]))
+                 for a in range(m)]  # fmt: skip
+        xn, Pn, ok = self.update(xv, Ps, y, Hm, Rs, s)
+        code = self.sel(code == UPDATED, self.sel(ok, code, NOT_PD), code)
+        upd = self.init(code == UPDATED)
+        xs = [self.sel(upd, xn[i], xv[i]) for i in range(n)]
+        Pn = [[self.sel(upd, Pn[i][j], Pm[i][j]) for j in range(n)] for i in range(n)]
+        self.store(xo, Po, st, xs, Pn, code)
 
-    @ti.kernel
-    def gate(
-        x: nd,
-        P: nd,
-        H: nd,
-        R: nd,
-        z: nd,
-        out: nd,
-        n: ti.template(),
-        m: ti.template(),
-        hpat: ti.template(),
-        rpat: ti.template(),
-    ):
-        for t in range(x.shape[0]):
-            Ps = ti.Matrix.zero(real, n, n)
-            for i in ti.static(range(n)):
-                for j in ti.static(range(n)):
-                    Ps[i, j] = 0.5 * (P[t, i, j] + P[t, j, i])
-            Rs = load_sym(R, t, m, rpat)
-            Hm = ti.Matrix.zero(real, m, n)
-            hx = ti.Vector.zero(real, m)
-            for a in ti.static(range(m)):
-                v = ti.cast(0, real)
-                for k in ti.static(range(n)):
-                    if ti.static(_nz(hpat, n, a, k)):
-                        h = _get(H, t, a, k)
-                        Hm[a, k] = h
-                        v += h * x[t, k]
-                hx[a] = v
-            HP = ti.Matrix.zero(real, m, n)
-            for a in ti.static(range(m)):
-                for k in ti.static(range(n)):
-                    if ti.static(_nz(hpat, n, a, k)):
-                        for j in ti.static(range(n)):
-                            HP[a, j] += Hm[a, k] * Ps[k, j]
-            S = ti.Matrix.zero(real, m, m)
-            for c in ti.static(range(m)):
-                for k in ti.static(range(n)):
-                    if ti.static(_nz(hpat, n, c, k)):
-                        for a in ti.static(range(c, m)):
-                            S[a, c] += HP[a, k] * Hm[c, k]
-            L = ti.Matrix.zero(real, m, m)
-            inv = ti.Vector.zero(real, m)
-            ok = 1
-            for j in ti.static(range(m)):
-                d = S[j, j] + Rs[j, j]
-                for k in ti.static(range(j)):
-                    d -= L[j, k] * L[j, k]
-                if not (d > PD_EPS_FACTOR * eps * (S[j, j] + Rs[j, j])):
-                    ok = 0
-                    d = ti.cast(1, real)
-                d = ti.sqrt(d)
-                L[j, j] = d
-                inv[j] = 1.0 / d
-                for i in ti.static(range(j + 1, m)):
-                    v = S[i, j] + Rs[i, j]
-                    for k in ti.static(range(j)):
-                        v -= L[i, k] * L[j, k]
-                    L[i, j] = v * inv[j]
-            for d_ in range(z.shape[0]):
-                w = ti.Vector.zero(real, m)
-                acc = ti.cast(0, real)
-                for i in ti.static(range(m)):
-                    v = z[d_, i] - hx[i]
-                    for k in ti.static(range(i)):
-                        v -= L[i, k] * w[k]
-                    w[i] = v * inv[i]
-                    acc += w[i] * w[i]
-                if ok == 0:
-                    acc = ti.math.inf
-                out[t, d_] = acc
+    def gate_prepare(self, x, P, H, R):
+        """Per group: (self, H x, Cholesky factor of S, 1/diagonal, ok) for the gating kernel."""
+        v = self.v
+        n = v.n
+        xv = [self.lanes(lambda t, i=i: self.at(x, t, i)) for i in range(n)]
+        Ps = self.sym(None, n, -1, lambda i, j: self.lanes(lambda t: self.at(P, t, i, j)))
+        Hm = [[self.mat(H, a, k, v.pats[2], n) for k in range(n)] for a in range(v.m)]
+        hx = [self.init(self.zero(_sum([Hm[a][k] * xv[k] for k in range(n) if Hm[a][k] is not None]), xv[0]))
+              for a in range(v.m)]  # fmt: skip
+        _, Lf, inv, ok = self.innovation(Ps, Hm, self.shared_sym(R, v.m, v.pats[3]))
+        return self, hx, Lf, inv, ok
 
-    return kf, gate
+    def gate_detection(self, pre, z, out, d):
+        """Squared Mahalanobis distance of detection d to every track of the group (eq. 8)."""
+        hx, Lf, inv, ok = pre
+        w = self.forward(Lf, inv, [self.init(self.at(z, d, a) - hx[a]) for a in range(len(hx))])
+        acc = self.init(_sum([e * e for e in w]))
+        acc = self.sel(ok, acc, float("inf"))
+        for k, t in enumerate(self.ts):
+            self.at(out, t, d)._assign(self.lane(acc, k))
 
 
-_KERNELS = {
-    "float32": _make(ti.f32, float(np.finfo(np.float32).eps)),
-    "float64": _make(ti.f64, float(np.finfo(np.float64).eps)),
-}
+@ti.kernel
+def _kf(x: nd, P: nd, z: nd, F: nd, Q: nd, H: nd, R: nd, mask: nd, gain: nd, xo: nd, Po: nd, st: nd,
+        f: ti.f64, b: ti.f64, cx: ti.f64, cy: ti.f64, v: ti.template()):  # fmt: skip
+    """Every op of the filter, outputs xo, Po, st (unused arguments are never read)."""
+    ti.loop_config(serialize=v.serial)
+    for g in range((x.shape[0] + v.lanes - 1) // v.lanes):
+        ti.static(_Tracer(v, g, x.shape[0]).filter(x, P, z, F, Q, H, R, mask, gain, xo, Po, st, (f, b, cx, cy)))
+
+
+@ti.kernel
+def _kf_inplace(x: nd, P: nd, z: nd, F: nd, Q: nd, H: nd, R: nd, st: nd,
+                f: ti.f64, b: ti.f64, cx: ti.f64, cy: ti.f64, v: ti.template()):  # fmt: skip
+    """The same in place (outputs x, P) without mask and gain_scale: 8 ndarray arguments."""
+    ti.loop_config(serialize=v.serial)
+    for g in range((x.shape[0] + v.lanes - 1) // v.lanes):
+        ti.static(_Tracer(v, g, x.shape[0]).filter(x, P, z, F, Q, H, R, x, x, x, P, st, (f, b, cx, cy)))
+
+
+@ti.kernel
+def _gate(x: nd, P: nd, H: nd, R: nd, z: nd, out: nd, v: ti.template()):
+    for g in range((x.shape[0] + v.lanes - 1) // v.lanes):
+        pre = ti.static(_Tracer(v, g, x.shape[0]).gate_prepare(x, P, H, R))
+        for d in range(z.shape[0]):
+            ti.static(pre[0].gate_detection(pre[1:], z, out, d))
+
+
+class _Launcher:
+    """Runs the kernels; on the CPU compiled with real_matrix_scalarize off (lanes as SIMD vectors).
+
+    A steady-state call (the same kernel variant with the same arrays and scalars as a recent
+    call, e.g. a tracker updating its state in place every frame) reuses the compiled kernel
+    and the filled launch context of that call: Taichi's per-call template lookup and argument
+    marshalling (about 50 us on a 2-core CPU) are skipped. The arrays of a remembered call are
+    held by weak references (an entry whose array is gone is never reused), at most ``size``
+    calls are remembered, and a restarted Taichi runtime clears them. Taichi internals that
+    this relies on are looked up once; if they are missing the plain kernel call is used.
+    """
+
+    def __init__(self, size=8):
+        self.size = size
+        self.entries: dict = {}
+        self.prog = None
+        self.fast = True
+
+    def __call__(self, kernel, *args):
+        cfg = _impl.current_cfg()
+        if cfg.arch not in (ti.x64, ti.arm64):
+            kernel(*args)
+            return
+        prog = _impl.get_runtime().prog
+        if prog is not self.prog:
+            self.entries.clear()
+            self.prog = prog
+        key = (kernel, *(id(a) if isinstance(a, ti.Ndarray) else a for a in args))
+        entry = self.entries.get(key)
+        if entry is not None:
+            data, ctx, refs = entry
+            arrays = [r() for _, r in refs]
+            if None not in arrays:
+                # the launch turns the context's array arguments into raw pointers: set them again
+                for (i, _), a in zip(refs, arrays):
+                    ctx.set_arg_ndarray(i, a.arr)
+                prog.launch_kernel(data, ctx)
+                return
+        cfg.real_matrix_scalarize = False
+        try:
+            kernel(*args)
+            if self.fast:
+                self._remember(key, prog, kernel, args)
+        finally:
+            cfg.real_matrix_scalarize = True
+
+    def _remember(self, key, prog, kernel, args):
+        try:
+            primal = kernel._primal
+            t_kernel = primal.compiled_kernels[primal.ensure_compiled(*args)]
+            data = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+            ctx = t_kernel.make_launch_context()
+            refs = []
+            for i, a in enumerate(args[: len(args) - 1]):  # the last argument is the template
+                if isinstance(a, ti.Ndarray):
+                    refs.append(((i,), weakref.ref(a)))
+                else:
+                    ctx.set_arg_float((i,), float(a))
+        except (AttributeError, KeyError, TypeError):  # another Taichi version: plain calls only
+            self.fast = False
+            return
+        if len(self.entries) >= self.size:
+            del self.entries[next(iter(self.entries))]
+        self.entries[key] = (data, ctx, refs)
+
+
+_launch = _Launcher()
+
+
+def _lanes(dt) -> int:
+    if _impl.current_cfg().arch not in (ti.x64, ti.arm64):
+        return 1
+    return 4 if dt == np.float64 else 8
+
+
+_VARIANTS: dict = {}
+
+
+def _variant(*key) -> _Variant:
+    v = _VARIANTS.get(key)
+    if v is None:
+        v = _VARIANTS.setdefault(key, _Variant(*key))
+    return v
 
 
 def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0)):
@@ -385,38 +460,24 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
             out += (device.empty((T,), np.uint8),)
     xo, Po = out[0], out[1]
     st = out[2] if mode != MODE_PREDICT else None
-    d = x.buffer
-    kf, _ = _KERNELS[dt.name]
-
-    def buf(a):
-        return a.buffer if a is not None else d
-
-    fpat, qpat, hpat, rpat = pats
-    kf(
-        d,
-        P.buffer,
-        buf(z),
-        buf(F),
-        buf(Q),
-        buf(H),
-        buf(R),
-        buf(mask),
-        buf(gain_scale),
-        xo.buffer,
-        Po.buffer,
-        buf(st),
-        *cam,
-        n,
-        m,
-        mode,
-        F is not None,
-        mask is not None,
-        gain_scale is not None,
-        fpat if F is not None else -1,
-        qpat if F is not None else -1,
-        hpat if mode == MODE_LINEAR else (STEREO_PATTERN if mode == MODE_STEREO else -1),
-        rpat if mode != MODE_PREDICT else -1,
+    predict = F is not None
+    if mode == MODE_STEREO:
+        pats = (pats[0], pats[1], STEREO_PATTERN, pats[3])
+    if not predict:
+        pats = (-1, -1) + tuple(pats[2:])
+    if mode == MODE_PREDICT:
+        pats = pats[:2] + (-1, -1)
+    v = _variant(
+        dt.name, _lanes(dt), n, m, mode, predict, mask is not None, gain_scale is not None, tuple(pats), T <= SERIAL_MAX
     )
+    d = x.buffer
+    zb, Fb, Qb = (a.buffer if a is not None else d for a in (z, F, Q))
+    Hb, Rb, sb = (a.buffer if a is not None else d for a in (H, R, st))
+    if mask is None and gain_scale is None and xo is x and Po is P:
+        _launch(_kf_inplace, d, P.buffer, zb, Fb, Qb, Hb, Rb, sb, *cam, v)
+    else:
+        mb, gb = (a.buffer if a is not None else d for a in (mask, gain_scale))
+        _launch(_kf, d, P.buffer, zb, Fb, Qb, Hb, Rb, mb, gb, xo.buffer, Po.buffer, sb, *cam, v)
     return (xo, Po) if mode == MODE_PREDICT else (xo, Po, st)
 
 
@@ -439,6 +500,8 @@ def ekf_update_stereo(
 def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     T, n = x.shape
     out = out if out is not None else device.empty((T, z.shape[0]), x.dtype)
-    _, gate = _KERNELS[x.dtype.name]
-    gate(x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer, n, z.shape[1], pats[2], pats[3])
+    v = _variant(
+        x.dtype.name, _lanes(x.dtype), n, z.shape[1], MODE_LINEAR, False, False, False, (-1, -1) + tuple(pats[2:])
+    )
+    _launch(_gate, x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer, v)
     return out
