@@ -311,6 +311,54 @@ def _scalar(value, name, positive=False):
     return v
 
 
+# -- steady-state fast path -----------------------------------------------------------------------
+# A tracker calls the same op every frame with the same device-resident arrays. For arrays
+# already on the device the validation above depends only on their device, shape and dtype (and
+# on a SharedMatrix's pattern), so the outcome of a validated call is remembered under that
+# signature: a later call with the same signature skips straight to the backend. NumPy inputs
+# (whose values are checked) and empty batches always take the full path.
+class _Slow(Exception):
+    """An argument the fast path does not cover (host data, a bad type): validate in full."""
+
+
+def _sig(a):
+    t = type(a)
+    if t is DeviceArray:
+        return (a.device, a.shape, a.dtype)
+    if a is None:
+        return None
+    if t is SharedMatrix and type(a.array) is DeviceArray:
+        return (a.array.device, a.array.shape, a.array.dtype, a.pattern)
+    raise _Slow
+
+
+def _sigs(items):
+    if items is None:
+        return None
+    if type(items) not in (tuple, list):
+        raise _Slow
+    return tuple(_sig(a) for a in items)
+
+
+def _raw(a):
+    """The device array of a validated argument (a SharedMatrix's array)."""
+    return a.array if type(a) is SharedMatrix else a
+
+
+_FAST: dict = {}  # (op, device, argument signatures) -> (backend module, pats)
+
+
+def _fast(key):
+    return _FAST.get(key) if key is not None else None
+
+
+def _remember(key, device, pats):
+    if key is not None:
+        if len(_FAST) > 256:
+            _FAST.clear()
+        _FAST[key] = (backend_module(device, "kalman"), pats)
+
+
 # -- ops -------------------------------------------------------------------------------------------
 def kf_predict(device, x, P, F, Q, *, out=None):
     """Predict every track: x' = F x, P' = F P F^T + Q (paper 001 eq. 2-3).
@@ -319,6 +367,13 @@ def kf_predict(device, x, P, F, Q, *, out=None):
     symmetrised. ``out=(x_out, P_out)`` writes into those arrays (they may be x and P).
     """
     device = check_device(device)
+    try:
+        key = ("predict", device, _sig(x), _sig(P), _sig(F), _sig(Q), _sigs(out))
+    except _Slow:
+        key = None
+    hit = _fast(key)
+    if hit is not None:
+        return tuple(hit[0].kf_predict(device, x, P, _raw(F), _raw(Q), out=out, pats=hit[1]))
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     pats = (_pattern(F, dims["n"]), _pattern(Q, dims["n"]), -1, -1)
@@ -327,6 +382,7 @@ def kf_predict(device, x, P, F, Q, *, out=None):
     out = _outputs(device, out, dims, dt, False)
     if dims["T"] == 0:
         return _empty_state(device, dims, dt, with_status=False, out=out)
+    _remember(key, device, pats)
     return tuple(backend_module(device, "kalman").kf_predict(device, x, P, F, Q, out=out, pats=pats))
 
 
@@ -341,6 +397,16 @@ def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None
     be x and P). Returns :class:`KalmanState` (x, P, status); see the module docstring.
     """
     device = check_device(device)
+    try:
+        key = ("update", device, _sig(x), _sig(P), _sig(z), _sig(H), _sig(R), _sig(mask), _sig(gain_scale),
+               _sigs(predict), _sigs(out))  # fmt: skip
+    except _Slow:
+        key = None
+    hit = _fast(key)
+    if hit is not None:
+        predict = None if predict is None else (_raw(predict[0]), _raw(predict[1]))
+        res = hit[0].kf_update(device, x, P, z, _raw(H), _raw(R), mask, gain_scale, predict, out=out, pats=hit[1])
+        return KalmanState(*res)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     z = _observations(device, z, dims, dt)
@@ -351,6 +417,7 @@ def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None
     out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
         return _empty_state(device, dims, dt, out=out)
+    _remember(key, device, pats)
     res = backend_module(device, "kalman").kf_update(
         device, x, P, z, H, R, mask, gain_scale, predict, out=out, pats=pats
     )
@@ -369,6 +436,20 @@ def ekf_update_stereo(
     z <= 0 is left unchanged with status BAD_DEPTH. R (3,3) or (T,3,3). ``out`` as in kf_update.
     """
     device = check_device(device)
+    try:
+        key = ("stereo", device, _sig(x), _sig(P), _sig(z), _sig(R), _sig(mask), _sig(gain_scale), _sigs(predict),
+               _sigs(out))  # fmt: skip
+    except _Slow:
+        key = None
+    hit = _fast(key)
+    if hit is not None:
+        f, b = _scalar(f, "f", positive=True), _scalar(b, "b", positive=True)
+        cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
+        predict = None if predict is None else (_raw(predict[0]), _raw(predict[1]))
+        res = hit[0].ekf_update_stereo(
+            device, x, P, z, _raw(R), f, b, cx, cy, mask, gain_scale, predict, out=out, pats=hit[1]
+        )
+        return KalmanState(*res)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     if dims["n"] != 6:
@@ -384,6 +465,7 @@ def ekf_update_stereo(
     out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
         return _empty_state(device, dims, dt, out=out)
+    _remember(key, device, pats)
     res = backend_module(device, "kalman").ekf_update_stereo(
         device, x, P, z, R, f, b, cx, cy, mask, gain_scale, predict, out=out, pats=pats
     )
@@ -400,6 +482,13 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
     of the device to write into instead of allocating one.
     """
     device = check_device(device)
+    try:
+        key = ("gate", device, _sig(x), _sig(P), _sig(H), _sig(R), _sig(z), _sig(out))
+    except _Slow:
+        key = None
+    hit = _fast(key)
+    if hit is not None:
+        return hit[0].mahalanobis(device, x, P, _raw(H), _raw(R), z, out=out, pats=hit[1])
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     z = _arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
@@ -420,6 +509,7 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
             )
     if dims["T"] == 0 or dims["D"] == 0:
         return out if out is not None else device.empty((dims["T"], dims["D"]), dt)
+    _remember(key, device, pats)
     return backend_module(device, "kalman").mahalanobis(device, x, P, H, R, z, out=out, pats=pats)
 
 

@@ -33,7 +33,7 @@ PD_EPS_FACTOR = 4.0
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
 #: batches of at most this many tracks run on the calling thread (a thread-pool wake-up costs
 #: more than the work: ~10-30 us on a busy 2-core CPU)
-SERIAL_MAX = 512
+SERIAL_MAX = 1024
 
 nd = ti.types.ndarray()
 _impl = ti.lang.impl
