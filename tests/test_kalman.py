@@ -19,6 +19,7 @@ from gputrack.ops.kalman import (
     kf_predict,
     kf_update,
     mahalanobis,
+    shared_matrix,
 )
 
 REF = gputrack.device("numpy")
@@ -335,6 +336,107 @@ def test_out_writes_in_place(device):
     xp, Pp = kf_predict(device, xd, Pd, F, Q, out=(xd, Pd))
     assert xp is xd and Pp is Pd
     assert_matches(device, Pd, kf_predict(REF, want.x, want.P, F, Q)[1], scale=10)
+
+
+def _frames_problem(T, dtype):
+    """Constant-velocity tracks with a selection H and a diagonal R (the kernels skip their zeros),
+    a missing observation, and two tracks whose innovation covariance is not positive definite."""
+    rng = np.random.default_rng(T)
+    F, Q = constant_velocity(3, 0.1, 0.5, dtype=dtype)
+    x, P, _, _, z, _, _ = problem(rng, T, 6, 3, dtype)
+    H = np.zeros((3, 6), dtype)
+    H[0, 0] = H[1, 2] = H[2, 4] = 1
+    R = np.diag([0.2, 0.3, 0.4]).astype(dtype)
+    P[[1, T - 1]] = -10 * np.eye(6, dtype=dtype)  # S = H P' H^T + R not positive definite
+    z[min(2, T - 1), 1] = np.nan
+    mask = np.arange(T) % 5 != 3
+    gain = np.linspace(0, 1.5, T).astype(dtype)
+    return x, P, z, F, Q, H, R, mask, gain
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("T", [13, 1535])
+@pytest.mark.parametrize("options", [False, True])
+def test_steady_state_frames_match_reference(device, dtype, T, options):
+    # a tracker's frames: device-resident state updated in place with the same arrays every frame
+    # (the ops' and launchers' steady-state fast paths), new observation arrays on some frames
+    if dtype == np.float64 and not device.fp64:
+        pytest.skip(f"{device.spec} has no float64")
+    x, P, z, F, Q, H, R, mask, gain = _frames_problem(T, dtype)
+    Fs, Qs, Hs, Rs = (shared_matrix(device, a, dtype) for a in (F, Q, H, R))
+    xd, Pd, zd = device.asarray(x), device.asarray(P), device.asarray(z)
+    sd = device.empty((T,), np.uint8)
+    opts = {"mask": device.asarray(mask.astype(np.uint8)), "gain_scale": device.asarray(gain)} if options else {}
+    ref_opts = {"mask": mask, "gain_scale": gain} if options else {}
+    xr, Pr, sr = x.copy(), P.copy(), np.empty(T, np.uint8)
+    for frame in range(4):
+        if frame == 2:  # a new observation array with the same signature
+            z = (z + 0.5).astype(dtype)
+            zd = device.asarray(z)
+        got = kf_update(device, xd, Pd, zd, Hs, Rs, predict=(Fs, Qs), out=(xd, Pd, sd), **opts)
+        kf_update(REF, xr, Pr, z, H, R, predict=(F, Q), out=(xr, Pr, sr), **ref_opts)
+        assert got.x is xd and got.P is Pd and got.status is sd
+        assert np.array_equal(get(sd), sr), f"frame {frame}"
+        assert_matches(device, xd, xr, dtype, scale=20, err_msg=f"frame {frame}")
+        assert_matches(device, Pd, Pr, dtype, scale=20, err_msg=f"frame {frame}")
+    assert sr[1] == sr[T - 1] == KalmanStatus.NOT_PD and sr[min(2, T - 1)] == KalmanStatus.SKIPPED
+    assert (sr == KalmanStatus.UPDATED).sum() > T // 2
+    if options:
+        assert (sr[3::5] == KalmanStatus.SKIPPED).all()
+    # new state arrays (the old ones freed) with the same signature
+    del xd, Pd
+    xd, Pd = device.asarray(xr), device.asarray(Pr)
+    kf_update(device, xd, Pd, zd, Hs, Rs, predict=(Fs, Qs), out=(xd, Pd, sd), **opts)
+    kf_update(REF, xr, Pr, z, H, R, predict=(F, Q), out=(xr, Pr, sr), **ref_opts)
+    assert np.array_equal(get(sd), sr)
+    assert_matches(device, Pd, Pr, dtype, scale=20)
+
+
+@pytest.mark.parametrize("T", [13, 1535])
+def test_steady_state_predict_stereo_and_gating_match_reference(device, T):
+    x, P, _, F, Q, H, R, mask, _ = _frames_problem(T, np.float32)
+    x[:, 4] = np.abs(x[:, 4]) + 2.0
+    x[0, 4] = -1.0  # behind the camera: BAD_DEPTH
+    f, b = 480.0, 0.12
+    zs = np.stack([f * x[:, 0] / x[:, 4], f * x[:, 2] / x[:, 4], f * b / x[:, 4]], 1).astype(np.float32) + 0.3
+    det = np.random.default_rng(T).normal(0, 2, (17, 3)).astype(np.float32)
+    Fs, Qs, Hs, Rs = (shared_matrix(device, a) for a in (F, Q, H, R))
+    xd, Pd, zsd, detd = device.asarray(x), device.asarray(P), device.asarray(zs), device.asarray(det)
+    sd, d2 = device.empty((T,), np.uint8), device.empty((T, 17), np.float32)
+    xr, Pr, sr = x.copy(), P.copy(), np.empty(T, np.uint8)
+    for frame in range(3):
+        kf_predict(device, xd, Pd, Fs, Qs, out=(xd, Pd))
+        kf_predict(REF, xr, Pr, F, Q, out=(xr, Pr))
+        assert_matches(device, Pd, Pr, scale=20, err_msg=f"frame {frame}")
+        ekf_update_stereo(device, xd, Pd, zsd, Rs, f=f, b=b, predict=(Fs, Qs), out=(xd, Pd, sd))
+        ekf_update_stereo(REF, xr, Pr, zs, R, f=f, b=b, predict=(F, Q), out=(xr, Pr, sr))
+        assert np.array_equal(get(sd), sr), f"frame {frame}"
+        assert_matches(device, xd, xr, scale=50, err_msg=f"frame {frame}")
+        assert_matches(device, Pd, Pr, scale=50, err_msg=f"frame {frame}")
+        got = mahalanobis(device, xd, Pd, Hs, Rs, detd, out=d2)
+        assert got is d2
+        assert_matches(device, d2, mahalanobis(REF, xr, Pr, H, R, det), scale=50, err_msg=f"frame {frame}")
+    assert sr[0] == KalmanStatus.BAD_DEPTH and sr[1] == KalmanStatus.NOT_PD
+    assert np.isinf(get(d2)[1]).all()
+
+
+def test_bad_input_after_steady_state_calls(device):
+    # a remembered call does not let a later bad one through
+    x, P, z, F, Q, H, R, _, _ = _frames_problem(13, np.float32)
+    Hs, Rs = shared_matrix(device, H), shared_matrix(device, R)
+    xd, Pd, zd = device.asarray(x), device.asarray(P), device.asarray(z)
+    sd = device.empty((13,), np.uint8)
+    for _ in range(2):
+        kf_update(device, xd, Pd, zd, Hs, Rs, out=(xd, Pd, sd))
+    with pytest.raises(ValueError, match="out status: expected shape"):
+        kf_update(device, xd, Pd, zd, Hs, Rs, out=(xd, Pd, device.empty((13,), np.float32)))
+    with pytest.raises(ValueError, match="z: expected shape"):
+        kf_update(device, xd, Pd, device.asarray(z[:5]), Hs, Rs, out=(xd, Pd, sd))
+    with pytest.raises(ValueError, match="z: expected finite values or NaN"):
+        kf_update(device, xd, Pd, np.full((13, 3), np.inf, np.float32), Hs, Rs, out=(xd, Pd, sd))
+    if device.backend != "numpy":  # NumPy inputs are converted; device arrays must match
+        with pytest.raises(TypeError, match="P: expected dtype"):
+            kf_update(device, xd, device.asarray(P.astype(np.float64)), zd, Hs, Rs, out=(xd, Pd, sd))
 
 
 def test_float64(device):
