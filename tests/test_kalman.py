@@ -394,7 +394,7 @@ def test_steady_state_frames_match_reference(device, dtype, T, options):
 
 @pytest.mark.parametrize("T", [13, 1535])
 def test_steady_state_predict_stereo_and_gating_match_reference(device, T):
-    x, P, _, F, Q, H, R, mask, _ = _frames_problem(T, np.float32)
+    x, P, _, F, Q, H, R, _, _ = _frames_problem(T, np.float32)
     x[:, 4] = np.abs(x[:, 4]) + 2.0
     x[0, 4] = -1.0  # behind the camera: BAD_DEPTH
     f, b = 480.0, 0.12
@@ -422,7 +422,7 @@ def test_steady_state_predict_stereo_and_gating_match_reference(device, T):
 
 def test_bad_input_after_steady_state_calls(device):
     # a remembered call does not let a later bad one through
-    x, P, z, F, Q, H, R, _, _ = _frames_problem(13, np.float32)
+    x, P, z, _, _, H, R, _, _ = _frames_problem(13, np.float32)
     Hs, Rs = shared_matrix(device, H), shared_matrix(device, R)
     xd, Pd, zd = device.asarray(x), device.asarray(P), device.asarray(z)
     sd = device.empty((13,), np.uint8)
