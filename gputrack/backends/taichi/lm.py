@@ -1,29 +1,40 @@
 """Taichi batched Levenberg-Marquardt: the same steps as backends/reference/lm.py.
 
-One launch per op call and one per solver iteration. Measured on taichi:cpu (2 shared cores,
-2026-11-22; figures vary 2-3x with the machine's load): a kernel launch costs ~27-40 us with one
-ndarray argument (~100 us under load), ~2-25 us more per extra ndarray argument, ~3-10 us per
-scalar argument and ~15 us per parallel top-level loop (thread-pool dispatch); a 1-element
-download ~60-140 us. So the solver packs its state into few arrays (gputrack.ops.lm.Layout: S
-small float state, I int32, W workspace, Out result), runs the light per-problem phases as
-serial loops, and only the O(B P M) Jacobian rows and the O(B P^2 M) normal equations as
-parallel loops over (problem, row). The normal equations read contiguous rows
-of J^T (``lm_solve`` transposes J (B, M, P) first): strided dot products were 3-4x slower.
-For B = 10, M = 256, P = 20 (float64): ``lm_solve`` ~0.25-0.3 ms (launch ~35-90 us, transposing
-J ~65 us, J^T J ~70 us, Cholesky ~5 us, all of it 2-3x slower when the cores are shared); a
-solver iteration ~0.2-0.4 ms.
+One launch per op call and one per solver iteration, through ``launch.launch`` (the compiled
+kernel launched directly: ~13 us with six ndarray arguments on taichi:cpu instead of ~38 us
+through ``kernel(...)``). The solver packs its state into few arrays (gputrack.ops.lm.Layout:
+S small float state, I int32, W workspace, Out result).
 
-Keeping the workspace and the result block in their own arrays (so that a solve never moves the
-O(B P M) workspace) costs the update launch two more ndarray arguments (6 instead of 4): measured
-with a trivial kernel on taichi:cpu, 36.2 / 40.7 / 45.1 us per launch with 4 / 5 / 6 ndarray
-arguments, i.e. ~4.5 us each, ~9 us per iteration. The per-solve ``_init`` launch (one serial
-task) takes ~0.05 ms for B = 10, P = 14; it replaces uploading ~340 KB and downloading ~330 KB
-per solve for B = 10, P = 14, M = 256 in float64.
+taichi:cpu runs one task per problem (``_per_problem``): every phase of problem b in order
+(Jacobian rows, acceptance, J^T J and J^T r, damped Cholesky step, next points), with
+``block_dim=1`` so that the B problems spread over the threads, and the problem's data stays in
+cache between the phases. The other archs run the O(B P M) Jacobian rows and the O(B P^2 M)
+normal equations as parallel loops over (problem, row) with serial per-problem phases between.
 
-On taichi:vulkan (lavapipe, a CPU) the same kernels take ~10 ms per iteration: its invocations
-run the long per-row loops in SIMD lanes with gathers; one item per entry was slower still
-(~23 ms), so no separate variant is kept. A CUDA variant (shared-memory reductions) is not
-written: no GPU was available to measure one.
+The normal equations are dot products over contiguous rows of J^T, two rows by four columns per
+pass over M (``_gram_pair``); strided dot products were 3-4x slower. ``lm_solve`` first
+transposes J (B, M, P). Taichi reloads an ndarray's address and shape after every store (it
+cannot rule out aliasing), so a loop that stores per element is not vectorised and costs
+~1-1.5 ns per element: the transpose groups its loads, and the solver, with central differences
+and no mask, computes J^T J and J^T r straight from the stacked residuals (``fused``) instead of
+storing J^T first. Measured on taichi:cpu (2 cores shared with other work, 2026-11-23; minimum
+over repeats, per problem, B = 10, M = 256, float64), P = 20 / P = 14:
+
+- ``lm_solve``: transpose ~4.5 / 3.5 us, J^T J and J^T r ~4 / 2.2 us, Cholesky < 1 us;
+  ~110-120 / 75-80 us per call for B = 10 including the launch (the other core busy).
+- solver iteration: finite flags ~1 / 0.8 us, acceptance ~0.4 us, fused normal equations
+  ~10 / 5.3 us (6.6 + 5.5 / 4.7 + 2.4 us storing J^T first), step ~4 / 1.7 us; ~150-155 /
+  ~90 us per launch for B = 10.
+
+With two idle cores the per-problem tasks run two at a time. The per-solve ``_init`` launch (one
+serial task, ~15-20 us) replaces uploading ~340 KB and downloading ~330 KB per solve for B = 10,
+P = 14, M = 256 in float64; on taichi:cpu the start points go up and the result comes down
+through one direct copy launch each (~15 us; ``from_numpy`` / ``to_numpy`` took ~0.1 ms).
+
+On taichi:vulkan (lavapipe, a CPU) the kernels take ~10 ms per iteration: its invocations run the
+long per-row loops in SIMD lanes with gathers; one item per entry was slower still (~23 ms), so
+no separate variant is kept. A CUDA variant (shared-memory reductions) is not written: no GPU
+was available to measure one.
 
 Finiteness is tested on the bit pattern (Taichi compiles with fast-math, where x != x may be
 folded away).
