@@ -19,38 +19,17 @@ valid points) and that depth sum.
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
 from ..device import DeviceArray
 from ..models.chain import Chain
 from . import backend_module
-from ._args import arg, check_device
+from ._args import arg, check_device, constant
 from .kinematics import forward_kinematics
 from .particles import BestK, _seed, best_k, sample_around
 from .template import rgbd_cost, scene_args
 
 __all__ = ["pf_stage"]
-
-#: small host constants (sigma, active-part flags) uploaded once per device and value
-_CONSTANTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_MAX_CONSTANTS = 256
-
-
-def constant(device, host: np.ndarray):
-    """``host`` on ``device``, uploaded the first time this value is seen there (then cached)."""
-    if device.backend == "numpy":
-        return host
-    per_device = _CONSTANTS.setdefault(device, {})
-    key = (host.dtype.str, host.shape, host.tobytes())
-    found = per_device.get(key)
-    if found is None:
-        if len(per_device) >= _MAX_CONSTANTS:
-            per_device.clear()
-        found = per_device[key] = device.asarray(host)
-    return found
-
 
 def pf_stage(
     device, chain, candidates, sigma, n, seed, rgb, depth, gray, depth_image, camera, *,
@@ -96,7 +75,7 @@ def pf_stage(
         moved = chain.dependency_mask()[:, sig != 0].any(axis=1)  # parts that a sampled parameter poses
         return backend_module(device, "pf").pf_stage(
             device, chain, cand, constant(device, sig), int(n), lo, hi, rgb.on(device), depth.on(device), g, d,
-            camera.as_array(), constant(device, moved.astype(np.int32)), int(k), partial=not moved.all(), **p,
+            camera.as_array(), moved, int(k), **p,
         )  # fmt: skip
     samples = sample_around(device, cand, constant(device, sig), int(n), seed, keep_candidates=True)
     cost = rgbd_cost(device, forward_kinematics(device, chain, samples), rgb, depth, g, d, camera, **p)

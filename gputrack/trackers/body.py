@@ -36,13 +36,27 @@ from .body_template import sparse_template
 
 log = logging.getLogger("gputrack")
 
-__all__ = ["BodyTracker", "BodyEstimate", "TrackerConfig"]
+__all__ = ["BodyTracker", "BodyEstimate", "TrackerConfig", "central_difference_reuse"]
 
 DEG = np.pi / 180.0
 
 #: LM finite-difference steps eps_n (eq. 24) per kind of parameter: large enough to move template
 #: points by a fraction of a pixel (the residuals are float32 and bilinear), small enough to be local.
 LM_STEP = {"angle": 2e-3, "length": 1.0}
+
+
+def central_difference_reuse(chain, problems: int) -> tuple[np.ndarray, np.ndarray]:
+    """``reuse=(base, moved)`` for :func:`gputrack.ops.template.rgbd_residuals` of the points that
+    :func:`gputrack.least_squares` stacks for central differences (2P + 1 rows per problem: the
+    point, then parameter n moved by +eps and -eps): a row's base is its problem's point, and it
+    moves the parts whose pose depends on its parameter (paper 000 Fig. 2)."""
+    P = chain.n_params
+    per = 2 * P + 1
+    dep = chain.dependency_mask()  # (J, P): part j depends on parameter n
+    moved = np.zeros((per, chain.n_parts), bool)
+    moved[1:] = np.repeat(dep.T, 2, axis=0)  # rows 1 + 2n and 2 + 2n move parameter n
+    base = np.repeat(np.arange(problems) * per, per)
+    return base, np.tile(moved, (problems, 1))
 
 
 @dataclasses.dataclass
@@ -187,9 +201,11 @@ class BodyTracker:
         dev, cfg = self.device, self.config
 
         def residuals(points):
-            key = ("residuals", points.shape[0], rgb.n + dep.n)
+            n, P = points.shape
+            key = ("residuals", n, rgb.n + dep.n)
+            reuse = central_difference_reuse(self.chain, n // (2 * P + 1)) if n % (2 * P + 1) == 0 else None
             r = rgbd_residuals(dev, self._poses(points), rgb, dep, gray, depth, self.camera, lam=cfg.lam,
-                               c_depth=cfg.c_depth, out=self._buffers.get(key))  # fmt: skip
+                               c_depth=cfg.c_depth, out=self._buffers.get(key), reuse=reuse)  # fmt: skip
             return self._reuse(key, r)
 
         return residuals

@@ -1,51 +1,66 @@
 """Taichi: one particle-filter stage (gputrack/ops/pf.py) as one kernel launch.
 
-The kernel runs five tasks in order, each a parallel loop (Taichi finishes one before the next):
-sample (eq. 12, the generator of gputrack/ops/particles.py), pose every part (eq. 1-11), cache
-the parts that no sampled parameter moves once per candidate (partial evaluation, see
-gputrack/ops/pf.py), score (eq. 17-19, the kernel body of template.py), and select the best k
-(one serial task). Scratch arrays are kept per device; only the k rows, scores and indices are
-new arrays.
+The kernel runs its tasks in order, each a parallel loop (Taichi finishes one before the next):
+sample (eq. 12, the generator of gputrack/ops/particles.py), pose every part (eq. 1-11), and,
+when some parts do not move, evaluate each candidate once to cache them (re-use mode of
+template.py), score (eq. 17-19, the kernel body of template.py), and select the best k (one
+serial task). Scratch arrays are kept per device; only the k rows, scores and indices are new.
 """
 
 import numpy as np
 
+from ...ops._args import constant
 from ...ops.kinematics import chain_tables
 from ...ops.particles import BestK
 from .kinematics import pose_f32
 from .particles import best_k_body, sample_body
 from .runtime import scratch, ti
-from .template import CAM, F1, F2, F4, I1, _candidate_cache, _rgbd_body, default_params
-
-I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+from .template import CAM, F1, F2, F4, I1, I2, _rgbd_body, _source_cache, default_params
 
 
 @ti.kernel
 def _pf_stage(
     cand: F2, sig: F1, lo: ti.u32, hi: ti.u32, samples: F2, table: I2, offsets: F2, tf: F4,
     rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
-    work: F2, active: I1, cache: F2, total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1,
-    keys: ti.types.ndarray(dtype=ti.u32, ndim=1), sel: F2, groups: ti.i32, L: ti.template(), partial: ti.template(),
+    work: F2, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2, total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1,
+    keys: ti.types.ndarray(dtype=ti.u32, ndim=1), sel: F2, groups: ti.i32, L: ti.template(), reuse: ti.template(),
 ):  # fmt: skip
     sample_body(cand, sig, samples, lo, hi, 1, False)  # eq. 12, keep_candidates
     for b in range(samples.shape[0]):
         pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
-    if ti.static(partial):
-        _candidate_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, active, cache)
-    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d,
-               total, groups, False, L, partial, active, cache)  # fmt: skip
+    if ti.static(reuse):
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
+               groups, False, L, reuse, order, src, moved, cache)  # fmt: skip
     best_k_body(total, idx, val, keys, samples, sel, True)
 
 
-def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, active, k, *, partial,
+def _plan(device, n, C, moved_parts):
+    """Re-use tables of a stage (constants per n, C and moved parts): samples in order, sample b
+    reads candidate b C // n's cache row, which is evaluated at its block's first sample."""
+    b = np.arange(n)
+    order = b.astype(np.int32)
+    src = (b * C // n).astype(np.int32)
+    moved = np.broadcast_to(moved_parts.astype(np.int32), (n, moved_parts.size))
+    srcrow = ((np.arange(C) * n + C - 1) // C).astype(np.int32)
+    return tuple(constant(device, np.ascontiguousarray(a)) for a in (order, src, moved, srcrow))
+
+
+def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, *,
              lam, c_rgb, c_depth):  # fmt: skip
     C, P = cand.shape
     J = chain.n_parts
     nl = int(default_params(device)["lanes"])
     groups = (n + nl - 1) // nl
-    nr = rgb["pts"].shape[0]
+    nr, nd = rgb["pts"].shape[0], depth["pts"].shape[0]
     table, offsets = chain_tables(device, chain, np.float32)
     cam = [float(c) for c in camera] + [float(lam), float(c_rgb), float(c_depth)]
+    reuse = not moved_parts.all()
+    if reuse:
+        order, src, moved, srcrow = _plan(device, n, C, moved_parts)
+    else:  # placeholders of the right types (not read)
+        order = src = srcrow = constant(device, np.zeros(1, np.int32))
+        moved = constant(device, np.zeros((1, 1), np.int32))
     idx = device.empty((k,), np.int32)
     val = device.empty((k,), np.float32)
     sel = device.empty((k, P), np.float32)
@@ -53,10 +68,10 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         cand.buffer, sig.buffer, lo, hi, scratch(device, "pf_samples", (n, P), ti.f32), table.buffer, offsets.buffer,
         scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer, rgb["index"].buffer, rgb["parts"],
         depth["pts"].buffer, depth["index"].buffer, depth["parts"], gray.buffer, dimg.buffer, cam,
-        scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32), active.buffer,
-        scratch(device, "pf_cache", (C, 2 * nr + 4), ti.f32), scratch(device, "pf_total", (n,), ti.f32),
-        scratch(device, "pf_eps_c", (n,), ti.f32),
+        scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32), order.buffer, src.buffer, moved.buffer,
+        srcrow.buffer, scratch(device, "rgbd_cache", (C, 2 * nr + nd + 4 * J), ti.f32),
+        scratch(device, "pf_total", (n,), ti.f32), scratch(device, "pf_eps_c", (n,), ti.f32),
         scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer, val.buffer, scratch(device, "keys", (k,), ti.u32),
-        sel.buffer, groups, nl, partial,
+        sel.buffer, groups, nl, reuse,
     )  # fmt: skip
     return BestK(idx, val, sel)

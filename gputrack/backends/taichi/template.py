@@ -97,47 +97,56 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 
 
 @ti.func
-def _candidate_cache(
+def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
-    dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), active: ti.template(), cache: ti.template(),
+    dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), srcrow: ti.template(), cache: ti.template(),
 ):  # fmt: skip
-    """Partial evaluation, first task: for each candidate c, the parts no sampled parameter moves
-    (active[j] == 0) look the same in every sample of c's block, so they are evaluated once, here,
-    with the block's first sample: cache[c] = [I_i (n), valid_i (n), sum T, sum T^2, sum T I over
-    those valid RGB points, sum of rho_c' over those depth points]."""
-    nb = tf.shape[0]
-    nc = cache.shape[0]
+    """Re-use mode, first task: evaluate the source hypotheses srcrow[s] (one per cache row s) in
+    full. cache[s] = [I_i (n), valid_i (n), r'_i (n', eq. 20-21), then per part j: sum T, sum T^2,
+    sum T I over its valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
     n = rpts.shape[0]
+    m = dpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     cd = cam[6] * cam[6]
-    for c in range(nc):
-        b = (c * nb + nc - 1) // nc  # the first sample of candidate c's block
+    wd = ti.sqrt(cam[4])
+    for s in range(srcrow.shape[0]):
+        b = srcrow[s]
         P = ti.Matrix([[0.0] * 12], dt=ti.f32)
-        s = ti.Vector([0.0, 0.0, 0.0, 0.0], dt=ti.f32)
         for j in range(rparts):
-            if active[j] == 0:
-                _load_pose(P, 0, tf, b, j)
-                blk = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
-                for i in range(ridx[j], ridx[j + 1]):
-                    T = rpts[i, 3]
-                    I, ok = _gray_at(P, 0, rpts[i, 0], rpts[i, 1], rpts[i, 2], gray, fx, fy, cx, cy)
-                    Tv = ti.select(ok, T, 0.0)
-                    blk += ti.Vector([Tv, Tv * T, Tv * I])
-                    cache[c, i] = I
-                    cache[c, n + i] = ti.select(ok, 1.0, 0.0)
-                s[0] += blk[0]
-                s[1] += blk[1]
-                s[2] += blk[2]
+            _load_pose(P, 0, tf, b, j)
+            acc = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
+            blk = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
+            cnt = 0
+            for i in range(ridx[j], ridx[j + 1]):
+                T = rpts[i, 3]
+                I, ok = _gray_at(P, 0, rpts[i, 0], rpts[i, 1], rpts[i, 2], gray, fx, fy, cx, cy)
+                Tv = ti.select(ok, T, 0.0)
+                blk += ti.Vector([Tv, Tv * T, Tv * I])
+                cache[s, i] = I
+                cache[s, n + i] = ti.select(ok, 1.0, 0.0)
+                cnt += 1
+                if cnt == CHUNK:
+                    acc += blk
+                    blk.fill(0.0)
+                    cnt = 0
+            acc += blk
+            for e in ti.static(range(3)):
+                cache[s, 2 * n + m + 4 * j + e] = acc[e]
         for j in range(dparts):
-            if active[j] == 0:
-                _load_pose(P, 0, tf, b, j)
-                blk = ti.f32(0.0)
-                for i in range(didx[j], didx[j + 1]):
-                    dd, q, okd, rho = _depth_term(P, 0, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
-                    blk += rho
-                s[3] += blk
-        for e in ti.static(range(4)):
-            cache[c, 2 * n + e] = s[e]
+            _load_pose(P, 0, tf, b, j)
+            acc = ti.f32(0.0)
+            blk = ti.f32(0.0)
+            cnt = 0
+            for i in range(didx[j], didx[j + 1]):
+                dd, q, okd, rho = _depth_term(P, 0, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
+                blk += rho
+                cache[s, 2 * n + i] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
+                cnt += 1
+                if cnt == CHUNK:
+                    acc += blk
+                    blk = 0.0
+                    cnt = 0
+            cache[s, 2 * n + m + 4 * j + 3] = acc + blk
 
 
 @ti.func
@@ -160,16 +169,20 @@ def _rgbd_body(
     groups,
     want_residuals: ti.template(),
     L: ti.template(),
-    partial: ti.template(),
-    active: ti.template(),
+    reuse: ti.template(),
+    order: ti.template(),
+    src: ti.template(),
+    moved: ti.template(),
     cache: ti.template(),
 ):
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
 
-    ``partial`` (static): evaluate only the parts with active[j] != 0 and take the others from
-    ``cache`` (filled by _candidate_cache for the candidate that owns each sample)."""
+    ``reuse`` (static): lane l of group g takes hypothesis row = order[g L + l]; a part that no
+    lane of the group has moved (moved[row, j] == 0 for every lane) is not projected: its samples,
+    sums and depth terms come from cache row src[row] (filled by _source_cache)."""
     nb = tf.shape[0]
     n = rpts.shape[0]
+    m = dpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lam = cam[4]
     cc = cam[5] * cam[5]
@@ -178,31 +191,30 @@ def _rgbd_body(
     wd = ti.sqrt(lam)
     for g in range(groups):  # groups = ceil(B / L), computed by the caller (SPIR-V needs a plain bound)
         P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
-        own = ti.Vector([0] * L, dt=ti.i32)  # partial: the candidate that owns each lane's sample
+        row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
+        own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's cache row
+        for l in ti.static(range(L)):
+            row[l] = ti.min(g * L + l, nb - 1)
+            if ti.static(reuse):
+                row[l] = order[row[l]]
+                own[l] = src[row[l]]
+        # sums of the parts taken from the cache (kept apart from the blocked sums below)
+        cT = ti.Vector([0.0] * L, dt=ti.f32)
+        cTT = ti.Vector([0.0] * L, dt=ti.f32)
+        cTI = ti.Vector([0.0] * L, dt=ti.f32)
+        cD = ti.Vector([0.0] * L, dt=ti.f32)
         # ---- RGB pass 1: samples I_i, validity, sums over the valid points (eq. 17)
         sT = ti.Vector([0.0] * L, dt=ti.f32)
         sTT = ti.Vector([0.0] * L, dt=ti.f32)
         sTI = ti.Vector([0.0] * L, dt=ti.f32)
-        eD = ti.Vector([0.0] * L, dt=ti.f32)
-        if ti.static(partial):
-            for l in ti.static(range(L)):
-                own[l] = ti.min(g * L + l, nb - 1) * cache.shape[0] // nb  # as in sample_around
         bT = ti.Vector([0.0] * L, dt=ti.f32)
         bTT = ti.Vector([0.0] * L, dt=ti.f32)
         bTI = ti.Vector([0.0] * L, dt=ti.f32)
         cnt = 0
         for j in range(rparts):
-            moved = 1
-            if ti.static(partial):
-                moved = active[j]
-            if moved == 0:
-                for i in range(ridx[j], ridx[j + 1]):  # the owner's samples, for pass 2
-                    for l in ti.static(range(L)):
-                        scratch[g, i * L + l] = cache[own[l], i]
-                        scratch[g, (n + i) * L + l] = cache[own[l], n + i]
-            else:
+            if _project_part(moved, row, j, L, reuse):
                 for l in ti.static(range(L)):
-                    _load_pose(P, l, tf, ti.min(g * L + l, nb - 1), j)  # lanes past the batch repeat the last
+                    _load_pose(P, l, tf, row[l], j)
                 for i in range(ridx[j], ridx[j + 1]):
                     x = rpts[i, 0]
                     y = rpts[i, 1]
@@ -225,15 +237,18 @@ def _rgbd_body(
                         bTT.fill(0.0)
                         bTI.fill(0.0)
                         cnt = 0
-        sT += bT
-        sTT += bTT
-        sTI += bTI
-        if ti.static(partial):  # the parts that did not move: the owner's sums
-            for l in ti.static(range(L)):
-                sT[l] += cache[own[l], 2 * n]
-                sTT[l] += cache[own[l], 2 * n + 1]
-                sTI[l] += cache[own[l], 2 * n + 2]
-                eD[l] = cache[own[l], 2 * n + 3]
+            else:  # the sources' samples (for pass 2) and sums
+                for l in ti.static(range(L)):
+                    cT[l] += cache[own[l], 2 * n + m + 4 * j]
+                    cTT[l] += cache[own[l], 2 * n + m + 4 * j + 1]
+                    cTI[l] += cache[own[l], 2 * n + m + 4 * j + 2]
+                for i in range(ridx[j], ridx[j + 1]):
+                    for l in ti.static(range(L)):
+                        scratch[g, i * L + l] = cache[own[l], i]
+                        scratch[g, (n + i) * L + l] = cache[own[l], n + i]
+        sT += bT + cT
+        sTT += bTT + cTT
+        sTI += bTI + cTI
         alpha = ti.Vector([0.0] * L, dt=ti.f32)
         beta = ti.Vector([0.0] * L, dt=ti.f32)
         for l in ti.static(range(L)):
@@ -254,7 +269,7 @@ def _rgbd_body(
                 if ti.static(want_residuals):
                     # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
                     col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
-                    residuals[ti.min(g * L + l, nb - 1), col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
+                    residuals[row[l], col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
             cnt += 1
             if cnt == CHUNK:
                 eC += blk
@@ -262,15 +277,13 @@ def _rgbd_body(
                 cnt = 0
         eC += blk
         # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
+        eD = ti.Vector([0.0] * L, dt=ti.f32)
         blk.fill(0.0)
         cnt = 0
         for j in range(dparts):
-            moved = 1
-            if ti.static(partial):
-                moved = active[j]
-            if moved != 0:
+            if _project_part(moved, row, j, L, reuse):
                 for l in ti.static(range(L)):
-                    _load_pose(P, l, tf, ti.min(g * L + l, nb - 1), j)
+                    _load_pose(P, l, tf, row[l], j)
                 for i in range(didx[j], didx[j + 1]):
                     x = dpts[i, 0]
                     y = dpts[i, 1]
@@ -281,27 +294,46 @@ def _rgbd_body(
                             blk[l] += rho
                         if ti.static(want_residuals):
                             col = n + didx[dparts + 1 + i]
-                            residuals[ti.min(g * L + l, nb - 1), col] = ti.select(
-                                okd, wd * dd / ti.sqrt(q), wd
-                            )  # eq. 20-21
+                            residuals[row[l], col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
                     cnt += 1
                     if cnt == CHUNK:
                         eD += blk
                         blk.fill(0.0)
                         cnt = 0
-        eD += blk
+            else:
+                if ti.static(not want_residuals):
+                    for l in ti.static(range(L)):
+                        cD[l] += cache[own[l], 2 * n + m + 4 * j + 3]
+                if ti.static(want_residuals):
+                    for i in range(didx[j], didx[j + 1]):
+                        col = n + didx[dparts + 1 + i]
+                        for l in ti.static(range(L)):
+                            residuals[row[l], col] = cache[own[l], 2 * n + i]
+        eD += blk + cD
         if ti.static(not want_residuals):
             for l in ti.static(range(L)):
                 if g * L + l < nb:
-                    total[g * L + l] = (1.0 - lam) * eC[l] + lam * eD[l]  # eq. 19
-                    eps_c[g * L + l] = eC[l]
-                    eps_d[g * L + l] = eD[l]
+                    total[row[l]] = (1.0 - lam) * eC[l] + lam * eD[l]  # eq. 19
+                    eps_c[row[l]] = eC[l]
+                    eps_d[row[l]] = eD[l]
+
+
+@ti.func
+def _project_part(moved: ti.template(), row, j, L: ti.template(), reuse: ti.template()):
+    """Whether part j is projected for a lane group: always, or in re-use mode when a lane moved it."""
+    any_moved = 1
+    if ti.static(reuse):
+        any_moved = 0
+        for l in ti.static(range(L)):
+            any_moved |= moved[row[l], j]
+    return any_moved != 0
 
 
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 F4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 CAM = ti.types.vector(7, ti.f32)
 
 
@@ -311,7 +343,7 @@ def _rgbd_cost_kernel(
     scratch: F2, total: F1, eps_c: F1, eps_d: F1, groups: ti.i32, L: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total,
-               groups, False, L, False, ridx, scratch)  # fmt: skip
+               groups, False, L, False, ridx, ridx, scratch, scratch)  # fmt: skip
 
 
 @ti.kernel
@@ -320,7 +352,17 @@ def _rgbd_res_kernel(
     scratch: F2, residuals: F2, groups: ti.i32, L: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
-               residuals, residuals, groups, True, L, False, ridx, scratch)  # fmt: skip
+               residuals, residuals, groups, True, L, False, ridx, ridx, scratch, scratch)  # fmt: skip
+
+
+@ti.kernel
+def _rgbd_res_reuse_kernel(
+    tf: F4, rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
+    scratch: F2, residuals: F2, groups: ti.i32, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2, L: ti.template(),
+):  # fmt: skip
+    _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
+               residuals, residuals, groups, True, L, True, order, src, moved, cache)  # fmt: skip
 
 
 def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params):
@@ -343,9 +385,16 @@ def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *
     _rgbd_cost_kernel(*args, total.buffer, eps_c.buffer, eps_d.buffer, groups, nl)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None, reuse=None):
+    """``reuse``: None, or (order, src, moved, srcrow) on the device (gputrack/ops/template.py)."""
     args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
-    _rgbd_res_kernel(*args, out.buffer, groups, nl)
+    if reuse is None:
+        _rgbd_res_kernel(*args, out.buffer, groups, nl)
+        return
+    order, src, moved, srcrow = reuse
+    width = 2 * rgb["pts"].shape[0] + depth["pts"].shape[0] + 4 * tf.shape[1]
+    cache = scratch(device, "rgbd_cache", (srcrow.shape[0], width), ti.f32)
+    _rgbd_res_reuse_kernel(*args, out.buffer, groups, order.buffer, src.buffer, moved.buffer, srcrow.buffer, cache, nl)
 
 
 # -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------
