@@ -543,41 +543,49 @@ def test_selftest(device):
     _selftest(device)
 
 
-@pytest.mark.parametrize("lanes", [1, 8])
-def test_opencl_kernel_variants(device, lanes, monkeypatch):
-    """Both OpenCL kernels: one track per work-item (GPUs) and 8 tracks in vector lanes (CPUs)."""
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("lanes", [1, 4, 8])
+def test_opencl_kernel_variants(device, lanes, dtype, monkeypatch):
+    """The OpenCL kernels built for one track per work-item (GPUs) and for 4 or 8 tracks in vector
+    lanes (CPUs): filter and gating, float32 and float64."""
     if device.backend != "opencl":
         pytest.skip("OpenCL kernel variants")
+    if dtype == np.float64 and not device.fp64:
+        pytest.skip(f"{device.spec} has no float64")
     from gputrack.backends.opencl import kalman as ocl
 
     monkeypatch.setattr(ocl, "lanes", lambda dev: lanes)
     rng = np.random.default_rng(18)
-    T = 13  # not a multiple of 8: the last work-item has idle lanes
-    F, Q = constant_velocity(3, 0.5, 0.2)
-    x, P, _, _, z, H, R = problem(rng, T, 6, 3)
+    T = 13  # not a multiple of 4 or 8: the last work-item has idle lanes
+    F, Q = constant_velocity(3, 0.5, 0.2, dtype=dtype)
+    x, P, _, _, z, H, R = problem(rng, T, 6, 3, dtype)
     x[:, 4] += 4
     z[2, 0] = np.nan
     mask = np.arange(T) != 5
-    gain = rng.uniform(0, 1.5, T).astype(np.float32)
+    gain = rng.uniform(0, 1.5, T).astype(dtype)
     Rt = np.broadcast_to(R, (T, 3, 3)).copy()
-    Rt[7] = -50 * np.eye(3, dtype=np.float32)
+    Rt[7] = -50 * np.eye(3, dtype=dtype)
     got = kf_update(device, x, P, z, H, Rt, mask=mask, gain_scale=gain, predict=(F, Q))
     want = kf_update(REF, x, P, z, H, Rt, mask=mask, gain_scale=gain, predict=(F, Q))
-    assert_matches(device, got.x, want.x, scale=20)
-    assert_matches(device, got.P, want.P, scale=20)
+    assert_matches(device, got.x, want.x, dtype, scale=20)
+    assert_matches(device, got.P, want.P, dtype, scale=20)
     assert np.array_equal(get(got.status), want.status)
     assert set(want.status.tolist()) == {0, 1, 2}
     xs = x.copy()
     xs[3, 4] = -1.0
     zs = np.stack([400 * xs[:, 0] / np.abs(xs[:, 4]), 400 * xs[:, 2] / np.abs(xs[:, 4]), 40 / np.abs(xs[:, 4])], 1)
-    zs = zs.astype(np.float32)
+    zs = zs.astype(dtype)
     got = ekf_update_stereo(device, xs, P, zs, R, f=400, b=0.1, mask=mask)
     want = ekf_update_stereo(REF, xs, P, zs, R, f=400, b=0.1, mask=mask)
-    assert_matches(device, got.x, want.x, scale=50)
-    assert_matches(device, got.P, want.P, scale=50)
+    assert_matches(device, got.x, want.x, dtype, scale=50)
+    assert_matches(device, got.P, want.P, dtype, scale=50)
     assert np.array_equal(get(got.status), want.status)
     assert want.status[3] == KalmanStatus.BAD_DEPTH and want.status[5] == KalmanStatus.SKIPPED
     xp, Pp = kf_predict(device, x, P, F, Q)
     xr, Pr = kf_predict(REF, x, P, F, Q)
-    assert_matches(device, xp, xr)
-    assert_matches(device, Pp, Pr, scale=10)
+    assert_matches(device, xp, xr, dtype)
+    assert_matches(device, Pp, Pr, dtype, scale=10)
+    det = (rng.standard_normal((5, 3)) * 2).astype(dtype)
+    d2 = get(mahalanobis(device, x, P, H, Rt, det))
+    assert_matches(device, d2, mahalanobis(REF, x, P, H, Rt, det), dtype, scale=20)
+    assert np.isinf(d2[7]).all()

@@ -515,7 +515,7 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
 
 # -- tuning (gputrack tune) ----------------------------------------------------------------------
 # The OpenCL filter kernel (kf_predict, kf_update, ekf_update_stereo) launches with ``lanes``
-# tracks per work-item (gt_kf for 1, gt_kf_v in VW-wide vectors for 4, 8, 16) and a work-group
+# tracks per work-item (gt_kf built with VW = 1, or with VW-wide vectors for 4, 8, 16) and a work-group
 # size (None: the driver's choice). Every track is computed alike whatever the choice (each
 # lane runs its own track), only the speed differs. Defaults: backends/opencl/kalman.py.
 def _kalman_default(device) -> dict:

@@ -1,10 +1,13 @@
-"""OpenCL launchers of the batched Kalman filter ops (kernels/gt_kalman.cl): one work-item per track.
+"""OpenCL launchers of the batched Kalman filter ops (kernels/gt_kalman.cl).
 
-On a CPU device each work-item runs VW = 8 tracks in the lanes of vector types (gt_kf_v: SIMD
-arithmetic, per-track loads and stores, per-lane selection instead of branches); on a GPU one
-track per work-item (gt_kf). Sizes, dtype, layout (shared or per-track matrices), options and the
-known zero patterns of F, Q, H and R are build defines, so each combination is built once per device (cached by
-``device.program``). Arguments an op does not use are passed as NULL.
+On a CPU device each work-item runs VW = 8 tracks in the lanes of vector types (SIMD arithmetic,
+per-track loads and stores, per-lane selection instead of branches); on a GPU one track per
+work-item (VW = 1). The filter kernel gt_kf and the gating kernel gt_gate share the source of
+the innovation covariance and its Cholesky factor. Sizes, dtype, layout (shared or per-track
+matrices), options, VW and the known zero patterns of F, Q, H and R are build defines, so each
+combination is built once per device (cached by ``device.program``); the kernel of each variant
+is memoised here and its arguments are set again only when they change. Arguments an op does not
+use are passed as NULL.
 """
 
 import functools
@@ -24,7 +27,7 @@ def _rows(pat: int, rows: int, cols: int):
 
 
 def lanes(device) -> int:
-    """Tracks per work-item: SIMD lanes on a CPU device (gt_kf_v), one on a GPU (gt_kf)."""
+    """Tracks per work-item: SIMD lanes on a CPU device, one on a GPU."""
     return 8 if device.info.kind == "cpu" else 1
 
 
@@ -110,7 +113,7 @@ def _variant_kernel(device, dt, n, m, mode, F, Q, H, R, mask, gain_scale, pats, 
             device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None, key[8],
             (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]), hrows, vw,
         )  # fmt: skip
-        knl = _KERNELS[key] = _kernel(prg, "gt_kf_v" if vw > 1 else "gt_kf")
+        knl = _KERNELS[key] = _kernel(prg, "gt_kf")
     return knl
 
 
@@ -171,12 +174,15 @@ def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     T, n = x.shape
     D, m = z.shape
     out = out if out is not None else device.empty((T, D), x.dtype)
-    prg = _program(
-        device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), (-1, -1, -1, pats[3]),
-        _rows(pats[2], m, n),
-    )  # fmt: skip
-    _kernel(prg, "gt_gate")(
-        device.queue, (T,), None,
-        _data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D),
-    )  # fmt: skip
+    vw = lanes(device)
+    key = ("gate", device, x.dtype, n, m, _pt(H), _pt(R), pats[2], pats[3], vw)
+    knl = _KERNELS.get(key)
+    if knl is None:
+        prg = _program(
+            device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), (-1, -1, -1, pats[3]),
+            _rows(pats[2], m, n), vw,
+        )  # fmt: skip
+        knl = _KERNELS[key] = _kernel(prg, "gt_gate")
+    args = (_data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D))
+    _enqueue(device, knl, ((T + vw - 1) // vw,), None, args)
     return out
