@@ -23,6 +23,7 @@ device kernels read, so that kernels are generic over the chain (any number of p
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -159,6 +160,10 @@ class Chain:
 
     def dependency_mask(self) -> np.ndarray:
         """(J, P) bool: part j's pose depends on parameter n (its own joint's and its ancestors')."""
+        return self._dependency.copy()
+
+    @functools.cached_property
+    def _dependency(self) -> np.ndarray:
         mask = np.zeros((self.n_parts, self.n_params), dtype=bool)
         for j in range(self.n_parts):
             for a in self.ancestors(j):
@@ -200,6 +205,10 @@ class Chain:
 
     def key(self) -> tuple:
         """A hashable summary of what the kernels read (for caching uploaded tables)."""
+        return self._key
+
+    @functools.cached_property
+    def _key(self) -> tuple:
         table, offsets = self.packed()
         return (self.n_params, table.tobytes(), offsets.tobytes())
 
