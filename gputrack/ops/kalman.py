@@ -232,14 +232,13 @@ def _options(device, mask, gain_scale, predict, dims, dt):
             i = int(np.argmax(h < 0))
             raise ValueError(f"gain_scale: expected values >= 0, got {h[i]} at index {i}")
         gain_scale = _arg(device, gain_scale, "gain_scale", ("T",), dims, dtype=dt, cast=True)
+    F = Q = None
     if predict is not None:
         if not isinstance(predict, (tuple, list)) or len(predict) != 2:
             raise TypeError(f"predict: expected a pair (F, Q) or None, got {type(predict).__name__}")
-        predict = (
-            _matrix(device, predict[0], "F", "n", "n", dims, dt),
-            _matrix(device, predict[1], "Q", "n", "n", dims, dt),
-        )
-    return mask, gain_scale, predict
+        F = _matrix(device, predict[0], "F", "n", "n", dims, dt)
+        Q = _matrix(device, predict[1], "Q", "n", "n", dims, dt)
+    return mask, gain_scale, F, Q
 
 
 def _outputs(device, out, dims, dt, with_status):
@@ -404,8 +403,8 @@ def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None
         key = None
     hit = _fast(key)
     if hit is not None:
-        predict = None if predict is None else (_raw(predict[0]), _raw(predict[1]))
-        res = hit[0].kf_update(device, x, P, z, _raw(H), _raw(R), mask, gain_scale, predict, out=out, pats=hit[1])
+        F, Q = (None, None) if predict is None else (_raw(predict[0]), _raw(predict[1]))
+        res = hit[0].kf_update(device, x, P, z, _raw(H), _raw(R), mask, gain_scale, F, Q, out=out, pats=hit[1])
         return KalmanState(*res)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
@@ -413,14 +412,12 @@ def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None
     pats = _patterns(predict, H, R, dims)
     H = _matrix(device, H, "H", "m", "n", dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
-    mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
+    mask, gain_scale, F, Q = _options(device, mask, gain_scale, predict, dims, dt)
     out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
         return _empty_state(device, dims, dt, out=out)
     _remember(key, device, pats)
-    res = backend_module(device, "kalman").kf_update(
-        device, x, P, z, H, R, mask, gain_scale, predict, out=out, pats=pats
-    )
+    res = backend_module(device, "kalman").kf_update(device, x, P, z, H, R, mask, gain_scale, F, Q, out=out, pats=pats)
     return KalmanState(*res)
 
 
@@ -445,9 +442,9 @@ def ekf_update_stereo(
     if hit is not None:
         f, b = _scalar(f, "f", positive=True), _scalar(b, "b", positive=True)
         cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
-        predict = None if predict is None else (_raw(predict[0]), _raw(predict[1]))
+        F, Q = (None, None) if predict is None else (_raw(predict[0]), _raw(predict[1]))
         res = hit[0].ekf_update_stereo(
-            device, x, P, z, _raw(R), f, b, cx, cy, mask, gain_scale, predict, out=out, pats=hit[1]
+            device, x, P, z, _raw(R), f, b, cx, cy, mask, gain_scale, F, Q, out=out, pats=hit[1]
         )
         return KalmanState(*res)
     dims: dict = {}
@@ -461,13 +458,13 @@ def ekf_update_stereo(
     b = _scalar(b, "b", positive=True)
     cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
     pats = _patterns(predict, None, R, dims)
-    mask, gain_scale, predict = _options(device, mask, gain_scale, predict, dims, dt)
+    mask, gain_scale, F, Q = _options(device, mask, gain_scale, predict, dims, dt)
     out = _outputs(device, out, dims, dt, True)
     if dims["T"] == 0:
         return _empty_state(device, dims, dt, out=out)
     _remember(key, device, pats)
     res = backend_module(device, "kalman").ekf_update_stereo(
-        device, x, P, z, R, f, b, cx, cy, mask, gain_scale, predict, out=out, pats=pats
+        device, x, P, z, R, f, b, cx, cy, mask, gain_scale, F, Q, out=out, pats=pats
     )
     return KalmanState(*res)
 
@@ -533,7 +530,7 @@ def _kalman_problem(device, size, params):
     be = backend_module(device, "kalman")
     dims = {"T": x0.shape[0], "n": 6, "m": 3}
     pats = _patterns((Fs, Qs), Hs, Rs, dims)
-    return lambda: be.kf_update(device, x, P, zd, Hs.array, Rs.array, None, None, (Fs.array, Qs.array),
+    return lambda: be.kf_update(device, x, P, zd, Hs.array, Rs.array, None, None, Fs.array, Qs.array,
                                 (x, P, st), pats, params=dict(params))  # fmt: skip
 
 
@@ -593,7 +590,7 @@ def _selftest(device) -> None:
     }
     want = {
         "predict": ref.kf_predict(None, x, P, F, Q),
-        "update": ref.kf_update(None, x, P, z, H, R, mask.astype(np.uint8), gain, (F, Q))[:2],
+        "update": ref.kf_update(None, x, P, z, H, R, mask.astype(np.uint8), gain, F, Q)[:2],
         "stereo": ref.ekf_update_stereo(None, x, P, zs + 0.5, R, 400.0, 0.1)[:2],
         "gating": (ref.mahalanobis(None, x, P, H, R, det),),
     }

@@ -121,10 +121,10 @@ def _gain_and_joseph(x, Ps, y, Hb, Rb, HP, L, gain_scale):
     return x1, _sym(P1)
 
 
-def _prologue(x, P, z, mask, predict):
-    """Predict first if asked; the per-track 'valid' mask (mask and no NaN in z)."""
-    if predict is not None:
-        x, P = kf_predict(None, x, P, *predict)
+def _prologue(x, P, z, mask, F, Q):
+    """Predict first if F, Q are given; the per-track 'valid' mask (mask and no NaN in z)."""
+    if F is not None:
+        x, P = kf_predict(None, x, P, F, Q)
     valid = np.isfinite(z).all(axis=1)  # NaN (non-finite) observation = missing
     if mask is not None:
         valid &= mask.astype(bool)
@@ -140,9 +140,9 @@ def _status(valid, extra_fail, extra_code, pd_ok):
     return st
 
 
-def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=None):
+def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, F=None, Q=None, out=None, pats=None):
     """Linear update: y = z - H x, K = P H^T S^-1, Joseph-form covariance. Returns (x, P, status)."""
-    x, P, valid = _prologue(x, P, z, mask, predict)
+    x, P, valid = _prologue(x, P, z, mask, F, Q)
     zf = np.where(np.isfinite(z), z, 0).astype(x.dtype)
     y = zf - _mv(H, x)  # innovation
     xo, Po, pd_ok = _update(x, P, y, H, R, valid, gain_scale)
@@ -165,10 +165,10 @@ def stereo_observation(x, f, b, cx, cy):
 
 
 def ekf_update_stereo(
-    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=None
+    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, F=None, Q=None, out=None, pats=None
 ):
     """Stereo EKF update (eq. 4-6): z = [u v d], Jacobian at the (predicted) state."""
-    x, P, valid = _prologue(x, P, z, mask, predict)
+    x, P, valid = _prologue(x, P, z, mask, F, Q)
     dt = x.dtype.type
     f, b, cx, cy = dt(f), dt(b), dt(cx), dt(cy)
     bad_depth = ~(x[:, 4] > 0)

@@ -485,15 +485,27 @@ def kf_predict(device, x, P, F, Q, out=None, pats=(-1, -1, -1, -1)):
     return _run(device, x, P, None, F, Q, None, None, None, None, MODE_PREDICT, out, pats)
 
 
-def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)):
-    F, Q = predict if predict is not None else (None, None)
+def kf_update(device, x, P, z, H, R, mask=None, gain_scale=None, F=None, Q=None, out=None, pats=(-1, -1, -1, -1)):
     return _run(device, x, P, z, F, Q, H, R, mask, gain_scale, MODE_LINEAR, out, pats)
 
 
 def ekf_update_stereo(
-    device, x, P, z, R, f, b, cx=0.0, cy=0.0, mask=None, gain_scale=None, predict=None, out=None, pats=(-1, -1, -1, -1)
+    device,
+    x,
+    P,
+    z,
+    R,
+    f,
+    b,
+    cx=0.0,
+    cy=0.0,
+    mask=None,
+    gain_scale=None,
+    F=None,
+    Q=None,
+    out=None,
+    pats=(-1, -1, -1, -1),
 ):
-    F, Q = predict if predict is not None else (None, None)
     return _run(device, x, P, z, F, Q, None, R, mask, gain_scale, MODE_STEREO, out, pats, (f, b, cx, cy))
 
 
