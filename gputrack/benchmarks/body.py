@@ -2,7 +2,9 @@
 
 The template is rendered once (``template_every`` large) so that the figure is the device work of
 a steady-state frame: upload of the frame, the particle filter and the LM. Rendering and picking
-the template on the host is timed as its own case ("template (host)").
+the template on the host is timed as its own case ("template (host)"). One particle-filter stage
+(``pf_stage``: sample, pose, score, best 10) is timed for the torso group (every part moves) and
+for the right-arm group of the cascade (the torso and left arm do not move), inputs on the device.
 """
 
 import sys
@@ -39,6 +41,25 @@ def cases(device, args):
                 reference=lambda t=ref: t.track(frame.gray, frame.depth),
                 params={"K": args.samples, "N": 128, "N_depth": 128, "stages": 3, "lm": lm, "cascade": cfg.cascade,
                         "width": 640, "height": 480},  # fmt: skip
+            )
+        )
+    from ..models.upper_body import pf_sigma
+    from ..ops.pf import pf_stage
+
+    rgb, dep = sparse_template(seq.chain, seq.params[0], 128, 128)
+    cand = tracker.candidates.astype("float32")
+    g, d = device.asarray(frame.gray), device.asarray(frame.depth)
+    d_cand = device.asarray(cand)
+    for name, group in zip(("torso", "right arm"), tracker._groups()):
+        sigma = (pf_sigma(seq.chain) * group).astype("float32")
+        out.append(
+            Case(
+                f"pf_stage {name} group K={args.samples}",
+                run=lambda s=sigma: pf_stage(device, seq.chain, d_cand, s, args.samples, 7, rgb, dep, g, d,
+                                             tracker.camera),  # fmt: skip
+                reference=lambda s=sigma: pf_stage(reference, seq.chain, cand, s, args.samples, 7, rgb, dep,
+                                                   frame.gray, frame.depth, tracker.camera),  # fmt: skip
+                params={"K": args.samples, "C": 10, "N": 128, "N_depth": 128, "group": name},
             )
         )
     out.append(

@@ -5,6 +5,7 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 
 - :mod:`.template`   per-hypothesis x per-point block reductions (RGB-D template cost, NCC patches)
 - :mod:`.particles`  particle-filter sampling and best-k selection on the device
+- :mod:`.pf`         one particle-filter stage (sample, pose, score, best k) as one op
 - :mod:`.kinematics` forward kinematics of kinematic chains
 - :mod:`.lm`         batched Levenberg-Marquardt
 - :mod:`.kalman`     batched Kalman filters and gating
@@ -35,6 +36,7 @@ from .kalman import (  # noqa: E402
 from .kinematics import forward_kinematics  # noqa: E402
 from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
 from .particles import BestK, best_k, sample_around  # noqa: E402
+from .pf import pf_stage  # noqa: E402
 from .template import Camera, RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals  # noqa: E402
 
 __all__ = [
@@ -61,6 +63,7 @@ __all__ = [
     "normal_equations",
     "patch_ncc",
     "patch_ncc_per_point",
+    "pf_stage",
     "rgbd_cost",
     "rgbd_residuals",
     "sample_around",
