@@ -11,9 +11,10 @@ template values (last, hashable) separately. The first call with a given kernel,
 and dtypes and ranks of the arrays goes through ``kernel(...)``, which compiles and checks
 everything, and remembers the compiled kernel; later calls launch it directly. Only calls whose
 arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (passed by address,
-as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch context is not reused between launches (Taichi's LLVM launcher does not
-support that). If Taichi's internal interface is not what this module expects (another Taichi
-version), every call goes through ``kernel(...)`` from then on.
+as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch
+context is not reused between launches (Taichi's LLVM launcher does not support that). A restarted
+Taichi (another program object) empties the cache. If Taichi's internal interface is not what this
+module expects (another Taichi version), every call goes through ``kernel(...)`` from then on.
 """
 
 from __future__ import annotations
@@ -47,7 +48,9 @@ def launch(kernel, arrays: tuple, templates: tuple = ()) -> None:
         hit = _cache.get(key)
         if hit is not None:
             tk, ckd, prog = hit
-            if prog is ti.lang.impl.get_runtime().prog:  # not a restarted Taichi
+            if prog is not ti.lang.impl.get_runtime().prog:  # Taichi was restarted: compile again
+                _cache.clear()
+            else:
                 ctx = tk.make_launch_context()
                 for i, a in enumerate(arrays):
                     if type(a) is np.ndarray:
