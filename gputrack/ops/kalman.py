@@ -47,6 +47,10 @@ Numerics (identical on every backend):
   as dense. Each zero pattern compiles its own kernel variant.
 - Empty batches (T = 0, D = 0) return empty results of the right shapes (``out`` is then
   returned as it is).
+- Steady state: a call whose array arguments are all arrays of the device (or SharedMatrix
+  objects) is validated once per signature (device, shape, dtype, zero pattern of each argument);
+  later calls with the same signature, e.g. a tracker's in-place update every frame, go straight
+  to the backend. Host (NumPy) arguments are validated on every call.
 
 Sizes: 1 <= n <= MAX_N and 1 <= m <= MAX_M (the device kernels unroll the small matrix algebra
 for the n and m of each call and compile once per combination).

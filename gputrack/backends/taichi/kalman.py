@@ -18,7 +18,9 @@ same values. On the GPU archs (vulkan, cuda) L = 1: one scalar track per thread.
 The numerics follow gputrack/backends/reference/kalman.py step for step (see its docstring).
 Launch cost on taichi:cpu is about 30 us plus about 8 us per ndarray argument, so the common
 call of a tracker (in place, no mask, no gain_scale) has a kernel with 8 ndarray arguments
-instead of 12, and the compile-time options travel as one hashable :class:`_Variant`.
+instead of 12, the compile-time options travel as one hashable :class:`_Variant`, a repeated
+call relaunches its remembered launch context (:class:`_Launcher`), and batches of up to
+SERIAL_MAX tracks run on the calling thread.
 """
 
 import dataclasses
