@@ -5,11 +5,11 @@ kernel launched directly: ~13 us with six ndarray arguments on taichi:cpu instea
 through ``kernel(...)``). The solver packs its state into few arrays (gputrack.ops.lm.Layout:
 S small float state, I int32, W workspace, Out result).
 
-taichi:cpu runs one task per problem (``_per_problem``): every phase of problem b in order
-(Jacobian rows, acceptance, J^T J and J^T r, damped Cholesky step, next points), with
-``block_dim=1`` so that the B problems spread over the threads, and the problem's data stays in
-cache between the phases. The other archs run the O(B P M) Jacobian rows and the O(B P^2 M)
-normal equations as parallel loops over (problem, row) with serial per-problem phases between.
+taichi:cpu runs one serial loop over the problems (``_per_problem``): every phase of problem b
+in order (Jacobian rows, acceptance, J^T J and J^T r, damped Cholesky step, next points), so that
+the problem's data stays in cache between the phases (why not parallel: see ``_per_problem``).
+The other archs run the O(B P M) Jacobian rows and the O(B P^2 M) normal equations as parallel
+loops over (problem, row) with serial per-problem phases between.
 
 The normal equations are dot products over contiguous rows of J^T, two rows by four columns per
 pass over M (``_gram_pair``); strided dot products were 3-4x slower. ``lm_solve`` first
@@ -26,7 +26,7 @@ over repeats, per problem, B = 10, M = 256, float64), P = 20 / P = 14:
   ~10 / 5.3 us (6.6 + 5.5 / 4.7 + 2.4 us storing J^T first), step ~4 / 1.7 us; ~150-155 /
   ~90 us per launch for B = 10.
 
-With two idle cores the per-problem tasks run two at a time. The per-solve ``_init`` launch (one
+The per-solve ``_init`` launch (one
 serial task, ~15-20 us) replaces uploading ~340 KB and downloading ~330 KB per solve for B = 10,
 P = 14, M = 256 in float64; on taichi:cpu the start points go up and the result comes down
 through one direct copy launch each (~15 us; ``from_numpy`` / ``to_numpy`` took ~0.1 ms).
@@ -53,9 +53,15 @@ MAX_CHOL_TRIES = 40
 
 
 def _per_problem() -> bool:
-    """Compile-time choice: one task per problem (all its phases in order, ``block_dim=1`` so that
-    the B problems spread over the CPU's threads) on taichi:cpu; parallel loops over (problem,
-    row) with serial per-problem phases in between elsewhere."""
+    """Compile-time choice: on taichi:cpu one serial loop over the problems, every phase of a
+    problem in order; elsewhere parallel loops over (problem, row) with serial per-problem phases
+    in between.
+
+    On the CPU a parallel loop over B = 10 problems is one task anyway (Taichi gives each task of
+    a parallel loop at least 512 indices), and the serial loop saves the thread-pool dispatch. Two
+    tasks of five problems (a loop over 2 x 512 indices) measured 10-15% slower than the serial
+    loop for B = 10, M = 256, P = 14 and 20 while another process kept one of the two cores busy
+    (2026-11-23); not measured on an idle machine."""
     return current_arch() == "cpu"
 
 
@@ -307,12 +313,11 @@ def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.tem
 
 @ti.kernel
 def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template()):
-    """W: (B * _ops_block(P, M),) work. One task per problem on taichi:cpu (the problem's J^T stays
-    in cache between the transpose and the products; ``block_dim=1`` spreads the B problems over
-    the threads)."""
+    """W: (B * _ops_block(P, M),) work. One problem after the other on taichi:cpu (``_per_problem``;
+    the problem's J^T stays in cache between the transpose and the products)."""
     B = J.shape[0]
     if ti.static(_per_problem()):
-        ti.loop_config(block_dim=1)
+        ti.loop_config(serialize=True)
         for b in range(B):
             _solve_one(J, r, damping, delta, ok, W, b, dt)
     else:
@@ -788,8 +793,8 @@ def _update(
     B, P, M = I[1], I[3], R.shape[1]
     NPR = (P + 1) // 2  # row pairs
     if ti.static(_per_problem()):
-        ti.loop_config(block_dim=1)
-        for b in range(B):  # one task per problem: every phase of problem b, in order
+        ti.loop_config(serialize=True)
+        for b in range(B):  # every phase of problem b, in order
             if ti.static(not final):  # noqa: SIM102 - a compile-time branch
                 if I[8 + b * (4 + P)] == RUNNING:
                     if ti.static(fused):
