@@ -371,12 +371,15 @@ class _Launcher:
     """Runs the kernels; on the CPU compiled with real_matrix_scalarize off (lanes as SIMD vectors).
 
     A steady-state call (the same kernel variant with the same arrays and scalars as a recent
-    call, e.g. a tracker updating its state in place every frame) reuses the compiled kernel
-    and the filled launch context of that call: Taichi's per-call template lookup and argument
-    marshalling (about 50 us on a 2-core CPU) are skipped. The arrays of a remembered call are
-    held by weak references (an entry whose array is gone is never reused), at most ``size``
-    calls are remembered, and a restarted Taichi runtime clears them. Taichi internals that
-    this relies on are looked up once; if they are missing the plain kernel call is used.
+    call, e.g. a tracker updating its state in place every frame) reuses the compiled kernel of
+    that call and sets its arguments on a new launch context directly: Taichi's per-call template
+    lookup and generic argument marshalling (about 50 us on a 2-core CPU) are skipped. A launch
+    context is not reused: a launch rewrites its array arguments into raw pointers. The arrays
+    of a remembered call are held by weak references (an entry whose array is gone is never
+    reused), at most ``size`` calls are remembered, and a restarted Taichi runtime clears them.
+    If Taichi's internals are not what this expects, the plain kernel call is used from then on.
+    (``launch.py`` does the same for kernels whose arguments are only ndarrays and templates;
+    these kernels also take float scalars.)
     """
 
     def __init__(self, size=8):
@@ -397,12 +400,14 @@ class _Launcher:
         key = (kernel, *(id(a) if isinstance(a, ti.Ndarray) else a for a in args))
         entry = self.entries.get(key)
         if entry is not None:
-            data, ctx, refs = entry
+            t_kernel, data, refs, scalars = entry
             arrays = [r() for _, r in refs]
             if None not in arrays:
-                # the launch turns the context's array arguments into raw pointers: set them again
+                ctx = t_kernel.make_launch_context()  # a fresh one: a launch rewrites its arrays
                 for (i, _), a in zip(refs, arrays):
                     ctx.set_arg_ndarray(i, a.arr)
+                for i, c in scalars:
+                    ctx.set_arg_float(i, c)
                 prog.launch_kernel(data, ctx)
                 return
         cfg.real_matrix_scalarize = False
@@ -418,19 +423,18 @@ class _Launcher:
             primal = kernel._primal
             t_kernel = primal.compiled_kernels[primal.ensure_compiled(*args)]
             data = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
-            ctx = t_kernel.make_launch_context()
-            refs = []
+            refs, scalars = [], []
             for i, a in enumerate(args[: len(args) - 1]):  # the last argument is the template
                 if isinstance(a, ti.Ndarray):
                     refs.append(((i,), weakref.ref(a)))
                 else:
-                    ctx.set_arg_float((i,), float(a))
+                    scalars.append(((i,), float(a)))
         except (AttributeError, KeyError, TypeError):  # another Taichi version: plain calls only
             self.fast = False
             return
         if len(self.entries) >= self.size:
             del self.entries[next(iter(self.entries))]
-        self.entries[key] = (data, ctx, refs)
+        self.entries[key] = (t_kernel, data, refs, scalars)
 
 
 _launch = _Launcher()
