@@ -14,18 +14,21 @@ from ...ops.kinematics import chain_tables
 from ...ops.particles import BestK
 from .kinematics import pose_f32
 from .particles import best_k_body, sample_body
+from .launch import launch
 from .runtime import scratch, ti
-from .template import CAM, F1, F2, F4, I1, I2, _rgbd_body, _source_cache, default_params
+from .template import F1, F2, F4, I1, I2, _rgbd_body, _source_cache, cam_array, default_params
+
+U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
 
 @ti.kernel
 def _pf_stage(
-    cand: F2, sig: F1, lo: ti.u32, hi: ti.u32, samples: F2, table: I2, offsets: F2, tf: F4,
-    rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
-    work: F2, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2, total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1,
-    keys: ti.types.ndarray(dtype=ti.u32, ndim=1), sel: F2, groups: ti.i32, L: ti.template(), reuse: ti.template(),
+    cand: F2, sig: F1, seed: U1, samples: F2, table: I2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2,
+    didx: I1, gray: F2, dimg: F2, cam: F1, work: F2, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2,
+    total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1, keys: U1, sel: F2,
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), reuse: ti.template(),
 ):  # fmt: skip
-    sample_body(cand, sig, samples, lo, hi, 1, False)  # eq. 12, keep_candidates
+    sample_body(cand, sig, samples, seed[0], seed[1], 1, False)  # eq. 12, keep_candidates
     for b in range(samples.shape[0]):
         pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
     if ti.static(reuse):
@@ -54,7 +57,6 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     groups = (n + nl - 1) // nl
     nr, nd = rgb["pts"].shape[0], depth["pts"].shape[0]
     table, offsets = chain_tables(device, chain, np.float32)
-    cam = [float(c) for c in camera] + [float(lam), float(c_rgb), float(c_depth)]
     reuse = not moved_parts.all()
     if reuse:
         order, src, moved, srcrow = _plan(device, n, C, moved_parts)
@@ -64,14 +66,15 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     idx = device.empty((k,), np.int32)
     val = device.empty((k,), np.float32)
     sel = device.empty((k, P), np.float32)
-    _pf_stage(
-        cand.buffer, sig.buffer, lo, hi, scratch(device, "pf_samples", (n, P), ti.f32), table.buffer, offsets.buffer,
-        scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer, rgb["index"].buffer, rgb["parts"],
-        depth["pts"].buffer, depth["index"].buffer, depth["parts"], gray.buffer, dimg.buffer, cam,
-        scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32), order.buffer, src.buffer, moved.buffer,
-        srcrow.buffer, scratch(device, "rgbd_cache", (C, 2 * nr + nd + 4 * J), ti.f32),
-        scratch(device, "pf_total", (n,), ti.f32), scratch(device, "pf_eps_c", (n,), ti.f32),
-        scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer, val.buffer, scratch(device, "keys", (k,), ti.u32),
-        sel.buffer, groups, nl, reuse,
+    arrays = (
+        cand.buffer, sig.buffer, np.array([lo, hi], np.uint32), scratch(device, "pf_samples", (n, P), ti.f32),
+        table.buffer, offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
+        rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
+        cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
+        order.buffer, src.buffer, moved.buffer, srcrow.buffer,
+        scratch(device, "rgbd_cache", (C, 2 * nr + nd + 4 * J), ti.f32), scratch(device, "pf_total", (n,), ti.f32),
+        scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,
+        val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,
     )  # fmt: skip
+    launch(_pf_stage, arrays, (rgb["parts"], depth["parts"], groups, nl, reuse))
     return BestK(idx, val, sel)

@@ -15,6 +15,7 @@ every arch (on a GPU each thread then handles LANES hypotheses, LANES = 1 there)
 
 import numpy as np
 
+from .launch import launch
 from .runtime import scratch, ti
 
 CHUNK = 64
@@ -334,13 +335,16 @@ F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 F4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
-CAM = ti.types.vector(7, ti.f32)
 
 
+# Kernel arguments: arrays first, then compile-time values, so that gputrack/backends/taichi/launch.py
+# can launch them without Taichi's per-call Python (the part counts and the group count are
+# compile-time values: a new count compiles a variant, which the tracker's few sizes afford).
 @ti.kernel
 def _rgbd_cost_kernel(
-    tf: F4, rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
-    scratch: F2, total: F1, eps_c: F1, eps_d: F1, groups: ti.i32, L: ti.template(),
+    tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2,
+    total: F1, eps_c: F1, eps_d: F1,
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total,
                groups, False, L, False, ridx, ridx, scratch, scratch)  # fmt: skip
@@ -348,8 +352,8 @@ def _rgbd_cost_kernel(
 
 @ti.kernel
 def _rgbd_res_kernel(
-    tf: F4, rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
-    scratch: F2, residuals: F2, groups: ti.i32, L: ti.template(),
+    tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2, residuals: F2,
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
                residuals, residuals, groups, True, L, False, ridx, ridx, scratch, scratch)  # fmt: skip
@@ -357,44 +361,49 @@ def _rgbd_res_kernel(
 
 @ti.kernel
 def _rgbd_res_reuse_kernel(
-    tf: F4, rpts: F2, ridx: I1, rparts: ti.i32, dpts: F2, didx: I1, dparts: ti.i32, gray: F2, dimg: F2, cam: CAM,
-    scratch: F2, residuals: F2, groups: ti.i32, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2, L: ti.template(),
+    tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2, residuals: F2,
+    order: I1, src: I1, moved: I2, srcrow: I1, cache: F2,
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(),
 ):  # fmt: skip
     _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
                residuals, residuals, groups, True, L, True, order, src, moved, cache)  # fmt: skip
 
 
+def cam_array(camera, lam, c_rgb, c_depth) -> np.ndarray:
+    """The kernels' ``cam`` argument: (7,) float32 [fx, fy, cx, cy, lam, c_rgb, c_depth]."""
+    return np.array([*camera, lam, c_rgb, c_depth], np.float32)
+
+
 def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params):
+    """(leading arrays, trailing compile-time values) of the rgbd kernels."""
     nl = int((params or default_params(device))["lanes"])
-    nb = tf.shape[0]
-    n = rgb["pts"].shape[0]
-    groups = (nb + nl - 1) // nl
-    work = scratch(device, "rgbd", (groups, 2 * n * nl), ti.f32)
-    cam = [float(c) for c in camera] + [float(lam), float(c_rgb), float(c_depth)]
-    args = (
-        tf.buffer, rgb["pts"].buffer, rgb["index"].buffer, rgb["parts"], depth["pts"].buffer, depth["index"].buffer,
-        depth["parts"], gray.buffer, dimg.buffer, cam, work,
+    groups = (tf.shape[0] + nl - 1) // nl
+    work = scratch(device, "rgbd", (groups, 2 * rgb["pts"].shape[0] * nl), ti.f32)
+    arrays = (
+        tf.buffer, rgb["pts"].buffer, rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer,
+        dimg.buffer, cam_array(camera, lam, c_rgb, c_depth), work,
     )  # fmt: skip
-    return args, groups, nl
+    return arrays, (rgb["parts"], depth["parts"], groups, nl)
 
 
 def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None):
     """``params``: {"lanes"} (gputrack/ops/template.py TUNABLES); None = default_params."""
-    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
-    _rgbd_cost_kernel(*args, total.buffer, eps_c.buffer, eps_d.buffer, groups, nl)
+    arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
+    launch(_rgbd_cost_kernel, (*arrays, total.buffer, eps_c.buffer, eps_d.buffer), consts)
 
 
 def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None, reuse=None):
     """``reuse``: None, or (order, src, moved, srcrow) on the device (gputrack/ops/template.py)."""
-    args, groups, nl = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
+    arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
     if reuse is None:
-        _rgbd_res_kernel(*args, out.buffer, groups, nl)
+        launch(_rgbd_res_kernel, (*arrays, out.buffer), consts)
         return
     order, src, moved, srcrow = reuse
     width = 2 * rgb["pts"].shape[0] + depth["pts"].shape[0] + 4 * tf.shape[1]
     cache = scratch(device, "rgbd_cache", (srcrow.shape[0], width), ti.f32)
-    _rgbd_res_reuse_kernel(*args, out.buffer, groups, order.buffer, src.buffer, moved.buffer, srcrow.buffer, cache, nl)
+    tables = (order.buffer, src.buffer, moved.buffer, srcrow.buffer, cache)
+    launch(_rgbd_res_reuse_kernel, (*arrays, out.buffer, *tables), consts)
 
 
 # -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------
