@@ -59,6 +59,25 @@ def test_taichi_allocation_paths(device, fast, monkeypatch):
     np.testing.assert_array_equal(device.asarray(x).numpy(), x)
 
 
+def test_asarray_into_existing_array(device):
+    """asarray(x, out=a) writes x into a (counted as an upload) and returns a."""
+    x = np.arange(480 * 640, dtype=np.float32).reshape(480, 640)
+    a = device.asarray(np.zeros_like(x))
+    before = device.transfers.copy()
+    b = device.asarray(x, out=a)
+    assert b is a
+    np.testing.assert_array_equal(gputrack.to_numpy(a), x)
+    if device.backend != "numpy":
+        assert (device.transfers - before).h2d == x.nbytes
+    with pytest.raises((TypeError, ValueError), match="out"):
+        device.asarray(x[:10], out=a)
+    with pytest.raises((TypeError, ValueError), match="out"):
+        device.asarray(x.astype(np.int32), out=a)
+    if device.backend != "numpy":
+        with pytest.raises(TypeError, match="out"):
+            device.asarray(x, out=np.zeros_like(x))
+
+
 def test_asarray_rejects_bad_input(device):
     with pytest.raises(TypeError, match="expected an array of dtype .*got complex128"):
         device.asarray(np.zeros(3, dtype=complex))

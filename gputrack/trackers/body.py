@@ -145,6 +145,7 @@ class BodyTracker:
         self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
         self._sparsity = None
         self._buffers = {}  # device arrays reused as out= of the ops, keyed by op and shape
+        self._images = [None, None]  # the last frame's gray and depth on the device
 
     # -- helpers ---------------------------------------------------------------------------------
     def _groups(self) -> list[np.ndarray]:
@@ -223,9 +224,9 @@ class BodyTracker:
         with pipe.frame():
             if not valid_depth.any():
                 return self._keep("no valid depth in the frame")
-            with pipe.stage("upload frame"):
-                g = dev.asarray(gray)
-                d = dev.asarray(depth)
+            with pipe.stage("upload frame"):  # into last frame's arrays
+                g = self._images[0] = dev.asarray(gray, out=self._images[0])
+                d = self._images[1] = dev.asarray(depth, out=self._images[1])
             if templates is not None:
                 with pipe.stage("template"):
                     self._set_templates(*templates)

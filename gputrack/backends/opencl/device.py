@@ -155,6 +155,9 @@ class OpenCLDevice(Device):
 
         return cla.to_device(self.queue, host)
 
+    def _upload_into(self, buffer, host: np.ndarray) -> None:
+        buffer.set(host, queue=self.queue)
+
     def _empty(self, shape, dtype):
         import pyopencl.array as cla
 

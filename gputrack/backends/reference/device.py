@@ -33,9 +33,17 @@ class NumpyDevice(Device):
     def __init__(self):
         super().__init__(probe_numpy())
 
-    def asarray(self, array, dtype=None):
+    def asarray(self, array, dtype=None, *, out=None):
         from ...device import DeviceArray
 
+        if out is not None:
+            host = np.asarray(array, dtype=dtype)
+            if not isinstance(out, np.ndarray) or host.shape != out.shape or host.dtype != out.dtype:
+                raise ValueError(
+                    f"out: expected a NumPy array {host.dtype.name} {host.shape} (the array's), got {out!r:.60}"
+                )
+            np.copyto(out, host)
+            return out
         if isinstance(array, DeviceArray):
             raise ValueError(f"expected a NumPy array for numpy, got an array on {array.device.spec}")
         host = np.asarray(array, dtype=dtype)

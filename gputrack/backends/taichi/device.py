@@ -112,9 +112,12 @@ class TaichiDevice(Device):
         if host.size == 0:
             return None  # Taichi cannot allocate empty ndarrays; ops reject empty inputs anyway
         arr = ndarray(DTYPES[host.dtype.name], host.shape)
-        if not (self.arch == "cpu" and _copy(host, arr)):  # CPU: the kernel reads the NumPy memory in place
-            arr.from_numpy(host)
+        self._upload_into(arr, host)
         return arr
+
+    def _upload_into(self, buffer, host: np.ndarray) -> None:
+        if buffer is not None and not (self.arch == "cpu" and _copy(host, buffer)):  # CPU: NumPy read in place
+            buffer.from_numpy(host)
 
     def _empty(self, shape, dtype):
         from .runtime import DTYPES, ndarray
