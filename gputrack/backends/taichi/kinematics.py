@@ -7,6 +7,7 @@ Parents precede children, so a part reads its parent's transform from the output
 
 import numpy as np
 
+from .launch import launch
 from .runtime import ti
 
 # float64 sin/cos from arithmetic only: SPIR-V (taichi:vulkan) has no 64-bit Sin/Cos instructions.
@@ -122,5 +123,5 @@ def forward_kinematics(device, chain, params, out):
 
     table, offsets = chain_tables(device, chain, params.dtype)
     kernel = _fk_f64 if params.dtype == np.float64 else _fk_f32
-    kernel(params.buffer, table.buffer, offsets.buffer, out.buffer)
+    launch(kernel, (params.buffer, table.buffer, offsets.buffer, out.buffer))
     return out
