@@ -190,6 +190,33 @@ def test_ops_bad_input(device):
         lm.lm_step(device, np.zeros((2, 3, 3), dt), np.zeros((2, 3), dt), np.ones(3, dt))
 
 
+def test_ops_bad_input_on_the_device(device):
+    """Arrays already on the device skip the full argument check when they fit (ops/lm.py ``_arg``);
+    those that do not still get its messages."""
+    if device.backend == "numpy":
+        pytest.skip("the numpy device's arrays are NumPy arrays (covered by test_ops_bad_input)")
+    dt = _fdt(device)
+    J = device.asarray(np.zeros((2, 5, 3), dt))
+    C = device.asarray(np.ones(2, dt))
+    with pytest.raises(ValueError, match="r: expected shape"):
+        lm.lm_solve(device, J, device.asarray(np.zeros((2, 4), dt)), C)
+    with pytest.raises(ValueError, match="r: expected shape"):
+        lm.lm_solve(device, J, device.asarray(np.zeros((3, 5), dt)), C)
+    with pytest.raises(TypeError, match="r: expected dtype"):
+        lm.lm_solve(device, J, device.asarray(np.zeros((2, 5), np.int32)), C)
+    with pytest.raises(ValueError, match="damping: expected shape"):
+        lm.lm_solve(device, J, device.asarray(np.zeros((2, 5), dt)), device.asarray(np.ones(3, dt)))
+    with pytest.raises(ValueError, match="JtJ: expected shape"):
+        lm.lm_step(device, device.asarray(np.zeros((2, 3, 4), dt)), device.asarray(np.zeros((2, 3), dt)), C)
+    with pytest.raises(ValueError, match="Jtr: expected shape"):
+        lm.lm_step(device, device.asarray(np.zeros((2, 3, 3), dt)), device.asarray(np.zeros((2, 4), dt)), C)
+    if dt == np.float64:
+        with pytest.raises(TypeError, match="r: expected dtype"):
+            lm.lm_solve(device, J, device.asarray(np.zeros((2, 5), np.float32)), C)
+    ok = lm.lm_solve(device, J, device.asarray(np.zeros((2, 5), dt)), C)
+    np.testing.assert_array_equal(gputrack.to_numpy(ok[1]), [1, 1])
+
+
 # ------------------------------------------------------------------------------------------------
 # solver: classic problems
 
