@@ -353,7 +353,7 @@ _work_cache: dict = {}
 
 def _work(device, shape, dtype):
     """A scratch array per device, shape and dtype, allocated once (Taichi allocations are slow)."""
-    key = (id(device), tuple(shape), np.dtype(dtype).name)
+    key = (id(device), tuple(shape), np.dtype(dtype))
     w = _work_cache.get(key)
     if w is None or w.device is not device or w.device.closed:
         w = device.empty(shape, dtype)
