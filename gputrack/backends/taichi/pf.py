@@ -16,7 +16,7 @@ from .kinematics import pose_f32
 from .particles import best_k_body, sample_body
 from .launch import launch
 from .runtime import scratch, ti
-from .template import F1, F2, F4, I1, I2, _rgbd_body, _source_cache, cam_array, default_params
+from .template import F1, F2, F4, I1, I2, _rgbd_body, _source_cache, cam_array, cpu_chunks, default_params
 
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
@@ -26,7 +26,8 @@ def _pf_stage(
     cand: F2, sig: F1, seed: U1, samples: F2, table: I2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2,
     didx: I1, gray: F2, dimg: F2, cam: F1, work: F2, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2,
     total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1, keys: U1, sel: F2,
-    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), reuse: ti.template(),
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
+    reuse: ti.template(),
 ):  # fmt: skip
     sample_body(cand, sig, samples, seed[0], seed[1], 1, False)  # eq. 12, keep_candidates
     for b in range(samples.shape[0]):
@@ -34,7 +35,7 @@ def _pf_stage(
     if ti.static(reuse):
         _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
-               groups, False, L, reuse, order, src, moved, cache)  # fmt: skip
+               groups, False, L, chunks, reuse, order, src, moved, cache)  # fmt: skip
     best_k_body(total, idx, val, keys, samples, sel, True)
 
 
@@ -76,5 +77,5 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,
         val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,
     )  # fmt: skip
-    launch(_pf_stage, arrays, (rgb["parts"], depth["parts"], groups, nl, reuse))
+    launch(_pf_stage, arrays, (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), reuse))
     return BestK(idx, val, sel)

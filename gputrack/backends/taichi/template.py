@@ -20,6 +20,7 @@ from .runtime import scratch, ti
 
 CHUNK = 64
 CPU_LANES = 8
+CPU_TASK = 512  # Taichi 1.7's smallest CPU task: iterations of a parallel loop per task
 TINY = 1e-12
 BIG = 3.0e38
 FLAT = 1e-6
@@ -28,6 +29,14 @@ def lanes(device) -> int:
     """Hypotheses per thread: CPU_LANES on taichi:cpu; 1 on GPUs and on Vulkan (lavapipe already
     runs 8 invocations per SIMD register)."""
     return CPU_LANES if getattr(device, "arch", "") == "cpu" else 1
+
+
+def cpu_chunks(device) -> int:
+    """How many pieces the hypothesis loop is cut into on taichi:cpu (four per CPU thread, so
+    that a busy core does not hold up the others); 0 elsewhere (one GPU thread per lane group)."""
+    if getattr(device, "arch", "") != "cpu":
+        return 0
+    return 4 * max(1, ti.lang.impl.current_cfg().cpu_max_num_threads)
 
 
 def default_params(device) -> dict:
@@ -170,6 +179,7 @@ def _rgbd_body(
     groups,
     want_residuals: ti.template(),
     L: ti.template(),
+    chunks: ti.template(),
     reuse: ti.template(),
     order: ti.template(),
     src: ti.template(),
@@ -190,133 +200,144 @@ def _rgbd_body(
     cd = cam[6] * cam[6]
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
-    for g in range(groups):  # groups = ceil(B / L), computed by the caller (SPIR-V needs a plain bound)
-        P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
-        row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
-        own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's cache row
-        for l in ti.static(range(L)):
-            row[l] = ti.min(g * L + l, nb - 1)
-            if ti.static(reuse):
-                row[l] = order[row[l]]
-                own[l] = src[row[l]]
-        # sums of the parts taken from the cache (kept apart from the blocked sums below)
-        cT = ti.Vector([0.0] * L, dt=ti.f32)
-        cTT = ti.Vector([0.0] * L, dt=ti.f32)
-        cTI = ti.Vector([0.0] * L, dt=ti.f32)
-        cD = ti.Vector([0.0] * L, dt=ti.f32)
-        # ---- RGB pass 1: samples I_i, validity, sums over the valid points (eq. 17)
-        sT = ti.Vector([0.0] * L, dt=ti.f32)
-        sTT = ti.Vector([0.0] * L, dt=ti.f32)
-        sTI = ti.Vector([0.0] * L, dt=ti.f32)
-        bT = ti.Vector([0.0] * L, dt=ti.f32)
-        bTT = ti.Vector([0.0] * L, dt=ti.f32)
-        bTI = ti.Vector([0.0] * L, dt=ti.f32)
-        cnt = 0
-        for j in range(rparts):
-            if _project_part(moved, row, j, L, reuse):
-                for l in ti.static(range(L)):
-                    _load_pose(P, l, tf, row[l], j)
-                for i in range(ridx[j], ridx[j + 1]):
-                    x = rpts[i, 0]
-                    y = rpts[i, 1]
-                    z = rpts[i, 2]
-                    T = rpts[i, 3]
-                    for l in ti.static(range(L)):
-                        I, ok = _gray_at(P, l, x, y, z, gray, fx, fy, cx, cy)
-                        Tv = ti.select(ok, T, 0.0)
-                        bT[l] += Tv
-                        bTT[l] += Tv * T
-                        bTI[l] += Tv * I
-                        scratch[g, i * L + l] = I  # samples, then validity flags: contiguous lanes
-                        scratch[g, (n + i) * L + l] = ti.select(ok, 1.0, 0.0)
-                    cnt += 1
-                    if cnt == CHUNK:
-                        sT += bT
-                        sTT += bTT
-                        sTI += bTI
-                        bT.fill(0.0)
-                        bTT.fill(0.0)
-                        bTI.fill(0.0)
-                        cnt = 0
-            else:  # the sources' samples (for pass 2) and sums
-                for l in ti.static(range(L)):
-                    cT[l] += cache[own[l], 2 * n + m + 4 * j]
-                    cTT[l] += cache[own[l], 2 * n + m + 4 * j + 1]
-                    cTI[l] += cache[own[l], 2 * n + m + 4 * j + 2]
-                for i in range(ridx[j], ridx[j + 1]):
-                    for l in ti.static(range(L)):
-                        scratch[g, i * L + l] = cache[own[l], i]
-                        scratch[g, (n + i) * L + l] = cache[own[l], n + i]
-        sT += bT + cT
-        sTT += bTT + cTT
-        sTI += bTI + cTI
-        alpha = ti.Vector([0.0] * L, dt=ti.f32)
-        beta = ti.Vector([0.0] * L, dt=ti.f32)
-        for l in ti.static(range(L)):
-            alpha[l] = ti.select(sT[l] > TINY, 1.0 / sT[l], 0.0)  # eq. 17: alpha = 1 / sum T_i
-            beta[l] = ti.select(sTI[l] > TINY, alpha[l] * sTT[l] / sTI[l], 0.0)  # eq. 17: beta
-        # ---- RGB pass 2: eps_C = sum rho_c(d_i) (eq. 17); residuals r_i (eq. 20-21)
-        eC = ti.Vector([0.0] * L, dt=ti.f32)
-        blk = ti.Vector([0.0] * L, dt=ti.f32)
-        cnt = 0
-        for i in range(n):
-            T = rpts[i, 3]
+    # groups = ceil(B / L) (a compile-time value). Taichi 1.7 gives each CPU task at least 512
+    # iterations of a parallel loop, so a loop over a few hundred groups would run on one thread:
+    # with ``chunks`` > 0 (the CPU) the loop runs over chunks * CPU_TASK slots, of which every
+    # CPU_TASK-th takes a contiguous range of groups and the others nothing.
+    for it in range(groups if ti.static(chunks == 0) else chunks * CPU_TASK):
+        g0 = it
+        g1 = it + 1
+        if ti.static(chunks > 0):
+            c = it // CPU_TASK
+            g0 = c * groups // chunks
+            g1 = ti.select(it % CPU_TASK == 0, (c + 1) * groups // chunks, g0)
+        for g in range(g0, g1):
+            P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
+            row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
+            own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's cache row
             for l in ti.static(range(L)):
-                d = beta[l] * scratch[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
-                q = cc + d * d
-                ok = scratch[g, (n + i) * L + l] != 0.0
-                if ti.static(not want_residuals):
-                    blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
-                if ti.static(want_residuals):
-                    # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
-                    col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
-                    residuals[row[l], col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
-            cnt += 1
-            if cnt == CHUNK:
-                eC += blk
-                blk.fill(0.0)
-                cnt = 0
-        eC += blk
-        # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
-        eD = ti.Vector([0.0] * L, dt=ti.f32)
-        blk.fill(0.0)
-        cnt = 0
-        for j in range(dparts):
-            if _project_part(moved, row, j, L, reuse):
-                for l in ti.static(range(L)):
-                    _load_pose(P, l, tf, row[l], j)
-                for i in range(didx[j], didx[j + 1]):
-                    x = dpts[i, 0]
-                    y = dpts[i, 1]
-                    z = dpts[i, 2]
+                row[l] = ti.min(g * L + l, nb - 1)
+                if ti.static(reuse):
+                    row[l] = order[row[l]]
+                    own[l] = src[row[l]]
+            # sums of the parts taken from the cache (kept apart from the blocked sums below)
+            cT = ti.Vector([0.0] * L, dt=ti.f32)
+            cTT = ti.Vector([0.0] * L, dt=ti.f32)
+            cTI = ti.Vector([0.0] * L, dt=ti.f32)
+            cD = ti.Vector([0.0] * L, dt=ti.f32)
+            # ---- RGB pass 1: samples I_i, validity, sums over the valid points (eq. 17)
+            sT = ti.Vector([0.0] * L, dt=ti.f32)
+            sTT = ti.Vector([0.0] * L, dt=ti.f32)
+            sTI = ti.Vector([0.0] * L, dt=ti.f32)
+            bT = ti.Vector([0.0] * L, dt=ti.f32)
+            bTT = ti.Vector([0.0] * L, dt=ti.f32)
+            bTI = ti.Vector([0.0] * L, dt=ti.f32)
+            cnt = 0
+            for j in range(rparts):
+                if _project_part(moved, row, j, L, reuse):
                     for l in ti.static(range(L)):
-                        dd, q, okd, rho = _depth_term(P, l, x, y, z, dimg, fx, fy, cx, cy, cd)
-                        if ti.static(not want_residuals):
-                            blk[l] += rho
-                        if ti.static(want_residuals):
-                            col = n + didx[dparts + 1 + i]
-                            residuals[row[l], col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
-                    cnt += 1
-                    if cnt == CHUNK:
-                        eD += blk
-                        blk.fill(0.0)
-                        cnt = 0
-            else:
-                if ti.static(not want_residuals):
-                    for l in ti.static(range(L)):
-                        cD[l] += cache[own[l], 2 * n + m + 4 * j + 3]
-                if ti.static(want_residuals):
-                    for i in range(didx[j], didx[j + 1]):
-                        col = n + didx[dparts + 1 + i]
+                        _load_pose(P, l, tf, row[l], j)
+                    for i in range(ridx[j], ridx[j + 1]):
+                        x = rpts[i, 0]
+                        y = rpts[i, 1]
+                        z = rpts[i, 2]
+                        T = rpts[i, 3]
                         for l in ti.static(range(L)):
-                            residuals[row[l], col] = cache[own[l], 2 * n + i]
-        eD += blk + cD
-        if ti.static(not want_residuals):
+                            I, ok = _gray_at(P, l, x, y, z, gray, fx, fy, cx, cy)
+                            Tv = ti.select(ok, T, 0.0)
+                            bT[l] += Tv
+                            bTT[l] += Tv * T
+                            bTI[l] += Tv * I
+                            scratch[g, i * L + l] = I  # samples, then validity flags: contiguous lanes
+                            scratch[g, (n + i) * L + l] = ti.select(ok, 1.0, 0.0)
+                        cnt += 1
+                        if cnt == CHUNK:
+                            sT += bT
+                            sTT += bTT
+                            sTI += bTI
+                            bT.fill(0.0)
+                            bTT.fill(0.0)
+                            bTI.fill(0.0)
+                            cnt = 0
+                else:  # the sources' samples (for pass 2) and sums
+                    for l in ti.static(range(L)):
+                        cT[l] += cache[own[l], 2 * n + m + 4 * j]
+                        cTT[l] += cache[own[l], 2 * n + m + 4 * j + 1]
+                        cTI[l] += cache[own[l], 2 * n + m + 4 * j + 2]
+                    for i in range(ridx[j], ridx[j + 1]):
+                        for l in ti.static(range(L)):
+                            scratch[g, i * L + l] = cache[own[l], i]
+                            scratch[g, (n + i) * L + l] = cache[own[l], n + i]
+            sT += bT + cT
+            sTT += bTT + cTT
+            sTI += bTI + cTI
+            alpha = ti.Vector([0.0] * L, dt=ti.f32)
+            beta = ti.Vector([0.0] * L, dt=ti.f32)
             for l in ti.static(range(L)):
-                if g * L + l < nb:
-                    total[row[l]] = (1.0 - lam) * eC[l] + lam * eD[l]  # eq. 19
-                    eps_c[row[l]] = eC[l]
-                    eps_d[row[l]] = eD[l]
+                alpha[l] = ti.select(sT[l] > TINY, 1.0 / sT[l], 0.0)  # eq. 17: alpha = 1 / sum T_i
+                beta[l] = ti.select(sTI[l] > TINY, alpha[l] * sTT[l] / sTI[l], 0.0)  # eq. 17: beta
+            # ---- RGB pass 2: eps_C = sum rho_c(d_i) (eq. 17); residuals r_i (eq. 20-21)
+            eC = ti.Vector([0.0] * L, dt=ti.f32)
+            blk = ti.Vector([0.0] * L, dt=ti.f32)
+            cnt = 0
+            for i in range(n):
+                T = rpts[i, 3]
+                for l in ti.static(range(L)):
+                    d = beta[l] * scratch[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
+                    q = cc + d * d
+                    ok = scratch[g, (n + i) * L + l] != 0.0
+                    if ti.static(not want_residuals):
+                        blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
+                    if ti.static(want_residuals):
+                        # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
+                        col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
+                        residuals[row[l], col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
+                cnt += 1
+                if cnt == CHUNK:
+                    eC += blk
+                    blk.fill(0.0)
+                    cnt = 0
+            eC += blk
+            # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
+            eD = ti.Vector([0.0] * L, dt=ti.f32)
+            blk.fill(0.0)
+            cnt = 0
+            for j in range(dparts):
+                if _project_part(moved, row, j, L, reuse):
+                    for l in ti.static(range(L)):
+                        _load_pose(P, l, tf, row[l], j)
+                    for i in range(didx[j], didx[j + 1]):
+                        x = dpts[i, 0]
+                        y = dpts[i, 1]
+                        z = dpts[i, 2]
+                        for l in ti.static(range(L)):
+                            dd, q, okd, rho = _depth_term(P, l, x, y, z, dimg, fx, fy, cx, cy, cd)
+                            if ti.static(not want_residuals):
+                                blk[l] += rho
+                            if ti.static(want_residuals):
+                                col = n + didx[dparts + 1 + i]
+                                residuals[row[l], col] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
+                        cnt += 1
+                        if cnt == CHUNK:
+                            eD += blk
+                            blk.fill(0.0)
+                            cnt = 0
+                else:
+                    if ti.static(not want_residuals):
+                        for l in ti.static(range(L)):
+                            cD[l] += cache[own[l], 2 * n + m + 4 * j + 3]
+                    if ti.static(want_residuals):
+                        for i in range(didx[j], didx[j + 1]):
+                            col = n + didx[dparts + 1 + i]
+                            for l in ti.static(range(L)):
+                                residuals[row[l], col] = cache[own[l], 2 * n + i]
+            eD += blk + cD
+            if ti.static(not want_residuals):
+                for l in ti.static(range(L)):
+                    if g * L + l < nb:
+                        total[row[l]] = (1.0 - lam) * eC[l] + lam * eD[l]  # eq. 19
+                        eps_c[row[l]] = eC[l]
+                        eps_d[row[l]] = eD[l]
 
 
 @ti.func
@@ -344,30 +365,30 @@ I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 def _rgbd_cost_kernel(
     tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2,
     total: F1, eps_c: F1, eps_d: F1,
-    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(),
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total,
-               groups, False, L, False, ridx, ridx, scratch, scratch)  # fmt: skip
+               groups, False, L, chunks, False, ridx, ridx, scratch, scratch)  # fmt: skip
 
 
 @ti.kernel
 def _rgbd_res_kernel(
     tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2, residuals: F2,
-    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(),
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
-               residuals, residuals, groups, True, L, False, ridx, ridx, scratch, scratch)  # fmt: skip
+               residuals, residuals, groups, True, L, chunks, False, ridx, ridx, scratch, scratch)  # fmt: skip
 
 
 @ti.kernel
 def _rgbd_res_reuse_kernel(
     tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2, residuals: F2,
     order: I1, src: I1, moved: I2, srcrow: I1, cache: F2,
-    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(),
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
-               residuals, residuals, groups, True, L, True, order, src, moved, cache)  # fmt: skip
+               residuals, residuals, groups, True, L, chunks, True, order, src, moved, cache)  # fmt: skip
 
 
 def cam_array(camera, lam, c_rgb, c_depth) -> np.ndarray:
@@ -384,7 +405,7 @@ def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, par
         tf.buffer, rgb["pts"].buffer, rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer,
         dimg.buffer, cam_array(camera, lam, c_rgb, c_depth), work,
     )  # fmt: skip
-    return arrays, (rgb["parts"], depth["parts"], groups, nl)
+    return arrays, (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device))
 
 
 def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None):
