@@ -30,33 +30,45 @@ def _pair(key, cnt):
 
 
 @ti.func
-def sample_body(
-    cand: ti.template(), sig: ti.template(), out: ti.template(), lo, hi, keep, per_candidate: ti.template()
-):
+def sample_key(lo, hi):
+    """The generator's key of a seed (lo, hi = its low and high 32 bits)."""
+    return _pcg(lo ^ _pcg(hi))
+
+
+@ti.func
+def sample_one(cand: ti.template(), sig: ti.template(), out: ti.template(), key, k, keep, per_candidate: ti.template()):
+    """Sample k of out (eq. 12): one division per sample, one log/sqrt per pair of parameters."""
     n = out.shape[0]
     p = out.shape[1]
     c = cand.shape[0]
     half = (p + 1) // 2
-    key = _pcg(lo ^ _pcg(hi))
-    for k in range(n):  # one thread per sample: one division per sample, one log/sqrt per pair
-        owner = k * c // n  # sample k belongs to candidate k C // K (n C < 2**31, checked by the op)
-        first = (owner * n + c - 1) // c  # the first sample of the block
-        same = keep != 0 and k == first
-        for t in range(half):
-            z0, z1 = _pair(key, ti.cast(k * half + t, ti.u32) * ti.u32(2))
-            for h in ti.static(range(2)):
-                q = 2 * t + h
-                if q < p:
-                    s = ti.f32(0.0)
-                    if ti.static(per_candidate):
-                        s = sig[owner, q]
-                    else:
-                        s = sig[q]
-                    z = z0 if ti.static(h == 0) else z1
-                    val = cand[owner, q] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
-                    if same:
-                        val = cand[owner, q]
-                    out[k, q] = val
+    owner = k * c // n  # sample k belongs to candidate k C // K (n C < 2**31, checked by the op)
+    first = (owner * n + c - 1) // c  # the first sample of the block
+    same = keep != 0 and k == first
+    for t in range(half):
+        z0, z1 = _pair(key, ti.cast(k * half + t, ti.u32) * ti.u32(2))
+        for h in ti.static(range(2)):
+            q = 2 * t + h
+            if q < p:
+                s = ti.f32(0.0)
+                if ti.static(per_candidate):
+                    s = sig[owner, q]
+                else:
+                    s = sig[q]
+                z = z0 if ti.static(h == 0) else z1
+                val = cand[owner, q] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+                if same:
+                    val = cand[owner, q]
+                out[k, q] = val
+
+
+@ti.func
+def sample_body(
+    cand: ti.template(), sig: ti.template(), out: ti.template(), lo, hi, keep, per_candidate: ti.template()
+):
+    key = sample_key(lo, hi)
+    for k in range(out.shape[0]):  # one thread per sample
+        sample_one(cand, sig, out, key, k, keep, per_candidate)
 
 
 @ti.kernel

@@ -13,10 +13,12 @@ from ...ops._args import constant
 from ...ops.kinematics import chain_tables
 from ...ops.particles import BestK
 from .kinematics import pose_f32
-from .particles import best_k_body, sample_body
+from .particles import best_k_body, sample_key, sample_one
 from .launch import launch
 from .runtime import scratch, ti
-from .template import F1, F2, F4, I1, I2, _rgbd_body, _source_cache, cam_array, cpu_chunks, default_params
+from .template import (
+    CPU_TASK, F1, F2, F4, I1, I2, _rgbd_body, _source_cache, cam_array, chunk, cpu_chunks, default_params,
+)  # fmt: skip
 
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
@@ -29,9 +31,13 @@ def _pf_stage(
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
     reuse: ti.template(),
 ):  # fmt: skip
-    sample_body(cand, sig, samples, seed[0], seed[1], 1, False)  # eq. 12, keep_candidates
-    for b in range(samples.shape[0]):
-        pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
+    key = sample_key(seed[0], seed[1])
+    n = samples.shape[0]
+    for it in range(n if ti.static(chunks == 0) else chunks * CPU_TASK):
+        b0, b1 = chunk(it, n, chunks)
+        for b in range(b0, b1):
+            sample_one(cand, sig, samples, key, b, 1, False)  # eq. 12, keep_candidates
+            pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
     if ti.static(reuse):
         _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,

@@ -45,6 +45,21 @@ def default_params(device) -> dict:
 
 
 @ti.func
+def chunk(it, n, chunks: ti.template()):
+    """The items [begin, end) of iteration ``it`` of a parallel loop over n items: item ``it``
+    itself, or with ``chunks`` > 0 (the CPU) the loop runs over chunks * CPU_TASK iterations and
+    every CPU_TASK-th takes 1/chunks of the items (Taichi 1.7 gives each CPU task at least
+    CPU_TASK iterations, so a loop over fewer items would run on one thread)."""
+    begin = it
+    end = it + 1
+    if ti.static(chunks > 0):
+        c = it // CPU_TASK
+        begin = c * n // chunks
+        end = ti.select(it % CPU_TASK == 0, (c + 1) * n // chunks, begin)
+    return begin, end
+
+
+@ti.func
 def _project(P: ti.template(), l: ti.template(), x, y, z, fx, fy, cx, cy, wm1, hm1):
     """Lane l's camera-frame Z, pixel (u, v) (0 where invalid) and in-image flag of one point."""
     X = P[l, 0] * x + P[l, 1] * y + P[l, 2] * z + P[l, 3]  # eq. 4: M_C = D M_O
@@ -200,17 +215,9 @@ def _rgbd_body(
     cd = cam[6] * cam[6]
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
-    # groups = ceil(B / L) (a compile-time value). Taichi 1.7 gives each CPU task at least 512
-    # iterations of a parallel loop, so a loop over a few hundred groups would run on one thread:
-    # with ``chunks`` > 0 (the CPU) the loop runs over chunks * CPU_TASK slots, of which every
-    # CPU_TASK-th takes a contiguous range of groups and the others nothing.
+    # groups = ceil(B / L) (a compile-time value), cut into chunks on the CPU (see chunk)
     for it in range(groups if ti.static(chunks == 0) else chunks * CPU_TASK):
-        g0 = it
-        g1 = it + 1
-        if ti.static(chunks > 0):
-            c = it // CPU_TASK
-            g0 = c * groups // chunks
-            g1 = ti.select(it % CPU_TASK == 0, (c + 1) * groups // chunks, g0)
+        g0, g1 = chunk(it, groups, chunks)
         for g in range(g0, g1):
             P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
             row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
