@@ -123,7 +123,7 @@ def test_central_difference_reuse_keeps_its_promise():
     """The stacked central-difference points of least_squares pose the unmoved parts exactly as
     their problem's point does (what rgbd_residuals' reuse relies on)."""
     from gputrack.models import upper_body
-    from gputrack.trackers.body import central_difference_reuse
+    from gputrack.ops.lm import central_difference_reuse
 
     for chain in (upper_body(), upper_body(shoulders=True)):
         P, B = chain.n_params, 3

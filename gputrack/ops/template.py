@@ -319,7 +319,7 @@ def rgbd_residuals(
     backends evaluate everything), with the same residuals to float rounding. This is the shape
     of the stacked central-difference points of :func:`gputrack.least_squares`, where a
     parameter moves only the parts that depend on it (see
-    :func:`gputrack.trackers.body.central_difference_reuse`). A broken promise gives wrong residuals.
+    :func:`gputrack.ops.lm.central_difference_reuse`). A broken promise gives wrong residuals.
     """
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
     res = _out(device, out, "out", (tf.shape[0], rgb.n + depth.n))

@@ -27,7 +27,7 @@ import numpy as np
 from ..device import Device, to_numpy
 from ..models.upper_body import pf_sigma, upper_body
 from ..ops.kinematics import forward_kinematics
-from ..ops.lm import least_squares
+from ..ops.lm import central_difference_reuse, least_squares
 from ..ops.pf import pf_stage
 from ..ops.template import Camera, rgbd_residuals
 from ..scheduler import Pipeline
@@ -36,27 +36,13 @@ from .body_template import sparse_template
 
 log = logging.getLogger("gputrack")
 
-__all__ = ["BodyTracker", "BodyEstimate", "TrackerConfig", "central_difference_reuse"]
+__all__ = ["BodyTracker", "BodyEstimate", "TrackerConfig"]
 
 DEG = np.pi / 180.0
 
 #: LM finite-difference steps eps_n (eq. 24) per kind of parameter: large enough to move template
 #: points by a fraction of a pixel (the residuals are float32 and bilinear), small enough to be local.
 LM_STEP = {"angle": 2e-3, "length": 1.0}
-
-
-def central_difference_reuse(chain, problems: int) -> tuple[np.ndarray, np.ndarray]:
-    """``reuse=(base, moved)`` for :func:`gputrack.ops.template.rgbd_residuals` of the points that
-    :func:`gputrack.least_squares` stacks for central differences (2P + 1 rows per problem: the
-    point, then parameter n moved by +eps and -eps): a row's base is its problem's point, and it
-    moves the parts whose pose depends on its parameter (paper 000 Fig. 2)."""
-    P = chain.n_params
-    per = 2 * P + 1
-    dep = chain.dependency_mask()  # (J, P): part j depends on parameter n
-    moved = np.zeros((per, chain.n_parts), bool)
-    moved[1:] = np.repeat(dep.T, 2, axis=0)  # rows 1 + 2n and 2 + 2n move parameter n
-    base = np.repeat(np.arange(problems) * per, per)
-    return base, np.tile(moved, (problems, 1))
 
 
 @dataclasses.dataclass
