@@ -118,23 +118,3 @@ def test_pf_stage_rejects_bad_input(device, scene):
     with pytest.raises(ValueError, match="part indices"):
         pf_stage(device, two_parts, cand[:, :8], sigma[:8], 100, 1, *args)
 
-
-def test_central_difference_reuse_keeps_its_promise():
-    """The stacked central-difference points of least_squares pose the unmoved parts exactly as
-    their problem's point does (what rgbd_residuals' reuse relies on)."""
-    from gputrack.models import upper_body
-    from gputrack.ops.lm import central_difference_reuse
-
-    for chain in (upper_body(), upper_body(shoulders=True)):
-        P, B = chain.n_params, 3
-        x = chain.rest_params()[None] + np.random.default_rng(P).normal(0, 0.1, (B, P))
-        X = np.repeat(x, 2 * P + 1, axis=0)
-        for b in range(B):
-            for n in range(P):
-                X[b * (2 * P + 1) + 1 + 2 * n, n] += 1e-3
-                X[b * (2 * P + 1) + 2 + 2 * n, n] -= 1e-3
-        base, moved = central_difference_reuse(chain, B)
-        tf = forward_kinematics(REF, chain, X.astype(np.float32))
-        for r in range(len(X)):
-            np.testing.assert_array_equal(tf[r][~moved[r]], tf[base[r]][~moved[r]])
-            assert not np.array_equal(tf[r][moved[r]], tf[base[r]][moved[r]]) or not moved[r].any()

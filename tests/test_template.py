@@ -187,43 +187,6 @@ def test_rgbd_other_lane_counts(device, monkeypatch, lanes):
     _compare(device, *make_scene(rng, 37, 29, 31))
 
 
-@pytest.mark.parametrize("b,n,lanes", [(29 * 3, 128, 8), (13, 37, 1), (130, 129, 16)])
-def test_residuals_reuse_matches_full(device, monkeypatch, b, n, lanes):
-    """reuse=(base, moved): rows that share unmoved parts with a base row give the same residuals
-    as evaluating everything (bases spread over the batch, moved parts varying per row)."""
-    if device.backend == "taichi":
-        module = __import__("gputrack.backends.taichi.template", fromlist=["CPU_LANES"])
-        monkeypatch.setattr(module, "CPU_LANES", lanes)
-    rng = np.random.default_rng(b + n)
-    j = 5
-    tf, rgb, dep, gray, depth, cam = make_scene(rng, b, n, n // 2 + 1, j=j, h=60, w=80)
-    base = (np.arange(b) // 7) * 7  # every 7th row is a base
-    moved = rng.random((b, j)) < 0.4
-    moved[base == np.arange(b)] = False
-    for r in range(b):  # keep the promise: unmoved parts are the base's
-        tf[r, ~moved[r]] = tf[base[r], ~moved[r]]
-    full = run_res(device, tf, rgb, dep, gray, depth, cam)
-    got = run_res(device, tf, rgb, dep, gray, depth, cam, reuse=(base, moved))
-    assert_matches(device, got, gputrack.to_numpy(full), scale=5.0)
-    assert_matches(device, got, run_res(REF, tf, rgb, dep, gray, depth, cam), scale=5.0)
-
-
-def test_residuals_reuse_rejects_bad_tables(device):
-    rng = np.random.default_rng(3)
-    tf, rgb, dep, gray, depth, cam = make_scene(rng, 6, 13, 7, j=3)
-    ok_base, ok_moved = np.zeros(6, int), np.ones((6, 3), bool)
-    with pytest.raises(TypeError, match="reuse"):
-        run_res(device, tf, rgb, dep, gray, depth, cam, reuse=[ok_base, ok_moved])
-    with pytest.raises(ValueError, match="base"):
-        run_res(device, tf, rgb, dep, gray, depth, cam, reuse=(ok_base[:5], ok_moved))
-    with pytest.raises(ValueError, match="moved"):
-        run_res(device, tf, rgb, dep, gray, depth, cam, reuse=(ok_base, ok_moved[:, :2]))
-    with pytest.raises(ValueError, match="base"):
-        run_res(device, tf, rgb, dep, gray, depth, cam, reuse=(np.full(6, 6), ok_moved))
-    with pytest.raises(ValueError, match="base"):
-        run_res(device, tf, rgb, dep, gray, depth, cam, reuse=(np.array([1, 0, 0, 0, 0, 0]), ok_moved))
-
-
 def test_rgbd_paper_size(device):
     """B = 1500 hypotheses around 10 candidates, N = N' = 128 points, 640 x 480."""
     rng = np.random.default_rng(2024)

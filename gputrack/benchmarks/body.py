@@ -21,6 +21,7 @@ def add_arguments(parser):
 
 def cases(device, args):
     import gputrack
+
     from ..sim import sequence
     from ..trackers.body import BodyTracker, TrackerConfig
     from ..trackers.body_template import sparse_template

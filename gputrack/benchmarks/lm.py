@@ -13,8 +13,8 @@ Cases per (P, M), each timed on the device with the NumPy reference in the same 
 - ``least_squares 10 it RGB-D``: a whole 10-iteration solve (``early_stop=False``: exactly 11
   residual calls) whose residuals are paper 000's RGB-D template residuals (eq. 20-21) of the
   upper-body model (forward kinematics + ``rgbd_residuals``, float32 points, N = N' = M / 2,
-  with ``reuse`` for the stacked central-difference points and the output arrays of the last call
-  reused, as the body tracker does), on a synthetic 640x480 frame; peer: ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10
+  the output arrays of the last call reused, as the body tracker does), on a synthetic 640x480
+  frame; peer: ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10
   iterations' worth of evaluations) looping over the 10 problems with the NumPy residuals.
 """
 
@@ -72,7 +72,6 @@ def _scene(P, M, rng):
 
 def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
     from ..ops.kinematics import forward_kinematics
-    from ..ops.lm import central_difference_reuse
     from ..ops.template import rgbd_residuals
 
     g = device.asarray(gray)
@@ -80,12 +79,10 @@ def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
     buffers = {}  # per number of points: the transforms and residuals of the last call, reused
 
     def residuals(X):
-        n, P = X.shape
+        n = X.shape[0]
         tf, r = buffers.get(n, (None, None))
         tf = forward_kinematics(device, chain, X, out=tf)
-        # the stacked central-difference points share every part their parameter does not move
-        reuse = central_difference_reuse(chain, n // (2 * P + 1)) if n % (2 * P + 1) == 0 else None
-        r = rgbd_residuals(device, tf, rgb, dep, g, d, cam, reuse=reuse, out=r)
+        r = rgbd_residuals(device, tf, rgb, dep, g, d, cam, out=r)
         if device.backend != "numpy":  # the reference's results are NumPy arrays the caller may keep
             buffers[n] = (tf, r)
         return r

@@ -41,7 +41,6 @@ __all__ = [
     "REASONS",
     "LMStatus",
     "LeastSquaresResult",
-    "central_difference_reuse",
     "least_squares",
     "lm_solve",
     "lm_step",
@@ -369,21 +368,6 @@ def _bounds(value, name, B, P, dtype, default):
     if np.isnan(v).any():
         raise ValueError(f"{name}: expected numbers or +-inf, got NaN")
     return np.array(v, dtype=np.float64)
-
-
-def central_difference_reuse(chain, problems: int) -> tuple[np.ndarray, np.ndarray]:
-    """``reuse=(base, moved)`` for :func:`gputrack.ops.template.rgbd_residuals` of the points that
-    :func:`least_squares` stacks for central differences of a kinematic ``chain``'s parameters
-    (2P + 1 rows per problem: the point, then parameter n moved by +eps and -eps): a row's base is
-    its problem's point, and it moves the parts whose pose depends on its parameter (paper 000
-    Fig. 2, ``chain.dependency_mask()``)."""
-    P = chain.n_params
-    per = 2 * P + 1
-    dep = chain.dependency_mask()  # (J, P): part j depends on parameter n
-    moved = np.zeros((per, chain.n_parts), bool)
-    moved[1:] = np.repeat(dep.T, 2, axis=0)  # rows 1 + 2n and 2 + 2n move parameter n
-    base = np.repeat(np.arange(problems) * per, per)
-    return base, np.tile(moved, (problems, 1))
 
 
 def least_squares(

@@ -49,7 +49,7 @@ import numpy as np
 from .. import tuning
 from ..device import Device, DeviceArray
 from . import backend_module
-from ._args import arg, check_device, constant
+from ._args import arg, check_device
 
 __all__ = [
     "Camera",
@@ -302,68 +302,22 @@ def rgbd_cost(
 
 
 def rgbd_residuals(
-    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None,
-    reuse=None,
-):  # fmt: skip
+    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None
+):
     """Residuals of eq. 20-21 for B hypotheses: (B, N + N') float32, RGB points then depth points.
 
     r_i = sqrt(1-lam) d_i / sqrt(c^2 + d_i^2), r'_i = sqrt(lam) d'_i / sqrt(c'^2 + d'_i^2); an
     invalid point's residual is sqrt(1-lam) (RGB) or sqrt(lam) (depth), so that
     sum(r**2, axis=1) equals ``rgbd_cost(...).total``. Same arguments as :func:`rgbd_cost`;
     ``out``: a (B, N + N') float32 array on the device to write into.
-
-    ``reuse``: optional ``(base, moved)``, NumPy arrays (B,) int and (B, J) bool: the caller's
-    promise that hypothesis b has the same transform as hypothesis ``base[b]`` for every part j
-    with ``moved[b, j]`` False (a base is its own: ``base[base[b]] == base[b]``). The points of
-    such parts are then projected once per base instead of once per hypothesis (taichi; other
-    backends evaluate everything), with the same residuals to float rounding. This is the shape
-    of the stacked central-difference points of :func:`gputrack.least_squares`, where a
-    parameter moves only the parts that depend on it (see
-    :func:`gputrack.ops.lm.central_difference_reuse`). A broken promise gives wrong residuals.
     """
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
     res = _out(device, out, "out", (tf.shape[0], rgb.n + depth.n))
-    plan = None if reuse is None else _reuse_plan(device, reuse, tf.shape[0], tf.shape[1])
     _tuned(device, "rgbd_residuals", p, tf.shape[0], rgb, depth)
     backend_module(device, "template").rgbd_residuals(
-        device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p,
-        **({} if plan is None else {"reuse": plan}),
-    )  # fmt: skip
+        device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p
+    )
     return res
-
-
-_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {(base, moved) bytes: tables}
-
-
-def _reuse_plan(device, reuse, B, J):
-    """Check ``reuse = (base, moved)`` and return the device tables (order, src, moved, srcrow) of
-    the taichi kernels (None on other backends): the bases in ``srcrow``, each hypothesis's base as
-    an index into it (``src``), and an ``order`` that puts hypotheses with equal ``moved`` rows
-    next to each other (a lane group then skips the parts none of its lanes moved)."""
-    if not (isinstance(reuse, tuple) and len(reuse) == 2):
-        raise TypeError(f"reuse: expected a tuple (base, moved) of NumPy arrays, got {type(reuse).__name__}")
-    base, moved = (np.asarray(a) for a in reuse)
-    if base.shape != (B,) or base.dtype.kind not in "iu":
-        raise ValueError(f"reuse: expected base as ({B},) integers, got {base.dtype.name} {base.shape}")
-    if moved.shape != (B, J) or moved.dtype.kind not in "bui":
-        raise ValueError(f"reuse: expected moved as ({B}, {J}) booleans, got {moved.dtype.name} {moved.shape}")
-    if B and (base.min() < 0 or base.max() >= B or (base[base] != base).any()):
-        raise ValueError("reuse: expected base indices in [0, B) with base[base[b]] == base[b]")
-    if device.backend != "taichi":
-        return None
-    plans = _PLANS.setdefault(device, {})
-    key = (base.tobytes(), moved.astype(bool).tobytes())
-    plan = plans.get(key)
-    if plan is None:
-        bases, src = np.unique(base, return_inverse=True)
-        bits = moved.astype(bool) @ (1 << np.arange(J, dtype=np.int64))
-        order = np.argsort(bits, kind="stable")
-        tables = (order, src, moved.astype(bool), bases)
-        plan = tuple(constant(device, np.ascontiguousarray(a, np.int32)) for a in tables)
-        if len(plans) >= 64:
-            plans.clear()
-        plans[key] = plan
-    return plan
 
 
 # -- tuning (gputrack tune) ----------------------------------------------------------------------

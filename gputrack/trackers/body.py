@@ -27,7 +27,7 @@ import numpy as np
 from ..device import Device, to_numpy
 from ..models.upper_body import pf_sigma, upper_body
 from ..ops.kinematics import forward_kinematics
-from ..ops.lm import central_difference_reuse, least_squares
+from ..ops.lm import least_squares
 from ..ops.pf import pf_stage
 from ..ops.template import Camera, rgbd_residuals
 from ..scheduler import Pipeline
@@ -188,11 +188,9 @@ class BodyTracker:
         dev, cfg = self.device, self.config
 
         def residuals(points):
-            n, P = points.shape
-            key = ("residuals", n, rgb.n + dep.n)
-            reuse = central_difference_reuse(self.chain, n // (2 * P + 1)) if n % (2 * P + 1) == 0 else None
+            key = ("residuals", points.shape[0], rgb.n + dep.n)
             r = rgbd_residuals(dev, self._poses(points), rgb, dep, gray, depth, self.camera, lam=cfg.lam,
-                               c_depth=cfg.c_depth, out=self._buffers.get(key), reuse=reuse)  # fmt: skip
+                               c_depth=cfg.c_depth, out=self._buffers.get(key))  # fmt: skip
             return self._reuse(key, r)
 
         return residuals

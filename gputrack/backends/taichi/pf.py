@@ -13,11 +13,22 @@ from ...ops._args import constant
 from ...ops.kinematics import chain_tables
 from ...ops.particles import BestK
 from .kinematics import pose_f32
-from .particles import best_k_body, sample_key, sample_one
 from .launch import launch
+from .particles import best_k_body, sample_key, sample_one
 from .runtime import scratch, ti
 from .template import (
-    CPU_TASK, F1, F2, F4, I1, I2, _rgbd_body, _source_cache, cam_array, chunk, cpu_chunks, default_params,
+    CPU_TASK,
+    F1,
+    F2,
+    F4,
+    I1,
+    I2,
+    _rgbd_body,
+    _source_cache,
+    cam_array,
+    chunk,
+    cpu_chunks,
+    default_params,
 )  # fmt: skip
 
 U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
@@ -62,7 +73,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     J = chain.n_parts
     nl = int(default_params(device)["lanes"])
     groups = (n + nl - 1) // nl
-    nr, nd = rgb["pts"].shape[0], depth["pts"].shape[0]
+    nr = rgb["pts"].shape[0]
     table, offsets = chain_tables(device, chain, np.float32)
     reuse = not moved_parts.all()
     if reuse:
@@ -79,7 +90,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
         cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
         order.buffer, src.buffer, moved.buffer, srcrow.buffer,
-        scratch(device, "rgbd_cache", (C, 2 * nr + nd + 4 * J), ti.f32), scratch(device, "pf_total", (n,), ti.f32),
+        scratch(device, "rgbd_cache", (C, 2 * nr + 4 * J), ti.f32), scratch(device, "pf_total", (n,), ti.f32),
         scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,
         val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,
     )  # fmt: skip

@@ -127,13 +127,11 @@ def _source_cache(
     dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), srcrow: ti.template(), cache: ti.template(),
 ):  # fmt: skip
     """Re-use mode, first task: evaluate the source hypotheses srcrow[s] (one per cache row s) in
-    full. cache[s] = [I_i (n), valid_i (n), r'_i (n', eq. 20-21), then per part j: sum T, sum T^2,
-    sum T I over its valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
+    full. cache[s] = [I_i (n), valid_i (n), then per part j: sum T, sum T^2, sum T I over its
+    valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
     n = rpts.shape[0]
-    m = dpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     cd = cam[6] * cam[6]
-    wd = ti.sqrt(cam[4])
     for s in range(srcrow.shape[0]):
         b = srcrow[s]
         P = ti.Matrix([[0.0] * 12], dt=ti.f32)
@@ -156,7 +154,7 @@ def _source_cache(
                     cnt = 0
             acc += blk
             for e in ti.static(range(3)):
-                cache[s, 2 * n + m + 4 * j + e] = acc[e]
+                cache[s, 2 * n + 4 * j + e] = acc[e]
         for j in range(dparts):
             _load_pose(P, 0, tf, b, j)
             acc = ti.f32(0.0)
@@ -165,13 +163,12 @@ def _source_cache(
             for i in range(didx[j], didx[j + 1]):
                 dd, q, okd, rho = _depth_term(P, 0, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
                 blk += rho
-                cache[s, 2 * n + i] = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
                 cnt += 1
                 if cnt == CHUNK:
                     acc += blk
                     blk = 0.0
                     cnt = 0
-            cache[s, 2 * n + m + 4 * j + 3] = acc + blk
+            cache[s, 2 * n + 4 * j + 3] = acc + blk
 
 
 @ti.func
@@ -203,12 +200,12 @@ def _rgbd_body(
 ):
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
 
-    ``reuse`` (static): lane l of group g takes hypothesis row = order[g L + l]; a part that no
-    lane of the group has moved (moved[row, j] == 0 for every lane) is not projected: its samples,
-    sums and depth terms come from cache row src[row] (filled by _source_cache)."""
+    ``reuse`` (static, cost only): lane l of group g takes hypothesis row = order[g L + l]; a part
+    that no lane of the group has moved (moved[row, j] == 0 for every lane) is not projected: its
+    samples and sums come from cache row src[row] (filled by _source_cache). gputrack/backends/
+    taichi/pf.py uses it for the parts a cascade stage does not sample."""
     nb = tf.shape[0]
     n = rpts.shape[0]
-    m = dpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lam = cam[4]
     cc = cam[5] * cam[5]
@@ -268,9 +265,9 @@ def _rgbd_body(
                             cnt = 0
                 else:  # the sources' samples (for pass 2) and sums
                     for l in ti.static(range(L)):
-                        cT[l] += cache[own[l], 2 * n + m + 4 * j]
-                        cTT[l] += cache[own[l], 2 * n + m + 4 * j + 1]
-                        cTI[l] += cache[own[l], 2 * n + m + 4 * j + 2]
+                        cT[l] += cache[own[l], 2 * n + 4 * j]
+                        cTT[l] += cache[own[l], 2 * n + 4 * j + 1]
+                        cTI[l] += cache[own[l], 2 * n + 4 * j + 2]
                     for i in range(ridx[j], ridx[j + 1]):
                         for l in ti.static(range(L)):
                             scratch[g, i * L + l] = cache[own[l], i]
@@ -329,15 +326,9 @@ def _rgbd_body(
                             eD += blk
                             blk.fill(0.0)
                             cnt = 0
-                else:
-                    if ti.static(not want_residuals):
-                        for l in ti.static(range(L)):
-                            cD[l] += cache[own[l], 2 * n + m + 4 * j + 3]
-                    if ti.static(want_residuals):
-                        for i in range(didx[j], didx[j + 1]):
-                            col = n + didx[dparts + 1 + i]
-                            for l in ti.static(range(L)):
-                                residuals[row[l], col] = cache[own[l], 2 * n + i]
+                else:  # the sources' depth sums
+                    for l in ti.static(range(L)):
+                        cD[l] += cache[own[l], 2 * n + 4 * j + 3]
             eD += blk + cD
             if ti.static(not want_residuals):
                 for l in ti.static(range(L)):
@@ -387,17 +378,6 @@ def _rgbd_res_kernel(
                residuals, residuals, groups, True, L, chunks, False, ridx, ridx, scratch, scratch)  # fmt: skip
 
 
-@ti.kernel
-def _rgbd_res_reuse_kernel(
-    tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, scratch: F2, residuals: F2,
-    order: I1, src: I1, moved: I2, srcrow: I1, cache: F2,
-    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
-):  # fmt: skip
-    _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
-    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
-               residuals, residuals, groups, True, L, chunks, True, order, src, moved, cache)  # fmt: skip
-
-
 def cam_array(camera, lam, c_rgb, c_depth) -> np.ndarray:
     """The kernels' ``cam`` argument: (7,) float32 [fx, fy, cx, cy, lam, c_rgb, c_depth]."""
     return np.array([*camera, lam, c_rgb, c_depth], np.float32)
@@ -421,17 +401,9 @@ def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *
     launch(_rgbd_cost_kernel, (*arrays, total.buffer, eps_c.buffer, eps_d.buffer), consts)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None, reuse=None):
-    """``reuse``: None, or (order, src, moved, srcrow) on the device (gputrack/ops/template.py)."""
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
     arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
-    if reuse is None:
-        launch(_rgbd_res_kernel, (*arrays, out.buffer), consts)
-        return
-    order, src, moved, srcrow = reuse
-    width = 2 * rgb["pts"].shape[0] + depth["pts"].shape[0] + 4 * tf.shape[1]
-    cache = scratch(device, "rgbd_cache", (srcrow.shape[0], width), ti.f32)
-    tables = (order.buffer, src.buffer, moved.buffer, srcrow.buffer, cache)
-    launch(_rgbd_res_reuse_kernel, (*arrays, out.buffer, *tables), consts)
+    launch(_rgbd_res_kernel, (*arrays, out.buffer), consts)
 
 
 # -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------
