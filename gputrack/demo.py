@@ -85,7 +85,7 @@ def body(
                   file=out)  # fmt: skip
         report["shoulder_error_mm"] = {"right": sh[0].tolist(), "left": sh[1].tolist()}
     ms = np.array([p["ms"] for p in per_frame])
-    print(f"\nper-stage time, Table 1/2 layout (ms; frames after the first, which compiles kernels)", file=out)
+    print("\nper-stage time, Table 1/2 layout (ms; frames after the first, which compiles kernels)", file=out)
     print(tracker.pipeline.table(), file=out)
     print(f"median frame time {np.median(ms[1:] if len(ms) > 1 else ms):.1f} ms", file=out)
     report["stages"] = tracker.pipeline.report()
