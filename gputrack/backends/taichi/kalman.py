@@ -18,16 +18,16 @@ same values. On the GPU archs (vulkan, cuda) L = 1: one scalar track per thread.
 The numerics follow gputrack/backends/reference/kalman.py step for step (see its docstring).
 Launch cost on taichi:cpu is about 30 us plus about 8 us per ndarray argument, so the common
 call of a tracker (in place, no mask, no gain_scale) has a kernel with 8 ndarray arguments
-instead of 12, the compile-time options travel as one hashable :class:`_Variant`, a repeated
-call relaunches its remembered launch context (:class:`_Launcher`), and batches of up to
-SERIAL_MAX tracks run on the calling thread.
+instead of 12, the compile-time options travel as one hashable :class:`_Variant`, kernels are
+launched directly after their first call (gputrack/backends/taichi/launch.py, compiled with
+``scalarize=False``), and batches of up to SERIAL_MAX tracks run on the calling thread.
 """
 
 import dataclasses
-import weakref
 
 import numpy as np
 
+from .launch import launch
 from .runtime import ti
 
 UPDATED, SKIPPED, NOT_PD, BAD_DEPTH = 0, 1, 2, 3
@@ -367,77 +367,6 @@ def _gate(x: nd, P: nd, H: nd, R: nd, z: nd, out: nd, v: ti.template()):
             ti.static(pre[0].gate_detection(pre[1:], z, out, d))
 
 
-class _Launcher:
-    """Runs the kernels; on the CPU compiled with real_matrix_scalarize off (lanes as SIMD vectors).
-
-    A steady-state call (the same kernel variant with the same arrays and scalars as a recent
-    call, e.g. a tracker updating its state in place every frame) reuses the compiled kernel of
-    that call and sets its arguments on a new launch context directly: Taichi's per-call template
-    lookup and generic argument marshalling (about 50 us on a 2-core CPU) are skipped. A launch
-    context is not reused: a launch rewrites its array arguments into raw pointers. The arrays
-    of a remembered call are held by weak references (an entry whose array is gone is never
-    reused), at most ``size`` calls are remembered, and a restarted Taichi runtime clears them.
-    If Taichi's internals are not what this expects, the plain kernel call is used from then on.
-    (``launch.py`` does the same for kernels whose arguments are only ndarrays and templates;
-    these kernels also take float scalars.)
-    """
-
-    def __init__(self, size=8):
-        self.size = size
-        self.entries: dict = {}
-        self.prog = None
-        self.fast = True
-
-    def __call__(self, kernel, *args):
-        cfg = _impl.current_cfg()
-        if cfg.arch not in (ti.x64, ti.arm64):
-            kernel(*args)
-            return
-        prog = _impl.get_runtime().prog
-        if prog is not self.prog:
-            self.entries.clear()
-            self.prog = prog
-        key = (kernel, *(id(a) if isinstance(a, ti.Ndarray) else a for a in args))
-        entry = self.entries.get(key)
-        if entry is not None:
-            t_kernel, data, refs, scalars = entry
-            arrays = [r() for _, r in refs]
-            if None not in arrays:
-                ctx = t_kernel.make_launch_context()  # a fresh one: a launch rewrites its arrays
-                for (i, _), a in zip(refs, arrays):
-                    ctx.set_arg_ndarray(i, a.arr)
-                for i, c in scalars:
-                    ctx.set_arg_float(i, c)
-                prog.launch_kernel(data, ctx)
-                return
-        cfg.real_matrix_scalarize = False
-        try:
-            kernel(*args)
-            if self.fast:
-                self._remember(key, prog, kernel, args)
-        finally:
-            cfg.real_matrix_scalarize = True
-
-    def _remember(self, key, prog, kernel, args):
-        try:
-            primal = kernel._primal
-            t_kernel = primal.compiled_kernels[primal.ensure_compiled(*args)]
-            data = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
-            refs, scalars = [], []
-            for i, a in enumerate(args[: len(args) - 1]):  # the last argument is the template
-                if isinstance(a, ti.Ndarray):
-                    refs.append(((i,), weakref.ref(a)))
-                else:
-                    scalars.append(((i,), float(a)))
-        except (AttributeError, KeyError, TypeError):  # another Taichi version: plain calls only
-            self.fast = False
-            return
-        if len(self.entries) >= self.size:
-            del self.entries[next(iter(self.entries))]
-        self.entries[key] = (t_kernel, data, refs, scalars)
-
-
-_launch = _Launcher()
 
 
 def _lanes(dt) -> int:
@@ -457,6 +386,7 @@ def _variant(*key) -> _Variant:
 
 
 def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0)):
+    cam = tuple(float(c) for c in cam)  # the kernels' f64 scalars
     T, n = x.shape
     m = z.shape[1] if z is not None else 1
     dt = x.dtype
@@ -480,10 +410,11 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
     zb, Fb, Qb = (a.buffer if a is not None else d for a in (z, F, Q))
     Hb, Rb, sb = (a.buffer if a is not None else d for a in (H, R, st))
     if mask is None and gain_scale is None and xo is x and Po is P:
-        _launch(_kf_inplace, d, P.buffer, zb, Fb, Qb, Hb, Rb, sb, *cam, v)
+        launch(_kf_inplace, (d, P.buffer, zb, Fb, Qb, Hb, Rb, sb), (v,), scalars=cam, scalarize=False)
     else:
         mb, gb = (a.buffer if a is not None else d for a in (mask, gain_scale))
-        _launch(_kf, d, P.buffer, zb, Fb, Qb, Hb, Rb, mb, gb, xo.buffer, Po.buffer, sb, *cam, v)
+        arrays = (d, P.buffer, zb, Fb, Qb, Hb, Rb, mb, gb, xo.buffer, Po.buffer, sb)
+        launch(_kf, arrays, (v,), scalars=cam, scalarize=False)
     return (xo, Po) if mode == MODE_PREDICT else (xo, Po, st)
 
 
@@ -521,5 +452,5 @@ def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     v = _variant(
         x.dtype.name, _lanes(x.dtype), n, z.shape[1], MODE_LINEAR, False, False, False, (-1, -1) + tuple(pats[2:])
     )
-    _launch(_gate, x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer, v)
+    launch(_gate, (x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, out.buffer), (v,), scalarize=False)
     return out

@@ -6,10 +6,11 @@ recursive setter. Measured on taichi:cpu (2 shared cores, 2026-11-23), with six 
 and one template argument: ~38 us per call through ``kernel(...)``, ~13 us through
 :func:`launch` (a new launch context, six ``set_arg_ndarray`` calls and the launch itself).
 
-:func:`launch` takes the kernel's ndarray arguments (first in its signature, all of them) and its
-template values (last, hashable) separately. The first call with a given kernel, template values
-and dtypes and ranks of the arrays goes through ``kernel(...)``, which compiles and checks
-everything, and remembers the compiled kernel; later calls launch it directly. Only calls whose
+:func:`launch` takes the kernel's array arguments (first in its signature, all of them), its
+Python int/float scalars (next) and its template values (last, hashable) separately. The first
+call with a given kernel, template values, dtypes and ranks of the arrays and types of the scalars
+goes through ``kernel(...)``, which compiles and checks everything, and remembers the compiled
+kernel; later calls launch it directly. Only calls whose
 arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (passed by address,
 as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch
 context is not reused between launches (Taichi's LLVM launcher does not support that). A restarted
@@ -36,22 +37,34 @@ def _direct(a) -> bool:
     return isinstance(a, ti.lang._ndarray.Ndarray) and a.grad is None
 
 
-_cache: dict = {}  # (kernel, templates, (dtype, rank) of each array) -> (kernel, compiled, program)
+_cache: dict = {}  # (kernel, templates, scalarize, kinds of the arguments) -> (kernel, compiled, program)
 _enabled = True
 
 
-def launch(kernel, arrays: tuple, templates: tuple = ()) -> None:
-    """``kernel(*arrays, *templates)`` for a kernel whose arguments are Taichi ndarrays, then templates."""
+def _kind(a):
+    """What the cache key needs of an argument: dtype and rank of an array, the type of a scalar."""
+    return (a.dtype, len(a.shape)) if hasattr(a, "shape") else type(a)
+
+
+def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (), scalarize: bool = True) -> None:
+    """``kernel(*arrays, *scalars, *templates)``: arrays (Taichi ndarrays or NumPy arrays) first in
+    the kernel's signature, then Python int/float scalars, then template values (hashable).
+
+    ``scalarize=False`` compiles the kernel with Taichi's ``real_matrix_scalarize`` off on the CPU
+    archs, so that LLVM keeps ``ti.types.vector`` values as SIMD vectors (the Kalman kernels' track
+    lanes); elsewhere, and for every other kernel, Taichi's default applies.
+    """
     global _enabled
+    key = None
     if _enabled:
-        key = (kernel, templates, *((a.dtype, len(a.shape)) for a in arrays))
+        key = (kernel, templates, scalarize, *(_kind(a) for a in arrays), *(type(c) for c in scalars))
         hit = _cache.get(key)
         if hit is not None:
             tk, ckd, prog = hit
             if prog is not ti.lang.impl.get_runtime().prog:  # Taichi was restarted: compile again
                 _cache.clear()
             else:
-                ctx = tk.make_launch_context()
+                ctx = tk.make_launch_context()  # a fresh one: a launch rewrites its array arguments
                 for i, a in enumerate(arrays):
                     if type(a) is np.ndarray:
                         if not a.flags.c_contiguous:
@@ -60,15 +73,26 @@ def launch(kernel, arrays: tuple, templates: tuple = ()) -> None:
                     else:
                         ctx.set_arg_ndarray((i,), a.arr)
                 else:
+                    for j, c in enumerate(scalars, len(arrays)):
+                        (ctx.set_arg_int if type(c) is int else ctx.set_arg_float)((j,), c)
                     prog.launch_kernel(ckd, ctx)
                     return
-    kernel(*arrays, *templates)
-    if _enabled and all(_direct(a) for a in arrays):
-        try:
-            primal = kernel._primal
-            tk = primal.compiled_kernels[primal.ensure_compiled(*arrays, *templates)]
-            prog = ti.lang.impl.get_runtime().prog
-            _cache[key] = (tk, prog.compile_kernel(prog.config(), prog.get_device_caps(), tk), prog)
-        except Exception as e:  # noqa: BLE001 - another Taichi: the public call path from now on
-            log.debug("taichi: direct kernel launch unavailable (%s); using kernel(...)", e)
-            _enabled = False
+    args = (*arrays, *scalars, *templates)
+    cfg = ti.lang.impl.current_cfg()
+    vector_lanes = not scalarize and cfg.arch in (ti.x64, ti.arm64)
+    if vector_lanes:
+        cfg.real_matrix_scalarize = False
+    try:
+        kernel(*args)
+        if key is not None and all(_direct(a) for a in arrays) and all(type(c) in (int, float) for c in scalars):
+            try:
+                primal = kernel._primal
+                tk = primal.compiled_kernels[primal.ensure_compiled(*args)]
+                prog = ti.lang.impl.get_runtime().prog
+                _cache[key] = (tk, prog.compile_kernel(prog.config(), prog.get_device_caps(), tk), prog)
+            except Exception as e:  # noqa: BLE001 - another Taichi: the public call path from now on
+                log.debug("taichi: direct kernel launch unavailable (%s); using kernel(...)", e)
+                _enabled = False
+    finally:
+        if vector_lanes:
+            cfg.real_matrix_scalarize = True
