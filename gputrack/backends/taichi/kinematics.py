@@ -8,7 +8,8 @@ Parents precede children, so a part reads its parent's transform from the output
 import numpy as np
 
 from .launch import launch
-from .runtime import ti
+from .runtime import current_arch, ti
+from .tasks import CPU_TASK
 
 # float64 sin/cos from arithmetic only: SPIR-V (taichi:vulkan) has no 64-bit Sin/Cos instructions.
 _PIO2_HI = 1.5707963267948966  # pi/2 split in two doubles (Cody-Waite reduction)
@@ -106,7 +107,9 @@ def _make(real):
         table: ti.types.ndarray(dtype=ti.i32, ndim=2),
         offsets: ti.types.ndarray(dtype=real, ndim=2),
         out: ti.types.ndarray(dtype=real, ndim=4),
+        serial: ti.template(),
     ):
+        ti.loop_config(serialize=serial)  # a batch Taichi would run as one task anyway (CPU)
         for b in range(params.shape[0]):
             pose(params, b, table, offsets, out)
 
@@ -123,5 +126,6 @@ def forward_kinematics(device, chain, params, out):
 
     table, offsets = chain_tables(device, chain, params.dtype)
     kernel = _fk_f64 if params.dtype == np.float64 else _fk_f32
-    launch(kernel, (params.buffer, table.buffer, offsets.buffer, out.buffer))
+    serial = current_arch() == "cpu" and params.shape[0] <= CPU_TASK
+    launch(kernel, (params.buffer, table.buffer, offsets.buffer, out.buffer), (serial,))
     return out

@@ -120,6 +120,7 @@ def best_k_body(scores: ti.template(), idx: ti.template(), val: ti.template(), k
     """The k = idx.shape[0] lowest scores, ascending, as one serial task (also for fused kernels)."""
     nb = scores.shape[0]
     k = idx.shape[0]
+    ti.loop_config(serialize=True)  # on the calling thread (no thread-pool dispatch)
     for _ in range(1):  # one serial task
         cnt = 0
         for i in range(nb):

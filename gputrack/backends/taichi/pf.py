@@ -16,8 +16,8 @@ from .kinematics import pose_f32
 from .launch import launch
 from .particles import best_k_body, sample_key, sample_one
 from .runtime import scratch, ti
+from .tasks import CPU_TASK, chunk
 from .template import (
-    CPU_TASK,
     F1,
     F2,
     F4,
@@ -26,7 +26,6 @@ from .template import (
     _rgbd_body,
     _source_cache,
     cam_array,
-    chunk,
     cpu_chunks,
     default_params,
 )  # fmt: skip
@@ -50,7 +49,7 @@ def _pf_stage(
             sample_one(cand, sig, samples, key, b, 1, False)  # eq. 12, keep_candidates
             pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
     if ti.static(reuse):
-        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache)
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache, chunks > 0)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
                groups, False, L, chunks, reuse, order, src, moved, cache)  # fmt: skip
     best_k_body(total, idx, val, keys, samples, sel, True)

@@ -17,10 +17,10 @@ import numpy as np
 
 from .launch import launch
 from .runtime import scratch, ti
+from .tasks import CPU_TASK, chunk
 
 CHUNK = 64
 CPU_LANES = 8
-CPU_TASK = 512  # Taichi 1.7's smallest CPU task: iterations of a parallel loop per task
 TINY = 1e-12
 BIG = 3.0e38
 FLAT = 1e-6
@@ -42,21 +42,6 @@ def cpu_chunks(device) -> int:
 def default_params(device) -> dict:
     """Launch parameters without a tuning-cache entry (``gputrack tune`` may choose others)."""
     return {"lanes": lanes(device)}
-
-
-@ti.func
-def chunk(it, n, chunks: ti.template()):
-    """The items [begin, end) of iteration ``it`` of a parallel loop over n items: item ``it``
-    itself, or with ``chunks`` > 0 (the CPU) the loop runs over chunks * CPU_TASK iterations and
-    every CPU_TASK-th takes 1/chunks of the items (Taichi 1.7 gives each CPU task at least
-    CPU_TASK iterations, so a loop over fewer items would run on one thread)."""
-    begin = it
-    end = it + 1
-    if ti.static(chunks > 0):
-        c = it // CPU_TASK
-        begin = c * n // chunks
-        end = ti.select(it % CPU_TASK == 0, (c + 1) * n // chunks, begin)
-    return begin, end
 
 
 @ti.func
@@ -125,13 +110,16 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
     dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), srcrow: ti.template(), cache: ti.template(),
+    serial: ti.template(),
 ):  # fmt: skip
-    """Re-use mode, first task: evaluate the source hypotheses srcrow[s] (one per cache row s) in
+    """Re-use mode, first task (on the calling thread when ``serial``: a few candidates, and a
+    thread-pool dispatch costs ~50 us on a CPU): evaluate the source hypotheses srcrow[s] (one per cache row s) in
     full. cache[s] = [I_i (n), valid_i (n), then per part j: sum T, sum T^2, sum T I over its
     valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
     n = rpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     cd = cam[6] * cam[6]
+    ti.loop_config(serialize=serial)
     for s in range(srcrow.shape[0]):
         b = srcrow[s]
         P = ti.Matrix([[0.0] * 12], dt=ti.f32)
