@@ -101,8 +101,6 @@ def arg(
     return device.asarray(x)
 
 
-
-
 #: small host constants (sampling sigmas, re-use tables) uploaded once per device and value
 _CONSTANTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _MAX_CONSTANTS = 256

@@ -31,6 +31,7 @@ from .template import rgbd_cost, scene_args
 
 __all__ = ["pf_stage"]
 
+
 def pf_stage(
     device, chain, candidates, sigma, n, seed, rgb, depth, gray, depth_image, camera, *,
     k=None, lam=0.9, c_rgb=None, c_depth=5.0,

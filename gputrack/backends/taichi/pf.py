@@ -16,7 +16,7 @@ from .kinematics import pose_f32
 from .launch import launch
 from .particles import best_k_body, sample_key, sample_one
 from .runtime import scratch, ti
-from .tasks import CPU_TASK, chunk
+from .tasks import CPU_TASK, chunk, cpu_chunks
 from .template import (
     F1,
     F2,
@@ -26,7 +26,6 @@ from .template import (
     _rgbd_body,
     _source_cache,
     cam_array,
-    cpu_chunks,
     default_params,
 )  # fmt: skip
 
@@ -36,7 +35,7 @@ U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 @ti.kernel
 def _pf_stage(
     cand: F2, sig: F1, seed: U1, samples: F2, table: I2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2,
-    didx: I1, gray: F2, dimg: F2, cam: F1, work: F2, order: I1, src: I1, moved: I2, srcrow: I1, cache: F2,
+    didx: I1, gray: F2, dimg: F2, cam: F1, work: F2, moved: I1, cache: F2,
     total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1, keys: U1, sel: F2,
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
     reuse: ti.template(),
@@ -49,21 +48,10 @@ def _pf_stage(
             sample_one(cand, sig, samples, key, b, 1, False)  # eq. 12, keep_candidates
             pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
     if ti.static(reuse):
-        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, srcrow, cache, chunks > 0)
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
-               groups, False, L, chunks, reuse, order, src, moved, cache)  # fmt: skip
+               groups, False, L, chunks, reuse, moved, cache)  # fmt: skip
     best_k_body(total, idx, val, keys, samples, sel, True)
-
-
-def _plan(device, n, C, moved_parts):
-    """Re-use tables of a stage (constants per n, C and moved parts): samples in order, sample b
-    reads candidate b C // n's cache row, which is evaluated at its block's first sample."""
-    b = np.arange(n)
-    order = b.astype(np.int32)
-    src = (b * C // n).astype(np.int32)
-    moved = np.broadcast_to(moved_parts.astype(np.int32), (n, moved_parts.size))
-    srcrow = ((np.arange(C) * n + C - 1) // C).astype(np.int32)
-    return tuple(constant(device, np.ascontiguousarray(a)) for a in (order, src, moved, srcrow))
 
 
 def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, *,
@@ -74,12 +62,8 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     groups = (n + nl - 1) // nl
     nr = rgb["pts"].shape[0]
     table, offsets = chain_tables(device, chain, np.float32)
-    reuse = not moved_parts.all()
-    if reuse:
-        order, src, moved, srcrow = _plan(device, n, C, moved_parts)
-    else:  # placeholders of the right types (not read)
-        order = src = srcrow = constant(device, np.zeros(1, np.int32))
-        moved = constant(device, np.zeros((1, 1), np.int32))
+    reuse = not moved_parts.all()  # some parts look in every sample as in its candidate
+    moved = constant(device, moved_parts.astype(np.int32))
     idx = device.empty((k,), np.int32)
     val = device.empty((k,), np.float32)
     sel = device.empty((k, P), np.float32)
@@ -88,7 +72,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         table.buffer, offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
         rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
         cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
-        order.buffer, src.buffer, moved.buffer, srcrow.buffer,
+        moved.buffer,
         scratch(device, "rgbd_cache", (C, 2 * nr + 4 * J), ti.f32), scratch(device, "pf_total", (n,), ti.f32),
         scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,
         val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,

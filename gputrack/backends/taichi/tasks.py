@@ -22,3 +22,11 @@ def chunk(it, n, chunks: ti.template()):
         begin = c * n // chunks
         end = ti.select(it % CPU_TASK == 0, (c + 1) * n // chunks, begin)
     return begin, end
+
+
+def cpu_chunks(device) -> int:
+    """How many pieces the hypothesis loop is cut into on taichi:cpu (four per CPU thread, so
+    that a busy core does not hold up the others); 0 elsewhere (one GPU thread per lane group)."""
+    if getattr(device, "arch", "") != "cpu":
+        return 0
+    return 4 * max(1, ti.lang.impl.current_cfg().cpu_max_num_threads)

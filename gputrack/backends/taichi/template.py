@@ -17,7 +17,7 @@ import numpy as np
 
 from .launch import launch
 from .runtime import scratch, ti
-from .tasks import CPU_TASK, chunk
+from .tasks import CPU_TASK, chunk, cpu_chunks
 
 CHUNK = 64
 CPU_LANES = 8
@@ -29,14 +29,6 @@ def lanes(device) -> int:
     """Hypotheses per thread: CPU_LANES on taichi:cpu; 1 on GPUs and on Vulkan (lavapipe already
     runs 8 invocations per SIMD register)."""
     return CPU_LANES if getattr(device, "arch", "") == "cpu" else 1
-
-
-def cpu_chunks(device) -> int:
-    """How many pieces the hypothesis loop is cut into on taichi:cpu (four per CPU thread, so
-    that a busy core does not hold up the others); 0 elsewhere (one GPU thread per lane group)."""
-    if getattr(device, "arch", "") != "cpu":
-        return 0
-    return 4 * max(1, ti.lang.impl.current_cfg().cpu_max_num_threads)
 
 
 def default_params(device) -> dict:
@@ -109,19 +101,22 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 @ti.func
 def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
-    dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), srcrow: ti.template(), cache: ti.template(),
+    dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), cache: ti.template(),
     serial: ti.template(),
 ):  # fmt: skip
     """Re-use mode, first task (on the calling thread when ``serial``: a few candidates, and a
-    thread-pool dispatch costs ~50 us on a CPU): evaluate the source hypotheses srcrow[s] (one per cache row s) in
-    full. cache[s] = [I_i (n), valid_i (n), then per part j: sum T, sum T^2, sum T I over its
-    valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
+    thread-pool dispatch costs ~50 us on a CPU): evaluate candidate c's block of hypotheses (c B
+    // C .. the samples of sample_around) at its first hypothesis, in full. cache[c] = [I_i (n),
+    valid_i (n), then per part j: sum T, sum T^2, sum T I over its valid RGB points and the sum
+    of rho_c' over its depth points (4 J)]."""
+    nb = tf.shape[0]
+    nc = cache.shape[0]
     n = rpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     cd = cam[6] * cam[6]
     ti.loop_config(serialize=serial)
-    for s in range(srcrow.shape[0]):
-        b = srcrow[s]
+    for s in range(nc):
+        b = (s * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
         P = ti.Matrix([[0.0] * 12], dt=ti.f32)
         for j in range(rparts):
             _load_pose(P, 0, tf, b, j)
@@ -181,17 +176,16 @@ def _rgbd_body(
     L: ti.template(),
     chunks: ti.template(),
     reuse: ti.template(),
-    order: ti.template(),
-    src: ti.template(),
     moved: ti.template(),
     cache: ti.template(),
 ):
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
 
-    ``reuse`` (static, cost only): lane l of group g takes hypothesis row = order[g L + l]; a part
-    that no lane of the group has moved (moved[row, j] == 0 for every lane) is not projected: its
-    samples and sums come from cache row src[row] (filled by _source_cache). gputrack/backends/
-    taichi/pf.py uses it for the parts a cascade stage does not sample."""
+    ``reuse`` (static, cost only): the B hypotheses are C = cache.shape[0] blocks of samples of
+    sample_around (hypothesis b belongs to candidate b C // B) that pose the parts with
+    moved[j] == 0 as their candidate does: those parts are not projected, their samples and sums
+    come from the candidate's cache row (filled by _source_cache). gputrack/backends/taichi/pf.py
+    uses it for the parts a cascade stage does not sample."""
     nb = tf.shape[0]
     n = rpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
@@ -206,12 +200,11 @@ def _rgbd_body(
         for g in range(g0, g1):
             P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
             row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
-            own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's cache row
+            own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's candidate (cache row)
             for l in ti.static(range(L)):
                 row[l] = ti.min(g * L + l, nb - 1)
                 if ti.static(reuse):
-                    row[l] = order[row[l]]
-                    own[l] = src[row[l]]
+                    own[l] = row[l] * cache.shape[0] // nb  # as in sample_around
             # sums of the parts taken from the cache (kept apart from the blocked sums below)
             cT = ti.Vector([0.0] * L, dt=ti.f32)
             cTT = ti.Vector([0.0] * L, dt=ti.f32)
@@ -226,7 +219,7 @@ def _rgbd_body(
             bTI = ti.Vector([0.0] * L, dt=ti.f32)
             cnt = 0
             for j in range(rparts):
-                if _project_part(moved, row, j, L, reuse):
+                if _project_part(moved, j, reuse):
                     for l in ti.static(range(L)):
                         _load_pose(P, l, tf, row[l], j)
                     for i in range(ridx[j], ridx[j + 1]):
@@ -295,7 +288,7 @@ def _rgbd_body(
             blk.fill(0.0)
             cnt = 0
             for j in range(dparts):
-                if _project_part(moved, row, j, L, reuse):
+                if _project_part(moved, j, reuse):
                     for l in ti.static(range(L)):
                         _load_pose(P, l, tf, row[l], j)
                     for i in range(didx[j], didx[j + 1]):
@@ -327,14 +320,12 @@ def _rgbd_body(
 
 
 @ti.func
-def _project_part(moved: ti.template(), row, j, L: ti.template(), reuse: ti.template()):
-    """Whether part j is projected for a lane group: always, or in re-use mode when a lane moved it."""
-    any_moved = 1
+def _project_part(moved: ti.template(), j, reuse: ti.template()):
+    """Whether part j is projected: always, or in re-use mode when the sampled parameters move it."""
+    yes = 1
     if ti.static(reuse):
-        any_moved = 0
-        for l in ti.static(range(L)):
-            any_moved |= moved[row[l], j]
-    return any_moved != 0
+        yes = moved[j]
+    return yes != 0
 
 
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -354,7 +345,7 @@ def _rgbd_cost_kernel(
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total,
-               groups, False, L, chunks, False, ridx, ridx, scratch, scratch)  # fmt: skip
+               groups, False, L, chunks, False, ridx, scratch)  # fmt: skip
 
 
 @ti.kernel
@@ -363,7 +354,7 @@ def _rgbd_res_kernel(
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
-               residuals, residuals, groups, True, L, chunks, False, ridx, ridx, scratch, scratch)  # fmt: skip
+               residuals, residuals, groups, True, L, chunks, False, ridx, scratch)  # fmt: skip
 
 
 def cam_array(camera, lam, c_rgb, c_depth) -> np.ndarray:
