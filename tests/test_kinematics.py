@@ -189,7 +189,8 @@ __kernel void fused(__global const float *params, __global const int *table, __g
 
 
 def test_building_blocks_for_fused_kernels(device):
-    """gt_kinematics.clh (OpenCL) and pose_f32 (Taichi) give the op's transforms inside another kernel."""
+    """gt_kinematics.clh (OpenCL, chain tables) and pose_f32 (Taichi, the chain's structure as a
+    compile-time value) give the op's transforms inside another kernel."""
     if device.backend == "numpy":
         pytest.skip("the reference has no kernels")
     from gputrack.ops.kinematics import chain_tables
@@ -215,18 +216,18 @@ def test_building_blocks_for_fused_kernels(device):
         @ti.kernel
         def fused(
             params: ti.types.ndarray(dtype=ti.f32, ndim=2),
-            table: ti.types.ndarray(dtype=ti.i32, ndim=2),
             offsets: ti.types.ndarray(dtype=ti.f32, ndim=2),
             scratch: ti.types.ndarray(dtype=ti.f32, ndim=4),
             tips: ti.types.ndarray(dtype=ti.f32, ndim=3),
+            structure: ti.template(),
         ):
             for b in range(params.shape[0]):
-                pose_f32(params, b, table, offsets, scratch)
-                for j in range(table.shape[0]):
+                pose_f32(params, b, structure, offsets, scratch)
+                for j in range(scratch.shape[1]):
                     for r in ti.static(range(3)):
                         tips[b, j, r] = 100.0 * scratch[b, j, r, 0] + scratch[b, j, r, 3]
 
-        fused(dp.buffer, table.buffer, offsets.buffer, scratch.buffer, tips.buffer)
+        fused(dp.buffer, offsets.buffer, scratch.buffer, tips.buffer, chain.structure())
     want = reference(None, chain, p.astype(np.float64))
     assert_matches(device, scratch.numpy()[..., :3], want[..., :3])
     assert_matches(device, tips.numpy() / 2000.0, (100.0 * want[..., 0] + want[..., 3]) / 2000.0)

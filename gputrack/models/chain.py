@@ -203,6 +203,15 @@ class Chain:
             offsets[j] = p.offset
         return table, offsets
 
+    def structure(self) -> tuple:
+        """``packed()``'s table as nested tuples of ints (hashable): what a kernel compiled for
+        this chain's structure needs, the offsets aside."""
+        return self._structure
+
+    @functools.cached_property
+    def _structure(self) -> tuple:
+        return tuple(tuple(int(v) for v in row) for row in self.packed()[0])
+
     def key(self) -> tuple:
         """A hashable summary of what the kernels read (for caching uploaded tables)."""
         return self._key

@@ -3,13 +3,15 @@
 ``forward_kinematics(device, chain, params)`` -> (B, J, 3, 4) camera-from-part rigid transforms
 [R | t] (the chain's root joint is camera-from-root, e.g. camera-from-torso D of eq. 4-6; a child
 is camera-from-parent @ parent-from-child, eq. 2-3). One kernel launch per call; the chain is
-read from two small tables (see :meth:`gputrack.models.Chain.packed`) uploaded once per device,
-chain and dtype and cached, so the kernels work for any chain, not only the upper body.
+given by two small tables (see :meth:`gputrack.models.Chain.packed`) uploaded once per device,
+chain and dtype and cached (Taichi compiles the structure into its kernel and reads only the
+offsets), so the kernels work for any chain, not only the upper body.
 
 For fused kernels (sample + kinematics + score in one launch) the per-pose code is reusable:
-OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)``; Taichi
-``gputrack.backends.taichi.kinematics.pose_f32`` / ``pose_f64`` (``ti.func``), both reading the
-tables from :func:`chain_tables`.
+OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)`` with the tables of :func:`chain_tables`; Taichi
+``gputrack.backends.taichi.kinematics.pose_f32`` / ``pose_f64`` (``ti.func``) with the chain's
+structure as a compile-time value (``chain.structure()``, the parts unrolled) and the offsets
+of :func:`chain_tables`.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ microseconds for the filter's sizes and saves a second launch.
 import numpy as np
 
 from .runtime import scratch, ti
+from .trig import sincos32
 
 
 @ti.func
@@ -25,8 +26,8 @@ def _pair(key, cnt):
     u1 = ti.cast((b1 >> ti.u32(8)) + ti.u32(1), ti.f32) * (1.0 / 16777216.0)  # (0, 1]
     u2 = ti.cast(b2 >> ti.u32(8), ti.f32) * (1.0 / 16777216.0)  # [0, 1)
     r = ti.sqrt(-2.0 * ti.log(u1))
-    theta = 6.2831853071795864 * u2
-    return r * ti.cos(theta), r * ti.sin(theta)
+    s, c = sincos32(6.2831853071795864 * u2)
+    return r * c, r * s
 
 
 @ti.func
@@ -37,7 +38,8 @@ def sample_key(lo, hi):
 
 @ti.func
 def sample_one(cand: ti.template(), sig: ti.template(), out: ti.template(), key, k, keep, per_candidate: ti.template()):
-    """Sample k of out (eq. 12): one division per sample, one log/sqrt per pair of parameters."""
+    """Sample k of out (eq. 12): one division per sample, one log/sqrt per pair of parameters
+    (skipped for a pair whose sigmas are both 0: those parameters are their candidate's)."""
     n = out.shape[0]
     p = out.shape[1]
     c = cand.shape[0]
@@ -46,17 +48,22 @@ def sample_one(cand: ti.template(), sig: ti.template(), out: ti.template(), key,
     first = (owner * n + c - 1) // c  # the first sample of the block
     same = keep != 0 and k == first
     for t in range(half):
-        z0, z1 = _pair(key, ti.cast(k * half + t, ti.u32) * ti.u32(2))
+        sp = ti.Vector([0.0, 0.0], dt=ti.f32)  # the pair's sigmas
+        for h in ti.static(range(2)):
+            q = ti.min(2 * t + h, p - 1)
+            if ti.static(per_candidate):
+                sp[h] = sig[owner, q]
+            else:
+                sp[h] = sig[q]
+        z0 = ti.f32(0.0)
+        z1 = ti.f32(0.0)
+        if sp[0] != 0.0 or sp[1] != 0.0:
+            z0, z1 = _pair(key, ti.cast(k * half + t, ti.u32) * ti.u32(2))
         for h in ti.static(range(2)):
             q = 2 * t + h
             if q < p:
-                s = ti.f32(0.0)
-                if ti.static(per_candidate):
-                    s = sig[owner, q]
-                else:
-                    s = sig[q]
                 z = z0 if ti.static(h == 0) else z1
-                val = cand[owner, q] + s * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
+                val = cand[owner, q] + sp[h] * z  # eq. 12: p_c + dp, dp ~ N(0, diag(sigma^2))
                 if same:
                     val = cand[owner, q]
                 out[k, q] = val

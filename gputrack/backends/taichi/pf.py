@@ -22,7 +22,6 @@ from .template import (
     F2,
     F4,
     I1,
-    I2,
     _rgbd_body,
     _source_cache,
     cam_array,
@@ -34,11 +33,11 @@ U1 = ti.types.ndarray(dtype=ti.u32, ndim=1)
 
 @ti.kernel
 def _pf_stage(
-    cand: F2, sig: F1, seed: U1, samples: F2, table: I2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2,
+    cand: F2, sig: F1, seed: U1, samples: F2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2,
     didx: I1, gray: F2, dimg: F2, cam: F1, work: F2, moved: I1, cache: F2,
     total: F1, eps_c: F1, eps_d: F1, idx: I1, val: F1, keys: U1, sel: F2,
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
-    reuse: ti.template(),
+    reuse: ti.template(), chain: ti.template(),
 ):  # fmt: skip
     key = sample_key(seed[0], seed[1])
     n = samples.shape[0]
@@ -46,7 +45,7 @@ def _pf_stage(
         b0, b1 = chunk(it, n, chunks)
         for b in range(b0, b1):
             sample_one(cand, sig, samples, key, b, 1, False)  # eq. 12, keep_candidates
-            pose_f32(samples, b, table, offsets, tf)  # eq. 1-11
+            pose_f32(samples, b, chain, offsets, tf)  # eq. 1-11
     if ti.static(reuse):
         _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
@@ -61,7 +60,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     nl = int(default_params(device)["lanes"])
     groups = (n + nl - 1) // nl
     nr = rgb["pts"].shape[0]
-    table, offsets = chain_tables(device, chain, np.float32)
+    _, offsets = chain_tables(device, chain, np.float32)
     reuse = not moved_parts.all()  # some parts look in every sample as in its candidate
     moved = constant(device, moved_parts.astype(np.int32))
     idx = device.empty((k,), np.int32)
@@ -69,7 +68,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     sel = device.empty((k, P), np.float32)
     arrays = (
         cand.buffer, sig.buffer, np.array([lo, hi], np.uint32), scratch(device, "pf_samples", (n, P), ti.f32),
-        table.buffer, offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
+        offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
         rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
         cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
         moved.buffer,
@@ -77,5 +76,5 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,
         val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,
     )  # fmt: skip
-    launch(_pf_stage, arrays, (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), reuse))
+    launch(_pf_stage, arrays, (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), reuse, chain.structure()))
     return BestK(idx, val, sel)

@@ -1,0 +1,59 @@
+"""sin and cos from arithmetic only, for the Taichi kernels.
+
+- :func:`sincos64`: SPIR-V (taichi:vulkan) has no 64-bit Sin/Cos instructions.
+- :func:`sincos32`: on the CPU, ``ti.sin``/``ti.cos`` in float32 become calls into the C math
+  library, one value at a time; this polynomial is a few fused multiply-adds that LLVM inlines and
+  vectorises. Forward kinematics and the particle sampler take two of them per angle, thousands
+  per filter stage.
+"""
+
+from .runtime import ti
+
+_PIO2_HI = 1.5707963267948966  # pi/2 split in two doubles (Cody-Waite reduction)
+_PIO2_LO = 6.123233995736766e-17
+_TWO_OVER_PI = 0.6366197723675814
+
+# pi/2 in three float32 pieces (the first two exact in few bits, so n * piece is exact for |n| < 2**15)
+_PIO2_F1 = 1.5703125
+_PIO2_F2 = 4.837512969970703125e-4
+_PIO2_F3 = 7.54978995489188216e-8
+# minimax polynomials on [-pi/4, pi/4] (Cephes sinf/cosf): relative error ~1e-7
+_S = (-1.6666654611e-1, 8.3321608736e-3, -1.9515295891e-4)
+_C = (4.166664568298827e-2, -1.388731625493765e-3, 2.443315711809948e-5)
+
+
+@ti.func
+def _quadrant(n, s, c):
+    """(sin a, cos a) from s = sin r, c = cos r, a = r + n pi/2 (branch-free)."""
+    q = ti.cast(n, ti.i32) & 3  # n mod 4, also for negative n
+    sin_a = ti.select((q & 1) == 1, c, s)
+    cos_a = ti.select((q & 1) == 1, s, c)
+    sin_a = ti.select((q & 2) == 2, -sin_a, sin_a)  # quadrants 2, 3
+    cos_a = ti.select(((q + 1) & 2) == 2, -cos_a, cos_a)  # quadrants 1, 2
+    return sin_a, cos_a
+
+
+@ti.func
+def sincos32(a):
+    """(sin a, cos a) in float32 to ~2 ulp for |a| up to ~1e4 (any angle of a pose)."""
+    n = ti.floor(a * _TWO_OVER_PI + 0.5)
+    r = ((a - n * _PIO2_F1) - n * _PIO2_F2) - n * _PIO2_F3
+    r2 = r * r
+    s = r + r * r2 * (_S[0] + r2 * (_S[1] + r2 * _S[2]))
+    c = 1.0 - 0.5 * r2 + r2 * r2 * (_C[0] + r2 * (_C[1] + r2 * _C[2]))
+    return _quadrant(n, s, c)
+
+
+@ti.func
+def sincos64(a):
+    """(sin a, cos a) in float64 to ~1 ulp for |a| up to ~1e6: reduce to |r| <= pi/4, Taylor to r^19."""
+    f64 = ti.f64  # typed constants: a bare Python float would be a float32 literal
+    n = ti.floor(a * f64(_TWO_OVER_PI) + f64(0.5))
+    r = (a - n * f64(_PIO2_HI)) - n * f64(_PIO2_LO)
+    r2 = r * r
+    s = f64(1.0)  # Horner: sin r = r (1 - r^2/(2*3) (1 - r^2/(4*5) (...))), cos r = 1 - r^2/(1*2) (1 - ...)
+    c = f64(1.0)
+    for k in ti.static(range(9, 0, -1)):
+        s = f64(1.0) - r2 / f64(float((2 * k) * (2 * k + 1))) * s
+        c = f64(1.0) - r2 / f64(float((2 * k - 1) * (2 * k))) * c
+    return _quadrant(n, r * s, c)
