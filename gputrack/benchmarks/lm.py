@@ -12,10 +12,12 @@ Cases per (P, M), each timed on the device with the NumPy reference in the same 
   on the device.
 - ``least_squares 10 it RGB-D``: a whole 10-iteration solve (``early_stop=False``: exactly 11
   residual calls) whose residuals are paper 000's RGB-D template residuals (eq. 20-21) of the
-  upper-body model (forward kinematics + ``rgbd_residuals``, float32 points, N = N' = M / 2,
-  the output arrays of the last call reused, as the body tracker does), on a synthetic 640x480
-  frame; peer: ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10
-  iterations' worth of evaluations) looping over the 10 problems with the NumPy residuals.
+  upper-body model with its block-sparse Jacobian (Fig. 2), as the body tracker runs it:
+  ``pose_residuals(..., central=True)`` (forward kinematics + residuals, only the entries of
+  ``jac_sparsity = chain.jacobian_sparsity(parts)`` in the perturbed rows), float32 points,
+  N = N' = M / 2, the output array of the last call reused, on a synthetic 640x480 frame; peer:
+  ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10 iterations' worth of evaluations)
+  looping over the 10 problems with the NumPy residuals.
 """
 
 import sys
@@ -71,20 +73,17 @@ def _scene(P, M, rng):
 
 
 def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
-    from ..ops.kinematics import forward_kinematics
-    from ..ops.template import rgbd_residuals
+    from ..ops.pose_residuals import pose_residuals
 
     g = device.asarray(gray)
     d = device.asarray(depth)
-    buffers = {}  # per number of points: the transforms and residuals of the last call, reused
+    buffers = {}  # per number of points: the residuals of the last call, reused
 
     def residuals(X):
         n = X.shape[0]
-        tf, r = buffers.get(n, (None, None))
-        tf = forward_kinematics(device, chain, X, out=tf)
-        r = rgbd_residuals(device, tf, rgb, dep, g, d, cam, out=r)
+        r = pose_residuals(device, chain, X, rgb, dep, g, d, cam, central=True, out=buffers.get(n))
         if device.backend != "numpy":  # the reference's results are NumPy arrays the caller may keep
-            buffers[n] = (tf, r)
+            buffers[n] = r
         return r
 
     return residuals
@@ -169,7 +168,9 @@ def cases(device, args):
             chain, rgb, dep, gray, depth, cam, x0 = _scene(P, M, rng)
             fn = _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam)
             fn_ref = _rgbd_residual_fn(ref, chain, rgb, dep, gray, depth, cam)
-            kw = {"max_iter": args.iterations, "points_dtype": np.float32, "early_stop": False}
+            sparsity = chain.jacobian_sparsity(np.concatenate([rgb.part, dep.part]))  # Fig. 2
+            kw = {"max_iter": args.iterations, "points_dtype": np.float32, "early_stop": False,
+                  "jac_sparsity": sparsity}  # fmt: skip
             peers = {}
             if not args.no_scipy:
                 import scipy.optimize
@@ -196,6 +197,7 @@ def cases(device, args):
                         "N'": M // 2,
                         "iterations": args.iterations,
                         "points dtype": "float32",
+                        "jacobian": "block-sparse (Fig. 2)",
                     },
                 )
             )

@@ -6,6 +6,7 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.template`   per-hypothesis x per-point block reductions (RGB-D template cost, NCC patches)
 - :mod:`.particles`  particle-filter sampling and best-k selection on the device
 - :mod:`.pf`         one particle-filter stage (sample, pose, score, best k) as one op
+- :mod:`.pose_residuals` RGB-D residuals of a chain's poses for the LM (block-sparse Jacobian)
 - :mod:`.kinematics` forward kinematics of kinematic chains
 - :mod:`.lm`         batched Levenberg-Marquardt
 - :mod:`.kalman`     batched Kalman filters and gating
@@ -37,6 +38,7 @@ from .kinematics import forward_kinematics  # noqa: E402
 from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
 from .particles import BestK, best_k, sample_around  # noqa: E402
 from .pf import pf_stage  # noqa: E402
+from .pose_residuals import pose_residuals  # noqa: E402
 from .template import Camera, RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals  # noqa: E402
 
 __all__ = [
@@ -64,6 +66,7 @@ __all__ = [
     "patch_ncc",
     "patch_ncc_per_point",
     "pf_stage",
+    "pose_residuals",
     "rgbd_cost",
     "rgbd_residuals",
     "sample_around",

@@ -26,10 +26,10 @@ import numpy as np
 
 from ..device import Device, to_numpy
 from ..models.upper_body import pf_sigma, upper_body
-from ..ops.kinematics import forward_kinematics
 from ..ops.lm import least_squares
 from ..ops.pf import pf_stage
-from ..ops.template import Camera, rgbd_residuals
+from ..ops.pose_residuals import pose_residuals
+from ..ops.template import Camera
 from ..scheduler import Pipeline
 from ..sim.render import DEFAULT_CAMERA, DEFAULT_SIZE
 from .body_template import sparse_template
@@ -54,7 +54,7 @@ class TrackerConfig:
     stages: int = 3  # coarse-to-fine stages, sigma halved each
     cascade: bool = True  # torso, then right arm, then left arm (eq. 13-16); False: all at once
     lm_iterations: int = 10  # m: LM iterations per frame (0: PF only)
-    sparse_jacobian: bool = False  # Fig. 2 block-sparse Jacobian (drops the coupling through eq. 17's beta)
+    sparse_jacobian: bool = True  # Fig. 2 block-sparse Jacobian (False: dense, with the coupling through eq. 17's beta)
     shoulders: bool = False  # estimate the shoulder positions too (20 parameters)
     n_rgb: int = 128  # N
     n_depth: int = 128  # N'
@@ -179,18 +179,15 @@ class BodyTracker:
         self._buffers[key] = value
         return value
 
-    def _poses(self, params):
-        key = ("fk", params.shape, np.dtype(params.dtype).name)
-        return self._reuse(key, forward_kinematics(self.device, self.chain, params, out=self._buffers.get(key)))
-
     def _residuals(self, gray, depth):
         rgb, dep = self._templates
         dev, cfg = self.device, self.config
 
-        def residuals(points):
+        def residuals(points):  # with the sparse Jacobian, only the entries it reads (Fig. 2)
             key = ("residuals", points.shape[0], rgb.n + dep.n)
-            r = rgbd_residuals(dev, self._poses(points), rgb, dep, gray, depth, self.camera, lam=cfg.lam,
-                               c_depth=cfg.c_depth, out=self._buffers.get(key))  # fmt: skip
+            r = pose_residuals(dev, self.chain, points, rgb, dep, gray, depth, self.camera, lam=cfg.lam,
+                               c_depth=cfg.c_depth, central=cfg.sparse_jacobian,
+                               out=self._buffers.get(key))  # fmt: skip
             return self._reuse(key, r)
 
         return residuals
@@ -234,7 +231,8 @@ class BodyTracker:
                 with pipe.stage("LM"):
                     x0 = to_numpy(cand).astype(np.float64)
                     res = least_squares(self._residuals(g, d), x0, device=dev, max_iter=cfg.lm_iterations,
-                                        step=self._lm_step, jac_sparsity=self._sparsity if cfg.sparse_jacobian else None, points_dtype=np.float32,
+                                        step=self._lm_step, points_dtype=np.float32,
+                                        jac_sparsity=self._sparsity if cfg.sparse_jacobian else None,
                                         early_stop=False)  # fmt: skip
                     order = np.argsort(res.cost, kind="stable")
                     candidates, best_cost = res.x[order], float(res.cost[order[0]])

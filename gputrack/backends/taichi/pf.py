@@ -22,6 +22,7 @@ from .template import (
     F2,
     F4,
     I1,
+    REUSE_PF,
     _rgbd_body,
     _source_cache,
     cam_array,
@@ -47,9 +48,9 @@ def _pf_stage(
             sample_one(cand, sig, samples, key, b, 1, False)  # eq. 12, keep_candidates
             pose_f32(samples, b, chain, offsets, tf)  # eq. 1-11
     if ti.static(reuse):
-        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0)
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, 0)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
-               groups, False, L, chunks, reuse, moved, cache)  # fmt: skip
+               groups, False, L, chunks, REUSE_PF if ti.static(reuse) else 0, moved, cache, moved, moved, 0)  # fmt: skip
     best_k_body(total, idx, val, keys, samples, sel, True)
 
 

@@ -21,6 +21,7 @@ from .tasks import CPU_TASK, chunk, cpu_chunks
 
 CHUNK = 64
 CPU_LANES = 8
+REUSE_PF, REUSE_SPARSE = 1, 2  # _rgbd_body's re-use modes
 TINY = 1e-12
 BIG = 3.0e38
 FLAT = 1e-6
@@ -102,13 +103,14 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
     dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), cache: ti.template(),
-    serial: ti.template(),
+    serial: ti.template(), stride: ti.template(),
 ):  # fmt: skip
-    """Re-use mode, first task (on the calling thread when ``serial``: a few candidates, and a
-    thread-pool dispatch costs ~50 us on a CPU): evaluate candidate c's block of hypotheses (c B
-    // C .. the samples of sample_around) at its first hypothesis, in full. cache[c] = [I_i (n),
-    valid_i (n), then per part j: sum T, sum T^2, sum T I over its valid RGB points and the sum
-    of rho_c' over its depth points (4 J)]."""
+    """Re-use modes, first task (on the calling thread when ``serial``: a few sources, and a
+    thread-pool dispatch costs ~50 us on a CPU): evaluate the source hypothesis of cache row s in
+    full: with ``stride`` = 0 (PF), the first hypothesis of candidate s's block (s B // C .. the
+    samples of sample_around); else hypothesis s * stride (the point of LM problem s in the
+    central-difference stack). cache[s] = [I_i (n), valid_i (n), then per part j: sum T, sum T^2,
+    sum T I over its valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
     nb = tf.shape[0]
     nc = cache.shape[0]
     n = rpts.shape[0]
@@ -116,7 +118,9 @@ def _source_cache(
     cd = cam[6] * cam[6]
     ti.loop_config(serialize=serial)
     for s in range(nc):
-        b = (s * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
+        b = s * stride
+        if ti.static(stride == 0):
+            b = (s * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
         P = ti.Matrix([[0.0] * 12], dt=ti.f32)
         for j in range(rparts):
             _load_pose(P, 0, tf, b, j)
@@ -178,14 +182,23 @@ def _rgbd_body(
     reuse: ti.template(),
     moved: ti.template(),
     cache: ti.template(),
+    order: ti.template(),
+    full: ti.template(),
+    stride: ti.template(),
 ):
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
 
-    ``reuse`` (static, cost only): the B hypotheses are C = cache.shape[0] blocks of samples of
-    sample_around (hypothesis b belongs to candidate b C // B) that pose the parts with
-    moved[j] == 0 as their candidate does: those parts are not projected, their samples and sums
-    come from the candidate's cache row (filled by _source_cache). gputrack/backends/taichi/pf.py
-    uses it for the parts a cascade stage does not sample."""
+    ``reuse`` (static): 0 = every part of every hypothesis. ``REUSE_PF`` (cost only): the B
+    hypotheses are C = cache.shape[0] blocks of samples of sample_around (hypothesis b belongs to
+    candidate b C // B) that pose the parts with moved[j] == 0 as their candidate does: those
+    parts are not projected, their samples and sums come from the candidate's cache row (filled by
+    _source_cache); gputrack/backends/taichi/pf.py uses it for the parts a cascade stage does not
+    sample. ``REUSE_SPARSE`` (residuals only, paper 000 Fig. 2): lane l of group g evaluates row
+    order[g L + l] of a central-difference stack (``stride`` = 2P + 1 rows per problem, its first
+    row the source of cache row row // stride); the group projects the parts with moved[g, j] != 0
+    (all of them when a lane's full[row] != 0) and writes only their residuals; the other parts'
+    sums (eq. 17's alpha, beta) come from the cache, their residuals are not written.
+    gputrack/backends/taichi/pose_residuals.py uses it for the LM's block-sparse Jacobian."""
     nb = tf.shape[0]
     n = rpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
@@ -200,11 +213,16 @@ def _rgbd_body(
         for g in range(g0, g1):
             P = ti.Matrix([[0.0] * 12 for _ in range(L)], dt=ti.f32)
             row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
-            own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's candidate (cache row)
+            own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's source (cache row)
+            every = 0  # REUSE_SPARSE: a lane's row must be evaluated in full
             for l in ti.static(range(L)):
                 row[l] = ti.min(g * L + l, nb - 1)
-                if ti.static(reuse):
+                if ti.static(reuse == REUSE_PF):
                     own[l] = row[l] * cache.shape[0] // nb  # as in sample_around
+                if ti.static(reuse == REUSE_SPARSE):
+                    row[l] = order[g * L + l]
+                    own[l] = row[l] // stride
+                    every |= full[row[l]]
             # sums of the parts taken from the cache (kept apart from the blocked sums below)
             cT = ti.Vector([0.0] * L, dt=ti.f32)
             cTT = ti.Vector([0.0] * L, dt=ti.f32)
@@ -219,7 +237,7 @@ def _rgbd_body(
             bTI = ti.Vector([0.0] * L, dt=ti.f32)
             cnt = 0
             for j in range(rparts):
-                if _project_part(moved, j, reuse):
+                if _project_part(moved, g, j, reuse, every):
                     for l in ti.static(range(L)):
                         _load_pose(P, l, tf, row[l], j)
                     for i in range(ridx[j], ridx[j + 1]):
@@ -244,15 +262,11 @@ def _rgbd_body(
                             bTT.fill(0.0)
                             bTI.fill(0.0)
                             cnt = 0
-                else:  # the sources' samples (for pass 2) and sums
+                else:  # the sources' sums (pass 2 reads their samples from the cache)
                     for l in ti.static(range(L)):
                         cT[l] += cache[own[l], 2 * n + 4 * j]
                         cTT[l] += cache[own[l], 2 * n + 4 * j + 1]
                         cTI[l] += cache[own[l], 2 * n + 4 * j + 2]
-                    for i in range(ridx[j], ridx[j + 1]):
-                        for l in ti.static(range(L)):
-                            scratch[g, i * L + l] = cache[own[l], i]
-                            scratch[g, (n + i) * L + l] = cache[own[l], n + i]
             sT += bT + cT
             sTT += bTT + cTT
             sTI += bTI + cTI
@@ -265,30 +279,56 @@ def _rgbd_body(
             eC = ti.Vector([0.0] * L, dt=ti.f32)
             blk = ti.Vector([0.0] * L, dt=ti.f32)
             cnt = 0
-            for i in range(n):
-                T = rpts[i, 3]
-                for l in ti.static(range(L)):
-                    d = beta[l] * scratch[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
-                    q = cc + d * d
-                    ok = scratch[g, (n + i) * L + l] != 0.0
-                    if ti.static(not want_residuals):
-                        blk[l] += ti.select(ok, d * d / q, 1.0)  # rho_c(d_i); an invalid point adds 1
+            if ti.static(reuse == REUSE_SPARSE):  # the projected parts' residuals only
+                for j in range(rparts):
+                    if _project_part(moved, g, j, reuse, every):
+                        for i in range(ridx[j], ridx[j + 1]):
+                            _rgb_residuals(scratch, residuals, ridx, rparts, row, g, i, n, rpts[i, 3], alpha,
+                                           beta, cc, wc, L)  # fmt: skip
+            elif ti.static(reuse == REUSE_PF):  # samples of the projected parts, then the sources'
+                for j in range(rparts):
+                    if _project_part(moved, g, j, reuse, every):
+                        for i in range(ridx[j], ridx[j + 1]):
+                            T = rpts[i, 3]
+                            for l in ti.static(range(L)):
+                                blk[l] += _rho_c(beta[l] * scratch[g, i * L + l] - alpha[l] * T,
+                                                 scratch[g, (n + i) * L + l], cc)  # fmt: skip
+                            cnt += 1
+                            if cnt == CHUNK:
+                                eC += blk
+                                blk.fill(0.0)
+                                cnt = 0
+                    else:
+                        for i in range(ridx[j], ridx[j + 1]):
+                            T = rpts[i, 3]
+                            for l in ti.static(range(L)):
+                                blk[l] += _rho_c(beta[l] * cache[own[l], i] - alpha[l] * T, cache[own[l], n + i], cc)
+                            cnt += 1
+                            if cnt == CHUNK:
+                                eC += blk
+                                blk.fill(0.0)
+                                cnt = 0
+            else:
+                for i in range(n):
+                    T = rpts[i, 3]
                     if ti.static(want_residuals):
-                        # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
-                        col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
-                        residuals[row[l], col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
-                cnt += 1
-                if cnt == CHUNK:
-                    eC += blk
-                    blk.fill(0.0)
-                    cnt = 0
+                        _rgb_residuals(scratch, residuals, ridx, rparts, row, g, i, n, T, alpha, beta, cc, wc, L)
+                    else:
+                        for l in ti.static(range(L)):
+                            blk[l] += _rho_c(beta[l] * scratch[g, i * L + l] - alpha[l] * T,
+                                             scratch[g, (n + i) * L + l], cc)  # fmt: skip
+                    cnt += 1
+                    if cnt == CHUNK:
+                        eC += blk
+                        blk.fill(0.0)
+                        cnt = 0
             eC += blk
             # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
             eD = ti.Vector([0.0] * L, dt=ti.f32)
             blk.fill(0.0)
             cnt = 0
             for j in range(dparts):
-                if _project_part(moved, j, reuse):
+                if _project_part(moved, g, j, reuse, every):
                     for l in ti.static(range(L)):
                         _load_pose(P, l, tf, row[l], j)
                     for i in range(didx[j], didx[j + 1]):
@@ -307,7 +347,7 @@ def _rgbd_body(
                             eD += blk
                             blk.fill(0.0)
                             cnt = 0
-                else:  # the sources' depth sums
+                elif ti.static(reuse == REUSE_PF):  # the sources' depth sums
                     for l in ti.static(range(L)):
                         cD[l] += cache[own[l], 2 * n + 4 * j + 3]
             eD += blk + cD
@@ -320,12 +360,34 @@ def _rgbd_body(
 
 
 @ti.func
-def _project_part(moved: ti.template(), j, reuse: ti.template()):
-    """Whether part j is projected: always, or in re-use mode when the sampled parameters move it."""
+def _project_part(moved: ti.template(), g, j, reuse: ti.template(), every):
+    """Whether group g projects part j: always; with REUSE_PF when the sampled parameters move it;
+    with REUSE_SPARSE when its rows' parameters move it or a row must be evaluated in full."""
     yes = 1
-    if ti.static(reuse):
+    if ti.static(reuse == REUSE_PF):
         yes = moved[j]
+    if ti.static(reuse == REUSE_SPARSE):
+        yes = moved[g, j] | every
     return yes != 0
+
+
+@ti.func
+def _rho_c(d, valid, cc):
+    """rho_c(d_i) of eq. 17 (d_i = beta I_i - alpha T_i); an invalid point (valid == 0) adds 1."""
+    return ti.select(valid != 0.0, d * d / (cc + d * d), 1.0)
+
+
+@ti.func
+def _rgb_residuals(scratch: ti.template(), residuals: ti.template(), ridx: ti.template(), rparts, row, g, i, n, T,
+                   alpha, beta, cc, wc, L: ti.template()):  # fmt: skip
+    """RGB pass 2 of grouped point i for the L lanes: r_i (eq. 20-21) from the samples in scratch."""
+    col = ridx[rparts + 1 + i]  # the caller's index of grouped point i
+    for l in ti.static(range(L)):
+        d = beta[l] * scratch[g, i * L + l] - alpha[l] * T  # eq. 17: d_i
+        q = cc + d * d
+        ok = scratch[g, (n + i) * L + l] != 0.0
+        # lanes past the batch repeat the last hypothesis: their (equal) rows overwrite it
+        residuals[row[l], col] = ti.select(ok, wc * d / ti.sqrt(q), wc)  # eq. 20-21
 
 
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -345,7 +407,7 @@ def _rgbd_cost_kernel(
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, total, eps_c, eps_d, total,
-               groups, False, L, chunks, False, ridx, scratch)  # fmt: skip
+               groups, False, L, chunks, 0, ridx, scratch, ridx, ridx, 0)  # fmt: skip
 
 
 @ti.kernel
@@ -354,7 +416,7 @@ def _rgbd_res_kernel(
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
 ):  # fmt: skip
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, scratch, residuals, residuals,
-               residuals, residuals, groups, True, L, chunks, False, ridx, scratch)  # fmt: skip
+               residuals, residuals, groups, True, L, chunks, 0, ridx, scratch, ridx, ridx, 0)  # fmt: skip
 
 
 def cam_array(camera, lam, c_rgb, c_depth) -> np.ndarray:

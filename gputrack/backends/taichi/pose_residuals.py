@@ -1,0 +1,95 @@
+"""Taichi: pose residuals (gputrack/ops/pose_residuals.py) as one kernel launch.
+
+The kernel runs its tasks in order, each a parallel loop (Taichi finishes one before the next):
+pose every parameter vector (eq. 1-11) and, for a central-difference stack, flag the rows that
+differ from their problem's point in more than their own parameter; evaluate each problem's point
+once to cache its per-part sums (template.py's re-use, one serial task); then the residuals
+(eq. 20-21, template.py's kernel body) with the lanes of a group taking rows that move the same
+parts (the plan of the op), each group projecting and writing only those parts.
+"""
+
+from .kinematics import pose_f32
+from .launch import launch
+from .runtime import scratch, ti
+from .tasks import CPU_TASK, chunk, cpu_chunks
+from .template import F1, F2, F4, I1, I2, REUSE_SPARSE, _rgbd_body, _source_cache, cam_array, default_params
+
+#: on the CPU, up to this many rows are posed on the calling thread (~0.15 us a row for the upper
+#: body; a parallel loop's dispatch costs ~50 us)
+SERIAL_ROWS = 1024
+
+
+@ti.func
+def _pose_row(params: ti.template(), offsets: ti.template(), tf: ti.template(), full: ti.template(), b,
+              chain: ti.template(), stride: ti.template()):  # fmt: skip
+    """Pose row b (eq. 1-11); in a central-difference stack, flag it when it differs from its
+    problem's point in more than its own parameter."""
+    pose_f32(params, b, chain, offsets, tf)
+    if ti.static(stride > 0):
+        s = b % stride  # row s of its problem's block: 0 the point, 1 + 2k and 2 + 2k parameter k moved
+        k = (s - 1) // 2
+        bad = 0
+        for q in range(params.shape[1]):
+            if s > 0 and q != k and params[b, q] != params[b - s, q]:
+                bad = 1  # not the promised layout: evaluate the row in full
+        full[b] = bad
+
+
+@ti.kernel
+def _pose_residuals(
+    params: F2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, work: F2,
+    residuals: F2, moved: I2, order: I1, full: I1, cache: F2,
+    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
+    chain: ti.template(), stride: ti.template(), serial: ti.template(),
+):  # fmt: skip
+    n = params.shape[0]
+    if ti.static(serial):  # a few hundred rows: cheaper on the calling thread than dispatched
+        ti.loop_config(serialize=True)
+        for b in range(n):
+            _pose_row(params, offsets, tf, full, b, chain, stride)
+    else:
+        for it in range(n if ti.static(chunks == 0) else chunks * CPU_TASK):
+            b0, b1 = chunk(it, n, chunks)
+            for b in range(b0, b1):
+                _pose_row(params, offsets, tf, full, b, chain, stride)
+    if ti.static(stride > 0):
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, stride)
+    _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, residuals, residuals, residuals,
+               residuals, groups, True, L, chunks, REUSE_SPARSE if ti.static(stride > 0) else 0, moved, cache, order,
+               full, stride)  # fmt: skip
+
+
+def lanes(device) -> int:
+    """Rows per thread (the op's plan groups rows in multiples of it)."""
+    return int(default_params(device)["lanes"])
+
+
+def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camera, out, plan, *, lam, c_rgb, c_depth):
+    """``plan``: None (every entry), or (stride, order, moved) on the device (gputrack/ops/pose_residuals.py)."""
+    n, P = params.shape
+    J = chain.n_parts
+    nl = lanes(device)
+    nr = rgb["pts"].shape[0]
+    if plan is None:  # the tables are not read: placeholders of the right types
+        stride, groups = 0, (n + nl - 1) // nl
+        order = full = scratch(device, "unused_i1", (1,), ti.i32)
+        moved = scratch(device, "unused_i2", (1, 1), ti.i32)
+        cache = scratch(device, "unused_f2", (1, 1), ti.f32)
+    else:
+        stride, order, moved = plan
+        groups = order.shape[0] // nl
+        order, moved = order.buffer, moved.buffer
+        full = scratch(device, "pose_full", (n,), ti.i32)
+        cache = scratch(device, "rgbd_cache", (n // stride, 2 * nr + 4 * J), ti.f32)
+    arrays = (
+        params.buffer, offsets.buffer, scratch(device, "pose_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
+        rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
+        cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32), out.buffer,
+        moved, order, full, cache,
+    )  # fmt: skip
+    chunks = cpu_chunks(device)
+    serial = chunks > 0 and n <= SERIAL_ROWS
+    consts = (rgb["parts"], depth["parts"], groups, nl, chunks, chain.structure(), stride, serial)
+    launch(_pose_residuals, arrays, consts)
+    return out
+

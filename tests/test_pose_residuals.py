@@ -1,0 +1,134 @@
+"""pose_residuals (gputrack.ops.pose_residuals) against its composition and the reference.
+
+The composition forward_kinematics -> rgbd_residuals is what the op promises; with ``central=True``
+on a least_squares central-difference stack it computes the entries of paper 000's block-sparse
+Jacobian (Fig. 2) and may leave the others, and every computed entry must equal the composition
+to float rounding, whatever rows it is given.
+"""
+
+import numpy as np
+import pytest
+
+import gputrack
+from gputrack.ops.kinematics import forward_kinematics
+from gputrack.ops.pose_residuals import _plan, pose_residuals
+from gputrack.ops.template import rgbd_residuals
+from gputrack.sim import sequence
+from gputrack.sim.render import DEFAULT_CAMERA as CAM
+from gputrack.trackers.body_template import sparse_template
+
+REF = gputrack.device("numpy")
+SENTINEL = 1e9  # entries a central call may leave as they were
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["14 params", "20 params"])
+def scene(request):
+    seq = sequence("arm_cross", frames=2, seed=0, shoulders=request.param)
+    rgb, dep = sparse_template(seq.chain, seq.params[0], 64, 48)
+    return seq.chain, seq[1], rgb, dep
+
+
+def _stack(chain, problems, seed=0):
+    """A least_squares central-difference stack around ``problems`` points near the rest pose."""
+    rng = np.random.default_rng(seed)
+    P = chain.n_params
+    S = 2 * P + 1
+    x = np.asarray(chain.rest_params())[None] + rng.normal(0, 0.02, (problems, P)) * np.r_[[1] * 14, [50] * (P - 14)]
+    X = np.repeat(x, S, axis=0)
+    for n in range(P):
+        h = 2e-3 if n < 14 else 1.0
+        X[1 + 2 * n :: S, n] += h
+        X[2 + 2 * n :: S, n] -= h
+    return X.astype(np.float32)
+
+
+def _needed(chain, rgb, dep, problems):
+    """(rows, M) bool: the entries a central call must compute (Fig. 2 and the problems' points)."""
+    mask = chain.jacobian_sparsity(np.concatenate([rgb.part, dep.part]))  # (M, P)
+    block = np.ones((2 * chain.n_params + 1, mask.shape[0]), bool)
+    block[1::2] = mask.T
+    block[2::2] = mask.T
+    return np.tile(block, (problems, 1))
+
+
+def _composed(device, chain, X, frame, rgb, dep):
+    tf = forward_kinematics(device, chain, X)
+    return gputrack.to_numpy(rgbd_residuals(device, tf, rgb, dep, frame.gray, frame.depth, CAM))
+
+
+def test_plain_call_equals_composition_and_reference(device, scene):
+    chain, frame, rgb, dep = scene
+    X = _stack(chain, 3)[:50]
+    cam = CAM
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam))
+    assert got.shape == (50, rgb.n + dep.n) and got.dtype == np.float32
+    np.testing.assert_allclose(got, _composed(device, chain, X, frame, rgb, dep), rtol=0, atol=1e-6)
+    # the reference at the device's poses, per row as the cost the LM sees (sum r^2, eq. 19): a
+    # rendered frame has depth edges at the silhouette, where the float32 rounding of a projection
+    # moves single residuals by up to ~1e-2 (rgbd_residuals is pinned entry by entry on smooth
+    # scenes in test_template.py)
+    tf = gputrack.to_numpy(forward_kinematics(device, chain, X))
+    want = rgbd_residuals(REF, tf, rgb, dep, frame.gray, frame.depth, cam).astype(np.float64)
+    np.testing.assert_allclose((got.astype(np.float64) ** 2).sum(axis=1), (want**2).sum(axis=1), rtol=1e-4)
+
+
+@pytest.mark.parametrize("problems", [1, 10])
+def test_central_computes_the_block_sparse_entries(device, scene, problems):
+    chain, frame, rgb, dep = scene
+    X = _stack(chain, problems)
+    cam = CAM
+    want = _composed(device, chain, X, frame, rgb, dep)
+    out = device.asarray(np.full(want.shape, SENTINEL, np.float32)) if device.backend != "numpy" else np.full(
+        want.shape, SENTINEL, np.float32)  # fmt: skip
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, central=True,
+                                           out=out))  # fmt: skip
+    need = _needed(chain, rgb, dep, problems)
+    np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
+    if device.backend == "taichi":  # the one backend that skips: it writes nothing else
+        assert (got[~need] == SENTINEL).all()
+
+
+def test_central_with_a_broken_layout_is_still_exact(device, scene):
+    """Rows that differ from their problem's point in more than their parameter are computed in full."""
+    chain, frame, rgb, dep = scene
+    X = _stack(chain, 2)
+    rng = np.random.default_rng(5)
+    X[3] += rng.normal(0, 0.01, X.shape[1]).astype(np.float32)  # row 3 (parameter 1's) moves everything
+    cam = CAM
+    want = _composed(device, chain, X, frame, rgb, dep)
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, central=True))
+    need = _needed(chain, rgb, dep, 2)
+    need[3] = True
+    np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
+
+
+def test_plan_groups_rows_that_move_the_same_parts():
+    chain = sequence("arm_cross", frames=2, seed=0).chain
+    S = 2 * chain.n_params + 1
+    order, moved = _plan(chain, 10, 8)
+    assert order.shape == (moved.shape[0] * 8,) and set(order) == set(range(10 * S))
+    dep = chain.dependency_mask()
+    for g, rows in enumerate(order.reshape(-1, 8)):
+        for r in rows:
+            s = r % S
+            parts = np.ones(chain.n_parts, bool) if s == 0 else dep[:, (s - 1) // 2]
+            np.testing.assert_array_equal(parts, moved[g].astype(bool))
+
+
+def test_bad_input(device, scene):
+    chain, frame, rgb, dep = scene
+    cam = CAM
+    X = _stack(chain, 1)
+    with pytest.raises(TypeError, match="chain: expected a gputrack.models.Chain"):
+        pose_residuals(device, "body", X, rgb, dep, frame.gray, frame.depth, cam)
+    with pytest.raises(ValueError, match=r"params: expected shape \(n=\d+, %d\), got \(\d+, 5\)" % chain.n_params):
+        pose_residuals(device, chain, X[:, :5], rgb, dep, frame.gray, frame.depth, cam)
+    with pytest.raises(ValueError, match="params: expected at least one"):
+        pose_residuals(device, chain, X[:0], rgb, dep, frame.gray, frame.depth, cam)
+    with pytest.raises(ValueError, match="params: expected finite values"):
+        bad = X.copy()
+        bad[0, 0] = np.nan
+        pose_residuals(device, chain, bad, rgb, dep, frame.gray, frame.depth, cam)
+    with pytest.raises(ValueError, match="out: expected a float32 array of shape"):
+        small = np.empty((3, 4), np.float32) if device.backend == "numpy" else device.empty((3, 4), np.float32)
+        pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, out=small)
