@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from .metrics import ARM_PARTS, arm_axis_errors, shoulder_errors
+from .metrics import ARM_PARTS, arm_axis_errors, shoulder_camera_errors, shoulder_errors
 
 log = logging.getLogger("gputrack")
 
@@ -84,6 +84,15 @@ def body(
             print(f"  {side:<6} start {' '.join(f'{v:8.2f}' for v in row0)}  ->  final {' '.join(f'{v:8.2f}' for v in row)}",
                   file=out)  # fmt: skip
         report["shoulder_error_mm"] = {"right": sh[0].tolist(), "left": sh[1].tolist()}
+        cam = shoulder_camera_errors(seq.chain, estimates[-1], seq.params[-1]).reshape(2, 3)
+        turn = np.degrees(estimates[-1][1] - seq.params[-1][1])
+        print("  shoulder joints in camera coordinates (mm)         x        y        z", file=out)
+        for side, row in zip(("right", "left"), cam):
+            print(f"  {side:<6} {'':>41} {' '.join(f'{v:8.2f}' for v in row)}", file=out)
+        lever = abs(np.radians(turn)) * abs(seq.params[-1][17])  # the turn times the shoulder's x
+        print(f"  torso turn error {turn:+.2f} deg (moves t_RS, t_LS along torso z by -+{lever:.1f} mm)", file=out)
+        report["shoulder_camera_error_mm"] = {"right": cam[0].tolist(), "left": cam[1].tolist()}
+        report["torso_turn_error_deg"] = float(turn)
     ms = np.array([p["ms"] for p in per_frame])
     print("\nper-stage time, Table 1/2 layout (ms; frames after the first, which compiles kernels)", file=out)
     print(tracker.pipeline.table(), file=out)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ARM_PARTS", "arm_axis_errors", "axis_angle", "mean_arm_errors", "shoulder_errors"]
+__all__ = ["ARM_PARTS", "arm_axis_errors", "axis_angle", "mean_arm_errors", "shoulder_camera_errors", "shoulder_errors"]
 
 #: Table 5/6 columns: right upper arm, left upper arm, right forearm, left forearm (upper_body() part indices)
 ARM_PARTS = {"right_upper_arm": 1, "left_upper_arm": 2, "right_forearm": 3, "left_forearm": 4}
@@ -70,3 +70,23 @@ def shoulder_errors(estimated, true) -> np.ndarray:
     if est.shape[-1] != 20 or tru.shape[-1] != 20:
         raise ValueError(f"estimated and true: expected 20-parameter vectors, got {est.shape} and {tru.shape}")
     return np.abs(est[:, 14:20] - tru[:, 14:20])
+
+
+def shoulder_camera_errors(chain, estimated, true) -> np.ndarray:
+    """(B, 6) absolute error (mm) of the right and left shoulder joints' positions in camera coordinates.
+
+    The joints are the origins of the upper arms (``right_upper_arm``, ``left_upper_arm``) under
+    the full pose, so an error of the torso's pose shows here as it does in the image, whereas
+    :func:`shoulder_errors` compares t_RS, t_LS in torso coordinates: a torso turned by an angle
+    a about its vertical axis (the parts' depth is along the camera's viewing direction there)
+    with the shoulders kept where they are seen moves t_RS and t_LS along torso z by about
+    -+ a * 195 mm (3.4 mm per degree), in opposite directions on the two sides.
+    """
+    est = _poses(chain, estimated, "estimated")
+    tru = _poses(chain, true, "true")
+    if est.shape != tru.shape:
+        raise ValueError(
+            f"estimated and true: expected the same number of poses, got {est.shape[0]} and {tru.shape[0]}"
+        )
+    idx = [chain.index("right_upper_arm"), chain.index("left_upper_arm")]
+    return np.abs(est[:, idx, :, 3] - tru[:, idx, :, 3]).reshape(len(est), 6)

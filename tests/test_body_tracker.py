@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import gputrack
-from gputrack.metrics import arm_axis_errors, shoulder_errors
+from gputrack.metrics import arm_axis_errors, shoulder_camera_errors, shoulder_errors
 from gputrack.models import rigid
 from gputrack.models.chain import joint_transform
 from gputrack.sim import sequence
@@ -70,10 +70,15 @@ def test_shoulders_estimated_from_30mm_off(device):
         est = tracker.track(f.gray, f.depth)
     err = shoulder_errors(est.params, seq.params[-1])[0]
     start_err = shoulder_errors(start, seq.params[0])[0]
-    # Measured: 0-3 mm per axis after 6 frames (the paper reaches 0.16-0.31 mm; the depth axis
-    # converges slowest here). This pins what the tracker achieves now.
+    # t_RS, t_LS (torso coordinates, Table 7): measured 0-3 mm per axis after 6 frames (the paper
+    # reaches 0.16-0.31 mm). The torso-z error is the torso's turn (about its vertical axis) times
+    # the 195 mm lever to the shoulder, opposite on the two sides: with the depth quantised to 5 mm
+    # the turn of the static, frontal torso is found to 0.5-1 deg only (0.02 deg with exact depth).
     assert (err <= 5.0).all(), err
     assert err.sum() < start_err.sum() / 3, (err, start_err)
+    # the shoulder joints where the camera sees them: measured 0.4-1.0 mm per axis here
+    cam = shoulder_camera_errors(seq.chain, est.params, seq.params[-1])[0]
+    assert (cam <= 2.0).all() and (cam[[2, 5]] <= 1.5).all(), cam
 
 
 def test_bad_frames_keep_the_last_pose(device, arm_cross):
