@@ -19,6 +19,8 @@ composition (every entry; an OpenCL launch costs microseconds).
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from ..models.chain import Chain
@@ -66,11 +68,24 @@ def pose_residuals(
     stride = 2 * P + 1
     plan = None
     if central and n % stride == 0:
-        order, moved = _plan(chain, n // stride, be.lanes(device))
-        plan = (stride, constant(device, order), constant(device, moved))
+        plan = _device_plan(device, chain, n // stride, be.lanes(device))
     _, offsets = chain_tables(device, chain, np.float32)
     return be.pose_residuals(device, chain, params, offsets, rgb.on(device), depth.on(device), g, d,
                              camera.as_array(), out, plan, **p)  # fmt: skip
+
+
+_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {(chain, B, lanes): plan}
+
+
+def _device_plan(device, chain: Chain, problems: int, lanes: int):
+    """(stride, order, moved) of :func:`_plan` on ``device``, built and uploaded once per chain,
+    number of problems and lanes (a solve calls the op every iteration)."""
+    per_device = _PLANS.setdefault(device, {})
+    key = (chain.key(), problems, lanes)
+    if key not in per_device:
+        order, moved = _plan(chain, problems, lanes)
+        per_device[key] = (2 * chain.n_params + 1, constant(device, order), constant(device, moved))
+    return per_device[key]
 
 
 def _plan(chain: Chain, problems: int, lanes: int) -> tuple[np.ndarray, np.ndarray]:

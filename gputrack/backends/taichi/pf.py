@@ -1,10 +1,12 @@
 """Taichi: one particle-filter stage (gputrack/ops/pf.py) as one kernel launch.
 
-The kernel runs its tasks in order, each a parallel loop (Taichi finishes one before the next):
-sample (eq. 12, the generator of gputrack/ops/particles.py), pose every part (eq. 1-11), and,
-when some parts do not move, evaluate each candidate once to cache them (re-use mode of
-template.py), score (eq. 17-19, the kernel body of template.py), and select the best k (one
-serial task). Scratch arrays are kept per device; only the k rows, scores and indices are new.
+The kernel runs its tasks in order (Taichi finishes one before the next): when some parts do not
+move, evaluate each candidate once to cache them (re-use mode of template.py, one serial task);
+then one parallel loop over groups of samples, each group drawing its samples (eq. 12, the
+generator of gputrack/ops/particles.py), posing every part (eq. 1-11) and scoring them (eq.
+17-19, the kernel body of template.py); then select the best k (one serial task). A parallel
+loop's dispatch costs ~60 us on a CPU, so sampling has no loop of its own. Scratch arrays are
+kept per device; only the k rows, scores and indices are new.
 """
 
 import numpy as np
@@ -16,7 +18,7 @@ from .kinematics import pose_f32
 from .launch import launch
 from .particles import best_k_body, sample_key, sample_one
 from .runtime import scratch, ti
-from .tasks import CPU_TASK, chunk, cpu_chunks
+from .tasks import cpu_chunks
 from .template import (
     F1,
     F2,
@@ -40,18 +42,21 @@ def _pf_stage(
     rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
     reuse: ti.template(), chain: ti.template(),
 ):  # fmt: skip
-    key = sample_key(seed[0], seed[1])
-    n = samples.shape[0]
-    for it in range(n if ti.static(chunks == 0) else chunks * CPU_TASK):
-        b0, b1 = chunk(it, n, chunks)
-        for b in range(b0, b1):
-            sample_one(cand, sig, samples, key, b, 1, False)  # eq. 12, keep_candidates
-            pose_f32(samples, b, chain, offsets, tf)  # eq. 1-11
+    pose = ti.static((_sample_pose, (cand, sig, seed, samples, offsets, tf, chain)))  # each group's lanes first
     if ti.static(reuse):
-        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, 0)
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, 0, pose)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
-               groups, False, L, chunks, REUSE_PF if ti.static(reuse) else 0, moved, cache, moved, moved, 0)  # fmt: skip
+               groups, False, L, chunks, REUSE_PF if ti.static(reuse) else 0, moved, cache, moved, moved, 0,
+               pose)  # fmt: skip
     best_k_body(total, idx, val, keys, samples, sel, True)
+
+
+@ti.func
+def _sample_pose(args: ti.template(), b):
+    """Sample b (eq. 12, keep_candidates) and its transforms (eq. 1-11)."""
+    cand, sig, seed, samples, offsets, tf, chain = ti.static(args)
+    sample_one(cand, sig, samples, sample_key(seed[0], seed[1]), b, 1, False)
+    pose_f32(samples, b, chain, offsets, tf)
 
 
 def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, *,

@@ -103,7 +103,7 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
     dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), cache: ti.template(),
-    serial: ti.template(), stride: ti.template(),
+    serial: ti.template(), stride: ti.template(), pose: ti.template() = (),
 ):  # fmt: skip
     """Re-use modes, first task (on the calling thread when ``serial``: a few sources, and a
     thread-pool dispatch costs ~50 us on a CPU): evaluate the source hypothesis of cache row s in
@@ -121,6 +121,8 @@ def _source_cache(
         b = s * stride
         if ti.static(stride == 0):
             b = (s * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
+        if ti.static(len(pose) > 0):
+            ti.static(pose[0])(ti.static(pose[1]), b)
         P = ti.Matrix([[0.0] * 12], dt=ti.f32)
         for j in range(rparts):
             _load_pose(P, 0, tf, b, j)
@@ -185,8 +187,13 @@ def _rgbd_body(
     order: ti.template(),
     full: ti.template(),
     stride: ti.template(),
+    pose: ti.template() = (),
 ):
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
+
+    ``pose``: () (the transforms tf are given), or (func, args) with a ti.func ``func(args, b)``
+    that writes hypothesis b's transforms into tf; a group calls it for its lanes first (pf.py
+    samples and poses there, so that one parallel loop does the whole stage).
 
     ``reuse`` (static): 0 = every part of every hypothesis. ``REUSE_PF`` (cost only): the B
     hypotheses are C = cache.shape[0] blocks of samples of sample_around (hypothesis b belongs to
@@ -217,6 +224,8 @@ def _rgbd_body(
             every = 0  # REUSE_SPARSE: a lane's row must be evaluated in full
             for l in ti.static(range(L)):
                 row[l] = ti.min(g * L + l, nb - 1)
+                if ti.static(len(pose) > 0):
+                    ti.static(pose[0])(ti.static(pose[1]), row[l])
                 if ti.static(reuse == REUSE_PF):
                     own[l] = row[l] * cache.shape[0] // nb  # as in sample_around
                 if ti.static(reuse == REUSE_SPARSE):
