@@ -139,15 +139,15 @@ def test_repeated_calls_read_and_write_their_own_arrays(device, P):
 def test_taichi_direct_launch_takes_numpy_arrays(device):
     if device.spec != "taichi:cpu":
         pytest.skip("NumPy arrays are passed to Taichi kernels by address on taichi:cpu only")
-    from gputrack.backends.taichi import lm as tlm
+    from gputrack.backends.taichi.arrays import COPY
     from gputrack.backends.taichi.launch import launch
 
     for seed, order in enumerate("CCFC"):  # the F-ordered array goes through kernel(...)
         src = np.asarray(np.random.default_rng(seed).normal(size=(5, 7)), order=order)
         dst = device.empty((5, 7), np.float64)
-        launch(tlm._copy, (src, dst.buffer))
+        launch(COPY[2], (src, dst.buffer), (True,))
         back = np.empty((5, 7), np.float64)
-        launch(tlm._copy, (dst.buffer, back))
+        launch(COPY[2], (dst.buffer, back), (True,))
         np.testing.assert_array_equal(back, src)
         np.testing.assert_array_equal(dst.numpy(), src)
 

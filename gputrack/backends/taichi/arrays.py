@@ -3,37 +3,58 @@
 On the CPU arch a NumPy array passed to a kernel is read and written in place, so one parallel
 copy kernel moves several GB/s, where ``Ndarray.from_numpy``/``to_numpy`` move about 0.7 GB/s.
 Loops are nested per dimension (outermost parallel): Taichi's ``ti.grouped`` loop over an
-external array recomputes the multi-index per element and runs ten times slower.
+external array recomputes the multi-index per element and runs ten times slower. Arrays of up to
+``SERIAL_COPY`` elements are copied on the calling thread (``serial``): a parallel loop's dispatch
+costs ~60 us on a CPU, more than copying them.
 """
 
+import numpy as np
+
+from .launch import launch
 from .runtime import ti
+
+#: the largest copy (elements) done on the calling thread
+SERIAL_COPY = 1 << 16
 
 
 @ti.kernel
-def _copy1(src: ti.types.ndarray(ndim=1), dst: ti.types.ndarray(ndim=1)):
+def _copy1(src: ti.types.ndarray(ndim=1), dst: ti.types.ndarray(ndim=1), serial: ti.template()):
+    ti.loop_config(serialize=serial)
     for i in range(src.shape[0]):
         dst[i] = src[i]
 
 
 @ti.kernel
-def _copy2(src: ti.types.ndarray(ndim=2), dst: ti.types.ndarray(ndim=2)):
+def _copy2(src: ti.types.ndarray(ndim=2), dst: ti.types.ndarray(ndim=2), serial: ti.template()):
+    ti.loop_config(serialize=serial)
     for i in range(src.shape[0]):
         for j in range(src.shape[1]):
             dst[i, j] = src[i, j]
 
 
 @ti.kernel
-def _copy3(src: ti.types.ndarray(ndim=3), dst: ti.types.ndarray(ndim=3)):
+def _copy3(src: ti.types.ndarray(ndim=3), dst: ti.types.ndarray(ndim=3), serial: ti.template()):
+    ti.loop_config(serialize=serial)
     for i in range(src.shape[0]):
         for j, k in ti.ndrange(src.shape[1], src.shape[2]):
             dst[i, j, k] = src[i, j, k]
 
 
 @ti.kernel
-def _copy4(src: ti.types.ndarray(ndim=4), dst: ti.types.ndarray(ndim=4)):
+def _copy4(src: ti.types.ndarray(ndim=4), dst: ti.types.ndarray(ndim=4), serial: ti.template()):
+    ti.loop_config(serialize=serial)
     for i in range(src.shape[0]):
         for j, k, m in ti.ndrange(src.shape[1], src.shape[2], src.shape[3]):
             dst[i, j, k, m] = src[i, j, k, m]
 
 
 COPY = {1: _copy1, 2: _copy2, 3: _copy3, 4: _copy4}
+
+
+def copy(src, dst) -> bool:
+    """dst[...] = src[...] (Taichi ndarrays or C-contiguous NumPy arrays of the same shape and dtype)
+    in one directly launched kernel; False (nothing done) if ndim > 4."""
+    kernel = COPY.get(len(dst.shape))
+    if kernel is not None:
+        launch(kernel, (src, dst), (int(np.prod(dst.shape)) <= SERIAL_COPY,))
+    return kernel is not None

@@ -42,6 +42,7 @@ folded away).
 
 import numpy as np
 
+from .arrays import copy
 from .launch import launch
 from .runtime import current_arch, ti
 
@@ -837,17 +838,10 @@ class State:
         self.dt = _ti_dtype(S.dtype)
 
 
-@ti.kernel
-def _copy(src: nd, dst: nd):
-    """dst = src (same shape); small arrays, a NumPy one read or written in place on taichi:cpu."""
-    for t in ti.grouped(src):
-        dst[t] = src[t]
-
-
 def upload_into(device, arr, host):
     """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts it."""
     if current_arch() == "cpu":
-        launch(_copy, (host, arr.buffer))  # ~15 us; ``from_numpy`` takes ~0.1 ms
+        copy(host, arr.buffer)  # ~15 us; ``from_numpy`` takes ~0.1 ms
     else:
         arr.buffer.from_numpy(host)
 
@@ -880,7 +874,7 @@ def _download(arr):
     if current_arch() != "cpu":
         return arr.numpy()
     out = np.empty(arr.shape, arr.dtype)
-    launch(_copy, (arr.buffer, out))
+    copy(arr.buffer, out)
     arr.device.transfers.d2h += out.nbytes
     return out
 
