@@ -222,10 +222,11 @@ def _rgbd_body(
             row = ti.Vector([0] * L, dt=ti.i32)  # lanes past the batch repeat the last hypothesis
             own = ti.Vector([0] * L, dt=ti.i32)  # reuse: each lane's source (cache row)
             every = 0  # REUSE_SPARSE: a lane's row must be evaluated in full
+            if ti.static(len(pose) > 0):
+                for l in range(L):  # a loop, not unrolled: one copy of the posing code (compile time)
+                    ti.static(pose[0])(ti.static(pose[1]), ti.min(g * L + l, nb - 1))
             for l in ti.static(range(L)):
                 row[l] = ti.min(g * L + l, nb - 1)
-                if ti.static(len(pose) > 0):
-                    ti.static(pose[0])(ti.static(pose[1]), row[l])
                 if ti.static(reuse == REUSE_PF):
                     own[l] = row[l] * cache.shape[0] // nb  # as in sample_around
                 if ti.static(reuse == REUSE_SPARSE):
@@ -288,49 +289,24 @@ def _rgbd_body(
             eC = ti.Vector([0.0] * L, dt=ti.f32)
             blk = ti.Vector([0.0] * L, dt=ti.f32)
             cnt = 0
-            if ti.static(reuse == REUSE_SPARSE):  # the projected parts' residuals only
-                for j in range(rparts):
+            for j in range(rparts):
+                if ti.static(want_residuals):  # the projected parts' (every part's but with REUSE_SPARSE)
                     if _project_part(moved, g, j, reuse, every):
                         for i in range(ridx[j], ridx[j + 1]):
                             _rgb_residuals(scratch, residuals, ridx, rparts, row, g, i, n, rpts[i, 3], alpha,
                                            beta, cc, wc, L)  # fmt: skip
-            elif ti.static(reuse == REUSE_PF):  # samples of the projected parts, then the sources'
-                for j in range(rparts):
-                    if _project_part(moved, g, j, reuse, every):
-                        for i in range(ridx[j], ridx[j + 1]):
-                            T = rpts[i, 3]
-                            for l in ti.static(range(L)):
-                                blk[l] += _rho_c(beta[l] * scratch[g, i * L + l] - alpha[l] * T,
-                                                 scratch[g, (n + i) * L + l], cc)  # fmt: skip
-                            cnt += 1
-                            if cnt == CHUNK:
-                                eC += blk
-                                blk.fill(0.0)
-                                cnt = 0
-                    else:
-                        for i in range(ridx[j], ridx[j + 1]):
-                            T = rpts[i, 3]
-                            for l in ti.static(range(L)):
-                                blk[l] += _rho_c(beta[l] * cache[own[l], i] - alpha[l] * T, cache[own[l], n + i], cc)
-                            cnt += 1
-                            if cnt == CHUNK:
-                                eC += blk
-                                blk.fill(0.0)
-                                cnt = 0
-            else:
-                for i in range(n):
-                    T = rpts[i, 3]
-                    if ti.static(want_residuals):
-                        _rgb_residuals(scratch, residuals, ridx, rparts, row, g, i, n, T, alpha, beta, cc, wc, L)
-                    else:
+                elif _project_part(moved, g, j, reuse, every):  # rho_c over every point: samples in scratch
+                    for i in range(ridx[j], ridx[j + 1]):
                         for l in ti.static(range(L)):
-                            blk[l] += _rho_c(beta[l] * scratch[g, i * L + l] - alpha[l] * T,
-                                             scratch[g, (n + i) * L + l], cc)  # fmt: skip
-                    cnt += 1
-                    if cnt == CHUNK:
-                        eC += blk
-                        blk.fill(0.0)
-                        cnt = 0
+                            d = beta[l] * scratch[g, i * L + l] - alpha[l] * rpts[i, 3]
+                            blk[l] += _rho_c(d, scratch[g, (n + i) * L + l], cc)
+                        eC, blk, cnt = _blocked(eC, blk, cnt)
+                else:  # REUSE_PF: the source's samples, in the cache
+                    for i in range(ridx[j], ridx[j + 1]):
+                        for l in ti.static(range(L)):
+                            d = beta[l] * cache[own[l], i] - alpha[l] * rpts[i, 3]
+                            blk[l] += _rho_c(d, cache[own[l], n + i], cc)
+                        eC, blk, cnt = _blocked(eC, blk, cnt)
             eC += blk
             # ---- depth: eps_D = sum rho_c'(d'_i) (eq. 18); residuals r'_i (eq. 20-21)
             eD = ti.Vector([0.0] * L, dt=ti.f32)
@@ -378,6 +354,19 @@ def _project_part(moved: ti.template(), g, j, reuse: ti.template(), every):
     if ti.static(reuse == REUSE_SPARSE):
         yes = moved[g, j] | every
     return yes != 0
+
+
+@ti.func
+def _blocked(acc, blk, cnt):
+    """One more term in a blocked sum: every CHUNK terms, the block's sum moves into acc."""
+    a = acc
+    b = blk
+    c = cnt + 1
+    if c == CHUNK:
+        a += b
+        b.fill(0.0)
+        c = 0
+    return a, b, c
 
 
 @ti.func
