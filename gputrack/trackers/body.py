@@ -8,9 +8,10 @@ Per frame (Alg. 1-2 of the paper):
    around the C candidates, forward kinematics, score eq. 17-19, keep the best C as the next
    candidates — all on the device (optionally in cascade order: torso, right arm, left arm,
    eq. 13-16, by sampling one group of parameters at a time);
-4. Levenberg-Marquardt on all C candidates at once (sec. 3.4, eq. 20-24), with the block-sparse
-   Jacobian of Fig. 2 (a part's residuals depend on its own and its ancestors' parameters),
-   optionally with the 6 shoulder parameters (sec. 3.6, eq. 25-27);
+4. Levenberg-Marquardt on all C candidates at once (sec. 3.4, eq. 20-24), with central
+   differences, or with ``sparse_jacobian`` the block-sparse Jacobian of Fig. 2 (a part's residuals
+   depend on its own and its ancestors' parameters; about half the residual work), optionally with
+   the 6 shoulder parameters (sec. 3.6, eq. 25-27);
 5. download the best candidate's pose.
 
 The tracker never returns a NaN pose: a frame whose images are unusable (no valid depth, the
@@ -54,7 +55,7 @@ class TrackerConfig:
     stages: int = 3  # coarse-to-fine stages, sigma halved each
     cascade: bool = True  # torso, then right arm, then left arm (eq. 13-16); False: all at once
     lm_iterations: int = 10  # m: LM iterations per frame (0: PF only)
-    sparse_jacobian: bool = True  # Fig. 2 block-sparse Jacobian (False: dense, with the coupling through eq. 17's beta)
+    sparse_jacobian: bool = False  # Fig. 2 block-sparse Jacobian, about half the LM's work (see perf/README.md)
     shoulders: bool = False  # estimate the shoulder positions too (20 parameters)
     n_rgb: int = 128  # N
     n_depth: int = 128  # N'
