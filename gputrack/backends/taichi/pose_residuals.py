@@ -1,11 +1,12 @@
 """Taichi: pose residuals (gputrack/ops/pose_residuals.py) as one kernel launch.
 
-The kernel runs its tasks in order, each a parallel loop (Taichi finishes one before the next):
-pose every parameter vector (eq. 1-11) and, for a central-difference stack, flag the rows that
-differ from their problem's point in more than their own parameter; evaluate each problem's point
-once to cache its per-part sums (template.py's re-use, one serial task); then the residuals
-(eq. 20-21, template.py's kernel body) with the lanes of a group taking rows that move the same
-parts (the plan of the op), each group projecting and writing only those parts.
+The kernel runs its tasks in order (Taichi finishes one before the next): pose every parameter
+vector (eq. 1-11; on the calling thread for up to SERIAL_ROWS rows on a CPU) and, for a
+central-difference stack, flag the rows that differ from their problem's point in more than their
+own parameter; evaluate each problem's point once to cache its per-part sums (template.py's
+re-use, one serial task); then the residuals (eq. 20-21, template.py's kernel body, one parallel
+loop) with the lanes of a group taking rows that move the same parts (the plan of the op), each
+group projecting and writing only those parts.
 """
 
 from .kinematics import pose_f32
@@ -15,7 +16,7 @@ from .tasks import CPU_TASK, chunk, cpu_chunks
 from .template import F1, F2, F4, I1, I2, REUSE_SPARSE, _rgbd_body, _source_cache, cam_array, default_params
 
 #: on the CPU, up to this many rows are posed on the calling thread (~0.15 us a row for the upper
-#: body; a parallel loop's dispatch costs ~50 us)
+#: body; a parallel loop's dispatch costs ~60 us)
 SERIAL_ROWS = 1024
 
 
