@@ -53,6 +53,23 @@ def match_shape(name: str, shape: tuple, spec: tuple, dims: dict) -> None:
             raise ValueError(f"{name}: expected shape {_fmt_shape(spec, dims)}, got {tuple(shape)}")
 
 
+_ACCEPTED: dict = {}
+
+
+def _accepted(dtype) -> tuple:
+    """The accepted NumPy dtypes of ``arg``'s ``dtype`` (one dtype or a tuple), memoised: an op's
+    arguments are checked on every call."""
+    key = tuple(dtype) if isinstance(dtype, (tuple, list)) else dtype
+    found = _ACCEPTED.get(key)
+    if found is None:
+        found = _ACCEPTED[key] = tuple(np.dtype(d) for d in (key if isinstance(key, tuple) else (key,)))
+    return found
+
+
+def _names(accepted) -> str:
+    return " or ".join(d.name for d in accepted)
+
+
 def arg(
     device: Device,
     x,
@@ -70,13 +87,12 @@ def arg(
     TypeError unless ``cast`` (then it is converted to the first accepted dtype). Python lists
     and scalars are converted to the first accepted dtype.
     """
-    accepted = tuple(np.dtype(d) for d in (dtype if isinstance(dtype, (tuple, list)) else (dtype,)))
-    names = " or ".join(d.name for d in accepted)
+    accepted = _accepted(dtype)
     if isinstance(x, DeviceArray):
         if x.device is not device:
             raise ValueError(f"{name}: expected an array on {device.spec} or a NumPy array, got an array on {x.device.spec}")
         if x.dtype not in accepted:
-            raise TypeError(f"{name}: expected dtype {names}, got {x.dtype.name}")
+            raise TypeError(f"{name}: expected dtype {_names(accepted)}, got {x.dtype.name}")
         if shape is not None:
             match_shape(name, x.shape, shape, dims if dims is not None else {})
         return x
@@ -90,7 +106,7 @@ def arg(
         if cast and x.dtype.kind in "biuf":
             x = x.astype(accepted[0])
         else:
-            raise TypeError(f"{name}: expected dtype {names}, got {x.dtype.name}")
+            raise TypeError(f"{name}: expected dtype {_names(accepted)}, got {x.dtype.name}")
     if shape is not None:
         match_shape(name, x.shape, shape, dims if dims is not None else {})
     if finite and x.dtype.kind == "f" and not np.isfinite(x).all():

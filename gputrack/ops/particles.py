@@ -80,11 +80,13 @@ class BestK:
     rows: object = None
 
 
-def best_k(device, scores, k, rows=None) -> BestK:
+def best_k(device, scores, k, rows=None, *, out=None) -> BestK:
     """Select the k lowest of B scores on the device (ascending cost), one launch.
 
     scores: (B,) float32 (NaN ranks after +inf); ties keep the lower index first; k in [1, B];
     rows: optional (B, P) float32 (e.g. the samples) whose selected rows are returned too.
+    ``out``: a BestK on the device (e.g. an earlier result of the same sizes) to write into
+    instead of allocating; its ``rows`` must not be ``rows``.
     The selection is a single pass with an ordered k-list (O(B k)): meant for k << B.
     """
     check_device(device)
@@ -99,8 +101,33 @@ def best_k(device, scores, k, rows=None) -> BestK:
         r = arg(device, rows, "rows", ("B", "P"), dims, finite=False)
         if dims["P"] == 0:
             raise ValueError(f"rows: expected at least one column, got shape {r.shape}")
-    idx, val, sel = backend_module(device, "particles").best_k(device, s, int(k), r)
+    outs = best_k_out(device, out, int(k), dims.get("P"), r)
+    idx, val, sel = backend_module(device, "particles").best_k(device, s, int(k), r, outs)
     return BestK(idx, val, sel)
+
+
+def best_k_out(device, out, k: int, P: int | None, rows=None):
+    """Check ``out`` of best_k / pf_stage (None, or a BestK of k indices, k scores and, when P is
+    not None, (k, P) rows, on ``device``); return its arrays (idx, val, rows) or None."""
+    if out is None:
+        return None
+    if not isinstance(out, BestK):
+        raise TypeError(f"out: expected a gputrack.ops.particles.BestK (e.g. an earlier result), got {type(out).__name__}")
+    want = (("indices", (k,), np.int32), ("scores", (k,), np.float32))
+    want += ((("rows", (k, P), np.float32),) if P is not None else ())
+    for name, shape, dtype in want:
+        a = getattr(out, name)
+        ok = isinstance(a, np.ndarray) and a.flags.c_contiguous and a.flags.writeable
+        if device.backend != "numpy":
+            ok = isinstance(a, DeviceArray) and a.device is device
+        if not ok:
+            raise TypeError(f"out.{name}: expected a writable array on {device.spec}, got {type(a).__name__}")
+        if tuple(a.shape) != shape or a.dtype != dtype:
+            raise ValueError(f"out.{name}: expected a {np.dtype(dtype).name} array of shape {shape}, "
+                             f"got {a.dtype.name} {tuple(a.shape)}")  # fmt: skip
+    if rows is not None and out.rows is rows:
+        raise ValueError("out.rows: expected an array other than the rows selected from")
+    return out.indices, out.scores, (out.rows if P is not None else None)
 
 
 def sortable_key(scores: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from ..models.chain import Chain
 from . import backend_module
 from ._args import arg, check_device, constant
 from .kinematics import forward_kinematics
-from .particles import BestK, _seed, best_k, sample_around
+from .particles import BestK, _seed, best_k, best_k_out, sample_around
 from .template import rgbd_cost, scene_args
 
 __all__ = ["pf_stage"]
@@ -34,7 +34,7 @@ __all__ = ["pf_stage"]
 
 def pf_stage(
     device, chain, candidates, sigma, n, seed, rgb, depth, gray, depth_image, camera, *,
-    k=None, lam=0.9, c_rgb=None, c_depth=5.0,
+    k=None, lam=0.9, c_rgb=None, c_depth=5.0, out=None,
 ) -> BestK:  # fmt: skip
     """Draw ``n`` samples around the candidates, score them with eq. 17-19, keep the best ``k``.
 
@@ -47,6 +47,8 @@ def pf_stage(
 
     Returns :class:`gputrack.ops.particles.BestK`: ``rows`` (k, P) float32, the next candidates,
     ``scores`` (k,) their costs (eq. 19) ascending, ``indices`` (k,) their sample indices.
+    ``out``: a BestK on the device (e.g. the result of an earlier stage of the same sizes, not the
+    one whose rows are ``candidates``) to write into instead of allocating.
     """
     check_device(device)
     if not isinstance(chain, Chain):
@@ -70,14 +72,15 @@ def pf_stage(
     k = dims["C"] if k is None else k
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= int(n):
         raise ValueError(f"k: expected an integer in [1, n={n}], got {k!r}")
+    outs = best_k_out(device, out, int(k), dims["P"], cand)
     lo, hi = _seed(seed)
     g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, chain.n_parts)
     if device.backend == "taichi":
         moved = chain.dependency_mask()[:, sig != 0].any(axis=1)  # parts that a sampled parameter poses
         return backend_module(device, "pf").pf_stage(
             device, chain, cand, constant(device, sig), int(n), lo, hi, rgb.on(device), depth.on(device), g, d,
-            camera.as_array(), moved, int(k), **p,
+            camera.as_array(), moved, int(k), outs, **p,
         )  # fmt: skip
     samples = sample_around(device, cand, constant(device, sig), int(n), seed, keep_candidates=True)
     cost = rgbd_cost(device, forward_kinematics(device, chain, samples), rgb, depth, g, d, camera, **p)
-    return best_k(device, cost.total, int(k), rows=samples)
+    return best_k(device, cost.total, int(k), rows=samples, out=out)

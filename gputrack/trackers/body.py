@@ -9,9 +9,9 @@ Per frame (Alg. 1-2 of the paper):
    candidates — all on the device (optionally in cascade order: torso, right arm, left arm,
    eq. 13-16, by sampling one group of parameters at a time);
 4. Levenberg-Marquardt on all C candidates at once (sec. 3.4, eq. 20-24), with central
-   differences, or with ``sparse_jacobian`` the block-sparse Jacobian of Fig. 2 (a part's residuals
-   depend on its own and its ancestors' parameters; about half the residual work), optionally with
-   the 6 shoulder parameters (sec. 3.6, eq. 25-27);
+   differences and the block-sparse Jacobian of Fig. 2 (a part's residuals depend on its own and
+   its ancestors' parameters; about half the residual work; ``sparse_jacobian=False``: every
+   entry), optionally with the 6 shoulder parameters (sec. 3.6, eq. 25-27);
 5. download the best candidate's pose.
 
 The tracker never returns a NaN pose: a frame whose images are unusable (no valid depth, the
@@ -55,7 +55,7 @@ class TrackerConfig:
     stages: int = 3  # coarse-to-fine stages, sigma halved each
     cascade: bool = True  # torso, then right arm, then left arm (eq. 13-16); False: all at once
     lm_iterations: int = 10  # m: LM iterations per frame (0: PF only)
-    sparse_jacobian: bool = False  # Fig. 2 block-sparse Jacobian, about half the LM's work (see perf/README.md)
+    sparse_jacobian: bool = True  # Fig. 2 block-sparse Jacobian (about half the LM's work); False: dense
     shoulders: bool = False  # estimate the shoulder positions too (20 parameters)
     n_rgb: int = 128  # N
     n_depth: int = 128  # N'
@@ -219,15 +219,20 @@ class BodyTracker:
                     except ValueError as e:  # the model is out of view at the last pose
                         return self._keep(str(e))
             with pipe.stage("upload candidates"):
-                cand = dev.asarray(self.candidates.astype(np.float32))
+                key = ("candidates", self.candidates.shape)
+                cand = self._reuse(key, dev.asarray(self.candidates.astype(np.float32), out=self._buffers.get(key)))
             rgb, dep = self._templates
+            calls = 0
             for s in range(cfg.stages):
                 for sigma in self._sigmas[s]:
                     with pipe.stage(f"PF stage {s + 1}"):
                         seed = int(self._rng.integers(2**63))
+                        key = ("pf_stage", calls % 2)  # two results in turn: a stage reads the other's rows
                         best = pf_stage(dev, self.chain, cand, sigma, cfg.samples, seed, rgb, dep, g, d, self.camera,
-                                        k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth)  # fmt: skip
-                        cand = best.rows
+                                        k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth,
+                                        out=self._buffers.get(key))  # fmt: skip
+                        cand = self._reuse(key, best).rows
+                        calls += 1
             if cfg.lm_iterations:
                 with pipe.stage("LM"):
                     x0 = to_numpy(cand).astype(np.float64)

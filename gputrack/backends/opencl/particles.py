@@ -50,11 +50,14 @@ def _keys(device, k):
     return found
 
 
-def best_k(device, scores, k, rows):
-    idx = device.empty((k,), np.int32)
-    val = device.empty((k,), np.float32)
+def best_k(device, scores, k, rows, out=None):
+    if out is not None:
+        idx, val, sel = out
+    else:
+        idx = device.empty((k,), np.int32)
+        val = device.empty((k,), np.float32)
+        sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
     keys = _keys(device, k)
-    sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
     p = rows.shape[1] if rows is not None else 0
     rows_buf = rows.buffer.data if rows is not None else scores.buffer.data
     sel_buf = sel.buffer.data if sel is not None else val.buffer.data

@@ -162,14 +162,17 @@ def _best_k(
     best_k_body(scores, idx, val, keys, rows, sel, with_rows)
 
 
-def best_k(device, scores, k, rows):
-    idx = device.empty((k,), np.int32)
-    val = device.empty((k,), np.float32)
+def best_k(device, scores, k, rows, out=None):
+    if out is not None:
+        idx, val, sel = out
+    else:
+        idx = device.empty((k,), np.int32)
+        val = device.empty((k,), np.float32)
+        sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
     keys = scratch(device, "keys", (k,), ti.u32)
     if rows is None:
         dummy = scratch(device, "dummy", (1, 1), ti.f32)
         _best_k(scores.buffer, idx.buffer, val.buffer, keys, dummy, dummy, False)
         return idx, val, None
-    sel = device.empty((k, rows.shape[1]), np.float32)
     _best_k(scores.buffer, idx.buffer, val.buffer, keys, rows.buffer, sel.buffer, True)
     return idx, val, sel

@@ -59,7 +59,7 @@ def _sample_pose(args: ti.template(), b):
     pose_f32(samples, b, chain, offsets, tf)
 
 
-def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, *,
+def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, out, *,
              lam, c_rgb, c_depth):  # fmt: skip
     C, P = cand.shape
     J = chain.n_parts
@@ -69,9 +69,12 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     _, offsets = chain_tables(device, chain, np.float32)
     reuse = not moved_parts.all()  # some parts look in every sample as in its candidate
     moved = constant(device, moved_parts.astype(np.int32))
-    idx = device.empty((k,), np.int32)
-    val = device.empty((k,), np.float32)
-    sel = device.empty((k, P), np.float32)
+    if out is not None:
+        idx, val, sel = out
+    else:
+        idx = device.empty((k,), np.int32)
+        val = device.empty((k,), np.float32)
+        sel = device.empty((k, P), np.float32)
     arrays = (
         cand.buffer, sig.buffer, np.array([lo, hi], np.uint32), scratch(device, "pf_samples", (n, P), ti.f32),
         offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,

@@ -92,12 +92,12 @@ def ndarray(dtype, shape):
     shape = tuple(int(s) for s in shape)
     if _fast_alloc:
         try:
-            arr = _ScalarNdarray.__new__(_ScalarNdarray)
+            prog = ti.lang.impl.get_runtime().prog
+            arr = _Array.__new__(_Array)
             _Ndarray.__init__(arr)
             arr.dtype = dtype
-            arr.arr = ti.lang.impl.get_runtime().prog.create_ndarray(
-                dtype, shape, layout=_Layout.NULL, zero_fill=False, dbg_info=_DebugInfo("")
-            )
+            arr.arr = prog.create_ndarray(dtype, shape, layout=_Layout.NULL, zero_fill=False, dbg_info=_DebugInfo(""))
+            arr._program = prog
             arr.shape = tuple(arr.arr.shape)
             arr.element_type = dtype
             return arr
@@ -107,19 +107,22 @@ def ndarray(dtype, shape):
     return ti.ndarray(dtype, shape)
 
 
-_scratch: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {name: (shape, dtype, array)}
+_scratch: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {name: {(shape, dtype): array}}
+_SCRATCH_SHAPES = 4  # shapes kept per name (an LM alternates two batch sizes of the same op)
 
 
 def scratch(device, name: str, shape, dtype):
-    """A scratch ndarray kept per device under ``name`` (reallocated when shape or dtype changes,
-    dropped with the device). Contents are undefined between calls."""
-    shape = tuple(int(s) for s in shape)
-    per_device = _scratch.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None or found[0] != shape or found[1] != dtype:
-        found = (shape, dtype, ndarray(dtype, shape))
-        per_device[name] = found
-    return found[2]
+    """A scratch ndarray kept per device, ``name``, shape and dtype (up to ``_SCRATCH_SHAPES``
+    shapes per name, the oldest dropped first; all dropped with the device). Contents are undefined
+    between calls."""
+    key = (tuple(int(s) for s in shape), dtype)
+    per_name = _scratch.setdefault(device, {}).setdefault(name, {})
+    found = per_name.get(key)
+    if found is None:
+        if len(per_name) >= _SCRATCH_SHAPES:
+            del per_name[next(iter(per_name))]
+        found = per_name[key] = ndarray(dtype, key[0])
+    return found
 
 
 try:
@@ -130,6 +133,21 @@ try:
 
     _DebugInfo = _core.DebugInfo
     _fast_alloc = True
+
+    class _Array(_ScalarNdarray):
+        """A Taichi ndarray that frees its memory only in the Taichi program that allocated it.
+        (Taichi's own frees through the current program: an array that outlives a restart of
+        Taichi, e.g. one kept by a closed device's caches, would free an array of the next one.)"""
+
+        _impl = ti.lang.impl  # kept: module globals may be gone when the interpreter exits
+
+        def __del__(self):
+            try:
+                prog = self._impl.get_runtime().prog
+            except (AttributeError, TypeError):  # Taichi is being torn down
+                return
+            if prog is not None and prog is getattr(self, "_program", None):
+                prog.delete_ndarray(self.arr)
 except (ImportError, AttributeError):  # pragma: no cover - another Taichi version
     _fast_alloc = False
 
