@@ -92,6 +92,25 @@ def test_best_k_matches_reference(device, b, k):
     np.testing.assert_array_equal(gputrack.to_numpy(plain.indices), order)
 
 
+def test_best_k_writes_into_out(device):
+    rng = np.random.default_rng(5)
+    scores = rng.normal(size=200).astype(np.float32)
+    rows = rng.normal(size=(200, 6)).astype(np.float32)
+    fresh = best_k(device, scores, 7, rows=rows)
+    out = best_k(device, scores[::-1].copy(), 7, rows=rows)
+    got = best_k(device, scores, 7, rows=rows, out=out)
+    for name in ("indices", "scores", "rows"):
+        assert getattr(got, name) is getattr(out, name)
+        np.testing.assert_array_equal(gputrack.to_numpy(getattr(got, name)), gputrack.to_numpy(getattr(fresh, name)))
+    plain = best_k(device, scores, 7, out=gputrack.BestK(out.indices, out.scores))
+    np.testing.assert_array_equal(gputrack.to_numpy(plain.indices), gputrack.to_numpy(fresh.indices))
+    with pytest.raises(ValueError, match=r"out.rows: expected a float32 array of shape \(7, 5\)"):
+        best_k(device, scores, 7, rows=rows[:, :5], out=out)
+    if device.backend != "numpy":
+        with pytest.raises(TypeError, match="out.scores: expected a writable array on"):
+            best_k(device, scores, 7, out=gputrack.BestK(out.indices, gputrack.to_numpy(out.scores)))
+
+
 def test_best_k_ordering_rules(device):
     scores = np.array([3.0, np.nan, -0.0, 1.0, np.inf, -np.inf, 1.0, -2.5], np.float32)
     got = gputrack.to_numpy(best_k(device, scores, 8).indices)

@@ -118,3 +118,25 @@ def test_pf_stage_rejects_bad_input(device, scene):
     with pytest.raises(ValueError, match="part indices"):
         pf_stage(device, two_parts, cand[:, :8], sigma[:8], 100, 1, *args)
 
+
+
+def test_pf_stage_writes_into_out(device, scene):
+    """``out=`` (an earlier result) receives the same k rows, scores and indices as a fresh call;
+    a stage's own candidates or a result of other sizes is refused."""
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    sigma = _sigma(chain, groups[1])
+    args = (rgb, dep, frame.gray, frame.depth, camera)
+    fresh = pf_stage(device, chain, cand, sigma, 300, SEED, *args)
+    out = pf_stage(device, chain, cand, sigma, 300, SEED + 1, *args)  # other values, same sizes
+    got = pf_stage(device, chain, cand, sigma, 300, SEED, *args, out=out)
+    for name in ("indices", "scores", "rows"):
+        assert getattr(got, name) is getattr(out, name)
+        np.testing.assert_array_equal(gputrack.to_numpy(getattr(got, name)), gputrack.to_numpy(getattr(fresh, name)))
+    chained = pf_stage(device, chain, fresh.rows, sigma, 300, SEED, *args, out=out)  # rows of another result: fine
+    assert chained.rows is out.rows
+    with pytest.raises(ValueError, match="out.rows: expected an array other than"):
+        pf_stage(device, chain, out.rows, sigma, 300, SEED, *args, out=out)
+    with pytest.raises(ValueError, match=r"out.indices: expected a int32 array of shape \(3,\)"):
+        pf_stage(device, chain, cand, sigma, 300, SEED, *args, k=3, out=out)
+    with pytest.raises(TypeError, match="out: expected a gputrack.BestK"):
+        pf_stage(device, chain, cand, sigma, 300, SEED, *args, out=(out.indices, out.scores, out.rows))
