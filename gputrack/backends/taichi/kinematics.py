@@ -106,5 +106,7 @@ def forward_kinematics(device, chain, params, out):
     _, offsets = chain_tables(device, chain, params.dtype)
     kernel = _fk_f64 if params.dtype == np.float64 else _fk_f32
     serial = current_arch() == "cpu" and params.shape[0] <= CPU_TASK
-    launch(kernel, (params.buffer, offsets.buffer, out.buffer), (chain.structure(), serial))
+    # compiled as the fused kernels that pose through pose_f32 are (template.py), so that the
+    # composition forward_kinematics -> rgbd_* rounds as they do
+    launch(kernel, (params.buffer, offsets.buffer, out.buffer), (chain.structure(), serial), scalarize=False)
     return out

@@ -52,7 +52,9 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
 
     ``scalarize=False`` compiles the kernel with Taichi's ``real_matrix_scalarize`` off on the CPU
     archs, so that LLVM keeps ``ti.types.vector`` values as SIMD vectors (the Kalman kernels' track
-    lanes); elsewhere, and for every other kernel, Taichi's default applies.
+    lanes, the template kernels' hypothesis lanes, forward kinematics, which must round as the
+    fused kernels that pose through it); elsewhere, and for every other kernel, Taichi's default
+    applies.
     """
     global _enabled
     key = None

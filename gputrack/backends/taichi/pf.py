@@ -85,5 +85,6 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,
         val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,
     )  # fmt: skip
-    launch(_pf_stage, arrays, (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), reuse, chain.structure()))
+    consts = (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), reuse, chain.structure())
+    launch(_pf_stage, arrays, consts, scalarize=False)
     return BestK(idx, val, sel)

@@ -91,6 +91,6 @@ def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camer
     chunks = cpu_chunks(device)
     serial = chunks > 0 and n <= SERIAL_ROWS
     consts = (rgb["parts"], depth["parts"], groups, nl, chunks, chain.structure(), stride, serial)
-    launch(_pose_residuals, arrays, consts)
+    launch(_pose_residuals, arrays, consts, scalarize=False)
     return out
 
