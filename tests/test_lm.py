@@ -59,7 +59,7 @@ def expfit(X):
 # ops
 
 
-@pytest.mark.parametrize("B,M,P", [(1, 1, 1), (13, 7, 5), (3, 129, 20), (2, 3, 14)])
+@pytest.mark.parametrize("B,M,P", [(1, 1, 1), (13, 7, 5), (3, 129, 20), (2, 3, 14), (2, 45, 40)])  # 40: above STATIC_P_MAX
 def test_normal_equations_matches_reference(device, B, M, P):
     rng = np.random.default_rng(B * 100 + P)
     for dt in {np.float32, _fdt(device)}:
@@ -72,7 +72,7 @@ def test_normal_equations_matches_reference(device, B, M, P):
         assert gputrack.to_numpy(JtJ).dtype == dt
 
 
-@pytest.mark.parametrize("B,P", [(1, 1), (13, 5), (10, 20)])
+@pytest.mark.parametrize("B,P", [(1, 1), (13, 5), (10, 20), (3, 40)])
 def test_lm_step_and_solve_match_reference(device, B, P):
     rng = np.random.default_rng(P)
     dt = _fdt(device)

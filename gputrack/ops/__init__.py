@@ -17,10 +17,18 @@ import importlib
 from ..device import Device
 
 
+_MODULES: dict = {}
+
+
 def backend_module(device: Device, primitive: str):
-    """The module ``gputrack.backends.<backend>.<primitive>`` that implements ``primitive``."""
-    backend = "reference" if device.backend == "numpy" else device.backend
-    return importlib.import_module(f"gputrack.backends.{backend}.{primitive}")
+    """The module ``gputrack.backends.<backend>.<primitive>`` that implements ``primitive``
+    (looked up once per backend and primitive: ops call this on every call)."""
+    key = (device.backend, primitive)
+    found = _MODULES.get(key)
+    if found is None:
+        backend = "reference" if device.backend == "numpy" else device.backend
+        found = _MODULES[key] = importlib.import_module(f"gputrack.backends.{backend}.{primitive}")
+    return found
 
 
 from .kalman import (  # noqa: E402

@@ -11,17 +11,22 @@ the problem's data stays in cache between the phases (why not parallel: see ``_p
 The other archs run the O(B P M) Jacobian rows and the O(B P^2 M) normal equations as parallel
 loops over (problem, row) with serial per-problem phases between.
 
-The normal equations are dot products over contiguous rows of J^T, two rows by four columns per
-pass over M (``_gram_pair``); strided dot products were 3-4x slower. ``lm_solve`` first
-transposes J (B, M, P). Taichi reloads an ndarray's address and shape after every store (it
+``lm_solve`` and ``normal_equations`` on taichi:cpu with P <= STATIC_P_MAX read J (B, M, P) as
+stored: P is a compile-time value and each row of J adds its outer product with itself to J^T J
+as SIMD vectors of columns (``_gram_static``; the kernels are compiled with scalarisation off).
+Otherwise the normal equations are dot products over contiguous rows of J^T, two rows by four
+columns per pass over M (``_gram_pair``); strided dot products were 3-4x slower, so J is first
+transposed. Taichi reloads an ndarray's address and shape after every store (it
 cannot rule out aliasing), so a loop that stores per element is not vectorised and costs
 ~1-1.5 ns per element: the transpose groups its loads, and the solver, with central differences
 and no mask, computes J^T J and J^T r straight from the stacked residuals (``fused``) instead of
 storing J^T first. Measured on taichi:cpu (2 cores shared with other work, 2026-11-23; minimum
 over repeats, per problem, B = 10, M = 256, float64), P = 20 / P = 14:
 
-- ``lm_solve``: transpose ~4.5 / 3.5 us, J^T J and J^T r ~4 / 2.2 us, Cholesky < 1 us;
-  ~110-120 / 75-80 us per call for B = 10 including the launch (the other core busy).
+- ``lm_solve`` transposing first: transpose ~4.5 / 3.5 us, J^T J and J^T r ~4 / 2.2 us, Cholesky
+  < 1 us; ~110-120 / 75-80 us per call for B = 10 including the launch (the other core busy).
+  With ``_gram_static``: kernel ~65 us for B = 10, P = 20 (kernel profiler minimum, ~73 us
+  taking each row element from the loaded vector instead of a broadcast load).
 - solver iteration: finite flags ~1 / 0.8 us, acceptance ~0.4 us, fused normal equations
   ~10 / 5.3 us (6.6 + 5.5 / 4.7 + 2.4 us storing J^T first), step ~4 / 1.7 us; ~150-155 /
   ~90 us per launch for B = 10.
@@ -51,6 +56,8 @@ nd = ti.types.ndarray()
 RUNNING, CONVERGED, MAX_ITER, FAILED = 0, 1, 2, 3
 R_FTOL, R_XTOL, R_GTOL, R_MAXIT, R_NONFINITE, R_NOTPD, R_DAMPING = 1, 2, 3, 4, 5, 6, 7
 MAX_CHOL_TRIES = 40
+GRAM_SEG = 8  # columns per SIMD vector of _gram_static (8 float64: one AVX-512 register)
+STATIC_P_MAX = 32  # _gram_static unrolls P (P (P / 8 + 1) / 2 vector products per row of J)
 
 
 def _per_problem() -> bool:
@@ -238,22 +245,63 @@ def _put4(W: ti.template(), a, P, i, j, s0, s1, s2, s3):
 
 
 @ti.func
+def _gram_static(J: ti.template(), r: ti.template(), b, M, W: ti.template(), a, go, P: ti.template(),
+                 dt: ti.template()):  # fmt: skip
+    """J^T J (both triangles) into W[a + i*P + j] and J^T r into W[go + i] (eq. 22) from J[b] (M, P)
+    as stored, P a compile-time value: the sum over rows m of J of the outer product of row m with
+    itself, each product row i..P-1 kept as SIMD vectors of GRAM_SEG columns (lane vectors: the
+    kernel is compiled with scalarisation off on the CPU). No transpose, and each row of J is read
+    once: ~5 / 3 us per problem for P = 20 / 14, M = 256, float64 (one thread, 2026-11-23),
+    against ~8.5 / 5.7 us transposing first (``_transpose`` + ``_gram_pair``)."""
+    S = ti.static(GRAM_SEG)
+    NS = ti.static((P + S - 1) // S)
+    WS = ti.static([min(S, P - S * q) for q in range(NS)])  # segment widths (the last one may be narrower)
+    acc = [[ti.Vector([0.0] * WS[q], dt=dt) for q in ti.static(range(i // S + 1))] for i in ti.static(range(P))]
+    accg = [ti.Vector([0.0] * WS[q], dt=dt) for q in ti.static(range(NS))]
+    for m in range(M):
+        seg = [ti.Vector([ti.cast(J[b, m, S * q + e], dt) for e in ti.static(range(WS[q]))], dt=dt)
+               for q in ti.static(range(NS))]  # fmt: skip
+        rm = ti.cast(r[b, m], dt)
+        for i in ti.static(range(P)):
+            x = ti.cast(J[b, m, i], dt)  # a broadcast load (an element of seg would be a shuffle)
+            for q in ti.static(range(i // S + 1)):
+                acc[i][q] += x * seg[q]
+        for q in ti.static(range(NS)):
+            accg[q] += rm * seg[q]
+    for i in ti.static(range(P)):
+        for q in ti.static(range(i // S + 1)):
+            for e in ti.static(range(WS[q])):
+                if ti.static(S * q + e <= i):
+                    W[a + i * P + S * q + e] = acc[i][q][e]
+                    W[a + (S * q + e) * P + i] = acc[i][q][e]
+    for q in ti.static(range(NS)):
+        for e in ti.static(range(WS[q])):
+            W[go + S * q + e] = accg[q][e]
+
+
+@ti.func
 def _ops_block(P, M):
     """Per-problem block of the ops' 1-D workspace: A[P*P] (J^T J, then its factor), J^T [P*M], g[P]."""
     return P * P + P * M + P
 
 
 @ti.kernel
-def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template()):
+def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template(), SP: ti.template()):
+    """SP: P as a compile-time value for ``_gram_static`` (taichi:cpu), else 0."""
     B, M, P = J.shape[0], J.shape[1], J.shape[2]
     WB = _ops_block(P, M)
-    for t in range(B * P):
-        b = t // P
-        _transpose(J, W, b, t % P, b * WB + P * P, M)
-    for t in range(B * ((P + 1) // 2)):
-        b, i = t // ((P + 1) // 2), 2 * (t % ((P + 1) // 2))
-        a = b * WB
-        _gram_pair(W, a + P * P, M, W, a, r, b, W, a + P * P + P * M, i, M, P, dt, False, W, 0)  # eq. 22
+    if ti.static(SP > 0):
+        ti.loop_config(serialize=True)  # B small problems: one task (see _per_problem)
+        for b in range(B):
+            _gram_static(J, r, b, M, W, b * WB, b * WB + SP * SP + SP * M, SP, dt)  # eq. 22
+    else:
+        for t in range(B * P):
+            b = t // P
+            _transpose(J, W, b, t % P, b * WB + P * P, M)
+        for t in range(B * ((P + 1) // 2)):
+            b, i = t // ((P + 1) // 2), 2 * (t % ((P + 1) // 2))
+            a = b * WB
+            _gram_pair(W, a + P * P, M, W, a, r, b, W, a + P * P + P * M, i, M, P, dt, False, W, 0)  # eq. 22
     for t in range(B * P * P):
         b, k = t // (P * P), t % (P * P)
         JtJ[b, k // P, k % P] = W[b * WB + k]
@@ -313,17 +361,18 @@ def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.tem
 
 
 @ti.kernel
-def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template()):
+def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template(), SP: ti.template()):
     """W: (B * _ops_block(P, M),) work. One problem after the other on taichi:cpu (``_per_problem``;
-    the problem's J^T stays in cache between the transpose and the products)."""
+    the problem's data stays in cache between the products and the factorisation). SP: P as a
+    compile-time value for ``_gram_static``, else 0."""
     B = J.shape[0]
     if ti.static(_per_problem()):
         ti.loop_config(serialize=True)
         for b in range(B):
-            _solve_one(J, r, damping, delta, ok, W, b, dt)
+            _solve_one(J, r, damping, delta, ok, W, b, dt, SP)
     else:
         for b in range(B):
-            _solve_one(J, r, damping, delta, ok, W, b, dt)
+            _solve_one(J, r, damping, delta, ok, W, b, dt, SP)
 
 
 @ti.func
@@ -336,14 +385,18 @@ def _solve_one(
     W: ti.template(),
     b,
     dt: ti.template(),
+    SP: ti.template(),
 ):
     M, P = J.shape[1], J.shape[2]
     a = b * _ops_block(P, M)
     jt = a + P * P
-    for i in range(P):
-        _transpose(J, W, b, i, jt, M)
-    for i2 in range((P + 1) // 2):
-        _gram_pair(W, jt, M, W, a, r, b, W, jt + P * M, 2 * i2, M, P, dt, False, W, 0)  # eq. 22: J^T J, J^T r
+    if ti.static(SP > 0):
+        _gram_static(J, r, b, M, W, a, jt + SP * M, SP, dt)  # eq. 22: J^T J, J^T r
+    else:
+        for i in range(P):
+            _transpose(J, W, b, i, jt, M)
+        for i2 in range((P + 1) // 2):
+            _gram_pair(W, jt, M, W, a, r, b, W, jt + P * M, 2 * i2, M, P, dt, False, W, 0)  # eq. 22: J^T J, J^T r
     for i in range(P):
         delta[b, i] = W[jt + P * M + i]
     ok[b] = _chol_solve(W, a, delta, b, P, damping[b], dt)  # eq. 22: (J^T J + C I) delta = J^T r
@@ -362,11 +415,17 @@ def _work(device, shape, dtype):
     return w
 
 
+def _static_p(P: int) -> int:
+    """P as a compile-time value for ``_gram_static`` on taichi:cpu (P <= STATIC_P_MAX), else 0."""
+    return P if current_arch() == "cpu" and P <= STATIC_P_MAX else 0
+
+
 def normal_equations(device, J, r, out):
     B, M, P = J.shape
     JtJ, Jtr = out
     W = _work(device, (B * (P * P + P * M + P),), J.dtype)
-    launch(_normal_equations, (J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W.buffer), (_ti_dtype(J.dtype),))
+    launch(_normal_equations, (J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W.buffer),
+           (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)  # fmt: skip
     return JtJ, Jtr
 
 
@@ -384,7 +443,8 @@ def lm_solve(device, J, r, damping, out):
     B, M, P = J.shape
     delta, ok = out
     W = _work(device, (B * (P * P + P * M + P),), J.dtype)
-    launch(_lm_solve, (J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer), (_ti_dtype(J.dtype),))
+    launch(_lm_solve, (J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer),
+           (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)  # fmt: skip
     return delta, ok
 
 
