@@ -113,7 +113,7 @@ class Device:
     # -- arrays ------------------------------------------------------------------------------
     def check_dtype(self, dtype) -> np.dtype:
         """Return ``dtype`` as a NumPy dtype if this device can hold it, else raise TypeError."""
-        dt = np.dtype(dtype)
+        dt = dtype if isinstance(dtype, np.dtype) else np.dtype(dtype)
         if dt not in SUPPORTED_DTYPES:
             raise TypeError(
                 f"expected an array of dtype {', '.join(d.name for d in SUPPORTED_DTYPES)}, got {dt.name}"
@@ -163,7 +163,7 @@ class Device:
         self._check_open()
         shape = tuple(int(s) for s in (shape if isinstance(shape, (tuple, list)) else (shape,)))
         dt = self.check_dtype(dtype)
-        return self._wrap(self._empty(shape, dt), shape, dt)
+        return DeviceArray._new(self, self._empty(shape, dt), shape, dt)
 
     def to_numpy(self, array) -> np.ndarray:
         """Download a DeviceArray of this device (a NumPy array is returned as it is)."""
@@ -214,6 +214,13 @@ class DeviceArray:
         self.buffer = buffer
         self.shape = tuple(int(s) for s in shape)
         self.dtype = np.dtype(dtype)
+
+    @classmethod
+    def _new(cls, device: Device, buffer, shape: tuple, dtype: np.dtype) -> DeviceArray:
+        """A DeviceArray from a checked shape (a tuple of ints) and NumPy dtype, without converting them."""
+        a = cls.__new__(cls)
+        a.device, a.buffer, a.shape, a.dtype = device, buffer, shape, dtype
+        return a
 
     @property
     def ndim(self) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 
@@ -117,11 +118,11 @@ class TaichiDevice(Device):
             buffer.from_numpy(host)
 
     def _empty(self, shape, dtype):
-        from .runtime import DTYPES, ndarray
+        from .runtime import ndarray, taichi_dtype
 
-        if int(np.prod(shape)) == 0:
+        if math.prod(shape) == 0:
             return None
-        return ndarray(DTYPES[np.dtype(dtype).name], shape)
+        return ndarray(taichi_dtype(dtype), shape)
 
     def _download(self, buffer, shape, dtype) -> np.ndarray:
         if buffer is None:

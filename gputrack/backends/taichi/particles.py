@@ -7,6 +7,7 @@ microseconds for the filter's sizes and saves a second launch.
 
 import numpy as np
 
+from .launch import launch
 from .runtime import scratch, ti
 from .trig import sincos32
 
@@ -79,33 +80,22 @@ def sample_body(
 
 
 @ti.kernel
-def _sample_p(
+def _sample(
     cand: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    sig: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    sig: ti.types.ndarray(dtype=ti.f32),
     out: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    lo: ti.u32,
-    hi: ti.u32,
-    keep: ti.i32,
+    seed: ti.types.ndarray(dtype=ti.u32, ndim=1),
+    keep: ti.template(),
+    per_candidate: ti.template(),
 ):
-    sample_body(cand, sig, out, lo, hi, keep, False)
-
-
-@ti.kernel
-def _sample_cp(
-    cand: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    sig: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    lo: ti.u32,
-    hi: ti.u32,
-    keep: ti.i32,
-):
-    sample_body(cand, sig, out, lo, hi, keep, True)
+    """seed = [lo, hi] (an array: launch() passes Python scalars as signed integers)."""
+    sample_body(cand, sig, out, seed[0], seed[1], keep, per_candidate)
 
 
 def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates):
     out = device.empty((n, cand.shape[1]), np.float32)
-    kernel = _sample_cp if per_candidate else _sample_p
-    kernel(cand.buffer, sig.buffer, out.buffer, lo, hi, int(keep_candidates))
+    seed = np.array([lo, hi], np.uint32)
+    launch(_sample, (cand.buffer, sig.buffer, out.buffer, seed), (int(keep_candidates), bool(per_candidate)))
     return out
 
 
@@ -172,7 +162,7 @@ def best_k(device, scores, k, rows, out=None):
     keys = scratch(device, "keys", (k,), ti.u32)
     if rows is None:
         dummy = scratch(device, "dummy", (1, 1), ti.f32)
-        _best_k(scores.buffer, idx.buffer, val.buffer, keys, dummy, dummy, False)
+        launch(_best_k, (scores.buffer, idx.buffer, val.buffer, keys, dummy, dummy), (False,))
         return idx, val, None
-    _best_k(scores.buffer, idx.buffer, val.buffer, keys, rows.buffer, sel.buffer, True)
+    launch(_best_k, (scores.buffer, idx.buffer, val.buffer, keys, rows.buffer, sel.buffer), (True,))
     return idx, val, sel

@@ -15,6 +15,8 @@ import os
 import threading
 import weakref
 
+import numpy as np
+
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 import taichi as ti  # noqa: E402
 
@@ -160,3 +162,12 @@ DTYPES = {
     "uint32": ti.u32,
     "uint8": ti.u8,
 }
+_BY_DTYPE = {}
+
+
+def taichi_dtype(dtype):
+    """The Taichi type of a NumPy dtype in DTYPES (memoised: ``np.dtype.name`` costs microseconds)."""
+    found = _BY_DTYPE.get(dtype)
+    if found is None:
+        found = _BY_DTYPE[dtype] = DTYPES[np.dtype(dtype).name]
+    return found
