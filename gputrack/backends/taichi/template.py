@@ -212,8 +212,9 @@ def _rgbd_body(
     """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
 
     ``pose``: () (the transforms tf are given), or (func, args) with a ti.func ``func(args, b)``
-    that writes hypothesis b's transforms into tf; a group calls it for its lanes first (pf.py
-    samples and poses there, so that one parallel loop does the whole stage).
+    that writes hypothesis b's transforms into tf; a group calls it for its lanes' hypotheses first
+    (pf.py samples and poses there, pose_residuals.py poses its rows, so that one parallel loop
+    does the whole op).
 
     ``reuse`` (static): 0 = every part of every hypothesis. ``REUSE_PF`` (cost only): the B
     hypotheses are C = cache.shape[0] blocks of samples of sample_around (hypothesis b belongs to
@@ -244,7 +245,10 @@ def _rgbd_body(
             every = 0  # REUSE_SPARSE: a lane's row must be evaluated in full
             if ti.static(len(pose) > 0):
                 for l in range(L):  # a loop, not unrolled: one copy of the posing code (compile time)
-                    ti.static(pose[0])(ti.static(pose[1]), ti.min(g * L + l, nb - 1))
+                    b = ti.min(g * L + l, nb - 1)
+                    if ti.static(reuse == REUSE_SPARSE):
+                        b = order[g * L + l]
+                    ti.static(pose[0])(ti.static(pose[1]), b)
             for l in ti.static(range(L)):
                 row[l] = ti.min(g * L + l, nb - 1)
                 if ti.static(reuse == REUSE_PF):
