@@ -107,10 +107,11 @@ def best_k(device, scores, k, rows=None, *, out=None) -> BestK:
 
 
 def best_k_out(device, out, k: int, P: int | None, rows=None):
-    """Check ``out`` of best_k / pf_stage (None, or a BestK of k indices, k scores and, when P is
-    not None, (k, P) rows, on ``device``); return its arrays (idx, val, rows) or None."""
+    """The output arrays (idx, val, rows) of best_k / pf_stage: ``out``'s after checking it (a BestK
+    of k indices, k scores and, when P is not None, (k, P) rows, on ``device``), or new ones."""
     if out is None:
-        return None
+        empty = np.empty if device.backend == "numpy" else device.empty
+        return empty((k,), np.int32), empty((k,), np.float32), (empty((k, P), np.float32) if P is not None else None)
     if not isinstance(out, BestK):
         raise TypeError(f"out: expected a gputrack.BestK (e.g. an earlier result), got {type(out).__name__}")
     want = (("indices", (k,), np.int32), ("scores", (k,), np.float32))

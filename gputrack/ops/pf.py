@@ -72,10 +72,11 @@ def pf_stage(
     k = dims["C"] if k is None else k
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= int(n):
         raise ValueError(f"k: expected an integer in [1, n={n}], got {k!r}")
-    outs = best_k_out(device, out, int(k), dims["P"], cand)
+    fused = device.backend == "taichi"
+    outs = best_k_out(device, out, int(k), dims["P"], cand) if fused or out is not None else None  # checks out
     lo, hi = _seed(seed)
     g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, chain.n_parts)
-    if device.backend == "taichi":
+    if fused:
         moved = chain.dependency_mask()[:, sig != 0].any(axis=1)  # parts that a sampled parameter poses
         return backend_module(device, "pf").pf_stage(
             device, chain, cand, constant(device, sig), int(n), lo, hi, rgb.on(device), depth.on(device), g, d,

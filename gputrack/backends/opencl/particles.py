@@ -50,13 +50,9 @@ def _keys(device, k):
     return found
 
 
-def best_k(device, scores, k, rows, out=None):
-    if out is not None:
-        idx, val, sel = out
-    else:
-        idx = device.empty((k,), np.int32)
-        val = device.empty((k,), np.float32)
-        sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
+def best_k(device, scores, k, rows, out):
+    """out: the (idx, val, sel) arrays to write (gputrack/ops/particles.py best_k_out)."""
+    idx, val, sel = out
     keys = _keys(device, k)
     p = rows.shape[1] if rows is not None else 0
     rows_buf = rows.buffer.data if rows is not None else scores.buffer.data

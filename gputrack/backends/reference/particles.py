@@ -55,14 +55,11 @@ def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidate
     return out.astype(np.float32)
 
 
-def best_k(device, scores, k, rows, out=None):
-    order = np.argsort(sortable_key(scores), kind="stable")[:k]  # ascending, ties by index
-    idx = order.astype(np.int32)
-    sel = None if rows is None else rows[idx].copy()
-    val = scores[idx].astype(np.float32)
-    if out is None:
-        return idx, val, sel
-    for dst, src in zip(out, (idx, val, sel)):
-        if src is not None:
-            dst[...] = src
+def best_k(device, scores, k, rows, out):
+    """out: the (idx, val, sel) arrays to write (gputrack/ops/particles.py best_k_out)."""
+    idx = np.argsort(sortable_key(scores), kind="stable")[:k]  # ascending, ties by index
+    out[0][...] = idx
+    out[1][...] = scores[idx]
+    if rows is not None:
+        out[2][...] = rows[idx]
     return out

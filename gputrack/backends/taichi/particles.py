@@ -152,13 +152,9 @@ def _best_k(
     best_k_body(scores, idx, val, keys, rows, sel, with_rows)
 
 
-def best_k(device, scores, k, rows, out=None):
-    if out is not None:
-        idx, val, sel = out
-    else:
-        idx = device.empty((k,), np.int32)
-        val = device.empty((k,), np.float32)
-        sel = device.empty((k, rows.shape[1]), np.float32) if rows is not None else None
+def best_k(device, scores, k, rows, out):
+    """out: the (idx, val, sel) arrays to write (gputrack/ops/particles.py best_k_out)."""
+    idx, val, sel = out
     keys = scratch(device, "keys", (k,), ti.u32)
     if rows is None:
         dummy = scratch(device, "dummy", (1, 1), ti.f32)

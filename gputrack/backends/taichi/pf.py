@@ -69,12 +69,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     _, offsets = chain_tables(device, chain, np.float32)
     reuse = not moved_parts.all()  # some parts look in every sample as in its candidate
     moved = constant(device, moved_parts.astype(np.int32))
-    if out is not None:
-        idx, val, sel = out
-    else:
-        idx = device.empty((k,), np.int32)
-        val = device.empty((k,), np.float32)
-        sel = device.empty((k, P), np.float32)
+    idx, val, sel = out
     arrays = (
         cand.buffer, sig.buffer, np.array([lo, hi], np.uint32), scratch(device, "pf_samples", (n, P), ti.f32),
         offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
