@@ -322,7 +322,14 @@ def _rgbd_body(
                         I, valid = _scratch_lanes(scratch, g, i, n, L)
                         blk += _rho_c(beta * I - alpha * rpts[i, 3], valid, cc)
                         eC, blk, cnt = _blocked(eC, blk, cnt)
-                else:  # REUSE_PF: the source's samples, in the cache
+                elif own[0] == own[L - 1]:  # REUSE_PF, one source for the group (all but ~1 group in 19)
+                    o = own[0]
+                    for i in range(ridx[j], ridx[j + 1]):  # the source's sample, broadcast to the lanes
+                        I = _lanes(L) + cache[o, i]
+                        valid = _lanes(L) + cache[o, n + i]
+                        blk += _rho_c(beta * I - alpha * rpts[i, 3], valid, cc)
+                        eC, blk, cnt = _blocked(eC, blk, cnt)
+                else:  # REUSE_PF: each lane's source's samples, in the cache
                     for i in range(ridx[j], ridx[j + 1]):
                         I = _lanes(L)
                         valid = _lanes(L)
