@@ -46,7 +46,9 @@ def _make(real):
         out (B, J, 3, 4).
         """
         J = ti.static(len(chain))
-        R = ti.Matrix.zero(real, J, 12)  # part j's [c0 c1 c2 t] (columns), for its children
+        # part j's columns c0, c1, c2, t, for its children (3-vectors, not one J x 12 matrix: with
+        # scalarisation off a big matrix's element reads and writes are vector shuffles)
+        R = [[ti.Vector([0.0, 0.0, 0.0], dt=real) for _ in ti.static(range(4))] for _ in ti.static(range(J))]
         for j in ti.static(range(J)):
             row = ti.static(chain[j])
             c0 = ti.Vector([1.0, 0.0, 0.0], dt=real)
@@ -61,20 +63,14 @@ def _make(real):
                     t[k] += params[b, row[7 + k]]
             if ti.static(row[0] >= 0):  # eq. 2-3: camera-from-parent @ parent-from-part
                 q = ti.static(row[0])
-                p0 = ti.Vector([R[q, 0], R[q, 1], R[q, 2]], dt=real)
-                p1 = ti.Vector([R[q, 3], R[q, 4], R[q, 5]], dt=real)
-                p2 = ti.Vector([R[q, 6], R[q, 7], R[q, 8]], dt=real)
-                pt = ti.Vector([R[q, 9], R[q, 10], R[q, 11]], dt=real)
+                p0, p1, p2, pt = R[q][0], R[q][1], R[q][2], R[q][3]
                 n0 = p0 * c0[0] + p1 * c0[1] + p2 * c0[2]
                 n1 = p0 * c1[0] + p1 * c1[1] + p2 * c1[2]
                 n2 = p0 * c2[0] + p1 * c2[1] + p2 * c2[2]
                 t = p0 * t[0] + p1 * t[1] + p2 * t[2] + pt
                 c0, c1, c2 = n0, n1, n2
+            R[j][0], R[j][1], R[j][2], R[j][3] = c0, c1, c2, t
             for r in ti.static(range(3)):
-                R[j, r] = c0[r]
-                R[j, 3 + r] = c1[r]
-                R[j, 6 + r] = c2[r]
-                R[j, 9 + r] = t[r]
                 out[b, j, r, 0] = c0[r]
                 out[b, j, r, 1] = c1[r]
                 out[b, j, r, 2] = c2[r]
