@@ -17,6 +17,7 @@ import dataclasses
 import logging
 import os
 import threading
+import weakref
 
 import numpy as np
 
@@ -178,6 +179,11 @@ class Device:
         """Release the device; its arrays become unusable. Needed only to switch Taichi archs."""
         self.closed = True
         _forget(self)
+        with _lock:
+            caches = [r() for r in _CACHES]
+        for cache in caches:
+            if cache is not None:
+                cache.pop(self, None)
 
     # -- backend hooks -----------------------------------------------------------------------
     def _wrap(self, buffer, shape, dtype):
@@ -264,6 +270,21 @@ def to_numpy(array) -> np.ndarray:
 # -- registry ----------------------------------------------------------------------------------
 _lock = threading.RLock()
 _devices: dict[str, Device] = {}
+_CACHES: list = []  # weak references to the per-device caches (per_device_cache)
+
+
+def per_device_cache() -> weakref.WeakKeyDictionary:
+    """A new {device: value} cache whose entry for a device goes when that device is closed.
+
+    Caches of device arrays (scratch buffers, uploaded constants, template copies) are made with
+    this: ``Device.close()`` drops their arrays while the device still runs, so that none outlives
+    it (a Taichi array kept past a restart of Taichi corrupts the next program's memory).
+    """
+    cache = weakref.WeakKeyDictionary()
+    with _lock:
+        _CACHES[:] = [r for r in _CACHES if r() is not None]
+        _CACHES.append(weakref.ref(cache))
+    return cache
 _probe_cache: list[DeviceInfo] | None = None
 
 

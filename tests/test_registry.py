@@ -153,3 +153,32 @@ def test_ci_runs_the_readme_test_command():
     test_cmd = next(b for b in blocks if "pytest" in b)
     assert test_cmd in ci
     assert "GPUTRACK_REQUIRE=taichi:cpu,taichi:vulkan,opencl" in ci
+
+
+def test_closing_a_taichi_device_drops_the_arrays_cached_for_it():
+    """Scratch buffers, constants, template copies and solver pools of a closed Taichi device go
+    with it (a Taichi array kept past a restart corrupts the next program's memory), and a
+    restarted device computes what the first one did."""
+    r = run_py("""
+        import numpy as np, gputrack
+        from gputrack.benchmarks.template import pf_scene
+        from gputrack.device import _CACHES
+
+        def work(dev):
+            tf, rgb, dep, gray, depth, cam = pf_scene(np.random.default_rng(0), b=64)
+            total = gputrack.rgbd_cost(dev, tf.astype(np.float32), rgb, dep, gray, depth, cam).total
+            best = gputrack.best_k(dev, total, 5)
+            res = gputrack.least_squares(lambda x: gputrack.to_numpy(x) - 1.0, np.zeros((3, 2)), device=dev)
+            return np.concatenate([gputrack.to_numpy(total), gputrack.to_numpy(best.indices), res.x.ravel()])
+
+        dev = gputrack.device("taichi:cpu")
+        first = work(dev)
+        dev.close()
+        held = sum(1 for ref in _CACHES if ref() is not None and dev in ref())
+        print("HELD", held)
+        again = gputrack.device("taichi:cpu")
+        same = all(np.array_equal(work(again), first) for _ in range(3))
+        print("SAME", same)
+    """)
+    assert "HELD 0" in r.stdout, r.stdout + r.stderr
+    assert "SAME True" in r.stdout, r.stdout + r.stderr

@@ -13,7 +13,7 @@ import weakref
 
 import numpy as np
 
-from ..device import Device, DeviceArray
+from ..device import Device, DeviceArray, per_device_cache
 
 FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
 
@@ -118,7 +118,7 @@ def arg(
 
 
 #: small host constants (sampling sigmas, re-use tables) uploaded once per device and value
-_CONSTANTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_CONSTANTS: weakref.WeakKeyDictionary = per_device_cache()
 _MAX_CONSTANTS = 256
 
 

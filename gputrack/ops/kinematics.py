@@ -20,7 +20,7 @@ import weakref
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, per_device_cache
 from ..models.chain import Chain
 from . import backend_module
 from ._args import FLOAT, arg, check_device
@@ -28,7 +28,7 @@ from ._args import FLOAT, arg, check_device
 __all__ = ["chain_tables", "forward_kinematics"]
 
 # device -> {(chain key, dtype): (table, offsets)}; weak so that a closed device's arrays go with it
-_TABLES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_TABLES: "weakref.WeakKeyDictionary" = per_device_cache()
 
 
 def chain_tables(device, chain: Chain, dtype=np.float32):

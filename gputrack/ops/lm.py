@@ -31,7 +31,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..device import Device, DeviceArray
+from ..device import Device, DeviceArray, per_device_cache
 from . import backend_module
 from ._args import arg, check_device
 
@@ -696,8 +696,8 @@ class _Pool:
     at the end. Uploads into a reused buffer are counted in ``device.transfers`` like any other.
     """
 
-    _free: ClassVar[weakref.WeakKeyDictionary] = weakref.WeakKeyDictionary()
-    _sent: ClassVar[weakref.WeakKeyDictionary] = weakref.WeakKeyDictionary()  # cached uploads
+    _free: ClassVar[weakref.WeakKeyDictionary] = per_device_cache()
+    _sent: ClassVar[weakref.WeakKeyDictionary] = per_device_cache()  # cached uploads
 
     def __init__(self, device):
         self.device = device

@@ -23,6 +23,7 @@ import weakref
 
 import numpy as np
 
+from ..device import per_device_cache
 from ..models.chain import Chain
 from . import backend_module
 from ._args import arg, check_device, constant
@@ -74,7 +75,7 @@ def pose_residuals(
                              camera.as_array(), out, plan, **p)  # fmt: skip
 
 
-_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {(chain, B, lanes): plan}
+_PLANS: weakref.WeakKeyDictionary = per_device_cache()  # device -> {(chain, B, lanes): plan}
 
 
 def _device_plan(device, chain: Chain, problems: int, lanes: int):

@@ -41,13 +41,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import weakref
 from pathlib import Path
 
 import numpy as np
 
 from .. import tuning
-from ..device import Device, DeviceArray
+from ..device import Device, DeviceArray, per_device_cache
 from . import backend_module
 from ._args import arg, check_device
 
@@ -136,7 +135,7 @@ class SparseTemplate:
         self.packed = np.ascontiguousarray(np.concatenate([xyz, value[:, None]], axis=1)[order], dtype=np.float32)
         self.sorted_part = np.ascontiguousarray(part[order])
         self.start = np.searchsorted(self.sorted_part, np.arange(self.n_parts + 1)).astype(np.int32)
-        self._on = weakref.WeakKeyDictionary()
+        self._on = per_device_cache()
 
     @property
     def n(self) -> int:

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...device import per_device_cache
+
 RUNNING = 0
 _CTYPE = {"float32": "float", "float64": "double"}
 
@@ -59,15 +61,15 @@ def _local_size(device, P):
     return int(max(1, min(want, device.info.max_work_group_size or want)))
 
 
-_work_cache: dict = {}
+_work_cache = per_device_cache()
 
 
 def _work(device, shape, dtype):
-    key = (id(device), tuple(shape), np.dtype(dtype).name)
-    w = _work_cache.get(key)
-    if w is None or w.device.closed:
-        w = device.empty(shape, dtype)
-        _work_cache[key] = w
+    per_device = _work_cache.setdefault(device, {})
+    key = (tuple(shape), np.dtype(dtype).name)
+    w = per_device.get(key)
+    if w is None:
+        w = per_device[key] = device.empty(shape, dtype)
     return w
 
 

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
-_kernels = weakref.WeakKeyDictionary()
-_scratch = weakref.WeakKeyDictionary()
+from ...device import per_device_cache
+
+_kernels = per_device_cache()
+_scratch = per_device_cache()
 _I, _U, _F = np.int32, np.uint32, np.float32
 # scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
 ARG_TYPES = {

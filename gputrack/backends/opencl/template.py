@@ -7,14 +7,14 @@ hypothesis). Conventions: gputrack/ops/template.py.
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
+
+from ...device import per_device_cache
 
 CPU_LANES = 8
 WORK_GROUP = 4
-_scratch = weakref.WeakKeyDictionary()
-_kernels = weakref.WeakKeyDictionary()
+_scratch = per_device_cache()
+_kernels = per_device_cache()
 
 
 def lanes(device) -> int:

@@ -47,6 +47,7 @@ folded away).
 
 import numpy as np
 
+from ...device import per_device_cache
 from .arrays import copy
 from .launch import launch
 from .runtime import current_arch, ti
@@ -402,16 +403,16 @@ def _solve_one(
     ok[b] = _chol_solve(W, a, delta, b, P, damping[b], dt)  # eq. 22: (J^T J + C I) delta = J^T r
 
 
-_work_cache: dict = {}
+_work_cache = per_device_cache()
 
 
 def _work(device, shape, dtype):
     """A scratch array per device, shape and dtype, allocated once (Taichi allocations are slow)."""
-    key = (id(device), tuple(shape), np.dtype(dtype))
-    w = _work_cache.get(key)
-    if w is None or w.device is not device or w.device.closed:
-        w = device.empty(shape, dtype)
-        _work_cache[key] = w
+    per_device = _work_cache.setdefault(device, {})
+    key = (tuple(shape), np.dtype(dtype))
+    w = per_device.get(key)
+    if w is None:
+        w = per_device[key] = device.empty(shape, dtype)
     return w
 
 

@@ -12,6 +12,7 @@ import contextlib
 import io
 import logging
 import os
+import sys
 import threading
 import weakref
 
@@ -20,7 +21,7 @@ import numpy as np
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 import taichi as ti  # noqa: E402
 
-from ...device import TaichiArchConflict  # noqa: E402
+from ...device import TaichiArchConflict, per_device_cache  # noqa: E402
 
 log = logging.getLogger("gputrack")
 
@@ -28,6 +29,7 @@ ARCHS = {"cpu": ti.cpu, "vulkan": ti.vulkan, "cuda": ti.cuda}
 
 _lock = threading.Lock()
 _current: str | None = None
+_generation = 0  # Taichi programs started and stopped by gputrack so far
 
 
 def current_arch() -> str | None:
@@ -74,8 +76,9 @@ def start(arch: str) -> None:
 
 def stop() -> None:
     """Release Taichi (every Taichi array becomes invalid)."""
-    global _current
+    global _current, _generation
     with _lock:
+        _generation += 1  # arrays of the stopped program must not free memory of the next one
         if _current is not None:
             ti.reset()
             _current = None
@@ -99,7 +102,7 @@ def ndarray(dtype, shape):
             _Ndarray.__init__(arr)
             arr.dtype = dtype
             arr.arr = prog.create_ndarray(dtype, shape, layout=_Layout.NULL, zero_fill=False, dbg_info=_DebugInfo(""))
-            arr._program = prog
+            arr._generation = _generation
             arr.shape = tuple(arr.arr.shape)
             arr.element_type = dtype
             return arr
@@ -109,7 +112,7 @@ def ndarray(dtype, shape):
     return ti.ndarray(dtype, shape)
 
 
-_scratch: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # device -> {name: {(shape, dtype): array}}
+_scratch: weakref.WeakKeyDictionary = per_device_cache()  # device -> {name: {(shape, dtype): array}}
 _SCRATCH_SHAPES = 4  # shapes kept per name (an LM alternates two batch sizes of the same op)
 
 
@@ -139,16 +142,20 @@ try:
     class _Array(_ScalarNdarray):
         """A Taichi ndarray that frees its memory only in the Taichi program that allocated it.
         (Taichi's own frees through the current program: an array that outlives a restart of
-        Taichi, e.g. one kept by a closed device's caches, would free an array of the next one.)"""
+        Taichi, e.g. one kept by a closed device's caches, would free an array of the next one.
+        The program is told by gputrack's count of stopped programs, not by a reference to it,
+        which would keep the stopped program alive into the next one's life.)"""
 
         _impl = ti.lang.impl  # kept: module globals may be gone when the interpreter exits
+        _runtime = sys.modules[__name__]
 
         def __del__(self):
             try:
                 prog = self._impl.get_runtime().prog
+                same = self._runtime._generation == getattr(self, "_generation", None)
             except (AttributeError, TypeError):  # Taichi is being torn down
                 return
-            if prog is not None and prog is getattr(self, "_program", None):
+            if prog is not None and same:
                 prog.delete_ndarray(self.arr)
 except (ImportError, AttributeError):  # pragma: no cover - another Taichi version
     _fast_alloc = False
