@@ -182,3 +182,22 @@ def test_closing_a_taichi_device_drops_the_arrays_cached_for_it():
     """)
     assert "HELD 0" in r.stdout, r.stdout + r.stderr
     assert "SAME True" in r.stdout, r.stdout + r.stderr
+
+
+def test_arrays_kept_past_a_taichi_restart_leave_the_next_program_intact():
+    """Arrays of a closed Taichi device that the caller still holds neither free nor overwrite the
+    next program's arrays (direct launches are turned off then; see backends/taichi/launch.py)."""
+    r = run_py("""
+        import numpy as np, gputrack
+        cpu = gputrack.device("taichi:cpu")
+        old = [cpu.asarray(np.full(1000, i, np.float32)) for i in range(50)]
+        cpu.close()
+        again = gputrack.device("taichi:cpu")
+        new = [again.asarray(np.full(1000, 100 + i, np.float32)) for i in range(50)]
+        del old[::2]
+        more = [again.asarray(np.full(1000, 200 + i, np.float32)) for i in range(50)]
+        bad = [i for i, a in enumerate(new) if not (a.numpy() == 100 + i).all()]
+        bad += [i for i, a in enumerate(more) if not (a.numpy() == 200 + i).all()]
+        print("BAD", bad)
+    """)
+    assert "BAD []" in r.stdout, r.stdout + r.stderr

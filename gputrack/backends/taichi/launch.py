@@ -14,8 +14,11 @@ kernel; later calls launch it directly. Only calls whose
 arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (passed by address,
 as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch
 context is not reused between launches (Taichi's LLVM launcher does not support that). A restarted
-Taichi (another program object) empties the cache. If Taichi's internal interface is not what this
-module expects (another Taichi version), every call goes through ``kernel(...)`` from then on.
+Taichi (another program object) empties the cache; one started while arrays of the stopped program
+are still referenced turns direct launches off for the process (kernels launched directly then
+were seen to overwrite the new program's arrays; ``kernel(...)`` did not). If Taichi's internal
+interface is not what this module expects (another Taichi version), every call goes through
+``kernel(...)`` from then on.
 """
 
 from __future__ import annotations
@@ -39,6 +42,15 @@ def _direct(a) -> bool:
 
 _cache: dict = {}  # (kernel, templates, scalarize, kinds of the arguments) -> (kernel, compiled, program)
 _enabled = True
+
+
+def disable_direct(why: str) -> None:
+    """Launch every kernel through ``kernel(...)`` from now on in this process."""
+    global _enabled
+    if _enabled:
+        log.debug("taichi: direct kernel launches off (%s)", why)
+    _enabled = False
+    _cache.clear()
 
 
 def _kind(a):

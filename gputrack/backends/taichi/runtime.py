@@ -9,6 +9,7 @@ arch while a Taichi device is open raises :class:`TaichiArchConflict`. Closing t
 from __future__ import annotations
 
 import contextlib
+import gc
 import io
 import logging
 import os
@@ -30,6 +31,7 @@ ARCHS = {"cpu": ti.cpu, "vulkan": ti.vulkan, "cuda": ti.cuda}
 _lock = threading.Lock()
 _current: str | None = None
 _generation = 0  # Taichi programs started and stopped by gputrack so far
+_alive: dict = {}  # generation -> arrays of that program (from ndarray()) not yet freed
 
 
 def current_arch() -> str | None:
@@ -52,6 +54,13 @@ def start(arch: str) -> None:
                 f"(re-initialising would free every Taichi array); close the taichi:{_current} device first "
                 "or use another process"
             )
+        if _stale_arrays():
+            # arrays of a stopped program are still referenced: kernels launched directly (launch.py)
+            # in the next program were seen to corrupt its arrays then (Taichi 1.7), Taichi's own
+            # launches were not
+            from .launch import disable_direct
+
+            disable_direct("arrays of a stopped Taichi program are still alive")
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
             ti.init(
@@ -72,6 +81,14 @@ def start(arch: str) -> None:
             ti.reset()
             raise RuntimeError(f"Taichi started on {got.name} instead of {arch}")
         _current = arch
+
+
+def _stale_arrays() -> bool:
+    """Whether arrays of a stopped program are still referenced (garbage collected first)."""
+    if not any(n > 0 for g, n in _alive.items() if g != _generation):
+        return False
+    gc.collect()
+    return any(n > 0 for g, n in _alive.items() if g != _generation)
 
 
 def stop() -> None:
@@ -103,6 +120,7 @@ def ndarray(dtype, shape):
             arr.dtype = dtype
             arr.arr = prog.create_ndarray(dtype, shape, layout=_Layout.NULL, zero_fill=False, dbg_info=_DebugInfo(""))
             arr._generation = _generation
+            _alive[_generation] = _alive.get(_generation, 0) + 1
             arr.shape = tuple(arr.arr.shape)
             arr.element_type = dtype
             return arr
@@ -152,8 +170,10 @@ try:
         def __del__(self):
             try:
                 prog = self._impl.get_runtime().prog
-                same = self._runtime._generation == getattr(self, "_generation", None)
-            except (AttributeError, TypeError):  # Taichi is being torn down
+                gen = getattr(self, "_generation", None)
+                same = self._runtime._generation == gen
+                self._runtime._alive[gen] -= 1
+            except (AttributeError, TypeError, KeyError):  # Taichi is being torn down
                 return
             if prog is not None and same:
                 prog.delete_ndarray(self.arr)
