@@ -285,6 +285,8 @@ def per_device_cache() -> weakref.WeakKeyDictionary:
         _CACHES[:] = [r for r in _CACHES if r() is not None]
         _CACHES.append(weakref.ref(cache))
     return cache
+
+
 _probe_cache: list[DeviceInfo] | None = None
 
 

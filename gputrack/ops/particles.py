@@ -115,7 +115,7 @@ def best_k_out(device, out, k: int, P: int | None, rows=None):
     if not isinstance(out, BestK):
         raise TypeError(f"out: expected a gputrack.BestK (e.g. an earlier result), got {type(out).__name__}")
     want = (("indices", (k,), np.int32), ("scores", (k,), np.float32))
-    want += ((("rows", (k, P), np.float32),) if P is not None else ())
+    want += (("rows", (k, P), np.float32),) if P is not None else ()
     for name, shape, dtype in want:
         a = getattr(out, name)
         ok = isinstance(a, np.ndarray) and a.flags.c_contiguous and a.flags.writeable
