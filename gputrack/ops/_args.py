@@ -117,6 +117,26 @@ def arg(
     return device.asarray(x)
 
 
+def out_array(device, out, name: str, shape: tuple, dtype=np.float32):
+    """Check a caller-supplied output array of an op (written in place), or allocate one."""
+    if out is None:
+        return device.empty(shape, dtype)
+    if device.backend == "numpy":
+        ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
+    else:
+        ok = isinstance(out, DeviceArray) and out.device is device
+    if not ok:
+        raise TypeError(
+            f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {type(out).__name__}"
+        )
+    if tuple(out.shape) != tuple(shape) or out.dtype != dtype:
+        raise ValueError(
+            f"{name}: expected a {np.dtype(dtype).name} array of shape {tuple(shape)}, "
+            f"got {out.dtype.name} {tuple(out.shape)}"
+        )
+    return out
+
+
 #: small host constants (sampling sigmas, re-use tables) uploaded once per device and value
 _CONSTANTS: weakref.WeakKeyDictionary = per_device_cache()
 _MAX_CONSTANTS = 256

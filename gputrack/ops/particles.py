@@ -22,7 +22,7 @@ import numpy as np
 
 from ..device import DeviceArray
 from . import backend_module
-from ._args import arg, check_device
+from ._args import arg, check_device, out_array
 
 __all__ = ["BestK", "best_k", "sample_around"]
 
@@ -109,26 +109,16 @@ def best_k(device, scores, k, rows=None, *, out=None) -> BestK:
 def best_k_out(device, out, k: int, P: int | None, rows=None):
     """The output arrays (idx, val, rows) of best_k / pf_stage: ``out``'s after checking it (a BestK
     of k indices, k scores and, when P is not None, (k, P) rows, on ``device``), or new ones."""
-    if out is None:
-        empty = np.empty if device.backend == "numpy" else device.empty
-        return empty((k,), np.int32), empty((k,), np.float32), (empty((k, P), np.float32) if P is not None else None)
-    if not isinstance(out, BestK):
+    if out is not None and not isinstance(out, BestK):
         raise TypeError(f"out: expected a gputrack.BestK (e.g. an earlier result), got {type(out).__name__}")
-    want = (("indices", (k,), np.int32), ("scores", (k,), np.float32))
-    want += (("rows", (k, P), np.float32),) if P is not None else ()
-    for name, shape, dtype in want:
-        a = getattr(out, name)
-        ok = isinstance(a, np.ndarray) and a.flags.c_contiguous and a.flags.writeable
-        if device.backend != "numpy":
-            ok = isinstance(a, DeviceArray) and a.device is device
-        if not ok:
-            raise TypeError(f"out.{name}: expected a writable array on {device.spec}, got {type(a).__name__}")
-        if tuple(a.shape) != shape or a.dtype != dtype:
-            raise ValueError(f"out.{name}: expected a {np.dtype(dtype).name} array of shape {shape}, "
-                             f"got {a.dtype.name} {tuple(a.shape)}")  # fmt: skip
-    if rows is not None and out.rows is rows:
+    if out is not None and rows is not None and out.rows is rows:
         raise ValueError("out.rows: expected an array other than the rows selected from")
-    return out.indices, out.scores, (out.rows if P is not None else None)
+
+    def one(name, shape, dtype):
+        return out_array(device, None if out is None else getattr(out, name), f"out.{name}", shape, dtype)
+
+    idx, val = one("indices", (k,), np.int32), one("scores", (k,), np.float32)
+    return idx, val, (one("rows", (k, P), np.float32) if P is not None else None)
 
 
 def sortable_key(scores: np.ndarray) -> np.ndarray:

@@ -26,9 +26,9 @@ import numpy as np
 from ..device import per_device_cache
 from ..models.chain import Chain
 from . import backend_module
-from ._args import arg, check_device, constant
+from ._args import arg, check_device, constant, out_array
 from .kinematics import chain_tables, forward_kinematics
-from .template import _out, rgbd_residuals, scene_args
+from .template import rgbd_residuals, scene_args
 
 __all__ = ["pose_residuals"]
 
@@ -62,7 +62,7 @@ def pose_residuals(
     if n == 0:
         raise ValueError(f"params: expected at least one parameter vector (n >= 1), got shape {tuple(params.shape)}")
     g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, chain.n_parts)
-    out = _out(device, out, "out", (n, rgb.n + depth.n))
+    out = out_array(device, out, "out", (n, rgb.n + depth.n))
     if device.backend != "taichi":
         return rgbd_residuals(device, forward_kinematics(device, chain, params), rgb, depth, g, d, camera, **p, out=out)
     be = backend_module(device, "pose_residuals")

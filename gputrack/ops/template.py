@@ -48,7 +48,7 @@ import numpy as np
 from .. import tuning
 from ..device import Device, DeviceArray, per_device_cache
 from . import backend_module
-from ._args import arg, check_device
+from ._args import arg, check_device, out_array
 
 __all__ = [
     "Camera",
@@ -254,25 +254,6 @@ def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_dept
     return g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth}
 
 
-def _out(device, out, name, shape):
-    """Check a caller-supplied output array (written in place) or allocate one."""
-    if out is None:
-        return device.empty(shape, np.float32)
-    if device.backend == "numpy":
-        ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
-    else:
-        ok = isinstance(out, DeviceArray) and out.device is device
-    if not ok:
-        raise TypeError(
-            f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {type(out).__name__}"
-        )
-    if tuple(out.shape) != tuple(shape) or out.dtype != np.float32:
-        raise ValueError(
-            f"{name}: expected a float32 array of shape {tuple(shape)}, got {out.dtype.name} {tuple(out.shape)}"
-        )
-    return out
-
-
 def rgbd_cost(
     device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None
 ) -> RgbdCost:
@@ -291,7 +272,8 @@ def rgbd_cost(
     if out is not None and not isinstance(out, RgbdCost):
         raise TypeError(f"out: expected a gputrack.RgbdCost (e.g. an earlier result), got {type(out).__name__}")
     outs = tuple(
-        _out(device, None if out is None else getattr(out, f), f"out.{f}", (nb,)) for f in ("total", "rgb", "depth")
+        out_array(device, None if out is None else getattr(out, f), f"out.{f}", (nb,))
+        for f in ("total", "rgb", "depth")
     )
     _tuned(device, "rgbd_cost", p, nb, rgb, depth)
     backend_module(device, "template").rgbd_cost(
@@ -311,7 +293,7 @@ def rgbd_residuals(
     ``out``: a (B, N + N') float32 array on the device to write into.
     """
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
-    res = _out(device, out, "out", (tf.shape[0], rgb.n + depth.n))
+    res = out_array(device, out, "out", (tf.shape[0], rgb.n + depth.n))
     _tuned(device, "rgbd_residuals", p, tf.shape[0], rgb, depth)
     backend_module(device, "template").rgbd_residuals(
         device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p
