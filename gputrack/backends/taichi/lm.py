@@ -47,10 +47,9 @@ folded away).
 
 import numpy as np
 
-from ...device import per_device_cache
 from .arrays import copy
 from .launch import launch
-from .runtime import current_arch, ti
+from .runtime import current_arch, scratch, ti
 
 nd = ti.types.ndarray()
 
@@ -403,17 +402,9 @@ def _solve_one(
     ok[b] = _chol_solve(W, a, delta, b, P, damping[b], dt)  # eq. 22: (J^T J + C I) delta = J^T r
 
 
-_work_cache = per_device_cache()
-
-
 def _work(device, shape, dtype):
-    """A scratch array per device, shape and dtype, allocated once (Taichi allocations are slow)."""
-    per_device = _work_cache.setdefault(device, {})
-    key = (tuple(shape), np.dtype(dtype))
-    w = per_device.get(key)
-    if w is None:
-        w = per_device[key] = device.empty(shape, dtype)
-    return w
+    """The ops' work array (runtime.scratch: kept per device and shape; Taichi allocations are slow)."""
+    return scratch(device, "lm_ops", shape, _ti_dtype(dtype))
 
 
 def _static_p(P: int) -> int:
@@ -425,7 +416,7 @@ def normal_equations(device, J, r, out):
     B, M, P = J.shape
     JtJ, Jtr = out
     W = _work(device, (B * (P * P + P * M + P),), J.dtype)
-    launch(_normal_equations, (J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W.buffer),
+    launch(_normal_equations, (J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W),
            (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)  # fmt: skip
     return JtJ, Jtr
 
@@ -435,7 +426,7 @@ def lm_step(device, JtJ, Jtr, damping, out):
     delta, ok = out
     W = _work(device, (B * P * P,), Jtr.dtype)
     launch(
-        _lm_step, (JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer), (_ti_dtype(Jtr.dtype),)
+        _lm_step, (JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W), (_ti_dtype(Jtr.dtype),)
     )
     return delta, ok
 
@@ -444,7 +435,7 @@ def lm_solve(device, J, r, damping, out):
     B, M, P = J.shape
     delta, ok = out
     W = _work(device, (B * (P * P + P * M + P),), J.dtype)
-    launch(_lm_solve, (J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W.buffer),
+    launch(_lm_solve, (J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W),
            (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)  # fmt: skip
     return delta, ok
 

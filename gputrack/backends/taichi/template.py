@@ -352,13 +352,13 @@ def _rgbd_body(
                         y = dpts[i, 1]
                         z = dpts[i, 2]
                         dd, q, okd, rho = _depth_term(P, x, y, z, dimg, fx, fy, cx, cy, cd)
-                        if ti.static(not want_residuals):
-                            blk += rho
                         if ti.static(want_residuals):
                             col = n + didx[dparts + 1 + i]
                             r = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
                             for l in ti.static(range(L)):
                                 residuals[row[l], col] = r[l]
+                        else:
+                            blk += rho
                         cnt += 1
                         if cnt == CHUNK:
                             eD += blk
