@@ -5,11 +5,24 @@
 // gt_lanes.clh) over every template point, with the points grouped by part so that each part's
 // transform is loaded once. Sums are blocked (CHUNK points per partial sum) so float32 keeps its
 // accuracy for thousands of points. Build options: LANES (1, 4, 8, 16), RESIDUALS (0: costs,
-// 1: per-point residuals of eq. 20-21).
+// 1: per-point residuals of eq. 20-21), REUSE (costs only; see below).
+//
+// Re-use (a particle filter's stage that samples only some parts' parameters, eq. 13-16): the nb
+// hypotheses are nsrc blocks of samples (hypothesis b belongs to source b nsrc / nb, as in
+// gt_sample_around), and the parts with moved[j] == 0 are posed in every sample of a block as in
+// its first sample. REUSE=1 (SOURCE) evaluates the first sample of each block (work-item s, its
+// LANES lanes all that sample) and writes cache row s: [I_i (n), valid_i (n), per RGB part j
+// sum T, sum T^2, sum T I over its valid points (3 rparts), per depth part j the sum of rho_c'
+// (dparts)]. REUSE=2 evaluates every hypothesis, projecting only the moved parts: the other
+// parts' samples and sums come from the cache row of the hypothesis' source. The scores equal
+// the full evaluation's to float rounding (the cached sums are added apart from the blocked ones).
 #include "gt_lanes.clh"
 
 #ifndef RESIDUALS
 #define RESIDUALS 0
+#endif
+#ifndef REUSE
+#define REUSE 0
 #endif
 #define CHUNK 64
 #define GT_TINY 1e-12f
@@ -36,13 +49,27 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                       const float fx, const float fy, const float cx, const float cy,
                       const float lam, const float c_rgb, const float c_depth,
                       __global float *sample, __global char *valid,
-                      __global float *total, __global float *eps_c, __global float *eps_d, __global float *res)
+                      __global float *total, __global float *eps_c, __global float *eps_d, __global float *res,
+                      __global const int *moved, __global float *cache, const int nsrc)
 {
     const int g = get_global_id(0);
+#if REUSE == 1
+    if (g >= nsrc)
+        return;
+    const int b0 = 0;
+    const intv bl = (intv)((g * nb + nsrc - 1) / nsrc);  // the first sample of block g, in every lane
+    __global float *crow = cache + (size_t)g * (size_t)(2 * n + 3 * rparts + dparts);
+#else
     const int b0 = g * LANES;
     if (b0 >= nb)
         return;
     const intv bl = min(b0 + LANE_IDS, nb - 1);  // lanes past the batch repeat the last hypothesis
+#endif
+#if REUSE == 2
+    const int cw = 2 * n + 3 * rparts + dparts;  // a cache row
+    const intv crow = (bl * nsrc / nb) * cw;      // each lane's source row (nb nsrc < 2**31: the op checks)
+    realv cT = 0.0f, cTT = 0.0f, cTI = 0.0f, cD = 0.0f;  // the cached parts' sums
+#endif
     const float wm1 = (float)(w - 1), hm1 = (float)(h - 1);
     const float cc = c_rgb * c_rgb, cd = c_depth * c_depth;
     const float wc = sqrt(1.0f - lam), wd = sqrt(lam);
@@ -56,6 +83,19 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     realv sT = 0.0f, sTT = 0.0f, sTI = 0.0f, bT = 0.0f, bTT = 0.0f, bTI = 0.0f;
     int cnt = 0;
     for (int j = 0; j < rparts; ++j) {
+#if REUSE == 2
+        if (!moved[j]) {
+            cT += GATHER(cache, crow + (2 * n + 3 * j));
+            cTT += GATHER(cache, crow + (2 * n + 3 * j + 1));
+            cTI += GATHER(cache, crow + (2 * n + 3 * j + 2));
+            continue;
+        }
+#endif
+#if REUSE == 1
+        realv pT = 0.0f, pTT = 0.0f, pTI = 0.0f;  // part j's sums, blocked as below
+        int pc = 0;
+        realv qT = 0.0f, qTT = 0.0f, qTI = 0.0f;
+#endif
         const gt_pose P = gt_load_pose(tf, bl, nj, j);
         for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
             const float x = rpts[4 * i], y = rpts[4 * i + 1], z = rpts[4 * i + 2], T = rpts[4 * i + 3];
@@ -74,6 +114,18 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             const realv top = i00 + a * (i01 - i00), bot = i10 + a * (i11 - i10);
             const realv I = top + bw * (bot - top);  // sec. 3.5: bilinear
             const realv Tv = select((realv)0.0f, (realv)T, ok);
+#if REUSE == 1
+            qT += Tv;
+            qTT += Tv * T;
+            qTI += Tv * I;
+            if (++pc == CHUNK) {
+                pT += qT; pTT += qTT; pTI += qTI;
+                qT = 0.0f; qTT = 0.0f; qTI = 0.0f;
+                pc = 0;
+            }
+            crow[i] = LANE0(I);
+            crow[n + i] = LANE0(ok) ? 1.0f : 0.0f;
+#else
             bT += Tv;
             bTT += Tv * T;
             bTI += Tv * I;
@@ -84,18 +136,39 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                 bT = 0.0f; bTT = 0.0f; bTI = 0.0f;
                 cnt = 0;
             }
+#endif
         }
+#if REUSE == 1
+        crow[2 * n + 3 * j] = LANE0(pT + qT);
+        crow[2 * n + 3 * j + 1] = LANE0(pTT + qTT);
+        crow[2 * n + 3 * j + 2] = LANE0(pTI + qTI);
+#endif
     }
+#if REUSE == 2
+    sT += bT + cT; sTT += bTT + cTT; sTI += bTI + cTI;
+#else
     sT += bT; sTT += bTT; sTI += bTI;
+#endif
     const realv alpha = select((realv)0.0f, 1.0f / sT, sT > GT_TINY);              // eq. 17
     const realv beta = select((realv)0.0f, alpha * sTT / sTI, sTI > GT_TINY);      // eq. 17
 
     // ---- RGB pass 2: eps_C = sum rho_c(d_i) (eq. 17); residuals r_i (eq. 20-21)
     realv eC = 0.0f, blk = 0.0f;
     cnt = 0;
+#if REUSE == 1
+    for (int i = 0; i < 0; ++i) {  // the sources write their cache rows only
+        const realv I = 0.0f;
+        const intv ok = 0;
+#elif REUSE == 2
+    for (int j = 0; j < rparts; ++j)
+    for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
+        const realv I = moved[j] ? VLOADR(srow + i, sample) : GATHER(cache, crow + i);
+        const intv ok = moved[j] ? TO_INT(VLOADC(srow + i, valid)) : (GATHER(cache, crow + (n + i)) != 0.0f);
+#else
     for (int i = 0; i < n; ++i) {
         const realv I = VLOADR(srow + i, sample);
         const intv ok = TO_INT(VLOADC(srow + i, valid));
+#endif
         const realv d = beta * I - alpha * rpts[4 * i + 3];  // eq. 17: d_i
         const realv q = cc + d * d;
 #if !RESIDUALS
@@ -122,6 +195,16 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     blk = 0.0f;
     cnt = 0;
     for (int j = 0; j < dparts; ++j) {
+#if REUSE == 2
+        if (!moved[j]) {
+            cD += GATHER(cache, crow + (2 * n + 3 * rparts + j));
+            continue;
+        }
+#endif
+#if REUSE == 1
+        realv pD = 0.0f, qD = 0.0f;
+        int pc = 0;
+#endif
         const gt_pose P = gt_load_pose(tf, bl, nj, j);
         for (int i = dstart[j]; i < dstart[j + 1]; ++i) {
             const float x = dpts[4 * i], y = dpts[4 * i + 1], z = dpts[4 * i + 2];
@@ -143,7 +226,14 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             const realv top = d00 + a * (d01 - d00), bot = d10 + a * (d11 - d10);
             const realv dd = select((realv)0.0f, top + bw * (bot - top) - Z, okd);  // eq. 18: d'_i = Zhat - Z
             const realv q = cd + dd * dd;
-#if !RESIDUALS
+#if REUSE == 1
+            qD += select((realv)1.0f, dd * dd / q, okd);
+            if (++pc == CHUNK) {
+                pD += qD;
+                qD = 0.0f;
+                pc = 0;
+            }
+#elif !RESIDUALS
             blk += select((realv)1.0f, dd * dd / q, okd);
 #endif
 #if RESIDUALS
@@ -160,10 +250,17 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                 cnt = 0;
             }
         }
+#if REUSE == 1
+        crow[2 * n + 3 * rparts + j] = LANE0(pD + qD);
+#endif
     }
+#if REUSE == 2
+    eD += blk + cD;
+#else
     eD += blk;
+#endif
 
-#if !RESIDUALS
+#if !RESIDUALS && REUSE != 1
     float t0[LANES], t1[LANES], t2[LANES];
     VSTORER((1.0f - lam) * eC + lam * eD, 0, t0);  // eq. 19
     VSTORER(eC, 0, t1);

@@ -1,8 +1,8 @@
 """One particle-filter stage (gputrack.ops.pf.pf_stage) against its composition and the reference.
 
 The composition sample_around -> forward_kinematics -> rgbd_cost -> best_k on the same device is
-what pf_stage promises to compute; Taichi runs it fused with a partial evaluation of the parts no
-sampled parameter moves (cascade stages), which must not change the scores beyond float rounding.
+what pf_stage promises to compute; Taichi and OpenCL run it with a partial evaluation of the parts
+no sampled parameter moves (cascade stages), which must not change the scores beyond float rounding.
 """
 
 import dataclasses

@@ -6,15 +6,15 @@
     scores = rgbd_cost(device, forward_kinematics(device, chain, samples), ...).total   # eq. 17-19
     best = best_k(device, scores, k, rows=samples)
 
-as one op, so that a backend can run it as one launch. The numpy and OpenCL backends run the
-composition itself (an OpenCL launch costs microseconds). Taichi fuses it into one kernel (a
-Taichi launch costs 0.03-0.2 ms on a CPU, and a filter makes 9 stages a frame) and adds a
-partial evaluation that gives the same scores to float rounding: the parts that no sampled
-parameter moves (sigma = 0 for every parameter they depend on, e.g. the torso and the left arm
-while the right arm is sampled in cascade order, eq. 13-16) look the same in every sample of a
-candidate, so their template points are projected once per candidate instead of once per
-sample; the samples then re-use those intensities (eq. 17's alpha and beta still run over all
-valid points) and that depth sum.
+as one op, so that a backend can run it without a wait or an allocation. The numpy backend runs
+the composition itself. Taichi fuses it into one kernel (a Taichi launch costs 0.03-0.2 ms on a
+CPU, and a filter makes 9 stages a frame); OpenCL launches its steps in order into arrays kept
+per device (a launch costs microseconds). Both add a partial evaluation that gives the same
+scores to float rounding: the parts that no sampled parameter moves (sigma = 0 for every
+parameter they depend on, e.g. the torso and the left arm while the right arm is sampled in
+cascade order, eq. 13-16) look the same in every sample of a candidate, so their template
+points are projected once per candidate instead of once per sample; the samples then re-use
+those intensities (eq. 17's alpha and beta still run over all valid points) and that depth sum.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def pf_stage(
     k = dims["C"] if k is None else k
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= int(n):
         raise ValueError(f"k: expected an integer in [1, n={n}], got {k!r}")
-    fused = device.backend == "taichi"
+    fused = device.backend in ("taichi", "opencl")
     outs = best_k_out(device, out, int(k), dims["P"], cand) if fused or out is not None else None  # checks out
     lo, hi = _seed(seed)
     g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, chain.n_parts)

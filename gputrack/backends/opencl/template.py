@@ -43,7 +43,8 @@ def _buffer(device, name, nbytes):
 # directly, which takes a launch from ~150 us to ~20 us on PoCL
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
-    "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 7 + [None] * 6,
+    "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 7 + [None] * 8
+    + [_I],
     "gt_patch_ncc_points": [None, _I, _I, None, _I, None, _I, _I, None],
     "gt_patch_ncc": [None, _I, _I, None, _I, None, _I, _I, None],
 }
@@ -63,11 +64,13 @@ def _kernel(device, name, **defines):
     return found
 
 
-def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, residuals, params):
+def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, residuals, params, reuse=None):
+    """``reuse``: None, or (moved (J,) int32 buffer, sources): the cost of ``sources`` blocks of
+    samples that pose the parts with moved[j] == 0 as their first sample does (kernels/gt_template.cl
+    REUSE): one launch caches the sources, a second scores every sample from it."""
     params = params or default_params(device)
     nl = int(params["lanes"])
     wg = int(params["work_group"])
-    kernel = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=int(residuals))
     nb, nj = tf.shape[:2]
     n = rgb["pts"].shape[0]
     m = depth["pts"].shape[0]
@@ -83,20 +86,30 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, 
         res_buf = dummy
         outs = tuple(o.buffer.data for o in outs)
     fx, fy, cx, cy = (float(c) for c in camera)
-    kernel(
-        device.queue, ((groups + wg - 1) // wg * wg,), (wg,),
+    moved, cache, sources = dummy, dummy, 0
+    if reuse is not None:
+        moved, sources = reuse
+        cache = _buffer(device, "cache", sources * (2 * n + 3 * rgb["parts"] + depth["parts"]) * 4)
+    args = (
         tf.buffer.data, nb, nj,
         rgb["pts"].buffer.data, rgb["index"].buffer.data, rgb["parts"], n,
         depth["pts"].buffer.data, depth["index"].buffer.data, depth["parts"], m,
         gray.buffer.data, dimg.buffer.data, h, w,
         fx, fy, cx, cy, lam, c_rgb, c_depth,
-        sample, valid, outs[0], outs[1], outs[2], res_buf,
+        sample, valid, outs[0], outs[1], outs[2], res_buf, moved, cache, sources,
     )  # fmt: skip
+    if reuse is not None:
+        source = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=0, REUSE=1)
+        source(device.queue, ((sources + wg - 1) // wg * wg,), (wg,), *args)
+    kernel = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=int(residuals), REUSE=2 if reuse is not None else 0)
+    kernel(device.queue, ((groups + wg - 1) // wg * wg,), (wg,), *args)
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None):
-    """``params``: {"lanes", "work_group"} (gputrack/ops/template.py TUNABLES); None = default_params."""
-    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (total, eps_c, eps_d), False, params)
+def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None,
+              reuse=None):  # fmt: skip
+    """``params``: {"lanes", "work_group"} (gputrack/ops/template.py TUNABLES); None = default_params.
+    ``reuse``: see _run (gputrack/backends/opencl/pf.py)."""
+    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (total, eps_c, eps_d), False, params, reuse)
 
 
 def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
