@@ -155,17 +155,13 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     // ---- RGB pass 2: eps_C = sum rho_c(d_i) (eq. 17); residuals r_i (eq. 20-21)
     realv eC = 0.0f, blk = 0.0f;
     cnt = 0;
-#if REUSE == 1
-    for (int i = 0; i < 0; ++i) {  // the sources write their cache rows only
-        const realv I = 0.0f;
-        const intv ok = 0;
-#elif REUSE == 2
+#if REUSE == 2
     for (int j = 0; j < rparts; ++j)
     for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
         const realv I = moved[j] ? VLOADR(srow + i, sample) : GATHER(cache, crow + i);
         const intv ok = moved[j] ? TO_INT(VLOADC(srow + i, valid)) : (GATHER(cache, crow + (n + i)) != 0.0f);
 #else
-    for (int i = 0; i < n; ++i) {
+    for (int i = 0; i < (REUSE == 1 ? 0 : n); ++i) {  // the sources (REUSE=1) write their cache rows only
         const realv I = VLOADR(srow + i, sample);
         const intv ok = TO_INT(VLOADC(srow + i, valid));
 #endif
