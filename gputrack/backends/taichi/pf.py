@@ -44,7 +44,7 @@ def _pf_stage(
 ):  # fmt: skip
     pose = ti.static((_sample_pose, (cand, sig, seed, samples, offsets, tf, chain)))  # each group's lanes first
     if ti.static(reuse):
-        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, 0, pose)
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, 0, L, pose)
     _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, total, eps_c, eps_d, total,
                groups, False, L, chunks, REUSE_PF if ti.static(reuse) else 0, moved, cache, moved, moved, 0,
                pose)  # fmt: skip

@@ -9,7 +9,8 @@ which each group of lanes takes rows that move the same parts (the plan), poses 
 that differs from its problem's point in more than its own parameter, and projects and writes only
 the parts its rows move (all of them for a flagged row). Posing inside the parallel loop instead of
 in a serial task first: the serial task of a B=10, P=20 stack 0.106 -> 0.056 ms (kernel profiler
-minimum, taichi:cpu, 2026-11-23).
+minimum, taichi:cpu, 2026-11-23); its problems' points taken as lane vectors, L at a time:
+0.050-0.054 -> 0.024-0.028 ms (2026-11-24).
 """
 
 from .kinematics import pose_f32
@@ -49,7 +50,8 @@ def _pose_residuals(
     n = params.shape[0]
     if ti.static(stride > 0):  # each group poses its own rows (the problems' points first, for the cache)
         pose = ti.static((_pose_hook, (params, offsets, tf, full, chain, stride)))
-        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, stride, pose)
+        _source_cache(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, cache, chunks > 0, stride, L,
+                      pose)  # fmt: skip
         _rgbd_body(tf, rpts, ridx, rparts, dpts, didx, dparts, gray, dimg, cam, work, residuals, residuals, residuals,
                    residuals, groups, True, L, chunks, REUSE_SPARSE, moved, cache, order, full, stride,
                    pose)  # fmt: skip

@@ -122,62 +122,90 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
     dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), cache: ti.template(),
-    serial: ti.template(), stride: ti.template(), pose: ti.template() = (),
+    serial: ti.template(), stride: ti.template(), L: ti.template(), pose: ti.template() = (),
 ):  # fmt: skip
     """Re-use modes, first task (on the calling thread when ``serial``: a few sources, and a
     thread-pool dispatch costs ~50 us on a CPU): evaluate the source hypothesis of cache row s in
     full: with ``stride`` = 0 (PF), the first hypothesis of candidate s's block (s B // C .. the
     samples of sample_around); else hypothesis s * stride (the point of LM problem s in the
     central-difference stack). cache[s] = [I_i (n), valid_i (n), then per part j: sum T, sum T^2,
-    sum T I over its valid RGB points and the sum of rho_c' over its depth points (4 J)]."""
+    sum T I over its valid RGB points and the sum of rho_c' over its depth points (4 J)]. The
+    sources are taken L at a time as lane vectors (the last group repeats its last source)."""
     nb = tf.shape[0]
     nc = cache.shape[0]
     n = rpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     cd = cam[6] * cam[6]
     ti.loop_config(serialize=serial)
-    for s in range(nc):
-        b = s * stride
-        if ti.static(stride == 0):
-            b = (s * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
+    for sg in range((nc + L - 1) // L):
+        src = ti.Vector([0] * L, dt=ti.i32)  # the lanes' cache rows
+        row = ti.Vector([0] * L, dt=ti.i32)  # and their hypotheses
+        for l in ti.static(range(L)):
+            src[l] = ti.min(sg * L + l, nc - 1)
+            row[l] = src[l] * stride
+            if ti.static(stride == 0):
+                row[l] = (src[l] * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
         if ti.static(len(pose) > 0):
-            ti.static(pose[0])(ti.static(pose[1]), b)
-        P = [_lanes(1) for _ in ti.static(range(12))]  # one lane
+            for l in range(L):  # a loop, not unrolled: one copy of the posing code (compile time)
+                b = ti.min(sg * L + l, nc - 1) * stride
+                if ti.static(stride == 0):
+                    b = (ti.min(sg * L + l, nc - 1) * nb + nc - 1) // nc
+                ti.static(pose[0])(ti.static(pose[1]), b)
+        P = [_lanes(L) for _ in ti.static(range(12))]
         for j in range(rparts):
-            _load_pose(P, 0, tf, b, j)
-            acc = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
-            blk = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
+            for l in ti.static(range(L)):
+                _load_pose(P, l, tf, row[l], j)
+            sT = _lanes(L)
+            sTT = _lanes(L)
+            sTI = _lanes(L)
+            bT = _lanes(L)
+            bTT = _lanes(L)
+            bTI = _lanes(L)
             cnt = 0
             for i in range(ridx[j], ridx[j + 1]):
                 T = rpts[i, 3]
-                Iv, okv = _gray_at(P, rpts[i, 0], rpts[i, 1], rpts[i, 2], gray, fx, fy, cx, cy)
-                I = Iv[0]
-                Tv = ti.select(okv[0], T, 0.0)
-                blk += ti.Vector([Tv, Tv * T, Tv * I])
-                cache[s, i] = I
-                cache[s, n + i] = ti.select(okv[0], 1.0, 0.0)
+                I, ok = _gray_at(P, rpts[i, 0], rpts[i, 1], rpts[i, 2], gray, fx, fy, cx, cy)
+                Tv = ti.select(ok, T, 0.0)
+                bT += Tv
+                bTT += Tv * T
+                bTI += Tv * I
+                okf = ti.select(ok, 1.0, 0.0)
+                for l in ti.static(range(L)):
+                    cache[src[l], i] = I[l]
+                    cache[src[l], n + i] = okf[l]
+                cnt += 1
+                if cnt == CHUNK:
+                    sT += bT
+                    sTT += bTT
+                    sTI += bTI
+                    bT.fill(0.0)
+                    bTT.fill(0.0)
+                    bTI.fill(0.0)
+                    cnt = 0
+            sT += bT
+            sTT += bTT
+            sTI += bTI
+            for l in ti.static(range(L)):
+                cache[src[l], 2 * n + 4 * j] = sT[l]
+                cache[src[l], 2 * n + 4 * j + 1] = sTT[l]
+                cache[src[l], 2 * n + 4 * j + 2] = sTI[l]
+        for j in range(dparts):
+            for l in ti.static(range(L)):
+                _load_pose(P, l, tf, row[l], j)
+            acc = _lanes(L)
+            blk = _lanes(L)
+            cnt = 0
+            for i in range(didx[j], didx[j + 1]):
+                _, _, _, rho = _depth_term(P, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
+                blk += rho
                 cnt += 1
                 if cnt == CHUNK:
                     acc += blk
                     blk.fill(0.0)
                     cnt = 0
             acc += blk
-            for e in ti.static(range(3)):
-                cache[s, 2 * n + 4 * j + e] = acc[e]
-        for j in range(dparts):
-            _load_pose(P, 0, tf, b, j)
-            acc = ti.f32(0.0)
-            blk = ti.f32(0.0)
-            cnt = 0
-            for i in range(didx[j], didx[j + 1]):
-                _, _, _, rho = _depth_term(P, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
-                blk += rho[0]
-                cnt += 1
-                if cnt == CHUNK:
-                    acc += blk
-                    blk = 0.0
-                    cnt = 0
-            cache[s, 2 * n + 4 * j + 3] = acc + blk
+            for l in ti.static(range(L)):
+                cache[src[l], 2 * n + 4 * j + 3] = acc[l]
 
 
 @ti.func
