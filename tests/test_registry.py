@@ -201,3 +201,25 @@ def test_arrays_kept_past_a_taichi_restart_leave_the_next_program_intact():
         print("BAD", bad)
     """)
     assert "BAD []" in r.stdout, r.stdout + r.stderr
+
+
+def test_taichi_cpu_thread_count_follows_the_environment():
+    code = """
+        import gputrack, taichi as ti
+        from gputrack.backends.taichi.runtime import cpu_threads
+        try:
+            print("DEFAULT", cpu_threads())
+            gputrack.device("taichi:cpu")
+            print("THREADS", ti.lang.impl.current_cfg().cpu_max_num_threads)
+        except Exception as e:
+            print("ERROR", type(e).__name__, e)
+    """
+    r = run_py(code, env={"GPUTRACK_CPU_THREADS": "3"})
+    assert "THREADS 3" in r.stdout, (r.stdout, r.stderr)
+    assert "DEFAULT 3" in r.stdout
+    r = run_py(code, env={"GPUTRACK_CPU_THREADS": "0"})
+    assert "GPUTRACK_CPU_THREADS: expected a positive integer, got '0'" in r.stdout, (r.stdout, r.stderr)
+    env = {k: v for k, v in os.environ.items() if k != "GPUTRACK_CPU_THREADS"}
+    r = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=300,
+                       cwd=ROOT, env=env)  # fmt: skip
+    assert f"DEFAULT {2 * len(os.sched_getaffinity(0))}" in r.stdout, (r.stdout, r.stderr)
