@@ -173,15 +173,7 @@ def _source_cache(
                 for l in ti.static(range(L)):
                     cache[src[l], i] = I[l]
                     cache[src[l], n + i] = okf[l]
-                cnt += 1
-                if cnt == CHUNK:
-                    sT += bT
-                    sTT += bTT
-                    sTI += bTI
-                    bT.fill(0.0)
-                    bTT.fill(0.0)
-                    bTI.fill(0.0)
-                    cnt = 0
+                sT, sTT, sTI, bT, bTT, bTI, cnt = _blocked3(sT, sTT, sTI, bT, bTT, bTI, cnt)
             sT += bT
             sTT += bTT
             sTI += bTI
@@ -316,15 +308,7 @@ def _rgbd_body(
                         for l in ti.static(range(L)):  # samples, then validity flags: contiguous lanes
                             scratch[g, i * L + l] = I[l]
                             scratch[g, (n + i) * L + l] = okf[l]
-                        cnt += 1
-                        if cnt == CHUNK:
-                            sT += bT
-                            sTT += bTT
-                            sTI += bTI
-                            bT.fill(0.0)
-                            bTT.fill(0.0)
-                            bTI.fill(0.0)
-                            cnt = 0
+                        sT, sTT, sTI, bT, bTT, bTI, cnt = _blocked3(sT, sTT, sTI, bT, bTT, bTI, cnt)
                 else:  # the sources' sums (pass 2 reads their samples from the cache)
                     for l in ti.static(range(L)):
                         cT[l] += cache[own[l], 2 * n + 4 * j]
@@ -427,6 +411,23 @@ def _blocked(acc, blk, cnt):
         b.fill(0.0)
         c = 0
     return a, b, c
+
+
+@ti.func
+def _blocked3(sT, sTT, sTI, bT, bTT, bTI, cnt):
+    """One more term in eq. 17's three blocked sums (sum T, sum T^2, sum T I; see _blocked)."""
+    a0, a1, a2 = sT, sTT, sTI
+    b0, b1, b2 = bT, bTT, bTI
+    c = cnt + 1
+    if c == CHUNK:
+        a0 += b0
+        a1 += b1
+        a2 += b2
+        b0.fill(0.0)
+        b1.fill(0.0)
+        b2.fill(0.0)
+        c = 0
+    return a0, a1, a2, b0, b1, b2, c
 
 
 @ti.func
