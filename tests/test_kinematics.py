@@ -254,12 +254,12 @@ def test_out_argument(device):
     assert got is out
     want = reference(None, chain, p)
     assert_matches(device, gputrack.to_numpy(out)[..., :3], want[..., :3])
-    with pytest.raises(ValueError, match=r"out: expected shape \(13, 5, 3, 4\), got \(12, 5, 3, 4\)"):
+    with pytest.raises(ValueError, match=r"out: expected a float32 array of shape \(13, 5, 3, 4\), got float32 \(12,"):
         forward_kinematics(device, chain, p, out=device.empty((12, 5, 3, 4), np.float32))
-    with pytest.raises(TypeError, match="out: expected dtype float32"):
+    with pytest.raises(ValueError, match=r"out: expected a float32 array of shape \(13, 5, 3, 4\), got int32 \(13, 5"):
         forward_kinematics(device, chain, p, out=device.empty((13, 5, 3, 4), np.int32))
     if device.backend != "numpy":
-        with pytest.raises(TypeError, match=f"out: expected an array on {device.spec}"):
+        with pytest.raises(TypeError, match=f"out: expected a writable array on {device.spec}"):
             forward_kinematics(device, chain, p, out=np.empty((13, 5, 3, 4), np.float32))
 
 

@@ -107,7 +107,7 @@ def test_ops_write_into_out(device):
     assert JtJ is ne[0]
     d, _ = lm.lm_step(device, JtJ, Jtr, C, out=o)
     assert_matches(device, d, want_d, dt, scale=10)
-    with pytest.raises(ValueError, match="out delta: expected shape"):
+    with pytest.raises(ValueError, match=r"out delta: expected a float(32|64) array of shape \(3, 4\), got float(32|64) \(3, 5\)"):
         lm.lm_solve(device, J, r, C, out=(device.empty((3, 5), dt), o[1]))
     with pytest.raises(TypeError, match="out: expected a tuple of 2"):
         lm.lm_solve(device, J, r, C, out=o[0])

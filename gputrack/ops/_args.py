@@ -126,15 +126,26 @@ def out_array(device, out, name: str, shape: tuple, dtype=np.float32):
     else:
         ok = isinstance(out, DeviceArray) and out.device is device
     if not ok:
-        raise TypeError(
-            f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {type(out).__name__}"
-        )
+        got = f"an array on {out.device.spec}" if isinstance(out, DeviceArray) else type(out).__name__
+        raise TypeError(f"{name}: expected a writable array on {device.spec} (e.g. from an earlier call), got {got}")
     if tuple(out.shape) != tuple(shape) or out.dtype != dtype:
         raise ValueError(
             f"{name}: expected a {np.dtype(dtype).name} array of shape {tuple(shape)}, "
             f"got {out.dtype.name} {tuple(out.shape)}"
         )
     return out
+
+
+def out_arrays(device, out, specs, *, allocate: bool = True):
+    """Check a caller-supplied tuple of output arrays of an op, ``specs`` = ((name, shape, dtype),
+    ...), each as :func:`out_array` does ("out <name>: ..."); ``out=None``: allocate them (or, with
+    ``allocate=False``, return None)."""
+    if out is None:
+        return tuple(device.empty(shape, dtype) for _, shape, dtype in specs) if allocate else None
+    if not isinstance(out, (tuple, list)) or len(out) != len(specs):
+        names = ", ".join(name for name, _, _ in specs)
+        raise TypeError(f"out: expected a tuple of {len(specs)} arrays ({names}) or None, got {type(out).__name__}")
+    return tuple(out_array(device, a, f"out {name}", shape, dtype) for a, (name, shape, dtype) in zip(out, specs))
 
 
 #: small host constants (sampling sigmas, re-use tables) uploaded once per device and value

@@ -65,7 +65,7 @@ import numpy as np
 
 from ..device import DeviceArray
 from . import backend_module
-from ._args import FLOAT, arg, check_device
+from ._args import FLOAT, arg, check_device, out_arrays
 
 __all__ = [
     "KalmanState",
@@ -246,27 +246,11 @@ def _options(device, mask, gain_scale, predict, dims, dt):
 
 
 def _outputs(device, out, dims, dt, with_status):
-    """Validate caller-provided output arrays (exact shape and dtype, on the device)."""
-    if out is None:
-        return None
+    """Caller-provided output arrays (x, P[, status]: exact shape and dtype, on the device), or None."""
     want = [("x", (dims["T"], dims["n"]), dt), ("P", (dims["T"], dims["n"], dims["n"]), dt)]
     if with_status:
         want.append(("status", (dims["T"],), np.dtype(np.uint8)))
-    if not isinstance(out, (tuple, list)) or len(out) != len(want):
-        names = ", ".join(w[0] for w in want)
-        raise TypeError(f"out: expected a tuple ({names}) of arrays or None, got {type(out).__name__}")
-    for a, (name, shape, dtype) in zip(out, want):
-        if device.backend == "numpy":
-            if not isinstance(a, np.ndarray) or not a.flags.c_contiguous or not a.flags.writeable:
-                raise TypeError(f"out {name}: expected a writeable C-contiguous NumPy array, got {type(a).__name__}")
-        elif not isinstance(a, DeviceArray) or a.device is not device:
-            where = f"an array on {a.device.spec}" if isinstance(a, DeviceArray) else type(a).__name__
-            raise TypeError(f"out {name}: expected an array on {device.spec}, got {where}")
-        if tuple(a.shape) != shape or a.dtype != dtype:
-            raise ValueError(
-                f"out {name}: expected shape {shape} and dtype {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}"
-            )
-    return tuple(out)
+    return out_arrays(device, out, want, allocate=False)
 
 
 def _pattern(A, cols):

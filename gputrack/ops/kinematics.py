@@ -20,10 +20,10 @@ import weakref
 
 import numpy as np
 
-from ..device import DeviceArray, per_device_cache
+from ..device import per_device_cache
 from ..models.chain import Chain
 from . import backend_module
-from ._args import FLOAT, arg, check_device
+from ._args import FLOAT, arg, check_device, out_array
 
 __all__ = ["chain_tables", "forward_kinematics"]
 
@@ -58,26 +58,8 @@ def forward_kinematics(device, chain: Chain, params, *, out=None):
     if params.shape[0] == 0:
         raise ValueError(f"params: expected at least one parameter vector (B >= 1), got shape {tuple(params.shape)}")
     shape = (params.shape[0], chain.n_parts, 3, 4)
-    if out is None:
-        out = device.empty(shape, params.dtype)
-    else:
-        out = _check_out(device, out, shape, params.dtype)
+    out = out_array(device, out, "out", shape, params.dtype)
     return backend_module(device, "kinematics").forward_kinematics(device, chain, params, out)
-
-
-def _check_out(device, out, shape, dtype):
-    want = "a NumPy array" if device.backend == "numpy" else f"an array on {device.spec}"
-    if device.backend == "numpy":
-        ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
-    else:
-        ok = isinstance(out, DeviceArray) and out.device is device
-    if not ok:
-        raise TypeError(f"out: expected {want} (C-contiguous, writeable), got {type(out).__name__}")
-    if tuple(out.shape) != shape:
-        raise ValueError(f"out: expected shape {shape}, got {tuple(out.shape)}")
-    if out.dtype != dtype:
-        raise TypeError(f"out: expected dtype {np.dtype(dtype).name} (the params' dtype), got {out.dtype.name}")
-    return out
 
 
 def _selftest(device) -> None:

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..device import Device, DeviceArray, per_device_cache
 from . import backend_module
-from ._args import arg, check_device
+from ._args import arg, check_device, out_arrays
 
 log = logging.getLogger("gputrack")
 
@@ -264,7 +264,7 @@ def normal_equations(device: Device, J, r, *, out=None):
     J = _arg(device, J, "J", ("B", "M", "P"), dims, _float_dtypes(device))
     r = _arg(device, r, "r", ("B", "M"), dims, (J.dtype,))
     _nonempty(dims, "J")
-    out = _out(
+    out = out_arrays(
         device, out, (("JtJ", (dims["B"], dims["P"], dims["P"]), J.dtype), ("Jtr", (dims["B"], dims["P"]), J.dtype))
     )
     return backend_module(device, "lm").normal_equations(device, J, r, out)
@@ -284,7 +284,7 @@ def lm_step(device: Device, JtJ, Jtr, damping, *, out=None):
     Jtr = _arg(device, Jtr, "Jtr", ("B", "P"), dims, (JtJ.dtype,))
     damping = _damping_arg(device, damping, dims, JtJ.dtype)
     _nonempty(dims, "JtJ")
-    out = _out(device, out, (("delta", (dims["B"], dims["P"]), JtJ.dtype), ("ok", (dims["B"],), np.int32)))
+    out = out_arrays(device, out, (("delta", (dims["B"], dims["P"]), JtJ.dtype), ("ok", (dims["B"],), np.int32)))
     return backend_module(device, "lm").lm_step(device, JtJ, Jtr, damping, out)
 
 
@@ -299,29 +299,8 @@ def lm_solve(device: Device, J, r, damping, *, out=None):
     r = _arg(device, r, "r", ("B", "M"), dims, (J.dtype,))
     damping = _damping_arg(device, damping, dims, J.dtype)
     _nonempty(dims, "J")
-    out = _out(device, out, (("delta", (dims["B"], dims["P"]), J.dtype), ("ok", (dims["B"],), np.int32)))
+    out = out_arrays(device, out, (("delta", (dims["B"], dims["P"]), J.dtype), ("ok", (dims["B"],), np.int32)))
     return backend_module(device, "lm").lm_solve(device, J, r, damping, out)
-
-
-def _out(device, out, specs):
-    """Validate ``out`` (a tuple of arrays on the device matching ``specs``) or allocate the outputs."""
-    if out is None:
-        return tuple(device.empty(shape, dtype) for _, shape, dtype in specs)
-    if not isinstance(out, (tuple, list)) or len(out) != len(specs):
-        raise TypeError(
-            f"out: expected a tuple of {len(specs)} arrays ({', '.join(n for n, _, _ in specs)}), got {type(out).__name__}"
-        )
-    for a, (name, shape, dtype) in zip(out, specs):
-        on_device = isinstance(a, DeviceArray) and a.device is device
-        if device.backend == "numpy":
-            on_device = isinstance(a, np.ndarray) and a.flags.c_contiguous and a.flags.writeable
-        if not on_device:
-            raise TypeError(f"out {name}: expected a writable array on {device.spec}, got {type(a).__name__}")
-        if tuple(a.shape) != tuple(shape) or a.dtype != np.dtype(dtype):
-            raise ValueError(
-                f"out {name}: expected shape {tuple(shape)} {np.dtype(dtype).name}, got {tuple(a.shape)} {a.dtype.name}"
-            )
-    return tuple(out)
 
 
 def _nonempty(dims, name):
