@@ -119,6 +119,15 @@ def _load_pose(P: ti.template(), l: ti.template(), tf: ti.template(), b, j):
 
 
 @ti.func
+def _source_row(s, nb, nc, stride: ti.template()):
+    """The hypothesis that cache row s of the re-use modes holds (see _source_cache)."""
+    b = s * stride  # LM problem s's point
+    if ti.static(stride == 0):
+        b = (s * nb + nc - 1) // nc  # PF: the first hypothesis of candidate s's block
+    return b
+
+
+@ti.func
 def _source_cache(
     tf: ti.template(), rpts: ti.template(), ridx: ti.template(), rparts, dpts: ti.template(), didx: ti.template(),
     dparts, gray: ti.template(), dimg: ti.template(), cam: ti.template(), cache: ti.template(),
@@ -142,15 +151,10 @@ def _source_cache(
         row = ti.Vector([0] * L, dt=ti.i32)  # and their hypotheses
         for l in ti.static(range(L)):
             src[l] = ti.min(sg * L + l, nc - 1)
-            row[l] = src[l] * stride
-            if ti.static(stride == 0):
-                row[l] = (src[l] * nb + nc - 1) // nc  # the first hypothesis of candidate s's block
+            row[l] = _source_row(src[l], nb, nc, stride)
         if ti.static(len(pose) > 0):
             for l in range(L):  # a loop, not unrolled: one copy of the posing code (compile time)
-                b = ti.min(sg * L + l, nc - 1) * stride
-                if ti.static(stride == 0):
-                    b = (ti.min(sg * L + l, nc - 1) * nb + nc - 1) // nc
-                ti.static(pose[0])(ti.static(pose[1]), b)
+                ti.static(pose[0])(ti.static(pose[1]), _source_row(ti.min(sg * L + l, nc - 1), nb, nc, stride))
         P = [_lanes(L) for _ in ti.static(range(12))]
         for j in range(rparts):
             for l in ti.static(range(L)):
@@ -189,12 +193,7 @@ def _source_cache(
             cnt = 0
             for i in range(didx[j], didx[j + 1]):
                 _, _, _, rho = _depth_term(P, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
-                blk += rho
-                cnt += 1
-                if cnt == CHUNK:
-                    acc += blk
-                    blk.fill(0.0)
-                    cnt = 0
+                acc, blk, cnt = _blocked(acc, blk + rho, cnt)
             acc += blk
             for l in ti.static(range(L)):
                 cache[src[l], 2 * n + 4 * j + 3] = acc[l]
