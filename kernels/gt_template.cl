@@ -92,9 +92,8 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
         }
 #endif
 #if REUSE == 1
-        realv pT = 0.0f, pTT = 0.0f, pTI = 0.0f;  // part j's sums, blocked as below
-        int pc = 0;
-        realv qT = 0.0f, qTT = 0.0f, qTI = 0.0f;
+        sT = 0.0f; sTT = 0.0f; sTI = 0.0f; bT = 0.0f; bTT = 0.0f; bTI = 0.0f;  // part j's own sums
+        cnt = 0;
 #endif
         const gt_pose P = gt_load_pose(tf, bl, nj, j);
         for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
@@ -114,34 +113,26 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             const realv top = i00 + a * (i01 - i00), bot = i10 + a * (i11 - i10);
             const realv I = top + bw * (bot - top);  // sec. 3.5: bilinear
             const realv Tv = select((realv)0.0f, (realv)T, ok);
-#if REUSE == 1
-            qT += Tv;
-            qTT += Tv * T;
-            qTI += Tv * I;
-            if (++pc == CHUNK) {
-                pT += qT; pTT += qTT; pTI += qTI;
-                qT = 0.0f; qTT = 0.0f; qTI = 0.0f;
-                pc = 0;
-            }
-            crow[i] = LANE0(I);
-            crow[n + i] = LANE0(ok) ? 1.0f : 0.0f;
-#else
             bT += Tv;
             bTT += Tv * T;
             bTI += Tv * I;
+#if REUSE == 1
+            crow[i] = LANE0(I);
+            crow[n + i] = LANE0(ok) ? 1.0f : 0.0f;
+#else
             VSTORER(I, srow + i, sample);
             VSTOREC(TO_CHAR(ok), srow + i, valid);
+#endif
             if (++cnt == CHUNK) {
                 sT += bT; sTT += bTT; sTI += bTI;
                 bT = 0.0f; bTT = 0.0f; bTI = 0.0f;
                 cnt = 0;
             }
-#endif
         }
 #if REUSE == 1
-        crow[2 * n + 3 * j] = LANE0(pT + qT);
-        crow[2 * n + 3 * j + 1] = LANE0(pTT + qTT);
-        crow[2 * n + 3 * j + 2] = LANE0(pTI + qTI);
+        crow[2 * n + 3 * j] = LANE0(sT + bT);
+        crow[2 * n + 3 * j + 1] = LANE0(sTT + bTT);
+        crow[2 * n + 3 * j + 2] = LANE0(sTI + bTI);
 #endif
     }
 #if REUSE == 2
@@ -198,8 +189,9 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
         }
 #endif
 #if REUSE == 1
-        realv pD = 0.0f, qD = 0.0f;
-        int pc = 0;
+        eD = 0.0f;  // part j's own sum
+        blk = 0.0f;
+        cnt = 0;
 #endif
         const gt_pose P = gt_load_pose(tf, bl, nj, j);
         for (int i = dstart[j]; i < dstart[j + 1]; ++i) {
@@ -222,14 +214,7 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             const realv top = d00 + a * (d01 - d00), bot = d10 + a * (d11 - d10);
             const realv dd = select((realv)0.0f, top + bw * (bot - top) - Z, okd);  // eq. 18: d'_i = Zhat - Z
             const realv q = cd + dd * dd;
-#if REUSE == 1
-            qD += select((realv)1.0f, dd * dd / q, okd);
-            if (++pc == CHUNK) {
-                pD += qD;
-                qD = 0.0f;
-                pc = 0;
-            }
-#elif !RESIDUALS
+#if !RESIDUALS
             blk += select((realv)1.0f, dd * dd / q, okd);
 #endif
 #if RESIDUALS
@@ -247,7 +232,7 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             }
         }
 #if REUSE == 1
-        crow[2 * n + 3 * rparts + j] = LANE0(pD + qD);
+        crow[2 * n + 3 * rparts + j] = LANE0(eD + blk);
 #endif
     }
 #if REUSE == 2
