@@ -140,3 +140,22 @@ def test_pf_stage_writes_into_out(device, scene):
         pf_stage(device, chain, cand, sigma, 300, SEED, *args, k=3, out=out)
     with pytest.raises(TypeError, match="out: expected a gputrack.BestK"):
         pf_stage(device, chain, cand, sigma, 300, SEED, *args, out=(out.indices, out.scores, out.rows))
+
+
+@pytest.mark.parametrize("lanes", [1, 4])
+def test_opencl_partial_evaluation_with_other_lane_counts(device, scene, lanes, monkeypatch):
+    """The OpenCL kernels as a GPU builds them (one hypothesis per work-item) and with 4 lanes:
+    a cascade stage's partial evaluation still equals the composition."""
+    if device.backend != "opencl":
+        pytest.skip("OpenCL's lane count (the other backends fix their own)")
+    from gputrack.backends.opencl import template as cl_template
+
+    monkeypatch.setattr(cl_template, "CPU_LANES", lanes)
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    for group in groups:
+        sigma = _sigma(chain, group)
+        got = pf_stage(device, chain, cand, sigma, 129, SEED, rgb, dep, frame.gray, frame.depth, camera)
+        samples, cost, want = _composed(device, chain, cand, sigma, 129, frame, rgb, dep, camera, 10)
+        assert_matches(device, got.scores, gputrack.to_numpy(want.scores), scale=50)
+        idx = gputrack.to_numpy(got.indices)
+        assert_matches(device, got.scores, gputrack.to_numpy(cost.total)[idx], scale=50)
