@@ -119,7 +119,6 @@ def test_pf_stage_rejects_bad_input(device, scene):
         pf_stage(device, two_parts, cand[:, :8], sigma[:8], 100, 1, *args)
 
 
-
 def test_pf_stage_writes_into_out(device, scene):
     """``out=`` (an earlier result) receives the same k rows, scores and indices as a fresh call;
     a stage's own candidates or a result of other sizes is refused."""
