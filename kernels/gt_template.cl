@@ -53,12 +53,13 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                       __global const int *moved, __global float *cache, const int nsrc)
 {
     const int g = get_global_id(0);
+    const int cw = 2 * n + 3 * rparts + dparts;  // a cache row (REUSE)
 #if REUSE == 1
     if (g >= nsrc)
         return;
     const int b0 = 0;
     const intv bl = (intv)((g * nb + nsrc - 1) / nsrc);  // the first sample of block g, in every lane
-    __global float *crow = cache + (size_t)g * (size_t)(2 * n + 3 * rparts + dparts);
+    __global float *crow = cache + (size_t)g * (size_t)cw;
 #else
     const int b0 = g * LANES;
     if (b0 >= nb)
@@ -66,7 +67,6 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     const intv bl = min(b0 + LANE_IDS, nb - 1);  // lanes past the batch repeat the last hypothesis
 #endif
 #if REUSE == 2
-    const int cw = 2 * n + 3 * rparts + dparts;  // a cache row
     const intv crow = (bl * nsrc / nb) * cw;      // each lane's source row (nb nsrc < 2**31: the op checks)
     realv cT = 0.0f, cTT = 0.0f, cTI = 0.0f, cD = 0.0f;  // the cached parts' sums
 #endif

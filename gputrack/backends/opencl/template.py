@@ -108,7 +108,7 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, 
 def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None,
               reuse=None):  # fmt: skip
     """``params``: {"lanes", "work_group"} (gputrack/ops/template.py TUNABLES); None = default_params.
-    ``reuse``: see _run (gputrack/backends/opencl/pf.py)."""
+    ``reuse``: see _run (the particle filter's cascade stages, gputrack/backends/opencl/pf.py)."""
     _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (total, eps_c, eps_d), False, params, reuse)
 
 
