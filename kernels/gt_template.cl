@@ -47,7 +47,7 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                       __global const float *dpts, __global const int *dindex, const int dparts, const int m,
                       __global const float *gray, __global const float *dimg, const int h, const int w,
                       const float fx, const float fy, const float cx, const float cy,
-                      const float lam, const float c_rgb, const float c_depth,
+                      const float lam, const float c_rgb, const float c_depth, const float depth_tol,
                       __global float *sample, __global char *valid,
                       __global float *total, __global float *eps_c, __global float *eps_d, __global float *res,
                       __global const int *moved, __global float *cache, const int nsrc)
@@ -212,7 +212,8 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                              (d10 < GT_BIG) & (d11 < GT_BIG);
             const realv a = uc - TO_REAL(x0), bw = vc - TO_REAL(y0);
             const realv top = d00 + a * (d01 - d00), bot = d10 + a * (d11 - d10);
-            const realv dd = select((realv)0.0f, top + bw * (bot - top) - Z, okd);  // eq. 18: d'_i = Zhat - Z
+            const realv e = top + bw * (bot - top) - Z;  // eq. 18: d'_i = Zhat - Z
+            const realv dd = select((realv)0.0f, e - clamp(e, -depth_tol, depth_tol), okd);  // |e| <= depth_tol: 0
             const realv q = cd + dd * dd;
 #if !RESIDUALS
             blk += select((realv)1.0f, dd * dd / q, okd);

@@ -41,9 +41,10 @@ def _sigma(chain, group):
     return (pf_sigma(chain) * group).astype(np.float32)
 
 
-def _composed(device, chain, cand, sigma, n, frame, rgb, dep, camera, k):
+def _composed(device, chain, cand, sigma, n, frame, rgb, dep, camera, k, **kw):
     samples = sample_around(device, cand, sigma, n, SEED, keep_candidates=True)
-    cost = rgbd_cost(device, forward_kinematics(device, chain, samples), rgb, dep, frame.gray, frame.depth, camera)
+    tf = forward_kinematics(device, chain, samples)
+    cost = rgbd_cost(device, tf, rgb, dep, frame.gray, frame.depth, camera, **kw)
     return samples, cost, best_k(device, cost.total, k, rows=samples)
 
 
@@ -67,6 +68,18 @@ def test_pf_stage_equals_its_composition(device, scene, which, n, k):
     assert_matches(device, got.scores, total[idx], scale=50)
     np.testing.assert_array_equal(gputrack.to_numpy(got.rows), gputrack.to_numpy(samples)[idx])
     assert got.rows.shape == (k, chain.n_params) and got.indices.shape == (k,)
+
+
+@pytest.mark.parametrize("which", ["torso", "all"])
+def test_pf_stage_with_a_depth_tolerance_equals_its_composition(device, scene, which):
+    """depth_tol reaches the fused kernels, in the partial (cascade) and the full evaluation."""
+    chain, frame, rgb, dep, camera, cand, groups = scene
+    sigma = _sigma(chain, groups[0] if which == "torso" else np.ones(chain.n_params, bool))
+    got = pf_stage(device, chain, cand, sigma, 300, SEED, rgb, dep, frame.gray, frame.depth, camera, depth_tol=2.0)
+    samples, cost, want = _composed(device, chain, cand, sigma, 300, frame, rgb, dep, camera, 10, depth_tol=2.0)
+    assert_matches(device, got.scores, gputrack.to_numpy(want.scores), scale=50)
+    plain = pf_stage(device, chain, cand, sigma, 300, SEED, rgb, dep, frame.gray, frame.depth, camera)
+    assert gputrack.to_numpy(got.scores)[0] < gputrack.to_numpy(plain.scores)[0]
 
 
 def test_pf_stage_matches_reference(device, scene):

@@ -51,9 +51,9 @@ def _needed(chain, rgb, dep, problems):
     return np.tile(block, (problems, 1))
 
 
-def _composed(device, chain, X, frame, rgb, dep):
+def _composed(device, chain, X, frame, rgb, dep, **kw):
     tf = forward_kinematics(device, chain, X)
-    return gputrack.to_numpy(rgbd_residuals(device, tf, rgb, dep, frame.gray, frame.depth, CAM))
+    return gputrack.to_numpy(rgbd_residuals(device, tf, rgb, dep, frame.gray, frame.depth, CAM, **kw))
 
 
 def test_plain_call_equals_composition_and_reference(device, scene):
@@ -86,6 +86,19 @@ def test_central_computes_the_block_sparse_entries(device, scene, problems):
     np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
     if device.backend == "taichi":  # the one backend that skips: it writes nothing else
         assert (got[~need] == SENTINEL).all()
+
+
+def test_depth_tolerance_reaches_every_path(device, scene):
+    """depth_tol in the plain and the block-sparse (central) evaluation equals the composition's."""
+    chain, frame, rgb, dep = scene
+    X = _stack(chain, 2)
+    want = _composed(device, chain, X, frame, rgb, dep, depth_tol=2.0)
+    assert (want != _composed(device, chain, X, frame, rgb, dep)).any()
+    for central in (False, True):
+        got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, CAM,
+                                               depth_tol=2.0, central=central))  # fmt: skip
+        need = _needed(chain, rgb, dep, 2) if central else np.ones(want.shape, bool)
+        np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
 
 
 def test_central_with_a_broken_layout_is_still_exact(device, scene):

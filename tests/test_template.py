@@ -66,7 +66,7 @@ def run_res(device, tf, rgb, dep, gray, depth, cam, **kw):
 
 
 # -- the reference against a per-point loop ------------------------------------------------------
-def _loop_cost(tf, rgb, dep, gray, depth, cam, lam, c_rgb, c_depth):
+def _loop_cost(tf, rgb, dep, gray, depth, cam, lam, c_rgb, c_depth, depth_tol=0.0):
     """eq. 17-21 point by point, in Python floats, from the documented conventions."""
     h, w = gray.shape
     f32 = np.float32
@@ -126,6 +126,7 @@ def _loop_cost(tf, rgb, dep, gray, depth, cam, lam, c_rgb, c_depth):
                 res.append(math.sqrt(lam))
             else:
                 dd = bil(depth, a, b, x0, y0) - Z
+                dd = math.copysign(max(abs(dd) - depth_tol, 0.0), dd)  # differences within depth_tol count as 0
                 eps_d += dd * dd / (c_depth**2 + dd * dd)
                 res.append(math.sqrt(lam) * dd / math.sqrt(c_depth**2 + dd * dd))
         out.append(((1 - lam) * eps_c + lam * eps_d, eps_c, eps_d, res))
@@ -145,6 +146,16 @@ def test_reference_matches_per_point_loop():
     # the scene exercises every rule: invalid RGB points, invalid depth points, valid ones
     assert got.rgb[1] == pytest.approx(17) and got.depth[1] == pytest.approx(19)  # behind the camera
     assert (got.depth[3:] < 19).all() and (got.depth[3:] > 0.5).all()
+    # depth_tol: the depth differences shrunk towards 0 (some points fall within it, some not)
+    got_t = run_cost(REF, tf, rgb, dep, gray, depth, cam, lam=0.8, depth_tol=0.02)
+    res_t = run_res(REF, tf, rgb, dep, gray, depth, cam, lam=0.8, depth_tol=0.02)
+    want = _loop_cost(tf, rgb, dep, gray, depth, cam, 0.8, 0.5 / 17, 0.01, depth_tol=0.02)
+    np.testing.assert_allclose(got_t.depth, [w[2] for w in want], rtol=1e-5)
+    np.testing.assert_allclose(res_t, [w[3] for w in want], rtol=1e-4, atol=1e-6)
+    np.testing.assert_array_equal(got_t.rgb, got.rgb)
+    zeroed = (res_t[:, 17:] == 0) & (res[:, 17:] != 0)
+    assert zeroed.any() and ((res_t[:, 17:] != 0) & (np.abs(res_t[:, 17:]) < np.abs(res[:, 17:]))).any()
+    assert (got_t.depth[3:] < got.depth[3:]).all()
 
 
 # -- every backend against the reference ---------------------------------------------------------
@@ -185,6 +196,15 @@ def test_rgbd_other_lane_counts(device, monkeypatch, lanes):
     assert module.lanes(device) == lanes
     rng = np.random.default_rng(lanes)
     _compare(device, *make_scene(rng, 37, 29, 31))
+
+
+def test_rgbd_depth_tolerance(device):
+    """depth_tol (differences within it count as none) agrees with the reference on every backend."""
+    rng = np.random.default_rng(33)
+    scene = make_scene(rng, 129, 37, 61)
+    got, _ = _compare(device, *scene, depth_tol=0.02)
+    plain = run_cost(device, *scene)
+    assert (gputrack.to_numpy(got.depth)[3:] < gputrack.to_numpy(plain.depth)[3:]).all()
 
 
 def test_rgbd_paper_size(device):
@@ -447,6 +467,8 @@ def test_bad_input(device):
         call(lam=1.5)
     with pytest.raises(ValueError, match="c_depth: expected a number > 0"):
         call(c_depth=0.0)
+    with pytest.raises(ValueError, match="depth_tol: expected a number >= 0.0, got -1"):
+        call(depth_tol=-1.0)
     with pytest.raises(TypeError, match="expected a gputrack.Device"):
         rgbd_cost("numpy", tf, rgb, dep, gray, depth, cam)
     if device.backend != "numpy":

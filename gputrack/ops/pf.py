@@ -34,7 +34,7 @@ __all__ = ["pf_stage"]
 
 def pf_stage(
     device, chain, candidates, sigma, n, seed, rgb, depth, gray, depth_image, camera, *,
-    k=None, lam=0.9, c_rgb=None, c_depth=5.0, out=None,
+    k=None, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0, out=None,
 ) -> BestK:  # fmt: skip
     """Draw ``n`` samples around the candidates, score them with eq. 17-19, keep the best ``k``.
 
@@ -43,7 +43,7 @@ def pf_stage(
     array (the host decides from it which parts move); n: samples (>= C; sample j belongs to
     candidate j C // n, and the first sample of each block is the candidate itself); seed: an
     integer in [0, 2**64), a new one per call; rgb, depth, gray, depth_image, camera, lam, c_rgb,
-    c_depth: as in :func:`gputrack.ops.template.rgbd_cost`; k: how many to keep (default C).
+    c_depth, depth_tol: as in :func:`gputrack.ops.template.rgbd_cost`; k: how many to keep (default C).
 
     Returns :class:`gputrack.ops.particles.BestK`: ``rows`` (k, P) float32, the next candidates,
     ``scores`` (k,) their costs (eq. 19) ascending, ``indices`` (k,) their sample indices.
@@ -75,7 +75,8 @@ def pf_stage(
     fused = device.backend in ("taichi", "opencl")
     outs = best_k_out(device, out, int(k), dims["P"], cand) if fused or out is not None else None  # checks out
     lo, hi = _seed(seed)
-    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, chain.n_parts)
+    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol,
+                         chain.n_parts)  # fmt: skip
     if fused:
         moved = chain.dependency_mask()[:, sig != 0].any(axis=1)  # parts that a sampled parameter poses
         return backend_module(device, "pf").pf_stage(

@@ -35,12 +35,13 @@ __all__ = ["pose_residuals"]
 
 def pose_residuals(
     device, chain, params, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0,
-    central=False, out=None,
+    depth_tol=0.0, central=False, out=None,
 ):  # fmt: skip
     """Residuals of eq. 20-21 for n parameter vectors of ``chain``: (n, N + N') float32.
 
     chain: a :class:`gputrack.models.Chain`; params: (n, P) float32 (NumPy or on the device),
-    P = chain.n_params; rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth: as in
+    P = chain.n_params; rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
+    depth_tol: as in
     :func:`gputrack.ops.template.rgbd_residuals` (the templates' parts index the chain's parts).
     ``out``: an (n, N + N') float32 array on the device to write into.
 
@@ -61,7 +62,8 @@ def pose_residuals(
     n = params.shape[0]
     if n == 0:
         raise ValueError(f"params: expected at least one parameter vector (n >= 1), got shape {tuple(params.shape)}")
-    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, chain.n_parts)
+    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol,
+                         chain.n_parts)  # fmt: skip
     out = out_array(device, out, "out", (n, rgb.n + depth.n))
     if device.backend != "taichi":
         return rgbd_residuals(device, forward_kinematics(device, chain, params), rgb, depth, g, d, camera, **p, out=out)

@@ -20,6 +20,11 @@ Conventions (every backend, exactly):
 - eq. 18: d'_i = Zhat_i - Z_i where Zhat_i is the measured depth (bilinear) at the projection
   and Z_i the point's depth under the hypothesis (the camera-frame Z above; the paper's depth
   template holds 3D points M'_i, so the depth template's ``value`` is not used by the cost).
+  With ``depth_tol`` = t > 0 the difference e = Zhat_i - Z_i is first shrunk towards 0 by t,
+  d'_i = sign(e) max(|e| - t, 0): a sensor that quantises depth in steps of q only says the
+  surface lies within q/2 of its reading, and the plain difference pulls a pose towards the
+  steps (e.g. the flat front of a torso reads as one step, up to q/2 off). t = 0 (the
+  default) is the paper's eq. 18.
 - An invalid point adds rho's limit, 1, to its cost, and its residual (eq. 20-21) is
   sqrt(1 - lam) (RGB) or sqrt(lam) (depth).
 - Reductions are accurate in float32 for N up to thousands of points (blocked/pairwise sums).
@@ -216,21 +221,22 @@ def _check_scalar(value, name, *, low=None, high=None, positive=False):
     if positive and v <= 0:
         raise ValueError(f"{name}: expected a number > 0, got {value}")
     if low is not None and v < low or high is not None and v > high:
-        raise ValueError(f"{name}: expected a number in [{low}, {high}], got {value}")
+        want = f"in [{low}, {high}]" if high is not None else f">= {low}"
+        raise ValueError(f"{name}: expected a number {want}, got {value}")
     return v
 
 
-def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth):
+def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol):
     check_device(device)
     dims = {}
     tf = arg(device, transforms, "transforms", ("B", "J", 3, 4), dims)
     if dims["B"] == 0:
         raise ValueError("transforms: expected at least one hypothesis, got B = 0")
-    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, dims["J"])
+    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol, dims["J"])
     return tf, g, d, p
 
 
-def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, n_parts):
+def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol, n_parts):
     """Check what the RGB-D cost scores against (templates on ``n_parts`` parts, images, camera,
     eq. 17-19 constants); return (gray, depth image) on the device and the constants."""
     _check_template(rgb, "rgb")
@@ -240,6 +246,7 @@ def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_dept
     lam = _check_scalar(lam, "lam", low=0.0, high=1.0)
     c_rgb = 0.5 / rgb.n if c_rgb is None else _check_scalar(c_rgb, "c_rgb", positive=True)  # eq. 17: c = 0.5/N
     c_depth = _check_scalar(c_depth, "c_depth", positive=True)
+    depth_tol = _check_scalar(depth_tol, "depth_tol", low=0.0)
     if n_parts == 0:
         raise ValueError("transforms: expected at least one part, got J = 0")
     for t, name in ((rgb, "rgb"), (depth, "depth")):
@@ -251,23 +258,26 @@ def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_dept
     d = arg(device, depth_image, "depth_image", ("H", "W"), img, finite=False)
     if img["H"] < 2 or img["W"] < 2:
         raise ValueError(f"gray: expected an image of at least 2 x 2 pixels, got {img['H']} x {img['W']}")
-    return g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth}
+    return g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth, "depth_tol": depth_tol}
 
 
 def rgbd_cost(
-    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None
+    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0,
+    out=None,
 ) -> RgbdCost:
     """RGB-D sparse-template cost of B hypotheses (paper 000 eq. 17-19), one kernel launch.
 
     transforms: (B, J, 3, 4) float32 camera-from-part transforms; rgb, depth: SparseTemplate
     (N and N' points, part indices < J); gray: (H, W) float32 intensities; depth_image: (H, W)
     float32 depth in the units of the template (mm), 0 or non-finite = no measurement;
-    camera: Camera. ``c_rgb=None`` means 0.5/N. Returns :class:`RgbdCost` (total, rgb, depth),
+    camera: Camera. ``c_rgb=None`` means 0.5/N; ``depth_tol`` (mm, >= 0): the depth difference
+    that counts as none (0: the paper's eq. 18). Returns :class:`RgbdCost` (total, rgb, depth),
     each (B,) float32. ``out``: an RgbdCost of (B,) float32 arrays on the device (e.g. an earlier
     result) to write into instead of allocating (a filter stage that runs every frame saves the
     allocations). See the module docstring for the exact conventions.
     """
-    tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
+    tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
+                              depth_tol)  # fmt: skip
     nb = tf.shape[0]
     if out is not None and not isinstance(out, RgbdCost):
         raise TypeError(f"out: expected a gputrack.RgbdCost (e.g. an earlier result), got {type(out).__name__}")
@@ -283,7 +293,8 @@ def rgbd_cost(
 
 
 def rgbd_residuals(
-    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, out=None
+    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0,
+    out=None,
 ):
     """Residuals of eq. 20-21 for B hypotheses: (B, N + N') float32, RGB points then depth points.
 
@@ -292,7 +303,8 @@ def rgbd_residuals(
     sum(r**2, axis=1) equals ``rgbd_cost(...).total``. Same arguments as :func:`rgbd_cost`;
     ``out``: a (B, N + N') float32 array on the device to write into.
     """
-    tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
+    tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
+                              depth_tol)  # fmt: skip
     res = out_array(device, out, "out", (tf.shape[0], rgb.n + depth.n))
     _tuned(device, "rgbd_residuals", p, tf.shape[0], rgb, depth)
     backend_module(device, "template").rgbd_residuals(
@@ -341,7 +353,7 @@ def _problem(op):
         tf, rgb, dep, gray, depth, cam = pf_scene(rng, size["B"], size["N"], size["N"])
         tf_d, g, d = device.asarray(tf), device.asarray(gray), device.asarray(depth)
         r, dd, c = rgb.on(device), dep.on(device), cam.as_array()
-        p = {"lam": 0.9, "c_rgb": 0.5 / rgb.n, "c_depth": 5.0, "params": dict(params)}
+        p = {"lam": 0.9, "c_rgb": 0.5 / rgb.n, "c_depth": 5.0, "depth_tol": 0.0, "params": dict(params)}
         mod = backend_module(device, "template")
         if op == "rgbd_cost":
             outs = tuple(device.empty((size["B"],), np.float32) for _ in range(3))

@@ -61,6 +61,7 @@ class TrackerConfig:
     n_depth: int = 128  # N'
     lam: float = 0.9  # lambda of eq. 19 (Table 3)
     c_depth: float = 5.0  # c' of eq. 18 (mm)
+    depth_tol: float = 0.0  # depth differences up to this (mm) count as none (eq. 18 shrunk; see rgbd_cost)
     template_every: int = 1  # re-render the template every this many frames
     seed: int = 0
 
@@ -75,6 +76,8 @@ class TrackerConfig:
             raise ValueError(f"candidates: expected at most samples={self.samples}, got {self.candidates}")
         if not 0.0 <= self.lam <= 1.0:
             raise ValueError(f"lam: expected a value in [0, 1], got {self.lam}")
+        if not 0.0 <= self.depth_tol < np.inf:
+            raise ValueError(f"depth_tol: expected a finite value >= 0 (mm), got {self.depth_tol}")
 
 
 @dataclasses.dataclass
@@ -187,7 +190,7 @@ class BodyTracker:
         def residuals(points):  # with the sparse Jacobian, only the entries it reads (Fig. 2)
             key = ("residuals", points.shape[0], rgb.n + dep.n)
             r = pose_residuals(dev, self.chain, points, rgb, dep, gray, depth, self.camera, lam=cfg.lam,
-                               c_depth=cfg.c_depth, central=cfg.sparse_jacobian,
+                               c_depth=cfg.c_depth, depth_tol=cfg.depth_tol, central=cfg.sparse_jacobian,
                                out=self._buffers.get(key))  # fmt: skip
             return self._reuse(key, r)
 
@@ -230,7 +233,7 @@ class BodyTracker:
                         key = ("pf_stage", calls % 2)  # two results in turn: a stage reads the other's rows
                         best = pf_stage(dev, self.chain, cand, sigma, cfg.samples, seed, rgb, dep, g, d, self.camera,
                                         k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth,
-                                        out=self._buffers.get(key))  # fmt: skip
+                                        depth_tol=cfg.depth_tol, out=self._buffers.get(key))  # fmt: skip
                         cand = self._reuse(key, best).rows
                         calls += 1
             if cfg.lm_iterations:

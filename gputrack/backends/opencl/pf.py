@@ -29,8 +29,8 @@ def _array(device, name, shape):
     return found
 
 
-def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, out, *,
-             lam, c_rgb, c_depth):  # fmt: skip
+def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, out, **consts):
+    """``consts``: lam, c_rgb, c_depth, depth_tol (gputrack/ops/pf.py)."""
     C, P = cand.shape
     samples = particles.sample_around(device, cand, sig, n, lo, hi, per_candidate=False, keep_candidates=True,
                                       out=_array(device, "samples", (n, P)))  # fmt: skip
@@ -39,7 +39,6 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     reuse = None
     if not moved_parts.all():  # some parts look in every sample as in its candidate
         reuse = (constant(device, moved_parts.astype(np.int32)).buffer.data, C)
-    template.rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *scores, lam=lam, c_rgb=c_rgb, c_depth=c_depth,
-                       reuse=reuse)  # fmt: skip
+    template.rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *scores, **consts, reuse=reuse)
     particles.best_k(device, scores[0], k, samples, out)
     return BestK(*out)

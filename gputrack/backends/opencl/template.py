@@ -43,7 +43,7 @@ def _buffer(device, name, nbytes):
 # directly, which takes a launch from ~150 us to ~20 us on PoCL
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
-    "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 7 + [None] * 8
+    "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 8 + [None] * 8
     + [_I],
     "gt_patch_ncc_points": [None, _I, _I, None, _I, None, _I, _I, None],
     "gt_patch_ncc": [None, _I, _I, None, _I, None, _I, _I, None],
@@ -64,10 +64,11 @@ def _kernel(device, name, **defines):
     return found
 
 
-def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, residuals, params, reuse=None):
+def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, params, reuse=None):
     """``reuse``: None, or (moved (J,) int32 buffer, sources): the cost of ``sources`` blocks of
     samples that pose the parts with moved[j] == 0 as their first sample does (kernels/gt_template.cl
-    REUSE): one launch caches the sources, a second scores every sample from it."""
+    REUSE): one launch caches the sources, a second scores every sample from it. ``consts``: (lam, c_rgb,
+    c_depth, depth_tol)."""
     params = params or default_params(device)
     nl = int(params["lanes"])
     wg = int(params["work_group"])
@@ -95,7 +96,7 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, 
         rgb["pts"].buffer.data, rgb["index"].buffer.data, rgb["parts"], n,
         depth["pts"].buffer.data, depth["index"].buffer.data, depth["parts"], m,
         gray.buffer.data, dimg.buffer.data, h, w,
-        fx, fy, cx, cy, lam, c_rgb, c_depth,
+        fx, fy, cx, cy, *consts,
         sample, valid, outs[0], outs[1], outs[2], res_buf, moved, cache, sources,
     )  # fmt: skip
     if reuse is not None:
@@ -105,15 +106,16 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, outs, 
     kernel(device.queue, ((groups + wg - 1) // wg * wg,), (wg,), *args)
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None,
-              reuse=None):  # fmt: skip
+def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, depth_tol,
+              params=None, reuse=None):  # fmt: skip
     """``params``: {"lanes", "work_group"} (gputrack/ops/template.py TUNABLES); None = default_params.
     ``reuse``: see _run (the particle filter's cascade stages, gputrack/backends/opencl/pf.py)."""
-    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (total, eps_c, eps_d), False, params, reuse)
+    consts = (lam, c_rgb, c_depth, depth_tol)
+    _run(device, tf, rgb, depth, gray, dimg, camera, consts, (total, eps_c, eps_d), False, params, reuse)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
-    _run(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, (out,), True, params)
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, depth_tol, params=None):
+    _run(device, tf, rgb, depth, gray, dimg, camera, (lam, c_rgb, c_depth, depth_tol), (out,), True, params)
 
 
 def patch_ncc(device, pts, tpl, img, *, per_point):

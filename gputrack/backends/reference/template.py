@@ -51,7 +51,7 @@ def _measured(d):
     return (d > 0) & np.isfinite(d)
 
 
-def _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth):
+def _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol):
     """Per-point d_i, d'_i (float64) and validity masks."""
     tf = np.asarray(tf, np.float32)
     shape = gray.shape
@@ -77,6 +77,8 @@ def _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth):
     with np.errstate(invalid="ignore"):
         Zhat = _bilinear(D, x0, y0, a, b).astype(np.float64)
         dd = Zhat - Z.astype(np.float64)  # eq. 18: d'_i = Zhat(M'_i; D_k) - Z_i
+        if depth_tol > 0:  # a difference within the tolerance counts as none (a quantised sensor)
+            dd = np.sign(dd) * np.maximum(np.abs(dd) - depth_tol, 0.0)
     return d, ok, dd, okd
 
 
@@ -84,8 +86,9 @@ def _rho(x, c):
     return x * x / (c * c + x * x)  # eq. 17: rho_c(x) = x^2 / (c^2 + x^2)
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, depth_image, camera, out_total, out_rgb, out_depth, *, lam, c_rgb, c_depth):
-    d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
+def rgbd_cost(device, tf, rgb, depth, gray, depth_image, camera, out_total, out_rgb, out_depth, *, lam, c_rgb, c_depth,
+              depth_tol):  # fmt: skip
+    d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol)
     eps_c = np.where(ok, _rho(d, c_rgb), 1.0).sum(axis=1)  # eq. 17 (invalid point: rho's limit 1)
     with np.errstate(invalid="ignore"):
         eps_d = np.where(okd, _rho(dd, c_depth), 1.0).sum(axis=1)  # eq. 18
@@ -94,8 +97,8 @@ def rgbd_cost(device, tf, rgb, depth, gray, depth_image, camera, out_total, out_
     out_depth[...] = eps_d
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, out, *, lam, c_rgb, c_depth):
-    d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth)
+def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, out, *, lam, c_rgb, c_depth, depth_tol):
+    d, ok, dd, okd = _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol)
     w_c, w_d = np.sqrt(1.0 - lam), np.sqrt(lam)
     r = np.empty(d.shape, np.float64)
     rd = np.empty(dd.shape, np.float64)

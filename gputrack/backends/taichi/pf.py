@@ -60,7 +60,7 @@ def _sample_pose(args: ti.template(), b):
 
 
 def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, out, *,
-             lam, c_rgb, c_depth):  # fmt: skip
+             lam, c_rgb, c_depth, depth_tol):  # fmt: skip
     C, P = cand.shape
     J = chain.n_parts
     nl = int(default_params(device)["lanes"])
@@ -74,7 +74,7 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         cand.buffer, sig.buffer, np.array([lo, hi], np.uint32), scratch(device, "pf_samples", (n, P), ti.f32),
         offsets.buffer, scratch(device, "pf_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
         rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
-        cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
+        cam_array(camera, lam, c_rgb, c_depth, depth_tol), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
         moved.buffer,
         scratch(device, "rgbd_cache", (C, 2 * nr + 4 * J), ti.f32), scratch(device, "pf_total", (n,), ti.f32),
         scratch(device, "pf_eps_c", (n,), ti.f32), scratch(device, "pf_eps_d", (n,), ti.f32), idx.buffer,

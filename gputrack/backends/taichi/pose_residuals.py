@@ -81,7 +81,8 @@ def lanes(device) -> int:
     return int(default_params(device)["lanes"])
 
 
-def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camera, out, plan, *, lam, c_rgb, c_depth):
+def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camera, out, plan, *, lam, c_rgb, c_depth,
+                   depth_tol):  # fmt: skip
     """``plan``: None (every entry), or (stride, order, moved) on the device (gputrack/ops/pose_residuals.py)."""
     n, P = params.shape
     J = chain.n_parts
@@ -101,7 +102,8 @@ def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camer
     arrays = (
         params.buffer, offsets.buffer, scratch(device, "pose_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
         rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
-        cam_array(camera, lam, c_rgb, c_depth), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32), out.buffer,
+        cam_array(camera, lam, c_rgb, c_depth, depth_tol), scratch(device, "rgbd", (groups, 2 * nr * nl), ti.f32),
+        out.buffer,
         moved, order, full, cache,
     )  # fmt: skip
     chunks = cpu_chunks(device)

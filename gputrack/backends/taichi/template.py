@@ -96,8 +96,9 @@ def _gray_at(P: ti.template(), x, y, z, gray: ti.template(), fx, fy, cx, cy):
 
 
 @ti.func
-def _depth_term(P: ti.template(), x, y, z, dimg: ti.template(), fx, fy, cx, cy, cd):
-    """Every lane's d'_i = Zhat - Z (eq. 18; 0 where invalid), its validity and rho_c'(d'_i) (1 if invalid)."""
+def _depth_term(P: ti.template(), x, y, z, dimg: ti.template(), fx, fy, cx, cy, cd, tol):
+    """Every lane's d'_i = Zhat - Z shrunk by tol (eq. 18; 0 where invalid), its validity and rho_c'(d'_i)
+    (1 if invalid)."""
     h = dimg.shape[0]
     w = dimg.shape[1]
     Z, u, v, ok = _project(P, x, y, z, fx, fy, cx, cy, ti.f32(w - 1), ti.f32(h - 1))
@@ -107,7 +108,8 @@ def _depth_term(P: ti.template(), x, y, z, dimg: ti.template(), fx, fy, cx, cy, 
     okd = okd & (d00 < BIG) & (d01 < BIG) & (d10 < BIG) & (d11 < BIG)
     top = d00 + a * (d01 - d00)
     bot = d10 + a * (d11 - d10)
-    dd = ti.select(okd, top + bw * (bot - top) - Z, 0.0)  # eq. 18: d'_i = Zhat - Z
+    e = top + bw * (bot - top) - Z  # eq. 18: d'_i = Zhat - Z
+    dd = ti.select(okd, e - ti.min(ti.max(e, -tol), tol), 0.0)  # |e| <= tol counts as 0 (depth_tol)
     q = cd + dd * dd
     return dd, q, okd, ti.select(okd, dd * dd / q, 1.0)
 
@@ -145,6 +147,7 @@ def _source_cache(
     n = rpts.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     cd = cam[6] * cam[6]
+    tol = cam[7]
     ti.loop_config(serialize=serial)
     for sg in range((nc + L - 1) // L):
         src = ti.Vector([0] * L, dt=ti.i32)  # the lanes' cache rows
@@ -192,7 +195,7 @@ def _source_cache(
             blk = _lanes(L)
             cnt = 0
             for i in range(didx[j], didx[j + 1]):
-                _, _, _, rho = _depth_term(P, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd)
+                _, _, _, rho = _depth_term(P, dpts[i, 0], dpts[i, 1], dpts[i, 2], dimg, fx, fy, cx, cy, cd, tol)
                 acc, blk, cnt = _blocked(acc, blk + rho, cnt)
             acc += blk
             for l in ti.static(range(L)):
@@ -228,7 +231,7 @@ def _rgbd_body(
     stride: ti.template(),
     pose: ti.template() = (),
 ):
-    """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth]; ridx/didx = [start (parts + 1), perm (points)].
+    """cam = [fx, fy, cx, cy, lam, c_rgb, c_depth, depth_tol]; ridx/didx = [start (parts + 1), perm (points)].
 
     ``pose``: () (the transforms tf are given), or (func, args) with a ti.func ``func(args, b)``
     that writes hypothesis b's transforms into tf; a group calls it for its lanes' hypotheses first
@@ -252,6 +255,7 @@ def _rgbd_body(
     lam = cam[4]
     cc = cam[5] * cam[5]
     cd = cam[6] * cam[6]
+    tol = cam[7]
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
     # groups = ceil(B / L) (a compile-time value), cut into chunks on the CPU (see chunk)
@@ -362,7 +366,7 @@ def _rgbd_body(
                         x = dpts[i, 0]
                         y = dpts[i, 1]
                         z = dpts[i, 2]
-                        dd, q, okd, rho = _depth_term(P, x, y, z, dimg, fx, fy, cx, cy, cd)
+                        dd, q, okd, rho = _depth_term(P, x, y, z, dimg, fx, fy, cx, cy, cd, tol)
                         if ti.static(want_residuals):
                             col = n + didx[dparts + 1 + i]
                             r = ti.select(okd, wd * dd / ti.sqrt(q), wd)  # eq. 20-21
@@ -488,31 +492,33 @@ def _rgbd_res_kernel(
                residuals, residuals, groups, True, L, chunks, 0, ridx, scratch, ridx, ridx, 0)  # fmt: skip
 
 
-def cam_array(camera, lam, c_rgb, c_depth) -> np.ndarray:
-    """The kernels' ``cam`` argument: (7,) float32 [fx, fy, cx, cy, lam, c_rgb, c_depth]."""
-    return np.array([*camera, lam, c_rgb, c_depth], np.float32)
+def cam_array(camera, lam, c_rgb, c_depth, depth_tol) -> np.ndarray:
+    """The kernels' ``cam`` argument: (8,) float32 [fx, fy, cx, cy, lam, c_rgb, c_depth, depth_tol]."""
+    return np.array([*camera, lam, c_rgb, c_depth, depth_tol], np.float32)
 
 
-def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params):
+def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, depth_tol, params):
     """(leading arrays, trailing compile-time values) of the rgbd kernels."""
     nl = int((params or default_params(device))["lanes"])
     groups = (tf.shape[0] + nl - 1) // nl
     work = scratch(device, "rgbd", (groups, 2 * rgb["pts"].shape[0] * nl), ti.f32)
     arrays = (
         tf.buffer, rgb["pts"].buffer, rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer,
-        dimg.buffer, cam_array(camera, lam, c_rgb, c_depth), work,
+        dimg.buffer, cam_array(camera, lam, c_rgb, c_depth, depth_tol), work,
     )  # fmt: skip
     return arrays, (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device))
 
 
-def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, params=None):
+def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, depth_tol,
+              params=None):  # fmt: skip
     """``params``: {"lanes"} (gputrack/ops/template.py TUNABLES); None = default_params."""
-    arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
+    arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, depth_tol, params)
     launch(_rgbd_cost_kernel, (*arrays, total.buffer, eps_c.buffer, eps_d.buffer), consts, scalarize=False)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, params=None):
-    arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, params)
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, depth_tol,
+              params=None):  # fmt: skip
+    arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, depth_tol, params)
     launch(_rgbd_res_kernel, (*arrays, out.buffer), consts, scalarize=False)
 
 
