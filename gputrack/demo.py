@@ -3,8 +3,8 @@
 Paper 000's evaluation on its own simulator: a seeded motion sequence is rendered (640x480
 gray + depth quantised to 5 mm, 30 fps), the tracker starts from the true first pose and
 tracks the rest; the report has the mean arm-axis angle error per part (Tables 5-6), the
-shoulder-position error per axis when the shoulders are estimated (Table 7; they start up to
-30 mm off), and the per-stage timing table (Tables 1-2 layout, ms per frame).
+shoulder-position error per axis when the shoulders are estimated (Table 7; they start 30 mm
+off, :func:`shoulders_off`), and the per-stage timing table (Tables 1-2 layout, ms per frame).
 """
 
 from __future__ import annotations
@@ -31,24 +31,28 @@ def body(
     shoulders: bool = False,
     seed: int = 0,
     template_every: int = 1,
-    out=sys.stdout,
+    depth_tol: float = 0.0,
+    n_depth: int = 128,
+    out=None,
 ) -> dict:
-    """Run the body-tracking demo on ``device``; print progress and tables to ``out``; return the report."""
+    """Run the body-tracking demo on ``device``; print progress and tables to ``out`` (default: stdout); return the report."""
     from .sim import SEQUENCES, sequence
     from .trackers.body import BodyTracker, TrackerConfig
 
+    out = sys.stdout if out is None else out
     if frames < 2:
         raise ValueError(f"frames: expected at least 2 (the first is the start pose), got {frames}")
     seq = sequence(sequence_index, frames=frames, seed=seed, shoulders=shoulders)
     start = seq.params[0].copy()
-    if shoulders:  # Table 7: start the shoulder positions up to 30 mm off (per axis, seeded)
-        rng = np.random.default_rng([seed, 7])
-        start[14:] += rng.uniform(-30.0, 30.0, 6) / np.sqrt(3.0)
-    config = TrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed, template_every=template_every)
+    if shoulders:
+        start = shoulders_off(start, seed)
+    config = TrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed,
+                           template_every=template_every, depth_tol=depth_tol, n_depth=n_depth)  # fmt: skip
     tracker = BodyTracker(device, start, config=config)
     print(f"gputrack demo body: sequence {seq.index} ({SEQUENCES[seq.index]}), {frames} frames, device "
-          f"{device.spec} ({device.name}), PF {stages} stages x K={config.samples}, LM {lm} iterations"
-          + (", shoulders estimated" if shoulders else ""), file=out)  # fmt: skip
+          f"{device.spec} ({device.name}), PF {stages} stages x K={config.samples}, LM {lm} iterations, "
+          f"N'={n_depth} depth points, depth tolerance {depth_tol:g} mm"
+          + (", shoulders estimated (started 30 mm off)" if shoulders else ""), file=out)  # fmt: skip
     estimates, per_frame = [], []
     for f in list(seq)[1:]:
         t0 = time.perf_counter()
@@ -72,7 +76,8 @@ def body(
         "device": {"spec": device.spec, "name": device.name},
         "sequence": {"index": seq.index, "name": SEQUENCES[seq.index], "frames": frames, "seed": seed},
         "config": {"stages": stages, "lm_iterations": lm, "shoulders": shoulders, "samples": config.samples,
-                   "candidates": config.candidates, "template_every": template_every},  # fmt: skip
+                   "candidates": config.candidates, "template_every": template_every, "depth_tol": depth_tol,
+                   "n_depth": n_depth},  # fmt: skip
         "mean_arm_axis_error_deg": mean,
         "frames": per_frame,
     }
@@ -100,6 +105,19 @@ def body(
     report["stages"] = tracker.pipeline.report()
     report["median_frame_ms"] = float(np.median(ms[1:] if len(ms) > 1 else ms))
     return report
+
+
+def shoulders_off(params, seed: int, mm: float = 30.0) -> np.ndarray:
+    """A copy of the 20-parameter pose ``params`` with t_RS and t_LS each moved ``mm`` in a seeded direction.
+
+    Table 7's start: the shoulder positions are not known, the tracker starts them off by 30 mm.
+    """
+    out = np.array(params, dtype=np.float64)
+    if out.shape != (20,):
+        raise ValueError(f"params: expected a 20-parameter pose (shoulders estimated), got shape {out.shape}")
+    direction = np.random.default_rng([7, seed]).normal(size=(2, 3))
+    out[14:] += (mm * direction / np.linalg.norm(direction, axis=1, keepdims=True)).ravel()
+    return out
 
 
 def write_json(report: dict, path: str) -> None:

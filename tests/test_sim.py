@@ -241,6 +241,17 @@ def test_select_pixels_takes_the_strongest_extrema():
     px = select_pixels(np.zeros((60, 80)), part, 5)
     d2 = (px.rows[:, None] - px.rows[None]) ** 2 + (px.cols[:, None] - px.cols[None]) ** 2
     assert len(px) == 5 and d2[~np.eye(5, dtype=bool)].min() > 20**2
+    # the fill is rook-spread: a row and a column of its own for every point while there are any
+    # (the pool is 46 rows x 66 columns), still spread out
+    px = select_pixels(np.zeros((60, 80)), part, 60)
+    d2 = (px.rows[:, None] - px.rows[None]) ** 2 + (px.cols[:, None] - px.cols[None]) ** 2
+    assert len(set(px.rows.tolist())) == 46 and len(set(px.cols.tolist())) == 60
+    assert d2[~np.eye(60, dtype=bool)].min() >= 4**2
+    # a surface whose value changes along the columns only (an upright cylinder's depth): as many
+    # distinct values as points
+    z = np.tile(np.linspace(0.0, 1.0, 80) ** 2, (60, 1))
+    px = select_pixels(z, part, 30)
+    assert len(np.unique(z[px.rows, px.cols])) == 30
 
 
 def test_template_bad_input():

@@ -17,7 +17,13 @@ Selection, deterministic:
   points closer than ``spacing`` pixels (ties broken by pixel order);
 - where a part has fewer extrema than its share (the z-buffer of a smooth limb has few: mostly
   the ridge nearest the camera), the rest are filled by farthest-point sampling of the part's
-  interior pixels, so that the points still cover the part.
+  interior pixels, so that the points still cover the part; the fill prefers pixels whose row
+  and column no point has yet (rook-spread), so the points fall on as many image rows and
+  columns as they can. A surface whose depth changes along one image direction only (an upright
+  torso seen from the front) then gives as many distinct depths, and as many positions relative
+  to a quantised sensor's steps, as there are points, instead of a few columns' worth (on the
+  simulator's 5 mm depth, Table 7's protocol with ``depth_tol=2.5``, 6 trials: the torso's mean
+  turn error 0.18 -> 0.11 deg).
 The RGB template's value is the intensity T_i; the depth template's value is the point's
 camera depth Z at the rendered pose (mm).
 """
@@ -104,10 +110,19 @@ def _nms(rows, cols, order, k, spacing):
 
 
 def _farthest(rows, cols, chosen_r, chosen_c, k):
-    """Farthest-point sampling: k more of the pixels (rows, cols), each farthest from all chosen so far."""
+    """Farthest-point sampling, rook-spread: k more of the pixels (rows, cols), each farthest from all
+    chosen so far among those whose row and column no chosen point has (then those with a new row
+    or a new column, then any), so that the points' rows and columns are as many as they can be."""
     r = rows.astype(np.float64)
     c = cols.astype(np.float64)
     out = []
+    row_used = np.zeros(int(rows.max()) + 1 if len(rows) else 1, bool)
+    col_used = np.zeros(int(cols.max()) + 1 if len(cols) else 1, bool)
+    for pr, pc in zip(chosen_r, chosen_c):
+        if pr < len(row_used):
+            row_used[pr] = True
+        if pc < len(col_used):
+            col_used[pc] = True
     if len(chosen_r):
         cr = np.asarray(chosen_r, np.float64)[None]
         cc = np.asarray(chosen_c, np.float64)[None]
@@ -115,12 +130,19 @@ def _farthest(rows, cols, chosen_r, chosen_c, k):
     elif k > 0:  # start from the pixel nearest the centroid
         first = int(np.argmin((r - r.mean()) ** 2 + (c - c.mean()) ** 2))
         out.append(first)
+        row_used[rows[first]] = col_used[cols[first]] = True
         d = (r - r[first]) ** 2 + (c - c[first]) ** 2
     while len(out) < k:
-        i = int(np.argmax(d))  # the first among ties: deterministic
+        new_r, new_c = ~row_used[rows], ~col_used[cols]
+        for eligible in (new_r & new_c, new_r | new_c, None):
+            score = d if eligible is None else np.where(eligible, d, 0.0)
+            i = int(np.argmax(score))  # the first among ties: deterministic
+            if score[i] > 0:
+                break
         if d[i] <= 0:
             break
         out.append(i)
+        row_used[rows[i]] = col_used[cols[i]] = True
         d = np.minimum(d, (r - r[i]) ** 2 + (c - c[i]) ** 2)
     return np.asarray(out, dtype=np.int64)
 

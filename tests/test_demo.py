@@ -1,0 +1,43 @@
+"""``gputrack demo body``: the main job's command line, report and Table 7 start."""
+
+import json
+
+import numpy as np
+import pytest
+
+from gputrack.cli import main
+from gputrack.demo import shoulders_off
+from gputrack.models import upper_body
+
+
+def test_demo_body_reports_the_tables(device, tmp_path, capsys):
+    out = tmp_path / "report.json"
+    argv = ["demo", "body", "--device", device.spec, "--frames", "3", "--sequence", "8", "--shoulders",
+            "--stages", "1", "--lm", "3", "--depth-tol", "2.5", "--depth-points", "64", "--json", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "N'=64 depth points, depth tolerance 2.5 mm" in text and "Table 7 layout" in text
+    report = json.loads(out.read_text())
+    assert report["config"]["depth_tol"] == 2.5 and report["config"]["n_depth"] == 64
+    assert [f["frame"] for f in report["frames"]] == [1, 2]
+    assert all(f["confidence"] == 1.0 and np.isfinite(f["arm_errors_deg"]).all() for f in report["frames"])
+    sh = np.array([report["shoulder_error_mm"]["right"], report["shoulder_error_mm"]["left"]])
+    # started 30 mm off per shoulder; two frames of PF 1 + LM 3 bring them well inside that
+    assert np.isfinite(sh).all() and (np.linalg.norm(sh, axis=1) < 30.0).all(), sh
+    assert {"LM", "PF stage 1", "upload frame"} <= {s["name"] for s in report["stages"]}, report["stages"]
+
+
+def test_shoulders_off_moves_each_shoulder_30mm():
+    p = upper_body(shoulders=True).rest_params()
+    a, b = shoulders_off(p, 0), shoulders_off(p, 1)
+    np.testing.assert_array_equal(a[:14], p[:14])
+    np.testing.assert_allclose(np.linalg.norm((a - p)[14:].reshape(2, 3), axis=1), 30.0)
+    assert not np.allclose(a, b)  # seeded: another seed, another direction
+    np.testing.assert_array_equal(a, shoulders_off(p, 0))
+    with pytest.raises(ValueError, match=r"params: expected a 20-parameter pose"):
+        shoulders_off(p[:14], 0)
+
+
+def test_demo_rejects_a_one_frame_sequence(capsys):
+    with pytest.raises(ValueError, match="frames: expected at least 2"):
+        main(["demo", "body", "--device", "numpy", "--frames", "1"])
