@@ -147,8 +147,13 @@ def main(argv=None) -> int:
     p.add_argument("--stages", type=int, default=3, help="coarse-to-fine particle-filter stages (default 3)")
     p.add_argument("--shoulders", action="store_true", help="estimate the shoulder positions too (20 parameters)")
     p.add_argument("--template-every", type=int, default=1, help="re-render the template every N frames")
-    p.add_argument("--depth-tol", type=float, default=0.0, metavar="MM",
-                   help="depth differences up to MM count as none (default 0; 2.5 = half the simulator's 5 mm step)")
+    p.add_argument(
+        "--depth-tol",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="depth differences up to MM count as none (default 0; 2.5 = half the simulator's 5 mm step)",
+    )
     p.add_argument("--depth-points", type=int, default=128, metavar="N", help="depth template points N' (default 128)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")

@@ -75,9 +75,16 @@ def body(
     report = {
         "device": {"spec": device.spec, "name": device.name},
         "sequence": {"index": seq.index, "name": SEQUENCES[seq.index], "frames": frames, "seed": seed},
-        "config": {"stages": stages, "lm_iterations": lm, "shoulders": shoulders, "samples": config.samples,
-                   "candidates": config.candidates, "template_every": template_every, "depth_tol": depth_tol,
-                   "n_depth": n_depth},  # fmt: skip
+        "config": {
+            "stages": stages,
+            "lm_iterations": lm,
+            "shoulders": shoulders,
+            "samples": config.samples,
+            "candidates": config.candidates,
+            "template_every": template_every,
+            "depth_tol": depth_tol,
+            "n_depth": n_depth,
+        },
         "mean_arm_axis_error_deg": mean,
         "frames": per_frame,
     }
