@@ -81,6 +81,17 @@ def test_shoulders_estimated_from_30mm_off(device):
     assert (cam <= 2.0).all() and (cam[[2, 5]] <= 1.5).all(), cam
 
 
+def test_the_callers_frames_are_left_as_they_are(device, arm_cross):
+    seq, frames = arm_cross
+    tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(lm_iterations=1, samples=100))
+    copies = [(f.gray.copy(), f.depth.copy()) for f in frames[1:4]]
+    for f in frames[1:4]:  # each frame goes into the tracker's own device arrays, not the last frame's
+        tracker.track(f.gray, f.depth)
+    for f, (gray, depth) in zip(frames[1:4], copies):
+        np.testing.assert_array_equal(f.gray, gray)
+        np.testing.assert_array_equal(f.depth, depth)
+
+
 def test_bad_frames_keep_the_last_pose(device, arm_cross):
     seq, frames = arm_cross
     tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(lm_iterations=2, samples=200))

@@ -210,8 +210,10 @@ class BodyTracker:
             if not valid_depth.any():
                 return self._keep("no valid depth in the frame")
             with pipe.stage("upload frame"):  # into last frame's arrays
-                g = self._images[0] = dev.asarray(gray, out=self._images[0])
-                d = self._images[1] = dev.asarray(depth, out=self._images[1])
+                if self._images[0] is None:  # the tracker's own arrays: a caller's frame is never written to
+                    self._images = [dev.empty(gray.shape, np.float32), dev.empty(depth.shape, np.float32)]
+                g = dev.asarray(gray, out=self._images[0])
+                d = dev.asarray(depth, out=self._images[1])
             if templates is not None:
                 with pipe.stage("template"):
                     self._set_templates(*templates)
