@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import gputrack
+from gputrack.demo import shoulders_off
 from gputrack.metrics import arm_axis_errors, shoulder_camera_errors, shoulder_errors
 from gputrack.models import rigid
 from gputrack.models.chain import joint_transform
@@ -30,7 +31,7 @@ def arm_cross():
 
 
 def test_pf_then_lm_track_the_arms(device, arm_cross):
-    seq, frames = arm_cross
+    seq, _ = arm_cross
     _, pf = track(device, seq, lm_iterations=0)
     _, both = track(device, seq, lm_iterations=10)
     err_pf = arm_axis_errors(seq.chain, np.array([e.params for e in pf]), seq.params[1:]).mean(axis=0)
@@ -60,25 +61,45 @@ def test_steady_state_frame_moves_only_frame_and_poses(device, arm_cross):
     assert frame.d2h <= 2 * poses * 2, frame.stages
 
 
-def test_shoulders_estimated_from_30mm_off(device):
-    seq = sequence("shoulder_spread", frames=FRAMES, seed=0, shoulders=True)
-    start = seq.params[0].copy()
-    start[14:] += np.array([12.0, -10.0, 14.0, -13.0, 11.0, -12.0])  # about 20-30 mm off per shoulder
-    cfg = TrackerConfig(shoulders=True, stages=1, lm_iterations=50)  # Table 7: PF 1 stage + LM 50
-    tracker = BodyTracker(device, start, config=cfg)
-    for f in list(seq)[1:]:
-        est = tracker.track(f.gray, f.depth)
-    err = shoulder_errors(est.params, seq.params[-1])[0]
-    start_err = shoulder_errors(start, seq.params[0])[0]
-    # t_RS, t_LS (torso coordinates, Table 7): measured 0-3 mm per axis after 6 frames (the paper
-    # reaches 0.16-0.31 mm). The torso-z error is the torso's turn (about its vertical axis) times
-    # the 195 mm lever to the shoulder, opposite on the two sides: with the depth quantised to 5 mm
-    # the turn of the static, frontal torso is found to 0.5-1 deg only (0.02 deg with exact depth).
-    assert (err <= 5.0).all(), err
-    assert err.sum() < start_err.sum() / 3, (err, start_err)
-    # the shoulder joints where the camera sees them: measured 0.4-1.0 mm per axis here
-    cam = shoulder_camera_errors(seq.chain, est.params, seq.params[-1])[0]
-    assert (cam <= 2.0).all() and (cam[[2, 5]] <= 1.5).all(), cam
+SHOULDER_TRIALS = 3
+SHOULDER_STEP = 2  # every other frame of the 30 fps sequence (15 fps, for time): 39 frames to the arms lowered
+
+
+@pytest.fixture(scope="module")
+def shoulder_trials():
+    """Table 7's protocol, per trial: a seeded shoulder_spread sequence (arms spread beside the
+    torso, then lowered about the shoulders) and its first pose with each shoulder 30 mm off."""
+    trials = []
+    for seed in range(SHOULDER_TRIALS):
+        seq = sequence("shoulder_spread", frames=80, seed=seed, shoulders=True)
+        frames = [seq[i] for i in range(SHOULDER_STEP, len(seq), SHOULDER_STEP)]
+        trials.append((seq.chain, shoulders_off(seq.params[0], seed), frames))
+    return trials
+
+
+def test_shoulders_estimated_from_30mm_off(device, shoulder_trials):
+    # Table 7: PF 1 stage + LM 50, tracked until the arms are lowered; t_RS, t_LS (torso
+    # coordinates) of the last frame against the truth. The depth is rounded to 5 mm steps, so a
+    # reading means "within 2.5 mm" (depth_tol). N' = 256 depth points: with 128 the static
+    # torso's turn about its vertical axis is pinned to about +-0.4 deg only, which moves t_S
+    # along torso z by the turn times the 195 mm lever (1-2.6 mm)
+    cfg = TrackerConfig(shoulders=True, stages=1, lm_iterations=50, depth_tol=2.5, n_depth=256)
+    errors, joints = [], []
+    for chain, start, frames in shoulder_trials:
+        tracker = BodyTracker(device, start, config=cfg)
+        for f in frames:
+            est = tracker.track(f.gray, f.depth)
+        assert est.confidence == 1.0 and np.isfinite(est.params).all()
+        errors.append(shoulder_errors(est.params, frames[-1].params)[0])
+        joints.append(shoulder_camera_errors(chain, est.params, frames[-1].params)[0])
+    errors, joints = np.array(errors), np.array(joints)
+    # issue bound: within 1 mm per axis, as the paper's mean over trials (0.16-0.31 mm over 30).
+    # Measured here: per trial 0.0-1.0 mm on every backend (means per axis 0.03-0.5); over 8
+    # seeds at 30 fps (`gputrack demo body`, README) up to 1.6 mm in one trial
+    assert (errors.mean(axis=0) <= 1.0).all(), errors
+    assert (errors <= 2.0).all(), errors
+    # the shoulder joints where the camera sees them (the full pose's error included)
+    assert (joints.mean(axis=0) <= 1.0).all() and (joints <= 2.0).all(), joints
 
 
 def test_the_callers_frames_are_left_as_they_are(device, arm_cross):
