@@ -61,7 +61,10 @@ class TrackerConfig:
     n_depth: int = 128  # N'
     lam: float = 0.9  # lambda of eq. 19 (Table 3)
     c_depth: float = 5.0  # c' of eq. 18 (mm)
-    depth_tol: float = 0.0  # depth differences up to this (mm) count as none (eq. 18 shrunk; see rgbd_cost)
+    # depth differences up to this (mm) count as none (eq. 18 shrunk; see rgbd_cost): half a
+    # quantised sensor's step (2.5 for the simulator's 5 mm) pins the torso's turn, and so the
+    # shoulders (Table 7); 0, the plain eq. 18, tracks the arms more closely
+    depth_tol: float = 0.0
     template_every: int = 1  # re-render the template every this many frames
     seed: int = 0
 
