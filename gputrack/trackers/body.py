@@ -138,7 +138,10 @@ class BodyTracker:
         self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
         self._sparsity = None
         self._buffers = {}  # device arrays reused as out= of the ops, keyed by op and shape
-        self._images = [None, None]  # the last frame's gray and depth on the device
+        # the frame's gray and depth on the device: the tracker's own arrays, each frame is uploaded
+        # into them (a caller's frame is never written to)
+        w, h = self.size
+        self._images = (device.empty((h, w), np.float32), device.empty((h, w), np.float32))
 
     # -- helpers ---------------------------------------------------------------------------------
     def _groups(self) -> list[np.ndarray]:
@@ -212,9 +215,7 @@ class BodyTracker:
         with pipe.frame():
             if not valid_depth.any():
                 return self._keep("no valid depth in the frame")
-            with pipe.stage("upload frame"):  # into last frame's arrays
-                if self._images[0] is None:  # the tracker's own arrays: a caller's frame is never written to
-                    self._images = [dev.empty(gray.shape, np.float32), dev.empty(depth.shape, np.float32)]
+            with pipe.stage("upload frame"):  # into the tracker's arrays
                 g = dev.asarray(gray, out=self._images[0])
                 d = dev.asarray(depth, out=self._images[1])
             if templates is not None:

@@ -116,16 +116,13 @@ def _farthest(rows, cols, chosen_r, chosen_c, k):
     r = rows.astype(np.float64)
     c = cols.astype(np.float64)
     out = []
-    row_used = np.zeros(int(rows.max()) + 1 if len(rows) else 1, bool)
-    col_used = np.zeros(int(cols.max()) + 1 if len(cols) else 1, bool)
-    for pr, pc in zip(chosen_r, chosen_c):
-        if pr < len(row_used):
-            row_used[pr] = True
-        if pc < len(col_used):
-            col_used[pc] = True
+    chosen_r, chosen_c = np.asarray(chosen_r, np.int64), np.asarray(chosen_c, np.int64)
+    row_used = np.zeros(int(np.concatenate([rows, chosen_r]).max()) + 1, bool)
+    col_used = np.zeros(int(np.concatenate([cols, chosen_c]).max()) + 1, bool)
+    row_used[chosen_r] = col_used[chosen_c] = True
     if len(chosen_r):
-        cr = np.asarray(chosen_r, np.float64)[None]
-        cc = np.asarray(chosen_c, np.float64)[None]
+        cr = chosen_r.astype(np.float64)[None]
+        cc = chosen_c.astype(np.float64)[None]
         d = np.min((r[:, None] - cr) ** 2 + (c[:, None] - cc) ** 2, axis=1)
     elif k > 0:  # start from the pixel nearest the centroid
         first = int(np.argmin((r - r.mean()) ** 2 + (c - c.mean()) ** 2))
