@@ -98,8 +98,10 @@ def test_shoulders_estimated_from_30mm_off(device, shoulder_trials):
     # seeds at 30 fps (`gputrack demo body`, README) up to 1.6 mm in one trial
     assert (errors.mean(axis=0) <= 1.0).all(), errors
     assert (errors <= 2.0).all(), errors
-    # the shoulder joints where the camera sees them (the full pose's error included)
+    # the shoulder joints where the camera sees them (the full pose's error included); measured
+    # 0.0-0.8 mm per value, depth (z) 0.0-0.8 mm
     assert (joints.mean(axis=0) <= 1.0).all() and (joints <= 2.0).all(), joints
+    assert (joints[:, [2, 5]] <= 1.5).all(), joints
 
 
 def test_the_callers_frames_are_left_as_they_are(device, arm_cross):
