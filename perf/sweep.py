@@ -77,8 +77,8 @@ def _k_cases(device, args, ref, rng):
     """rgbd_cost of K hypotheses around 10 candidates, N = N' = 128 (its own scope: the lambdas
     below must not see the N sweep's templates)."""
     from gputrack.benchmark import Case
-    from gputrack.benchmarks.template import pf_scene
     from gputrack.ops.template import rgbd_cost
+    from gputrack.sim.problems import pf_scene
 
     tf0, rgb, dep, gray, depth, cam = pf_scene(rng, 1500, 128, 128)
     d_gray, d_depth = device.asarray(gray), device.asarray(depth)
@@ -111,10 +111,9 @@ def cases(device, args):
     """The sweep points on ``device`` (called in the device's subprocess by the harness)."""
     import gputrack
     from gputrack.benchmark import Case
-    from gputrack.benchmarks.kalman import _problem as kalman_problem
-    from gputrack.benchmarks.template import pf_scene
     from gputrack.ops.kalman import kf_update, shared_matrix
     from gputrack.ops.template import rgbd_cost
+    from gputrack.sim.problems import kalman_tracks, pf_scene
 
     ref = gputrack.device("numpy")
     rng = np.random.default_rng(0)
@@ -143,7 +142,7 @@ def cases(device, args):
             )
     if "T" in which:
         for t in args.t or T_VALUES:
-            F, Q, H, R, x0, P0, z, _det = kalman_problem(t, rng)
+            F, Q, H, R, x0, P0, z, _det = kalman_tracks(t, rng)
             Fs, Qs, Hs, Rs = (shared_matrix(device, a) for a in (F, Q, H, R))
             Fr, Qr, Hr, Rr = (shared_matrix(ref, a) for a in (F, Q, H, R))
             x, P, zd = device.asarray(x0), device.asarray(P0), device.asarray(z)

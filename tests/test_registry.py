@@ -161,7 +161,7 @@ def test_closing_a_taichi_device_drops_the_arrays_cached_for_it():
     restarted device computes what the first one did."""
     r = run_py("""
         import numpy as np, gputrack
-        from gputrack.benchmarks.template import pf_scene
+        from gputrack.sim.problems import pf_scene
         from gputrack.device import _CACHES
 
         def work(dev):

@@ -10,6 +10,7 @@ import gputrack
 from gputrack import tuning
 from gputrack.ops import template as template_ops
 from gputrack.ops.template import rgbd_cost, rgbd_residuals
+from gputrack.sim.problems import template_scene
 
 
 def make_tunable(op="demo", candidates=None, runs=None):
@@ -104,7 +105,7 @@ REF = gputrack.device("numpy")
 
 def _scene(b=37, n=29, m=31):
     rng = np.random.default_rng(b * 1000 + n)
-    return template_ops._selftest_scene(rng, b=b, j=3, n=n, m=m, h=48, w=64)
+    return template_scene(rng, b=b, j=3, n=n, m=m, h=48, w=64)
 
 
 def test_every_backend_has_tunables_with_the_default_among_the_candidates(device):

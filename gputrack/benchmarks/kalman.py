@@ -23,6 +23,7 @@ import sys
 import numpy as np
 
 from ..benchmark import Case, bench_main
+from ..sim.problems import kalman_tracks
 
 NAME = "kalman"
 D = 100
@@ -70,23 +71,6 @@ def _stereo_textbook(x, P, F, Q, z, R, f, b):
         P[t] = A @ Pp @ A.T + K @ R @ K.T
 
 
-def _problem(T, rng):
-    from ..ops.kalman import constant_velocity
-
-    F, Q = constant_velocity(3, 1.0 / 30, 1.0)
-    H = np.zeros((3, 6), np.float32)
-    H[0, 0] = H[1, 2] = H[2, 4] = 1
-    R = (0.05 * np.eye(3)).astype(np.float32)
-    pos = rng.uniform([-5, -2, 2], [5, 2, 20], (T, 3))
-    x = np.zeros((T, 6), np.float32)
-    x[:, 0::2] = pos
-    x[:, 1::2] = rng.normal(0, 1, (T, 3))
-    P = np.tile(np.diag([0.1, 1.0] * 3).astype(np.float32), (T, 1, 1))
-    z = (pos + rng.normal(0, 0.2, (T, 3))).astype(np.float32)
-    det = rng.uniform([-5, -2, 2], [5, 2, 20], (D, 3)).astype(np.float32)
-    return F, Q, H, R, x, P, z, det
-
-
 def cases(device, args):
     import gputrack
 
@@ -98,7 +82,7 @@ def cases(device, args):
     out = []
     f, b = 480.0, 0.12
     for T in sizes:
-        F, Q, H, R, x0, P0, z, det = _problem(T, rng)
+        F, Q, H, R, x0, P0, z, det = kalman_tracks(T, rng, D)
         Fs, Qs, Hs, Rs = (shared_matrix(device, a) for a in (F, Q, H, R))
         Fr, Qr, Hr, Rr = (shared_matrix(ref, a) for a in (F, Q, H, R))
         x, P, zd, detd = device.asarray(x0), device.asarray(P0), device.asarray(z), device.asarray(det)

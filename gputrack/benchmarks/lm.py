@@ -25,6 +25,7 @@ import sys
 import numpy as np
 
 from ..benchmark import Case, bench_main
+from ..sim.problems import lm_body_scene
 
 NAME = "lm"
 B = 10
@@ -35,41 +36,6 @@ def add_arguments(parser):
     parser.add_argument("--residuals", type=int, action="append", help="M (even, repeatable; default 256 and 1280)")
     parser.add_argument("--iterations", type=int, default=10, help="LM iterations of the whole solve (default 10)")
     parser.add_argument("--no-scipy", action="store_true", help="skip the scipy.optimize.least_squares peer")
-
-
-def _scene(P, M, rng):
-    """Upper-body chain, templates on its parts, a synthetic frame, and 10 perturbed poses."""
-    from ..models import upper_body
-    from ..ops.template import Camera, SparseTemplate
-
-    chain = upper_body(shoulders=(P == 20))
-    n = M // 2
-    # points on the parts, in part coordinates (torso box; arms along x)
-    part = rng.integers(0, 5, 2 * n)
-    xyz = np.empty((2 * n, 3))
-    torso = part == 0
-    xyz[torso] = rng.uniform([-150, -270, -90], [150, 290, 0], (int(torso.sum()), 3))
-    arm = ~torso
-    length = np.where(part[arm] <= 2, 290.0, 265.0)
-    xyz[arm] = np.stack(
-        [
-            rng.uniform(0, 1, int(arm.sum())) * length,
-            rng.uniform(-40, 40, int(arm.sum())),
-            rng.uniform(-40, 0, int(arm.sum())),
-        ],
-        1,
-    )
-    rgb = SparseTemplate(xyz[:n], part[:n], rng.uniform(20, 230, n))
-    dep = SparseTemplate(xyz[n:], part[n:])
-    h, w = 480, 640
-    yy, xx = np.mgrid[0:h, 0:w]
-    gray = (128 + 60 * np.sin(xx / 23.0) * np.cos(yy / 31.0)).astype(np.float32)
-    depth = (2000 + 80 * np.sin(xx / 57.0 + yy / 41.0)).astype(np.float32)
-    cam = Camera(525.0, 525.0, 319.5, 239.5)
-    rest = np.asarray(chain.rest_params(), dtype=np.float64)
-    scale = np.r_[[0.05] * 3, [20.0] * 3, [0.1] * 8, [10.0] * (P - 14)]
-    x0 = rest[None, :] + rng.normal(0, 1, (B, P)) * scale[None, :]
-    return chain, rgb, dep, gray, depth, cam, x0
 
 
 def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
@@ -165,7 +131,7 @@ def cases(device, args):
             # 3. a whole solve with the RGB-D template residuals
             if M % 2:
                 continue
-            chain, rgb, dep, gray, depth, cam, x0 = _scene(P, M, rng)
+            chain, rgb, dep, gray, depth, cam, x0 = lm_body_scene(P, M, rng, B)
             fn = _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam)
             fn_ref = _rgbd_residual_fn(ref, chain, rgb, dep, gray, depth, cam)
             sparsity = chain.jacobian_sparsity(np.concatenate([rgb.part, dep.part]))  # Fig. 2

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 
 from ..benchmark import Case, bench_main
-from ..models.chain import rotation_zyx
+from ..sim.problems import pf_scene
 
 NAME = "template"
 
@@ -20,52 +20,6 @@ NAME = "template"
 def add_arguments(parser):
     parser.add_argument("--batch", type=int, default=1500, help="hypotheses per rgbd_cost call (default 1500)")
     parser.add_argument("--points", type=int, default=128, help="N = N' template points (default 128)")
-
-
-def _rot(a):
-    """Rz(a[2]) Ry(a[1]) Rx(a[0])."""
-    return rotation_zyx(a[2], a[1], a[0])
-
-
-def pf_scene(rng, b=1500, n=128, m=128, *, parts=5, candidates=10, h=480, w=640):
-    """(transforms (B, J, 3, 4), rgb template, depth template, gray, depth, camera)."""
-    from ..ops.template import Camera, SparseTemplate
-
-    cam = Camera(525.0, 525.0, 319.5, 239.5)
-    # part frames (camera-from-part) of a person 2 m away: torso, two upper arms, two forearms
-    base = np.array([[0, 0, 2000], [-250, -150, 2000], [250, -150, 2000], [-450, -150, 1950], [450, -150, 1950]], float)
-    size = np.array([[200, 300], [110, 60], [110, 60], [110, 50], [110, 50]], float)  # half extents (mm)
-
-    def points(k):
-        part = rng.integers(0, parts, k)
-        xyz = np.column_stack(
-            [rng.uniform(-1, 1, k) * size[part, 0], rng.uniform(-1, 1, k) * size[part, 1], rng.uniform(-20, 0, k)]
-        )
-        return xyz, part
-
-    xyz, part = points(n)
-    rgb = SparseTemplate(xyz, part, rng.uniform(30, 220, n))
-    xyz, part = points(m)
-    dep = SparseTemplate(xyz, part)
-    cand = np.zeros((candidates, parts, 3, 4))
-    for c in range(candidates):
-        for j in range(parts):
-            cand[c, j, :, :3] = _rot(rng.normal(0, np.radians(3), 3))
-            cand[c, j, :, 3] = base[j] + rng.normal(0, 10, 3)
-    owner = np.arange(b) * candidates // b  # the samples of a candidate are consecutive
-    tf = cand[owner].copy()
-    for k in range(b):
-        for j in range(parts):
-            tf[k, j, :, :3] = _rot(rng.normal(0, np.radians([1, 3, 1]))) @ tf[k, j, :, :3]
-    tf[..., :, 3] += rng.normal(0, 5, (b, parts, 3))
-    yy, xx = np.mgrid[0:h, 0:w]
-    gray = 110 + 60 * np.sin(xx / 6.0) * np.cos(yy / 8.0) + rng.normal(0, 3, (h, w))
-    depth = np.full((h, w), 3000.0) + rng.normal(0, 2, (h, w))
-    body = (np.abs(xx - 320) < 180) & (yy > 60) & (yy < 420)
-    depth[body] = 2000 + 5 * np.sin(xx[body] / 11.0)
-    depth = np.round(depth / 5) * 5  # Kinect-like 5 mm steps
-    depth[rng.random((h, w)) < 0.01] = 0  # dropouts
-    return tf.astype(np.float32), rgb, dep, gray.astype(np.float32), depth.astype(np.float32), cam
 
 
 def cases(device, args):

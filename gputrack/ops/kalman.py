@@ -509,9 +509,9 @@ def _kalman_default(device) -> dict:
 
 def _kalman_problem(device, size, params):
     """One fused constant-velocity predict+update (n = 6, m = 3) of size["T"] tracks, in place."""
-    from ..benchmarks.kalman import _problem
+    from ..sim.problems import kalman_tracks
 
-    F, Q, H, R, x0, P0, z, _det = _problem(int(size["T"]), np.random.default_rng(0))
+    F, Q, H, R, x0, P0, z, _det = kalman_tracks(int(size["T"]), np.random.default_rng(0))
     Fs, Qs, Hs, Rs = (shared_matrix(device, a) for a in (F, Q, H, R))
     x, P, zd = device.asarray(x0), device.asarray(P0), device.asarray(z)
     st = device.empty((x0.shape[0],), np.uint8)

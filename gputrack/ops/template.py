@@ -347,7 +347,7 @@ def _tuned(device, op, kwargs, nb, rgb, depth) -> None:
 def _problem(op):
     def problem(device, size, params):
         """One ``op`` call on a particle-filter-like scene of ``size``, launched with ``params``."""
-        from ..benchmarks.template import pf_scene
+        from ..sim.problems import pf_scene
 
         rng = np.random.default_rng(0)
         tf, rgb, dep, gray, depth, cam = pf_scene(rng, size["B"], size["N"], size["N"])
@@ -414,26 +414,15 @@ def patch_ncc(device, points2d, templates, image):
 
 
 # -- self-test (host/doctor.py) -----------------------------------------------------------------
-def _selftest_scene(rng, b=7, j=2, n=29, m=23, h=24, w=32):
-    cam = Camera(20.0, 20.0, (w - 1) / 2, (h - 1) / 2)
-    rgb = SparseTemplate(rng.uniform(-0.3, 0.3, (n, 3)), rng.integers(0, j, n), rng.uniform(10, 200, n))
-    dep = SparseTemplate(rng.uniform(-0.3, 0.3, (m, 3)), rng.integers(0, j, m))
-    tf = np.zeros((b, j, 3, 4), np.float32)
-    tf[..., :3, :3] = np.eye(3)
-    tf[..., :, 3] = rng.normal(0, 0.05, (b, j, 3)) + [0, 0, 2.0]
-    gray = rng.uniform(0, 255, (h, w)).astype(np.float32)
-    depth = rng.uniform(1.8, 2.2, (h, w)).astype(np.float32)
-    depth[rng.random((h, w)) < 0.05] = 0
-    return tf, rgb, dep, gray, depth, cam
-
-
 def _selftest(device) -> None:
     """Tiny rgbd_cost and patch_ncc on ``device`` against the NumPy reference (AssertionError with the max error)."""
     from ..device import device as get_device
     from ..device import to_numpy
 
+    from ..sim.problems import template_scene
+
     rng = np.random.default_rng(3)
-    tf, rgb, dep, gray, depth, cam = _selftest_scene(rng)
+    tf, rgb, dep, gray, depth, cam = template_scene(rng)
     ref_dev = get_device("numpy")
     want = rgbd_cost(ref_dev, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
     got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
