@@ -321,6 +321,6 @@ def test_chain_validation_and_sparsity():
 
 
 def test_selftest_passes(device):
-    from gputrack.ops.kinematics import _selftest
+    from gputrack.selftest import check_kinematics
 
-    _selftest(device)
+    check_kinematics(device)

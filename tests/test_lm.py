@@ -695,4 +695,6 @@ def test_empty_batch_and_underdetermined(device):
 
 
 def test_selftest(device):
-    lm._selftest(device)
+    from gputrack.selftest import check_lm
+
+    check_lm(device)

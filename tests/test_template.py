@@ -515,6 +515,6 @@ def test_bad_templates_and_cameras():
 
 
 def test_selftest(device):
-    from gputrack.ops.template import _selftest
+    from gputrack.selftest import check_template
 
-    _selftest(device)
+    check_template(device)

@@ -60,23 +60,3 @@ def forward_kinematics(device, chain: Chain, params, *, out=None):
     shape = (params.shape[0], chain.n_parts, 3, 4)
     out = out_array(device, out, "out", shape, params.dtype)
     return backend_module(device, "kinematics").forward_kinematics(device, chain, params, out)
-
-
-def _selftest(device) -> None:
-    """Tiny forward-kinematics check against the reference (used by host/doctor.py)."""
-    from ..backends.reference.kinematics import forward_kinematics as reference
-    from ..models import upper_body
-
-    chain = upper_body(shoulders=True)
-    rng = np.random.default_rng(0)
-    scale = np.r_[[1.0] * 3, [50.0] * 3, [1.0] * 8, [20.0] * 6]  # rad, mm, rad, mm
-    params = chain.rest_params()[None, :] + rng.normal(0.0, 0.3, (7, chain.n_params)) * scale
-    for dtype, tol in ((np.float32, 2e-3), (np.float64, 1e-9)):
-        if dtype == np.float64 and not device.fp64:
-            continue
-        p = params.astype(dtype)
-        got = device.to_numpy(forward_kinematics(device, chain, p))
-        want = reference(None, chain, p)
-        err = float(np.max(np.abs(got - want)))
-        name = np.dtype(dtype).name
-        assert err <= tol, f"forward_kinematics ({name}) differs from the reference by {err:g} (> {tol:g})"

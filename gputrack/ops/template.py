@@ -411,27 +411,3 @@ def patch_ncc(device, points2d, templates, image):
     """Sum over the K points of :func:`patch_ncc_per_point`: (B,) float32 in [-K, K] (paper 003 N(u), eq. 13)."""
     pts, tpl, img = _ncc_args(device, points2d, templates, image)
     return backend_module(device, "template").patch_ncc(device, pts, tpl, img, per_point=False)
-
-
-# -- self-test (host/doctor.py) -----------------------------------------------------------------
-def _selftest(device) -> None:
-    """Tiny rgbd_cost and patch_ncc on ``device`` against the NumPy reference (AssertionError with the max error)."""
-    from ..device import device as get_device
-    from ..device import to_numpy
-
-    from ..sim.problems import template_scene
-
-    rng = np.random.default_rng(3)
-    tf, rgb, dep, gray, depth, cam = template_scene(rng)
-    ref_dev = get_device("numpy")
-    want = rgbd_cost(ref_dev, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
-    got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
-    for field in ("total", "rgb", "depth"):
-        err = float(np.max(np.abs(to_numpy(getattr(got, field)) - getattr(want, field))))
-        assert err <= 1e-3, f"rgbd_cost.{field} differs from the reference by {err:g}"
-    pts = rng.uniform(6, 20, (5, 3, 2)).astype(np.float32)
-    tpl = rng.uniform(0, 1, (3, 5, 5)).astype(np.float32)
-    want = patch_ncc(ref_dev, pts, tpl, gray)
-    got = to_numpy(patch_ncc(device, pts, tpl, gray))
-    err = float(np.max(np.abs(got - want)))
-    assert err <= 1e-4, f"patch_ncc differs from the reference by {err:g}"
