@@ -1,5 +1,6 @@
-"""The tuning cache: read, write, corruption, staleness, and the choice the ops get."""
+"""The tuning cache: read, write, corruption, staleness, and the choice the launchers get."""
 
+import inspect
 import json
 
 import numpy as np
@@ -7,13 +8,13 @@ import pytest
 from tolerances import assert_matches
 
 import gputrack
-from gputrack import tuning
-from gputrack.ops import template as template_ops
+from gputrack import tuning, tuning_cache
+from gputrack.ops import backend_module
 from gputrack.ops.template import rgbd_cost, rgbd_residuals
 from gputrack.sim.problems import template_scene
 
 
-def make_tunable(op="demo", candidates=None, runs=None):
+def make_problem(runs=None):
     runs = runs if runs is not None else []
 
     def problem(device, size, params):
@@ -26,13 +27,16 @@ def make_tunable(op="demo", candidates=None, runs=None):
 
         return run
 
+    return problem
+
+
+def make_tunable(op="demo", candidates=None):
     return tuning.Tunable(
         op=op,
         backend="numpy",
         candidates=candidates or {"wg": [32, 64, 128]},
         default={"wg": 128},
         sizes=({"B": 1500, "N": 128},),
-        problem=problem,
     )
 
 
@@ -51,7 +55,7 @@ def test_tune_stores_fastest_and_choose_uses_it(tmp_path, monkeypatch, numpy_dev
     monkeypatch.setenv("GPUTRACK_TUNING_CACHE", str(tmp_path / "t.json"))
     t = make_tunable()
     assert tuning.choose(numpy_device, t, {"B": 1500, "N": 128}) == {"wg": 128}  # default
-    chosen = tuning.tune(numpy_device, t, min_time=0.005)
+    chosen = tuning.tune(numpy_device, t, problem=make_problem(), min_time=0.005)
     assert chosen == {"B=2048,N=128": {"wg": 64}}
     assert tuning.choose(numpy_device, t, {"B": 1500, "N": 128}) == {"wg": 64}
     assert tuning.choose(numpy_device, t, {"B": 1025, "N": 100}) == {"wg": 64}  # same bucket
@@ -97,10 +101,43 @@ def test_wrong_version_is_ignored(tmp_path, numpy_device):
         assert tuning.TuningCache(tmp_path / "t.json").get(numpy_device, make_tunable(), {"B": 1}) is None
 
 
+def test_a_tunable_without_a_problem_cannot_be_swept(numpy_device):
+    with pytest.raises(ValueError, match="expected an op with a problem in gputrack.tuning.PROBLEMS"):
+        tuning.tune(numpy_device, make_tunable(op="no_such_op"), min_time=0.001)
+
+
 # -- the template ops' tunables ----------------------------------------------------------------
 
 
 REF = gputrack.device("numpy")
+
+#: the function of each backend's template module that launches gt_rgbd with the chosen ``params``
+LAUNCHER = {"opencl": "_run", "taichi": "_common"}
+
+
+def spy_launches(monkeypatch, backend_mod, backend):
+    """Record the ``params`` each rgbd launch of ``backend_mod`` runs with."""
+    launched = []
+    real = getattr(backend_mod, LAUNCHER[backend])
+    sig = inspect.signature(real)
+
+    def run(*a, **kw):
+        launched.append(sig.bind(*a, **kw).arguments["params"])
+        return real(*a, **kw)
+
+    monkeypatch.setattr(backend_mod, LAUNCHER[backend], run)
+    return launched
+
+
+def force_choice(monkeypatch, params, asked=None):
+    """The tuning cache answers ``params`` for every tunable (and records the ops asked for)."""
+
+    def choose(dev, t, size):
+        if asked is not None:
+            asked.append(t.op)
+        return dict(params)
+
+    monkeypatch.setattr(tuning_cache, "choose", choose)
 
 
 def _scene(b=37, n=29, m=31):
@@ -129,23 +166,14 @@ def test_every_candidate_matches_the_reference(device, monkeypatch):
     tf, rgb, dep, gray, depth, cam = _scene()
     want = rgbd_cost(REF, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
     want_res = rgbd_residuals(REF, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
-    launched = []
-    backend = template_ops.backend_module(device, "template")
-    real_cost, real_res = backend.rgbd_cost, backend.rgbd_residuals
-
-    def spy(real):
-        def run(*a, **kw):
-            launched.append(kw["params"])
-            return real(*a, **kw)
-
-        return run
-
-    monkeypatch.setattr(backend, "rgbd_cost", spy(real_cost))
-    monkeypatch.setattr(backend, "rgbd_residuals", spy(real_res))
+    backend = backend_module(device, "template")
+    launched = spy_launches(monkeypatch, backend, device.backend)
+    asked = []
     for op in ("rgbd_cost", "rgbd_residuals"):
-        for params in template_ops.TUNABLES[(device.backend, op)].grid():
-            monkeypatch.setattr(tuning, "choose", lambda dev, t, size, params=params: dict(params))
+        for params in backend.TUNABLES[op].grid():
+            force_choice(monkeypatch, params, asked)
             launched.clear()
+            asked.clear()
             if op == "rgbd_cost":
                 got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
                 for f in ("total", "rgb", "depth"):
@@ -153,11 +181,11 @@ def test_every_candidate_matches_the_reference(device, monkeypatch):
             else:
                 got = rgbd_residuals(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
                 assert_matches(device, got, want_res, scale=5.0, err_msg=f"{op} {params}")
-            assert launched == [params]
+            assert launched == [params] and asked == [op]
 
 
 def _fake_fast(tunable, winner):
-    """The real tunable on a tiny size, with a problem where ``winner`` is clearly the fastest."""
+    """(the real tunable on a tiny size, a problem where ``winner`` is clearly the fastest)."""
     import dataclasses
     import time
 
@@ -167,7 +195,7 @@ def _fake_fast(tunable, winner):
 
         return run
 
-    return dataclasses.replace(tunable, sizes=({"B": 37, "N": 29},), problem=problem)
+    return dataclasses.replace(tunable, sizes=({"B": 37, "N": 29},)), problem
 
 
 def test_cli_tune_stores_a_choice_and_the_op_uses_it(device, tmp_path, monkeypatch, capsys):
@@ -178,22 +206,16 @@ def test_cli_tune_stores_a_choice_and_the_op_uses_it(device, tmp_path, monkeypat
         assert "nothing to tune" in capsys.readouterr().out
         return
     monkeypatch.setenv("GPUTRACK_TUNING_CACHE", str(tmp_path / "tuning.json"))
-    key = (device.backend, "rgbd_cost")
-    real = template_ops.TUNABLES[key]
+    backend = backend_module(device, "template")
+    real = backend.TUNABLES["rgbd_cost"]
     default = real.default_for(device)
     winner = next(p for p in reversed(real.grid()) if p != default)
-    monkeypatch.setitem(template_ops.TUNABLES, key, _fake_fast(real, winner))
+    fake, problem = _fake_fast(real, winner)
+    monkeypatch.setitem(backend.TUNABLES, "rgbd_cost", fake)
+    monkeypatch.setitem(tuning.PROBLEMS, "rgbd_cost", problem)
 
     tf, rgb, dep, gray, depth, cam = _scene()
-    backend = template_ops.backend_module(device, "template")
-    launched = []
-    real_cost = backend.rgbd_cost
-
-    def spy(*a, **kw):
-        launched.append(kw["params"])
-        return real_cost(*a, **kw)
-
-    monkeypatch.setattr(backend, "rgbd_cost", spy)
+    launched = spy_launches(monkeypatch, backend, device.backend)
     rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
     assert launched == [default]  # no cache entry yet
 
@@ -234,20 +256,18 @@ def test_cli_tune_rejects_a_bad_min_time(capsys):
 
 def test_a_failing_candidate_is_skipped(tmp_path, numpy_device):
     runs = []
-    t = make_tunable(runs=runs)
-    ok_problem = t.problem
+    t = make_tunable()
+    ok_problem = make_problem(runs)
 
     def problem(device, size, params):
         if params["wg"] == 64:
             raise RuntimeError("work-group size not supported")
         return ok_problem(device, size, params)
 
-    import dataclasses
-
-    t = dataclasses.replace(t, problem=problem)
     reports = []
     cache = tuning.TuningCache(tmp_path / "t.json")
-    chosen = tuning.tune(numpy_device, t, cache=cache, min_time=0.002, report=lambda *a: reports.append(a))
+    chosen = tuning.tune(numpy_device, t, problem=problem, cache=cache, min_time=0.002,
+                         report=lambda *a: reports.append(a))  # fmt: skip
     assert chosen["B=2048,N=128"] in ({"wg": 32}, {"wg": 128})
     ((_size, trials, _best),) = reports
     failed = [tr for tr in trials if tr.timing is None]
@@ -258,8 +278,6 @@ def test_a_failing_candidate_is_skipped(tmp_path, numpy_device):
 @pytest.mark.parametrize("fast, expected", [(0.99, 128), (0.5, 32)])
 def test_the_default_is_kept_unless_clearly_faster(tmp_path, numpy_device, monkeypatch, fast, expected):
     """A candidate 1% faster than the default (noise) does not replace it; one 2x faster does."""
-    import dataclasses
-
     from gputrack import benchmark
 
     ms = {32: fast, 64: 1.2, 128: 1.0}  # the default is wg=128
@@ -276,8 +294,8 @@ def test_the_default_is_kept_unless_clearly_faster(tmp_path, numpy_device, monke
         return benchmark.Timing(s, s, s, 5)
 
     monkeypatch.setattr(benchmark, "time_call", fake_time_call)
-    t = dataclasses.replace(make_tunable(), problem=problem)
-    chosen = tuning.tune(numpy_device, t, cache=tuning.TuningCache(tmp_path / "t.json"), min_time=0.002)
+    chosen = tuning.tune(numpy_device, make_tunable(), problem=problem, cache=tuning.TuningCache(tmp_path / "t.json"),
+                         min_time=0.002)  # fmt: skip
     assert chosen == {"B=2048,N=128": {"wg": expected}}
 
 
@@ -297,7 +315,8 @@ def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):
     """The OpenCL filter kernels' tracks per work-item and work-group sizes: identical results."""
     from gputrack.ops import kalman
 
-    if (device.backend, "kalman") not in kalman.TUNABLES:
+    found = tuning.tunables(device.backend, "kalman")
+    if not found:
         pytest.skip(f"no Kalman launch parameters on {device.backend}")
     rng = np.random.default_rng(11)
     T = 37  # not a multiple of any lane count or work-group size
@@ -314,8 +333,11 @@ def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):
     want = kalman.kf_update(REF, x, P, z, H, R, mask=mask, predict=(F, Q))
     want_p = kalman.kf_predict(REF, x, P, F, Q)
     want_s = kalman.ekf_update_stereo(REF, x, P, zs + 0.3, R, f=400.0, b=0.1)
-    for params in kalman.TUNABLES[(device.backend, "kalman")].grid():
-        monkeypatch.setattr(tuning, "choose", lambda dev, t, size, params=params: dict(params))
+    (tunable,) = found
+    asked = []
+    for params in tunable.grid():
+        force_choice(monkeypatch, params, asked)
+        asked.clear()
         got = kalman.kf_update(device, x, P, z, H, R, mask=mask, predict=(F, Q))
         for g, w, name in zip(got, want, ("x", "P", "status")):
             if name == "status":
@@ -326,6 +348,7 @@ def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):
             assert_matches(device, g, w, err_msg=f"kf_predict {params}")
         for g, w in zip(kalman.ekf_update_stereo(device, x, P, zs + 0.3, R, f=400.0, b=0.1)[:2], want_s[:2]):
             assert_matches(device, g, w, err_msg=f"ekf_update_stereo {params}")
+        assert asked == ["kalman"] * 3  # each op launched with the forced choice
 
 
 def test_a_bad_entry_warns_once_and_lookups_are_memoised(tmp_path, numpy_device):

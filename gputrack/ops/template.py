@@ -46,11 +46,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 
-from .. import tuning
 from ..device import Device, DeviceArray, per_device_cache
 from . import backend_module
 from ._args import arg, check_device, out_array
@@ -285,7 +283,6 @@ def rgbd_cost(
         out_array(device, None if out is None else getattr(out, f), f"out.{f}", (nb,))
         for f in ("total", "rgb", "depth")
     )
-    _tuned(device, "rgbd_cost", p, nb, rgb, depth)
     backend_module(device, "template").rgbd_cost(
         device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), *outs, **p
     )
@@ -306,78 +303,10 @@ def rgbd_residuals(
     tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
                               depth_tol)  # fmt: skip
     res = out_array(device, out, "out", (tf.shape[0], rgb.n + depth.n))
-    _tuned(device, "rgbd_residuals", p, tf.shape[0], rgb, depth)
     backend_module(device, "template").rgbd_residuals(
         device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p
     )
     return res
-
-
-# -- tuning (gputrack tune) ----------------------------------------------------------------------
-# The launch parameters of the rgbd kernels: ``lanes`` = hypotheses per thread / work-item (the
-# kernels' LANES), and on OpenCL ``work_group`` = the work-group size. Results are identical
-# whatever the choice (each lane computes its own hypothesis with the same sums); only the speed
-# differs. The defaults are the backends' own (lanes(device): 8 on CPU devices, 1 on GPUs).
-_TAICHI_SOURCE = str(Path(__file__).resolve().parent.parent / "backends" / "taichi" / "template.py")
-_CANDIDATES = {
-    "taichi": {"lanes": [1, 2, 4, 8, 16]},
-    "opencl": {"lanes": [1, 4, 8, 16], "work_group": [1, 2, 4, 8, 16, 32, 64, 128]},
-}
-_SOURCES = {"taichi": (_TAICHI_SOURCE,), "opencl": ("gt_template.cl", "gt_lanes.clh")}
-#: representative sizes: a particle-filter stage (paper 000: K = 1500, N = N' = 128) and the
-#: batched LM's residuals (B = 280 .. 400 perturbed poses share the bucket B=512)
-_SIZES = {"rgbd_cost": ({"B": 1500, "N": 128},), "rgbd_residuals": ({"B": 400, "N": 128},)}
-
-
-def _default_params(device) -> dict:
-    return backend_module(device, "template").default_params(device)
-
-
-def _size(nb, rgb, depth) -> dict:
-    return {"B": int(nb), "N": max(rgb.n, depth.n)}
-
-
-def _tuned(device, op, kwargs, nb, rgb, depth) -> None:
-    """Add the launch parameters for this device and size (cached choice, else default) to ``kwargs``."""
-    t = TUNABLES.get((device.backend, op))
-    if t is not None:
-        kwargs["params"] = tuning.choose(device, t, _size(nb, rgb, depth))
-
-
-def _problem(op):
-    def problem(device, size, params):
-        """One ``op`` call on a particle-filter-like scene of ``size``, launched with ``params``."""
-        from ..sim.problems import pf_scene
-
-        rng = np.random.default_rng(0)
-        tf, rgb, dep, gray, depth, cam = pf_scene(rng, size["B"], size["N"], size["N"])
-        tf_d, g, d = device.asarray(tf), device.asarray(gray), device.asarray(depth)
-        r, dd, c = rgb.on(device), dep.on(device), cam.as_array()
-        p = {"lam": 0.9, "c_rgb": 0.5 / rgb.n, "c_depth": 5.0, "depth_tol": 0.0, "params": dict(params)}
-        mod = backend_module(device, "template")
-        if op == "rgbd_cost":
-            outs = tuple(device.empty((size["B"],), np.float32) for _ in range(3))
-            return lambda: mod.rgbd_cost(device, tf_d, r, dd, g, d, c, *outs, **p)
-        res = device.empty((size["B"], rgb.n + dep.n), np.float32)
-        return lambda: mod.rgbd_residuals(device, tf_d, r, dd, g, d, c, res, **p)
-
-    return problem
-
-
-#: (backend, op) -> Tunable, read by the ops at every call and swept by ``gputrack tune``
-TUNABLES = {
-    (backend, op): tuning.Tunable(
-        op=op,
-        backend=backend,
-        candidates=_CANDIDATES[backend],
-        default=_default_params,
-        sizes=_SIZES[op],
-        problem=_problem(op),
-        sources=_SOURCES[backend],
-    )
-    for backend in ("taichi", "opencl")
-    for op in ("rgbd_cost", "rgbd_residuals")
-}
 
 
 def _ncc_args(device, points2d, templates, image):

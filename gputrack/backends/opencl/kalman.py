@@ -11,8 +11,13 @@ use are passed as NULL.
 """
 
 import functools
+from pathlib import Path
 
 import numpy as np
+
+from ... import tuning_cache
+from ...tuning_cache import Tunable
+from .program import source
 
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
 PD_EPS_FACTOR = 4.0
@@ -33,16 +38,29 @@ def lanes(device) -> int:
 
 def default_params(device) -> dict:
     """Launch parameters of the filter kernels without a tuning-cache entry (``gputrack tune``
-    may choose others: gputrack/ops/kalman.py TUNABLES): tracks per work-item and work-group
-    size (None: the driver's choice)."""
+    may choose others: TUNABLES): tracks per work-item and work-group size (None: the driver's
+    choice)."""
     return {"lanes": lanes(device), "work_group": None}
 
 
-def _launch_params(device, T, n) -> dict:
-    from ... import tuning
-    from ...ops.kalman import TUNABLES
+# The filter kernel (kf_predict, kf_update, ekf_update_stereo) launches with ``lanes`` tracks per
+# work-item (gt_kf built with VW = 1, or with VW-wide vectors for 4, 8, 16) and a work-group size
+# (None: the driver's choice), read at every call and swept by ``gputrack tune``. Every track is
+# computed alike whatever the choice (each lane runs its own track), only the speed differs.
+TUNABLES = {
+    "kalman": Tunable(
+        op="kalman",
+        backend="opencl",
+        candidates={"lanes": [1, 4, 8, 16], "work_group": [None, 16, 64, 256]},
+        default=default_params,
+        sizes=({"T": 10_000, "n": 6}, {"T": 100_000, "n": 6}, {"T": 1_000_000, "n": 6}),
+        sources=(source("gt_kalman.cl"), str(Path(__file__).resolve())),
+    )
+}
 
-    return tuning.choose(device, TUNABLES[("opencl", "kalman")], {"T": T, "n": n})
+
+def _launch_params(device, T, n) -> dict:
+    return tuning_cache.choose(device, TUNABLES["kalman"], {"T": T, "n": n})
 
 
 def _program(device, dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, vw=1):

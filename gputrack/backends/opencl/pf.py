@@ -39,6 +39,8 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     reuse = None
     if not moved_parts.all():  # some parts look in every sample as in its candidate
         reuse = (constant(device, moved_parts.astype(np.int32)).buffer.data, C)
-    template.rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *scores, **consts, reuse=reuse)
+    # the stage launches with the default parameters (the tuned choice is measured on rgbd_cost alone)
+    params = template.default_params(device)
+    template.rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *scores, **consts, params=params, reuse=reuse)
     particles.best_k(device, scores[0], k, samples, out)
     return BestK(*out)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 
 _HERE = Path(__file__).resolve()
@@ -18,6 +19,25 @@ def kernel_dir() -> Path:
         f"expected OpenCL kernel sources in {_HERE.parents[2] / 'kernels'} (installed) or "
         f"{_HERE.parents[3] / 'kernels'} (source tree), found none"
     )
+
+
+class KernelSource(os.PathLike):
+    """The path of ``kernels/<name>``, found when it is used (``os.fspath``): a tunable's
+    ``sources`` name their kernel files with it without looking for the folder at import."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __fspath__(self) -> str:
+        return str(kernel_dir() / self.name)
+
+    def __repr__(self) -> str:
+        return f"KernelSource({self.name!r})"
+
+
+def source(name: str) -> KernelSource:
+    """``kernels/<name>`` as a path found when used (see :class:`KernelSource`)."""
+    return KernelSource(name)
 
 
 def kernel_files() -> list[Path]:

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ... import tuning_cache
 from ...device import per_device_cache
+from ...tuning_cache import Tunable
+from .program import source
 
 CPU_LANES = 8
 WORK_GROUP = 4
@@ -25,6 +28,31 @@ def lanes(device) -> int:
 def default_params(device) -> dict:
     """Launch parameters without a tuning-cache entry: lanes per work-item and work-group size."""
     return {"lanes": lanes(device), "work_group": WORK_GROUP if device.info.kind == "cpu" else 64}
+
+
+# The launch parameters of gt_rgbd, read by rgbd_cost and rgbd_residuals at every call and swept
+# by ``gputrack tune``: ``lanes`` = hypotheses per work-item (LANES), ``work_group`` = the
+# work-group size. Results are identical whatever the choice (each lane computes its own
+# hypothesis with the same sums); only the speed differs. Representative sizes: a particle-filter
+# stage (paper 000: K = 1500, N = N' = 128) and the batched LM's residuals (B = 280 .. 400
+# perturbed poses share the bucket B=512).
+TUNABLES = {
+    op: Tunable(
+        op=op,
+        backend="opencl",
+        candidates={"lanes": [1, 4, 8, 16], "work_group": [1, 2, 4, 8, 16, 32, 64, 128]},
+        default=default_params,
+        sizes=(size,),
+        sources=(source("gt_template.cl"), source("gt_lanes.clh")),
+    )
+    for op, size in (("rgbd_cost", {"B": 1500, "N": 128}), ("rgbd_residuals", {"B": 400, "N": 128}))
+}
+
+
+def _tuned(device, op, tf, rgb, depth) -> dict:
+    """The launch parameters of ``op`` for this device and size (cached choice, else default)."""
+    n = max(rgb["pts"].shape[0], depth["pts"].shape[0])
+    return tuning_cache.choose(device, TUNABLES[op], {"B": tf.shape[0], "N": n})
 
 
 def _buffer(device, name, nbytes):
@@ -65,11 +93,10 @@ def _kernel(device, name, **defines):
 
 
 def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, params, reuse=None):
-    """``reuse``: None, or (moved (J,) int32 buffer, sources): the cost of ``sources`` blocks of
+    """``params``: {"lanes", "work_group"}. ``reuse``: None, or (moved (J,) int32 buffer, sources): the cost of ``sources`` blocks of
     samples that pose the parts with moved[j] == 0 as their first sample does (kernels/gt_template.cl
     REUSE): one launch caches the sources, a second scores every sample from it. ``consts``: (lam, c_rgb,
     c_depth, depth_tol)."""
-    params = params or default_params(device)
     nl = int(params["lanes"])
     wg = int(params["work_group"])
     nb, nj = tf.shape[:2]
@@ -108,13 +135,16 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, pa
 
 def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, depth_tol,
               params=None, reuse=None):  # fmt: skip
-    """``params``: {"lanes", "work_group"} (gputrack/ops/template.py TUNABLES); None = default_params.
+    """``params``: {"lanes", "work_group"}; None = the tuned choice (TUNABLES["rgbd_cost"]).
     ``reuse``: see _run (the particle filter's cascade stages, gputrack/backends/opencl/pf.py)."""
     consts = (lam, c_rgb, c_depth, depth_tol)
+    params = params or _tuned(device, "rgbd_cost", tf, rgb, depth)
     _run(device, tf, rgb, depth, gray, dimg, camera, consts, (total, eps_c, eps_d), False, params, reuse)
 
 
 def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, depth_tol, params=None):
+    """``params``: {"lanes", "work_group"}; None = the tuned choice (TUNABLES["rgbd_residuals"])."""
+    params = params or _tuned(device, "rgbd_residuals", tf, rgb, depth)
     _run(device, tf, rgb, depth, gray, dimg, camera, (lam, c_rgb, c_depth, depth_tol), (out,), True, params)
 
 

@@ -19,8 +19,12 @@ Block-shared-memory reductions compile only on CUDA; this one-group-per-thread f
 every arch (on a GPU each thread then handles LANES hypotheses, LANES = 1 there).
 """
 
+from pathlib import Path
+
 import numpy as np
 
+from ... import tuning_cache
+from ...tuning_cache import Tunable
 from .launch import launch
 from .runtime import scratch, ti
 from .tasks import CPU_TASK, chunk, cpu_chunks
@@ -41,6 +45,31 @@ def lanes(device) -> int:
 def default_params(device) -> dict:
     """Launch parameters without a tuning-cache entry (``gputrack tune`` may choose others)."""
     return {"lanes": lanes(device)}
+
+
+# The launch parameter of the rgbd kernels, read by rgbd_cost and rgbd_residuals at every call
+# and swept by ``gputrack tune``: ``lanes`` = hypotheses per thread (the kernels' L). Results are
+# identical whatever the choice (each lane computes its own hypothesis with the same sums); only
+# the speed differs. Representative sizes: a particle-filter stage (paper 000: K = 1500,
+# N = N' = 128) and the batched LM's residuals (B = 280 .. 400 perturbed poses share the bucket
+# B=512). This file is the source that keys the cache.
+TUNABLES = {
+    op: Tunable(
+        op=op,
+        backend="taichi",
+        candidates={"lanes": [1, 2, 4, 8, 16]},
+        default=default_params,
+        sizes=(size,),
+        sources=(str(Path(__file__).resolve()),),
+    )
+    for op, size in (("rgbd_cost", {"B": 1500, "N": 128}), ("rgbd_residuals", {"B": 400, "N": 128}))
+}
+
+
+def _tuned(device, op, tf, rgb, depth) -> dict:
+    """The launch parameters of ``op`` for this device and size (cached choice, else default)."""
+    n = max(rgb["pts"].shape[0], depth["pts"].shape[0])
+    return tuning_cache.choose(device, TUNABLES[op], {"B": tf.shape[0], "N": n})
 
 
 @ti.func
@@ -498,8 +527,8 @@ def cam_array(camera, lam, c_rgb, c_depth, depth_tol) -> np.ndarray:
 
 
 def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, depth_tol, params):
-    """(leading arrays, trailing compile-time values) of the rgbd kernels."""
-    nl = int((params or default_params(device))["lanes"])
+    """(leading arrays, trailing compile-time values) of the rgbd kernels; ``params``: {"lanes"}."""
+    nl = int(params["lanes"])
     groups = (tf.shape[0] + nl - 1) // nl
     work = scratch(device, "rgbd", (groups, 2 * rgb["pts"].shape[0] * nl), ti.f32)
     arrays = (
@@ -511,13 +540,16 @@ def _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, dep
 
 def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, depth_tol,
               params=None):  # fmt: skip
-    """``params``: {"lanes"} (gputrack/ops/template.py TUNABLES); None = default_params."""
+    """``params``: {"lanes"}; None = the tuned choice (TUNABLES["rgbd_cost"])."""
+    params = params or _tuned(device, "rgbd_cost", tf, rgb, depth)
     arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, depth_tol, params)
     launch(_rgbd_cost_kernel, (*arrays, total.buffer, eps_c.buffer, eps_d.buffer), consts, scalarize=False)
 
 
 def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, depth_tol,
               params=None):  # fmt: skip
+    """``params``: {"lanes"}; None = the tuned choice (TUNABLES["rgbd_residuals"])."""
+    params = params or _tuned(device, "rgbd_residuals", tf, rgb, depth)
     arrays, consts = _common(device, tf, rgb, depth, gray, dimg, camera, lam, c_rgb, c_depth, depth_tol, params)
     launch(_rgbd_res_kernel, (*arrays, out.buffer), consts, scalarize=False)
 
