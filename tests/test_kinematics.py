@@ -193,7 +193,7 @@ def test_building_blocks_for_fused_kernels(device):
     compile-time value) give the op's transforms inside another kernel."""
     if device.backend == "numpy":
         pytest.skip("the reference has no kernels")
-    from gputrack.ops.kinematics import chain_tables
+    from gputrack.models.chain import chain_tables
 
     chain = upper_body()
     p = random_params(chain, 13, seed=9).astype(np.float32)

@@ -5,7 +5,8 @@ import pytest
 from tolerances import assert_matches
 
 import gputrack
-from gputrack.ops.particles import best_k, sample_around, sortable_key
+from gputrack.backends.reference.particles import sortable_key
+from gputrack.ops.particles import best_k, sample_around
 
 REF = gputrack.device("numpy")
 

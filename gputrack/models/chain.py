@@ -27,7 +27,9 @@ import functools
 
 import numpy as np
 
-__all__ = ["AXES", "Chain", "Part", "Shape", "joint_transform", "rotation"]
+from ..device import per_device_cache
+
+__all__ = ["AXES", "Chain", "Part", "Shape", "chain_tables", "joint_transform", "rotation"]
 
 #: axis letter -> code used in the packed tables (-1 = no rotation)
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -255,3 +257,19 @@ def joint_transform(part: Part, params: np.ndarray) -> np.ndarray:
         if i >= 0:
             t[:, k] += params[:, i]
     return np.concatenate([r, t[:, :, None]], axis=2)
+
+
+# device -> {(chain key, dtype): (table, offsets)}; weak so that a closed device's arrays go with it
+_TABLES = per_device_cache()
+
+
+def chain_tables(device, chain: Chain, dtype=np.float32):
+    """The chain's :meth:`Chain.packed` tables on ``device``: (table (J, 10) int32, offsets (J, 3)
+    of ``dtype``), uploaded once per device, chain and dtype and cached (every kernel that poses
+    the chain reads them)."""
+    per_device = _TABLES.setdefault(device, {})
+    key = (chain.key(), np.dtype(dtype).name)
+    if key not in per_device:
+        table, offsets = chain.packed()
+        per_device[key] = (device.asarray(table), device.asarray(offsets.astype(dtype)))
+    return per_device[key]

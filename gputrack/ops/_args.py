@@ -9,11 +9,9 @@ device are trusted, since checking them would cost a download.
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
-from ..device import Device, DeviceArray, per_device_cache
+from ..device import Device, DeviceArray
 
 FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
 
@@ -146,23 +144,3 @@ def out_arrays(device, out, specs, *, allocate: bool = True):
         names = ", ".join(name for name, _, _ in specs)
         raise TypeError(f"out: expected a tuple of {len(specs)} arrays ({names}) or None, got {type(out).__name__}")
     return tuple(out_array(device, a, f"out {name}", shape, dtype) for a, (name, shape, dtype) in zip(out, specs))
-
-
-#: small host constants (sampling sigmas, re-use tables) uploaded once per device and value
-_CONSTANTS: weakref.WeakKeyDictionary = per_device_cache()
-_MAX_CONSTANTS = 256
-
-
-def constant(device, host: np.ndarray):
-    """``host`` on ``device``, uploaded the first time this value is seen there, then cached (at
-    most 256 values per device). The caller must not modify the returned array."""
-    if device.backend == "numpy":
-        return host
-    per_device = _CONSTANTS.setdefault(device, {})
-    key = (host.dtype.str, host.shape, host.tobytes())
-    found = per_device.get(key)
-    if found is None:
-        if len(per_device) >= _MAX_CONSTANTS:
-            per_device.clear()
-        found = per_device[key] = device.asarray(host)
-    return found

@@ -8,38 +8,21 @@ chain and dtype and cached (Taichi compiles the structure into its kernel and re
 offsets), so the kernels work for any chain, not only the upper body.
 
 For fused kernels (sample + kinematics + score in one launch) the per-pose code is reusable:
-OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)`` with the tables of :func:`chain_tables`; Taichi
+OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)`` with the tables of :func:`gputrack.models.chain.chain_tables`; Taichi
 ``gputrack.backends.taichi.kinematics.pose_f32`` / ``pose_f64`` (``ti.func``) with the chain's
 structure as a compile-time value (``chain.structure()``, the parts unrolled) and the offsets
-of :func:`chain_tables`.
+of :func:`gputrack.models.chain.chain_tables`.
 """
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
-from ..device import per_device_cache
 from ..models.chain import Chain
 from . import backend_module
 from ._args import FLOAT, arg, check_device, out_array
 
-__all__ = ["chain_tables", "forward_kinematics"]
-
-# device -> {(chain key, dtype): (table, offsets)}; weak so that a closed device's arrays go with it
-_TABLES: "weakref.WeakKeyDictionary" = per_device_cache()
-
-
-def chain_tables(device, chain: Chain, dtype=np.float32):
-    """The chain's (table (J, 10) int32, offsets (J, 3) dtype) on ``device``, uploaded once and cached."""
-    per_device = _TABLES.setdefault(device, {})
-    key = (chain.key(), np.dtype(dtype).name)
-    if key not in per_device:
-        table, offsets = chain.packed()
-        per_device[key] = (device.asarray(table), device.asarray(offsets.astype(dtype)))
-    return per_device[key]
-
+__all__ = ["forward_kinematics"]
 
 def forward_kinematics(device, chain: Chain, params, *, out=None):
     """Camera-from-part transforms for a batch of poses.

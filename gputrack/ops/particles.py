@@ -119,11 +119,3 @@ def best_k_out(device, out, k: int, P: int | None, rows=None):
 
     idx, val = one("indices", (k,), np.int32), one("scores", (k,), np.float32)
     return idx, val, (one("rows", (k, P), np.float32) if P is not None else None)
-
-
-def sortable_key(scores: np.ndarray) -> np.ndarray:
-    """uint32 keys that order float32 scores ascending (-inf < ... < +inf < NaN), as the kernels do."""
-    bits = np.ascontiguousarray(scores, np.float32).view(np.uint32)
-    key = np.where(bits >> 31 == 1, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
-    nan = (bits & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000)
-    return np.where(nan, np.uint32(0xFFFFFFFF), key).astype(np.uint32)

@@ -24,7 +24,8 @@ import numpy as np
 from ..device import DeviceArray
 from ..models.chain import Chain
 from . import backend_module
-from ._args import arg, check_device, constant
+from ..uploads import constant
+from ._args import arg, check_device
 from .kinematics import forward_kinematics
 from .particles import BestK, _seed, best_k, best_k_out, sample_around
 from .template import rgbd_cost, scene_args
@@ -79,10 +80,11 @@ def pf_stage(
                          chain.n_parts)  # fmt: skip
     if fused:
         moved = chain.dependency_mask()[:, sig != 0].any(axis=1)  # parts that a sampled parameter poses
-        return backend_module(device, "pf").pf_stage(
+        idx, val, rows = backend_module(device, "pf").pf_stage(
             device, chain, cand, constant(device, sig), int(n), lo, hi, rgb.on(device), depth.on(device), g, d,
             camera.as_array(), moved, int(k), outs, **p,
         )  # fmt: skip
+        return BestK(idx, val, rows)
     samples = sample_around(device, cand, constant(device, sig), int(n), seed, keep_candidates=True)
     cost = rgbd_cost(device, forward_kinematics(device, chain, samples), rgb, depth, g, d, camera, **p)
     return best_k(device, cost.total, int(k), rows=samples, out=out)

@@ -26,8 +26,10 @@ import numpy as np
 from ..device import per_device_cache
 from ..models.chain import Chain
 from . import backend_module
-from ._args import arg, check_device, constant, out_array
-from .kinematics import chain_tables, forward_kinematics
+from ..models.chain import chain_tables
+from ..uploads import constant
+from ._args import arg, check_device, out_array
+from .kinematics import forward_kinematics
 from .template import rgbd_residuals, scene_args
 
 __all__ = ["pose_residuals"]

@@ -6,6 +6,8 @@ import functools
 
 import numpy as np
 
+from ...models.chain import chain_tables
+
 
 @functools.lru_cache(maxsize=None)
 def _kernel(program):
@@ -16,8 +18,6 @@ def _kernel(program):
 
 
 def forward_kinematics(device, chain, params, out):
-    from ...ops.kinematics import chain_tables
-
     table, offsets = chain_tables(device, chain, params.dtype)
     b, p = params.shape
     j = chain.n_parts

@@ -13,8 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device_cache
-from ...ops._args import constant
-from ...ops.particles import BestK
+from ...uploads import constant
 from . import kinematics, particles, template
 
 _arrays = per_device_cache()
@@ -43,4 +42,4 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     params = template.default_params(device)
     template.rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, *scores, **consts, params=params, reuse=reuse)
     particles.best_k(device, scores[0], k, samples, out)
-    return BestK(*out)
+    return out

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...ops.particles import sortable_key
 
 U32 = np.uint32
 
@@ -63,3 +62,11 @@ def best_k(device, scores, k, rows, out):
     if rows is not None:
         out[2][...] = rows[idx]
     return out
+
+
+def sortable_key(scores: np.ndarray) -> np.ndarray:
+    """uint32 keys that order float32 scores ascending (-inf < ... < +inf < NaN), as the kernels do."""
+    bits = np.ascontiguousarray(scores, np.float32).view(np.uint32)
+    key = np.where(bits >> 31 == 1, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
+    nan = (bits & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000)
+    return np.where(nan, np.uint32(0xFFFFFFFF), key).astype(np.uint32)

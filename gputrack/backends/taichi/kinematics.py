@@ -10,6 +10,7 @@ compiles a new kernel (the upper body has two: with and without the shoulder par
 
 import numpy as np
 
+from ...models.chain import chain_tables
 from .launch import launch
 from .runtime import current_arch, ti
 from .tasks import CPU_TASK
@@ -97,8 +98,6 @@ pose_f64, _fk_f64 = _make(ti.f64)
 
 
 def forward_kinematics(device, chain, params, out):
-    from ...ops.kinematics import chain_tables
-
     _, offsets = chain_tables(device, chain, params.dtype)
     kernel = _fk_f64 if params.dtype == np.float64 else _fk_f32
     serial = current_arch() == "cpu" and params.shape[0] <= CPU_TASK

@@ -11,9 +11,8 @@ kept per device; only the k rows, scores and indices are new.
 
 import numpy as np
 
-from ...ops._args import constant
-from ...ops.kinematics import chain_tables
-from ...ops.particles import BestK
+from ...models.chain import chain_tables
+from ...uploads import constant
 from .kinematics import pose_f32
 from .launch import launch
 from .particles import best_k_body, sample_key, sample_one
@@ -82,4 +81,4 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
     )  # fmt: skip
     consts = (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), reuse, chain.structure())
     launch(_pf_stage, arrays, consts, scalarize=False)
-    return BestK(idx, val, sel)
+    return idx, val, sel
