@@ -23,7 +23,6 @@ from . import tuning
 from .scheduler import FrameStats, Pipeline, StageStats
 from .ops import (
     BestK,
-    Camera,
     KalmanState,
     KalmanStatus,
     LeastSquaresResult,
@@ -46,7 +45,7 @@ from .ops import (
     rgbd_residuals,
     sample_around,
 )
-from .models import Chain, Part, Shape, rigid, upper_body
+from .models import Camera, Chain, Part, Shape, rigid, upper_body
 from .trackers.body import BodyEstimate, BodyTracker, TrackerConfig
 
 __version__ = "0.1.0"

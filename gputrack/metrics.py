@@ -29,8 +29,6 @@ def axis_angle(estimated, true, axis: int = 0) -> np.ndarray:
 
 
 def _poses(chain, params, name):
-    from .backends.reference.kinematics import forward_kinematics
-
     p = np.asarray(params, dtype=np.float64)
     if p.ndim == 1:
         p = p[None]
@@ -38,7 +36,7 @@ def _poses(chain, params, name):
         raise ValueError(f"{name}: expected shape (B, {chain.n_params}) or ({chain.n_params},), got {np.shape(params)}")
     if not np.isfinite(p).all():
         raise ValueError(f"{name}: expected finite values, got non-finite entries")
-    return forward_kinematics(None, chain, p)
+    return chain.transforms(p)
 
 
 def arm_axis_errors(chain, estimated, true, parts=tuple(ARM_PARTS.values())) -> np.ndarray:

@@ -155,7 +155,7 @@ def _icl_frames():
 def test_icl_nuim_camera_motion(device):
     """Rigid case of the same tracker: template from frame i, PF + LM to frame i+1, vs trajectory.log."""
     frames, poses = _icl_frames()
-    camera = gputrack.ops.Camera(525.0, 525.0, 319.5, 239.5)  # camera_primesense.json
+    camera = gputrack.Camera(525.0, 525.0, 319.5, 239.5)  # camera_primesense.json
     chain = rigid()
     deg = np.pi / 180
     sigma = np.array([1 * deg, 1 * deg, 1 * deg, 10.0, 10.0, 10.0])

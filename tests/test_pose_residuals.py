@@ -14,7 +14,7 @@ from gputrack.ops.kinematics import forward_kinematics
 from gputrack.ops.pose_residuals import _plan, pose_residuals
 from gputrack.ops.template import rgbd_residuals
 from gputrack.sim import sequence
-from gputrack.sim.render import DEFAULT_CAMERA as CAM
+from gputrack.models.camera import DEFAULT_CAMERA as CAM
 from gputrack.trackers.body_template import sparse_template
 
 REF = gputrack.device("numpy")

@@ -8,8 +8,9 @@ from gputrack.backends.reference.kinematics import forward_kinematics
 from gputrack.metrics import ARM_PARTS, arm_axis_errors, axis_angle, mean_arm_errors, shoulder_errors
 from gputrack.models import upper_body
 from gputrack.ops.template import SparseTemplate
-from gputrack.sim import DEFAULT_CAMERA, SEQUENCES, render, sequence, sequence_params
-from gputrack.sim.render import intersect
+from gputrack.models.camera import DEFAULT_CAMERA
+from gputrack.models.render import intersect, render
+from gputrack.sim import SEQUENCES, sequence, sequence_params
 from gputrack.trackers import select_pixels, sparse_template
 
 DEG = np.pi / 180

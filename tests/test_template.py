@@ -12,7 +12,8 @@ from tolerances import assert_matches
 
 import gputrack
 from gputrack.models.chain import rotation_zyx
-from gputrack.ops.template import Camera, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals
+from gputrack.models.camera import Camera
+from gputrack.ops.template import SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals
 
 REF = gputrack.device("numpy")
 

@@ -1,10 +1,14 @@
-"""Articulated models as data: kinematic chains (paper 000's upper body, rigid single parts)."""
+"""Data the math runs on: cameras, kinematic chains (paper 000's upper body, rigid single parts)."""
 
+from .camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from .chain import Chain, Part, Shape, joint_transform, rotation
 from .upper_body import DIMENSIONS, PF_SIGMA, pf_sigma, upper_body
 
 __all__ = [
+    "Camera",
     "Chain",
+    "DEFAULT_CAMERA",
+    "DEFAULT_SIZE",
     "DIMENSIONS",
     "PF_SIGMA",
     "Part",

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..device import per_device_cache
 
-__all__ = ["AXES", "Chain", "Part", "Shape", "chain_tables", "joint_transform", "rotation"]
+__all__ = ["AXES", "Chain", "Part", "Shape", "chain_tables", "compose", "joint_transform", "rotation"]
 
 #: axis letter -> code used in the packed tables (-1 = no rotation)
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -187,6 +187,24 @@ class Chain:
             )
         return self.dependency_mask()[parts]
 
+    # -- kinematics on the host ----------------------------------------------------------------
+    def transforms(self, params) -> np.ndarray:
+        """Camera-from-part transforms (B, J, 3, 4) float64 of parameter vectors (B, P), on the host.
+
+        The readable form of forward kinematics (the device op is
+        :func:`gputrack.ops.kinematics.forward_kinematics`): each part's joint transform D
+        composed onto its parent's camera-from-part transform.
+        """
+        p = np.asarray(params, dtype=np.float64)
+        t = np.empty((p.shape[0], self.n_parts, 3, 4), dtype=np.float64)
+        for j, part in enumerate(self.parts):
+            d = joint_transform(part, p)  # eq. 6 (root), eq. 10 (shoulder), eq. 11 (elbow)
+            if part.parent < 0:
+                t[:, j] = d  # eq. 4: camera-from-root is the root's pose D
+            else:
+                t[:, j] = compose(t[:, part.parent], d)  # eq. 2-3: D D_OU, D D_OU D_UL
+        return t
+
     # -- tables for the kernels ----------------------------------------------------------------
     def packed(self) -> tuple[np.ndarray, np.ndarray]:
         """(table (J, 10) int32, offsets (J, 3) float64): the chain as the kernels read it.
@@ -222,6 +240,13 @@ class Chain:
     def _key(self) -> tuple:
         table, offsets = self.packed()
         return (self.n_params, table.tobytes(), offsets.tobytes())
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Product of rigid transforms [Ra|ta] [Rb|tb] = [Ra Rb | Ra tb + ta], batched (..., 3, 4)."""
+    r = a[..., :3] @ b[..., :3]
+    t = a[..., :3] @ b[..., 3:] + a[..., 3:]
+    return np.concatenate([r, t], axis=-1)
 
 
 def rotation(axis: str, angle) -> np.ndarray:

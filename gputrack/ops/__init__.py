@@ -47,11 +47,10 @@ from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, 
 from .particles import BestK, best_k, sample_around  # noqa: E402
 from .pf import pf_stage  # noqa: E402
 from .pose_residuals import pose_residuals  # noqa: E402
-from .template import Camera, RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals  # noqa: E402
+from .template import RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals  # noqa: E402
 
 __all__ = [
     "BestK",
-    "Camera",
     "KalmanState",
     "KalmanStatus",
     "LMStatus",

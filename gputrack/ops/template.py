@@ -7,7 +7,7 @@ Conventions (every backend, exactly):
 
 - A template point ``xyz`` (in its part's coordinates) goes to the camera through its part's
   transform, ``X = T[b, part] @ [x, y, z, 1]`` with ``transforms`` (B, J, 3, 4) camera-from-part,
-  and projects with the pinhole :class:`Camera`: ``u = fx X/Z + cx``, ``v = fy Y/Z + cy``
+  and projects with the pinhole :class:`gputrack.models.Camera`: ``u = fx X/Z + cx``, ``v = fy Y/Z + cy``
   (pixel (u, v) is the centre of column u, row v).
 - Images are sampled bilinearly from the four pixels (x0, y0), (x0+1, y0), (x0, y0+1),
   (x0+1, y0+1) with ``x0 = min(floor(u), W-2)``, ``y0 = min(floor(v), H-2)`` (so u = W-1 uses
@@ -50,11 +50,11 @@ import math
 import numpy as np
 
 from ..device import Device, DeviceArray, per_device_cache
+from ..models.camera import Camera
 from . import backend_module
 from ._args import arg, check_device, out_array
 
 __all__ = [
-    "Camera",
     "RgbdCost",
     "SparseTemplate",
     "patch_ncc",
@@ -65,31 +65,6 @@ __all__ = [
 
 #: sums at or below this count as zero (eq. 17's alpha and beta)
 TINY = 1e-12
-
-
-@dataclasses.dataclass(frozen=True)
-class Camera:
-    """Pinhole camera: u = fx X/Z + cx, v = fy Y/Z + cy (pixels; (u, v) = centre of column u, row v)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def __post_init__(self):
-        for name in ("fx", "fy", "cx", "cy"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-                raise TypeError(f"Camera.{name}: expected a real number, got {type(value).__name__}")
-            if not math.isfinite(float(value)):
-                raise ValueError(f"Camera.{name}: expected a finite number, got {value}")
-            object.__setattr__(self, name, float(value))
-        if self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"Camera: expected fx > 0 and fy > 0, got fx={self.fx}, fy={self.fy}")
-
-    def as_array(self) -> np.ndarray:
-        """(4,) float32 [fx, fy, cx, cy]."""
-        return np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float32)
 
 
 class SparseTemplate:

@@ -1,25 +1,23 @@
-"""Synthetic input with ground truth: a ray-cast RGB-D renderer and paper 000's motion sequences.
+"""Synthetic input with ground truth, one module per tracker, and the neutral problem generators.
 
-    from gputrack.sim import sequence
-    seq = sequence(0, frames=60, seed=0)     # arm swings; see SEQUENCES
-    for frame in seq:                        # frame.gray, frame.depth (mm), frame.params (truth)
-        ...
+- :mod:`.sequences` — paper 000's upper-body motion sequences, rendered with
+  :func:`gputrack.models.render.render`::
+
+      from gputrack.sim import sequence
+      seq = sequence(0, frames=60, seed=0)     # arm swings; see SEQUENCES
+      for frame in seq:                        # frame.gray, frame.depth (mm), frame.params (truth)
+          ...
+
+- :mod:`.problems` — problem and scene generators shared by the tests, benchmarks and the tuner.
 """
 
-from .render import DEFAULT_CAMERA, DEFAULT_SIZE, Rendering, Texture, Wall, render
 from .sequences import FPS, SEQUENCES, Frame, Sequence, sequence, sequence_params
 
 __all__ = [
-    "DEFAULT_CAMERA",
-    "DEFAULT_SIZE",
     "FPS",
     "Frame",
-    "Rendering",
     "SEQUENCES",
     "Sequence",
-    "Texture",
-    "Wall",
-    "render",
     "sequence",
     "sequence_params",
 ]

@@ -94,7 +94,8 @@ def pf_scene(rng, b=1500, n=128, m=128, *, parts=5, candidates=10, h=480, w=640)
     hypotheses spread around ``candidates`` candidate poses (paper 000 Table 4 sized noise: a few
     mm, a few degrees), so that neighbouring hypotheses read neighbouring pixels as in a real
     filter stage."""
-    from ..ops.template import Camera, SparseTemplate
+    from ..models.camera import Camera
+    from ..ops.template import SparseTemplate
 
     cam = Camera(525.0, 525.0, 319.5, 239.5)
     # part frames (camera-from-part) of a person 2 m away: torso, two upper arms, two forearms
@@ -136,7 +137,8 @@ def pf_scene(rng, b=1500, n=128, m=128, *, parts=5, candidates=10, h=480, w=640)
 def template_scene(rng, b=7, j=2, n=29, m=23, h=24, w=32):
     """(transforms (b, j, 3, 4), rgb template, depth template, gray, depth, camera): a tiny random
     scene 2 units in front of a 20-pixel-focal camera, with 5% of the depth pixels missing."""
-    from ..ops.template import Camera, SparseTemplate
+    from ..models.camera import Camera
+    from ..ops.template import SparseTemplate
 
     cam = Camera(20.0, 20.0, (w - 1) / 2, (h - 1) / 2)
     rgb = SparseTemplate(rng.uniform(-0.3, 0.3, (n, 3)), rng.integers(0, j, n), rng.uniform(10, 200, n))
@@ -158,7 +160,8 @@ def lm_body_scene(P, M, rng, batch=10):
     points on its parts (torso box; arms along x), a synthetic 640x480 frame and ``batch`` poses
     perturbed around the rest pose (0.05 rad, 20 mm, 0.1 rad, 10 mm)."""
     from ..models import upper_body
-    from ..ops.template import Camera, SparseTemplate
+    from ..models.camera import Camera
+    from ..ops.template import SparseTemplate
 
     chain = upper_body(shoulders=(P == 20))
     n = M // 2

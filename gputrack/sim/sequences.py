@@ -14,8 +14,9 @@ import dataclasses
 
 import numpy as np
 
+from ..models.camera import DEFAULT_CAMERA, DEFAULT_SIZE
+from ..models.render import render
 from ..models.upper_body import upper_body
-from .render import DEFAULT_CAMERA, DEFAULT_SIZE, render
 
 __all__ = ["FPS", "Frame", "SEQUENCES", "Sequence", "sequence", "sequence_params"]
 

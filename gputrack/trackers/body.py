@@ -26,13 +26,12 @@ import logging
 import numpy as np
 
 from ..device import Device, to_numpy
+from ..models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from ..models.upper_body import pf_sigma, upper_body
 from ..ops.lm import least_squares
 from ..ops.pf import pf_stage
 from ..ops.pose_residuals import pose_residuals
-from ..ops.template import Camera
 from ..scheduler import Pipeline
-from ..sim.render import DEFAULT_CAMERA, DEFAULT_SIZE
 from .body_template import sparse_template
 
 log = logging.getLogger("gputrack")

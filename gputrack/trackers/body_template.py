@@ -35,9 +35,10 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
+from ..models.camera import DEFAULT_SIZE
 from ..models.chain import Chain
+from ..models.render import Rendering, Texture, render
 from ..ops.template import SparseTemplate
-from ..sim.render import DEFAULT_SIZE, Rendering, Texture, render
 
 __all__ = ["TemplatePixels", "frame_template", "select_pixels", "sparse_template"]
 

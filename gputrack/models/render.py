@@ -8,6 +8,9 @@ a procedural solid texture of the part-local point (it moves with the part) with
 extrema, under mild Lambertian shading from a light at the camera. A textured wall parallel to
 the image plane is the background. Depth is in millimetres, quantised to ``depth_step`` (Kinect-
 like 5 mm) unless ``depth_step=0``; 0 means no measurement.
+
+Model machinery, not only simulation: the body tracker renders its sparse template with it
+(gputrack/trackers/body/), the simulator renders its frames (gputrack/sim/).
 """
 
 from __future__ import annotations
@@ -17,14 +20,10 @@ import functools
 
 import numpy as np
 
-from ..models.chain import Chain, Shape
-from ..ops.template import Camera
+from .camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
+from .chain import Chain, Shape
 
-__all__ = ["DEFAULT_CAMERA", "Rendering", "Texture", "Wall", "render"]
-
-#: Kinect-like VGA camera (paper 000's input: 640x480)
-DEFAULT_CAMERA = Camera(525.0, 525.0, 319.5, 239.5)
-DEFAULT_SIZE = (640, 480)  # (width, height)
+__all__ = ["Rendering", "Texture", "Wall", "render"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,8 +205,6 @@ def render(
     ``shading`` in [0, 1] is the Lambertian share of the brightness. ``noise`` adds Gaussian gray
     noise of that standard deviation, drawn from ``rng`` (required then).
     """
-    from ..backends.reference.kinematics import forward_kinematics
-
     if not isinstance(chain, Chain):
         raise TypeError(f"chain: expected a gputrack.models.Chain, got {type(chain).__name__}")
     camera = camera or DEFAULT_CAMERA
@@ -223,7 +220,7 @@ def render(
             raise ValueError(f"params: expected shape ({chain.n_params},), got {p.shape}")
         if not np.isfinite(p).all():
             raise ValueError("params: expected finite values, got non-finite entries")
-        transforms = forward_kinematics(None, chain, p[None])[0]
+        transforms = chain.transforms(p[None])[0]
     transforms = np.asarray(transforms, dtype=np.float64)
     if transforms.shape != (chain.n_parts, 3, 4):
         raise ValueError(f"transforms: expected shape ({chain.n_parts}, 3, 4), got {transforms.shape}")
