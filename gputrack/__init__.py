@@ -45,7 +45,7 @@ from .ops import (
     rgbd_residuals,
     sample_around,
 )
-from .models import Camera, Chain, Part, Shape, rigid, upper_body
+from .models import Camera, Chain, DepthCamera, Part, Shape, StereoCamera, rigid, upper_body
 from .trackers.body import BodyEstimate, BodyTracker, TrackerConfig
 
 __version__ = "0.1.0"
@@ -56,6 +56,7 @@ __all__ = [
     "BodyTracker",
     "Camera",
     "Chain",
+    "DepthCamera",
     "KalmanState",
     "KalmanStatus",
     "LMStatus",
@@ -64,6 +65,7 @@ __all__ = [
     "RgbdCost",
     "Shape",
     "SparseTemplate",
+    "StereoCamera",
     "TrackerConfig",
     "best_k",
     "constant_velocity",

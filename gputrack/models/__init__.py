@@ -1,6 +1,7 @@
-"""Data the math runs on: cameras, kinematic chains (paper 000's upper body, rigid single parts)."""
+"""Data the math runs on: cameras (pinhole, rectified stereo, depth) and kinematic chains (paper 000's
+upper body, rigid single parts), with the renderer that draws a chain (:mod:`.render`)."""
 
-from .camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
+from .camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera, DepthCamera, StereoCamera
 from .chain import Chain, Part, Shape, joint_transform, rotation
 from .upper_body import DIMENSIONS, PF_SIGMA, pf_sigma, upper_body
 
@@ -10,9 +11,11 @@ __all__ = [
     "DEFAULT_CAMERA",
     "DEFAULT_SIZE",
     "DIMENSIONS",
+    "DepthCamera",
     "PF_SIGMA",
     "Part",
     "Shape",
+    "StereoCamera",
     "joint_transform",
     "pf_sigma",
     "rigid",
