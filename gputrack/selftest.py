@@ -53,7 +53,8 @@ def check_kinematics(device: Device) -> None:
 
 def check_template(device: Device) -> None:
     """rgbd_cost and patch_ncc of a tiny scene."""
-    from .ops.template import patch_ncc, rgbd_cost
+    from .ops.ncc import patch_ncc
+    from .ops.template import rgbd_cost
 
     rng = np.random.default_rng(3)
     tf, rgb, dep, gray, depth, cam = problems.template_scene(rng)

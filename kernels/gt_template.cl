@@ -1,5 +1,4 @@
-// Sparse-template RGB-D cost and residuals (paper 000 eq. 17-21) and zero-mean NCC patches
-// (paper 003 eq. 13). Conventions: gputrack/ops/template.py.
+// Sparse-template RGB-D cost and residuals (paper 000 eq. 17-21). Conventions: gputrack/ops/template.py.
 //
 // gt_rgbd: one work-item evaluates LANES consecutive hypotheses (explicit vector lanes, see
 // gt_lanes.clh) over every template point, with the points grouped by part so that each part's
@@ -253,85 +252,4 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
         eps_d[b0 + l] = t2[l];
     }
 #endif
-}
-
-// ---- zero-mean NCC of a template with the bilinear image patch at a point (paper 003 eq. 13)
-#define GT_FLAT 1e-6f
-
-inline float gt_ncc_one(const float u, const float v, __global const float *t, const int s,
-                        __global const float *img, const int h, const int w)
-{
-    const float ctr = 0.5f * (float)(s - 1);
-    const float u0 = u - ctr, v0 = v - ctr, u1 = u + ctr, v1 = v + ctr;
-    // the whole patch must lie inside the image (NaN fails the tests)
-    if (!(u0 >= 0.0f && u1 <= (float)(w - 1) && v0 >= 0.0f && v1 <= (float)(h - 1)))
-        return 0.0f;
-    const float n = (float)(s * s);
-    // one pass over the patch; sums of values shifted by the first patch and template values
-    // (so the centred sums below do not cancel), accumulated per row then over the rows
-    float p0 = 0.0f;
-    const float t0 = t[0];
-    float sp = 0.0f, st = 0.0f, spp = 0.0f, stt = 0.0f, spt = 0.0f;
-    for (int i = 0; i < s; ++i) {
-        const float vv = v + ((float)i - ctr);
-        const int y0 = min((int)vv, h - 2);
-        const float bw = vv - (float)y0;
-        float rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
-        for (int jj = 0; jj < s; ++jj) {
-            const float uu = u + ((float)jj - ctr);
-            const int x0 = min((int)uu, w - 2);
-            const float a = uu - (float)x0;
-            const int k = y0 * w + x0;
-            const float top = img[k] + a * (img[k + 1] - img[k]);
-            const float bot = img[k + w] + a * (img[k + w + 1] - img[k + w]);
-            const float P0 = top + bw * (bot - top);  // patch pixel (i, jj), bilinear
-            if (i == 0 && jj == 0)
-                p0 = P0;
-            const float P = P0 - p0, T = t[i * s + jj] - t0;
-            rp += P;
-            rt += T;
-            rpp += P * P;
-            rtt += T * T;
-            rpt += P * T;
-        }
-        sp += rp;
-        st += rt;
-        spp += rpp;
-        stt += rtt;
-        spt += rpt;
-    }
-    const float vp = spp - sp * sp / n, vt = stt - st * st / n, cv = spt - sp * st / n;  // centred sums
-    const float mp = p0 + sp / n, mt = t0 + st / n;
-    // a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
-    const float fp = GT_FLAT * (fabs(mp) + 1.0f), ft = GT_FLAT * (fabs(mt) + 1.0f);
-    if (!(vp > n * fp * fp && vt > n * ft * ft))
-        return 0.0f;
-    return clamp(cv / sqrt(vp * vt), -1.0f, 1.0f);
-}
-
-// One work-item per (hypothesis, point): ncc (B, K).
-__kernel void gt_patch_ncc_points(__global const float *pts, const int nb, const int nk, __global const float *tpl,
-                                  const int s, __global const float *img, const int h, const int w,
-                                  __global float *ncc)
-{
-    const int gid = get_global_id(0);
-    if (gid >= nb * nk)
-        return;
-    const int kk = gid % nk;
-    ncc[gid] = gt_ncc_one(pts[2 * gid], pts[2 * gid + 1], tpl + (size_t)kk * (size_t)(s * s), s, img, h, w);
-}
-
-// One work-item per hypothesis: N(u) = sum over the K points (eq. 13), (B,).
-__kernel void gt_patch_ncc(__global const float *pts, const int nb, const int nk, __global const float *tpl, const int s,
-                           __global const float *img, const int h, const int w, __global float *out)
-{
-    const int b = get_global_id(0);
-    if (b >= nb)
-        return;
-    float acc = 0.0f;
-    for (int kk = 0; kk < nk; ++kk) {
-        const int p = b * nk + kk;
-        acc += gt_ncc_one(pts[2 * p], pts[2 * p + 1], tpl + (size_t)kk * (size_t)(s * s), s, img, h, w);
-    }
-    out[b] = acc;
 }

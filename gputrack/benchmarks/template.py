@@ -25,7 +25,8 @@ def add_arguments(parser):
 def cases(device, args):
     from ..device import device as get_device
     from ..ops.particles import best_k, sample_around
-    from ..ops.template import patch_ncc, rgbd_cost, rgbd_residuals
+    from ..ops.ncc import patch_ncc
+    from ..ops.template import rgbd_cost, rgbd_residuals
 
     ref = get_device("numpy")
     rng = np.random.default_rng(0)

@@ -3,7 +3,8 @@
 Each op takes a ``device`` first and accepts NumPy arrays or DeviceArrays of that device; it
 returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The modules:
 
-- :mod:`.template`   per-hypothesis x per-point block reductions (RGB-D template cost, NCC patches)
+- :mod:`.template`   per-hypothesis x per-point block reductions (RGB-D template cost and residuals)
+- :mod:`.ncc`        zero-mean NCC of templates with image patches (paper 003)
 - :mod:`.particles`  particle-filter sampling and best-k selection on the device
 - :mod:`.pf`         one particle-filter stage (sample, pose, score, best k) as one op
 - :mod:`.pose_residuals` RGB-D residuals of a chain's poses for the LM (block-sparse Jacobian)
@@ -47,7 +48,8 @@ from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, 
 from .particles import BestK, best_k, sample_around  # noqa: E402
 from .pf import pf_stage  # noqa: E402
 from .pose_residuals import pose_residuals  # noqa: E402
-from .template import RgbdCost, SparseTemplate, patch_ncc, patch_ncc_per_point, rgbd_cost, rgbd_residuals  # noqa: E402
+from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
+from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
 
 __all__ = [
     "BestK",

@@ -1,4 +1,4 @@
-"""Per-hypothesis x per-point block reductions: the RGB-D sparse-template cost and NCC patches.
+"""Per-hypothesis x per-point block reductions: the RGB-D sparse-template cost and residuals.
 
 The hot path of the particle filters (paper 000 eq. 17-21, paper 003 eq. 13): score B
 hypotheses against N template points in one kernel launch per call.
@@ -57,8 +57,6 @@ from ._args import arg, check_device, out_array
 __all__ = [
     "RgbdCost",
     "SparseTemplate",
-    "patch_ncc",
-    "patch_ncc_per_point",
     "rgbd_cost",
     "rgbd_residuals",
 ]
@@ -282,36 +280,3 @@ def rgbd_residuals(
         device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p
     )
     return res
-
-
-def _ncc_args(device, points2d, templates, image):
-    check_device(device)
-    dims = {}
-    pts = arg(device, points2d, "points2d", ("B", "K", 2), dims)
-    tpl = arg(device, templates, "templates", ("K", "S", "S"), dims)
-    img = arg(device, image, "image", ("H", "W"), dims)
-    if dims["B"] == 0 or dims["K"] == 0:
-        raise ValueError(f"points2d: expected at least one hypothesis and one point, got shape {pts.shape}")
-    if dims["S"] == 0:
-        raise ValueError(f"templates: expected patches of at least 1 x 1 pixels, got shape {tpl.shape}")
-    if dims["H"] < 2 or dims["W"] < 2:
-        raise ValueError(f"image: expected an image of at least 2 x 2 pixels, got {img.shape}")
-    return pts, tpl, img
-
-
-def patch_ncc_per_point(device, points2d, templates, image):
-    """Zero-mean NCC of each template with the image patch at each point: (B, K) float32 in [-1, 1].
-
-    points2d: (B, K, 2) float32 (u, v) patch centres; templates: (K, S, S) float32; image: (H, W)
-    float32. Patch pixel (i, j) samples the image bilinearly at (u + j - (S-1)/2, v + i - (S-1)/2).
-    A patch that does not lie wholly inside [0, W-1] x [0, H-1] scores 0, and so does a flat patch
-    or template (standard deviation <= 1e-6 (|mean| + 1): zero variance to float32 rounding).
-    """
-    pts, tpl, img = _ncc_args(device, points2d, templates, image)
-    return backend_module(device, "template").patch_ncc(device, pts, tpl, img, per_point=True)
-
-
-def patch_ncc(device, points2d, templates, image):
-    """Sum over the K points of :func:`patch_ncc_per_point`: (B,) float32 in [-K, K] (paper 003 N(u), eq. 13)."""
-    pts, tpl, img = _ncc_args(device, points2d, templates, image)
-    return backend_module(device, "template").patch_ncc(device, pts, tpl, img, per_point=False)

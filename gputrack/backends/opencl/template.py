@@ -1,4 +1,4 @@
-"""OpenCL launchers for kernels/gt_template.cl: sparse-template cost/residuals and NCC patches.
+"""OpenCL launchers for kernels/gt_template.cl: sparse-template cost and residuals.
 
 One launch per op call. On CPU devices a work-item evaluates ``LANES`` hypotheses with explicit
 vector types (the compiler maps them onto SIMD registers); on GPUs LANES = 1 (one work-item per
@@ -73,8 +73,6 @@ _I, _F = np.int32, np.float32
 ARG_TYPES = {
     "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 8 + [None] * 8
     + [_I],
-    "gt_patch_ncc_points": [None, _I, _I, None, _I, None, _I, _I, None],
-    "gt_patch_ncc": [None, _I, _I, None, _I, None, _I, _I, None],
 }
 
 
@@ -146,19 +144,3 @@ def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rg
     """``params``: {"lanes", "work_group"}; None = the tuned choice (TUNABLES["rgbd_residuals"])."""
     params = params or _tuned(device, "rgbd_residuals", tf, rgb, depth)
     _run(device, tf, rgb, depth, gray, dimg, camera, (lam, c_rgb, c_depth, depth_tol), (out,), True, params)
-
-
-def patch_ncc(device, pts, tpl, img, *, per_point):
-    nb, nk = pts.shape[:2]
-    s = tpl.shape[1]
-    h, w = img.shape
-    args = (pts.buffer.data, nb, nk, tpl.buffer.data, s, img.buffer.data, h, w)
-    if per_point:
-        out = device.empty((nb, nk), np.float32)
-        _kernel(device, "gt_patch_ncc_points", LANES=1, RESIDUALS=0)(
-            device.queue, (nb * nk,), None, *args, out.buffer.data
-        )
-    else:
-        out = device.empty((nb,), np.float32)
-        _kernel(device, "gt_patch_ncc", LANES=1, RESIDUALS=0)(device.queue, (nb,), None, *args, out.buffer.data)
-    return out

@@ -1,4 +1,4 @@
-"""NumPy reference of the sparse-template cost (paper 000 eq. 17-21) and NCC patches (paper 003 eq. 13).
+"""NumPy reference of the sparse-template cost (paper 000 eq. 17-21).
 
 Projection and sampling run in float32 (as on the devices); the sums run in float64 (the
 oracle the devices' blocked float32 sums are compared with). Conventions: gputrack/ops/template.py.
@@ -112,37 +112,3 @@ def rgbd_residuals(device, tf, rgb, depth, gray, depth_image, camera, out, *, la
         )  # eq. 20-21: r'_i
     out[:, : r.shape[1]] = r
     out[:, r.shape[1] :] = rd
-
-
-# -- NCC (paper 003 eq. 13) ---------------------------------------------------------------------
-FLAT = 1e-6
-
-
-def patch_ncc(device, pts, tpl, img, *, per_point):
-    s = tpl.shape[1]
-    h, w = img.shape
-    off = np.arange(s, dtype=np.float32) - np.float32((s - 1) / 2)
-    u = pts[:, :, 0][:, :, None, None] + off[None, None, None, :]  # (B, K, S(i), S(j)): column u + j - (S-1)/2
-    v = pts[:, :, 1][:, :, None, None] + off[None, None, :, None]  # row v + i - (S-1)/2
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    whole = inside.all(axis=(2, 3))
-    x0, y0, a, bb = _corners(u, v, inside, (h, w))
-    P = _bilinear(img, x0, y0, a, bb).astype(np.float64)
-    T = tpl.astype(np.float64)[None]
-    n = s * s
-    Pm = P.mean(axis=(2, 3), keepdims=True)
-    Tm = T.mean(axis=(2, 3), keepdims=True)
-    Pc, Tc = P - Pm, T - Tm
-    sPP = (Pc * Pc).sum(axis=(2, 3))
-    sTT = (Tc * Tc).sum(axis=(2, 3))
-    sPT = (Pc * Tc).sum(axis=(2, 3))
-    # flat: standard deviation <= 1e-6 (|mean| + 1)
-    flatP = sPP <= n * (FLAT * (np.abs(Pm[..., 0, 0]) + 1)) ** 2
-    flatT = sTT <= n * (FLAT * (np.abs(Tm[..., 0, 0]) + 1)) ** 2
-    ok = whole & ~flatP & ~flatT
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ncc = np.where(ok, sPT / np.sqrt(np.where(ok, sPP * sTT, 1.0)), 0.0)  # paper 003: N(u) per point
-    ncc = np.clip(ncc, -1.0, 1.0)
-    if per_point:
-        return ncc.astype(np.float32)
-    return ncc.sum(axis=1).astype(np.float32)  # eq. 13: N(u) = sum over the K points

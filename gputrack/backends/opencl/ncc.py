@@ -1,0 +1,47 @@
+"""OpenCL launchers for kernels/gt_ncc.cl: zero-mean NCC of templates with image patches (paper 003 eq. 13).
+
+One launch per op call: one work-item per (hypothesis, point), or per hypothesis for the sum.
+Conventions: gputrack/ops/ncc.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...device import per_device_cache
+
+_kernels = per_device_cache()
+
+# scalar argument types per kernel (None = a buffer): pyopencl then packs the arguments directly
+_I = np.int32
+ARG_TYPES = {
+    "gt_patch_ncc_points": [None, _I, _I, None, _I, None, _I, _I, None],
+    "gt_patch_ncc": [None, _I, _I, None, _I, None, _I, _I, None],
+}
+
+
+def _kernel(device, name):
+    """The kernel ``name`` of gt_ncc.cl (one cl.Kernel per device)."""
+    import pyopencl as cl
+
+    per_device = _kernels.setdefault(device, {})
+    found = per_device.get(name)
+    if found is None:
+        found = cl.Kernel(device.program("gt_ncc.cl"), name)
+        found.set_scalar_arg_dtypes(ARG_TYPES[name])
+        per_device[name] = found
+    return found
+
+
+def patch_ncc(device, pts, tpl, img, *, per_point):
+    nb, nk = pts.shape[:2]
+    s = tpl.shape[1]
+    h, w = img.shape
+    args = (pts.buffer.data, nb, nk, tpl.buffer.data, s, img.buffer.data, h, w)
+    if per_point:
+        out = device.empty((nb, nk), np.float32)
+        _kernel(device, "gt_patch_ncc_points")(device.queue, (nb * nk,), None, *args, out.buffer.data)
+    else:
+        out = device.empty((nb,), np.float32)
+        _kernel(device, "gt_patch_ncc")(device.queue, (nb,), None, *args, out.buffer.data)
+    return out

@@ -1,0 +1,114 @@
+"""Taichi kernels: zero-mean NCC of templates with bilinear image patches (paper 003 eq. 13).
+
+One launch per op call: one thread per (hypothesis, point) for the per-point scores, one per
+hypothesis for their sum N(u). Conventions: gputrack/ops/ncc.py.
+"""
+
+import numpy as np
+
+from .runtime import ti
+
+#: a patch or template whose standard deviation is at most FLAT (|mean| + 1) is flat (scores 0)
+FLAT = 1e-6
+
+
+@ti.func
+def _sample(img: ti.template(), uu, vv, h, w):
+    x0 = ti.min(ti.cast(uu, ti.i32), w - 2)
+    y0 = ti.min(ti.cast(vv, ti.i32), h - 2)
+    a = uu - ti.cast(x0, ti.f32)
+    bw = vv - ti.cast(y0, ti.f32)
+    top = img[y0, x0] + a * (img[y0, x0 + 1] - img[y0, x0])
+    bot = img[y0 + 1, x0] + a * (img[y0 + 1, x0 + 1] - img[y0 + 1, x0])
+    return top + bw * (bot - top)  # bilinear
+
+
+@ti.func
+def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
+    s = tpl.shape[1]
+    h = img.shape[0]
+    w = img.shape[1]
+    u = pts[b, k, 0]
+    v = pts[b, k, 1]
+    ctr = 0.5 * ti.cast(s - 1, ti.f32)
+    out = ti.f32(0.0)
+    # the whole patch must lie inside the image (NaN fails the tests)
+    if u - ctr >= 0.0 and u + ctr <= ti.cast(w - 1, ti.f32) and v - ctr >= 0.0 and v + ctr <= ti.cast(h - 1, ti.f32):
+        n = ti.cast(s * s, ti.f32)
+        # one pass; sums of values shifted by the first patch and template values (so the
+        # centred sums below do not cancel), accumulated per row then over the rows
+        p0 = _sample(img, u - ctr, v - ctr, h, w)
+        t0 = tpl[k, 0, 0]
+        sp = ti.f32(0.0)
+        st = ti.f32(0.0)
+        spp = ti.f32(0.0)
+        stt = ti.f32(0.0)
+        spt = ti.f32(0.0)
+        for i in range(s):
+            vv = v + (ti.cast(i, ti.f32) - ctr)
+            rp = ti.f32(0.0)
+            rt = ti.f32(0.0)
+            rpp = ti.f32(0.0)
+            rtt = ti.f32(0.0)
+            rpt = ti.f32(0.0)
+            for jj in range(s):
+                uu = u + (ti.cast(jj, ti.f32) - ctr)
+                p = _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj), bilinear
+                t = tpl[k, i, jj] - t0
+                rp += p
+                rt += t
+                rpp += p * p
+                rtt += t * t
+                rpt += p * t
+            sp += rp
+            st += rt
+            spp += rpp
+            stt += rtt
+            spt += rpt
+        vp = spp - sp * sp / n  # centred sums
+        vt = stt - st * st / n
+        cv = spt - sp * st / n
+        mp = p0 + sp / n
+        mt = t0 + st / n
+        # a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
+        fp = FLAT * (ti.abs(mp) + 1.0)
+        ft = FLAT * (ti.abs(mt) + 1.0)
+        if vp > n * fp * fp and vt > n * ft * ft:
+            out = ti.min(ti.max(cv / ti.sqrt(vp * vt), -1.0), 1.0)
+    return out
+
+
+@ti.kernel
+def _ncc_points(
+    pts: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    tpl: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    img: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+):
+    for b, k in ti.ndrange(pts.shape[0], pts.shape[1]):
+        out[b, k] = _ncc_one(pts, tpl, img, b, k)
+
+
+@ti.kernel
+def _ncc_sum(
+    pts: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    tpl: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    img: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
+    for b in range(pts.shape[0]):
+        acc = ti.f32(0.0)
+        for k in range(pts.shape[1]):
+            acc += _ncc_one(pts, tpl, img, b, k)
+        out[b] = acc  # eq. 13: N(u) = sum over the K points
+
+
+def patch_ncc(device, pts, tpl, img, *, per_point):
+    nb, nk = pts.shape[:2]
+    if per_point:
+        out = device.empty((nb, nk), np.float32)
+        _ncc_points(pts.buffer, tpl.buffer, img.buffer, out.buffer)
+    else:
+        out = device.empty((nb,), np.float32)
+        _ncc_sum(pts.buffer, tpl.buffer, img.buffer, out.buffer)
+    return out
