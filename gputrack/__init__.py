@@ -46,7 +46,7 @@ from .ops import (
     sample_around,
 )
 from .models import Camera, Chain, DepthCamera, Part, Shape, StereoCamera, rigid, upper_body
-from .trackers.body import BodyEstimate, BodyTracker, TrackerConfig
+from .trackers.body import BodyEstimate, BodyTracker, BodyTrackerConfig
 
 __version__ = "0.1.0"
 
@@ -54,6 +54,7 @@ __all__ = [
     "BestK",
     "BodyEstimate",
     "BodyTracker",
+    "BodyTrackerConfig",
     "Camera",
     "Chain",
     "DepthCamera",
@@ -66,7 +67,6 @@ __all__ = [
     "Shape",
     "SparseTemplate",
     "StereoCamera",
-    "TrackerConfig",
     "best_k",
     "constant_velocity",
     "ekf_update_stereo",

@@ -37,7 +37,7 @@ def body(
 ) -> dict:
     """Run the body-tracking demo on ``device``; print progress and tables to ``out`` (default: stdout); return the report."""
     from .sim import SEQUENCES, sequence
-    from .trackers.body import BodyTracker, TrackerConfig
+    from .trackers.body import BodyTracker, BodyTrackerConfig
 
     out = sys.stdout if out is None else out
     if frames < 2:
@@ -46,7 +46,7 @@ def body(
     start = seq.params[0].copy()
     if shoulders:
         start = shoulders_off(start, seed)
-    config = TrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed,
+    config = BodyTrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed,
                            template_every=template_every, depth_tol=depth_tol, n_depth=n_depth)  # fmt: skip
     tracker = BodyTracker(device, start, config=config)
     print(f"gputrack demo body: sequence {seq.index} ({SEQUENCES[seq.index]}), {frames} frames, device "

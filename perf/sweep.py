@@ -220,11 +220,11 @@ def tables_child(spec: str, frames: int, samples: int) -> dict:
     import gputrack
     from gputrack.benchmark import environment
     from gputrack.sim import sequence
-    from gputrack.trackers.body import BodyTracker, TrackerConfig
+    from gputrack.trackers.body import BodyTracker, BodyTrackerConfig
 
     dev = gputrack.device(spec)
     seq = sequence(0, frames=frames + 2, seed=0)  # the start pose, a warm-up frame, ``frames`` timed
-    cfg = TrackerConfig(lm_iterations=10, samples=samples)
+    cfg = BodyTrackerConfig(lm_iterations=10, samples=samples)
     tracker = BodyTracker(dev, seq.params[0], config=cfg)
     for i, f in enumerate(list(seq)[1:]):
         tracker.track(f.gray, f.depth)

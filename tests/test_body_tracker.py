@@ -11,7 +11,7 @@ from gputrack.metrics import arm_axis_errors, shoulder_camera_errors, shoulder_e
 from gputrack.models import rigid
 from gputrack.models.chain import joint_transform
 from gputrack.sim import sequence
-from gputrack.trackers.body import BodyTracker, TrackerConfig
+from gputrack.trackers.body import BodyTracker, BodyTrackerConfig
 from gputrack.trackers.body_template import frame_template
 
 ICL = Path(__file__).resolve().parents[2] / "shared" / "data" / "icl_nuim_rgbd"
@@ -19,7 +19,7 @@ FRAMES = 7
 
 
 def track(device, seq, **config):
-    tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(**config))
+    tracker = BodyTracker(device, seq.params[0], config=BodyTrackerConfig(**config))
     estimates = [tracker.track(f.gray, f.depth) for f in list(seq)[1:]]
     return tracker, estimates
 
@@ -45,7 +45,7 @@ def test_pf_then_lm_track_the_arms(device, arm_cross):
 
 def test_steady_state_frame_moves_only_frame_and_poses(device, arm_cross):
     seq, frames = arm_cross
-    cfg = TrackerConfig(lm_iterations=3, template_every=1000, samples=300)
+    cfg = BodyTrackerConfig(lm_iterations=3, template_every=1000, samples=300)
     tracker = BodyTracker(device, seq.params[0], config=cfg)
     tracker.track(frames[1].gray, frames[1].depth)  # builds and uploads the template
     tracker.track(frames[2].gray, frames[2].depth)
@@ -83,7 +83,7 @@ def test_shoulders_estimated_from_30mm_off(device, shoulder_trials):
     # reading means "within 2.5 mm" (depth_tol). N' = 256 depth points: with 128 the static
     # torso's turn about its vertical axis is pinned to about +-0.4 deg only, which moves t_S
     # along torso z by the turn times the 195 mm lever (1-2.6 mm)
-    cfg = TrackerConfig(shoulders=True, stages=1, lm_iterations=50, depth_tol=2.5, n_depth=256)
+    cfg = BodyTrackerConfig(shoulders=True, stages=1, lm_iterations=50, depth_tol=2.5, n_depth=256)
     errors, joints = [], []
     for chain, start, frames in shoulder_trials:
         tracker = BodyTracker(device, start, config=cfg)
@@ -106,7 +106,7 @@ def test_shoulders_estimated_from_30mm_off(device, shoulder_trials):
 
 def test_the_callers_frames_are_left_as_they_are(device, arm_cross):
     seq, frames = arm_cross
-    tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(lm_iterations=1, samples=100))
+    tracker = BodyTracker(device, seq.params[0], config=BodyTrackerConfig(lm_iterations=1, samples=100))
     copies = [(f.gray.copy(), f.depth.copy()) for f in frames[1:4]]
     for f in frames[1:4]:  # each frame goes into the tracker's own device arrays, not the last frame's
         tracker.track(f.gray, f.depth)
@@ -117,7 +117,7 @@ def test_the_callers_frames_are_left_as_they_are(device, arm_cross):
 
 def test_bad_frames_keep_the_last_pose(device, arm_cross):
     seq, frames = arm_cross
-    tracker = BodyTracker(device, seq.params[0], config=TrackerConfig(lm_iterations=2, samples=200))
+    tracker = BodyTracker(device, seq.params[0], config=BodyTrackerConfig(lm_iterations=2, samples=200))
     gray, depth = frames[1].gray, frames[1].depth
     with pytest.raises(ValueError, match=r"gray: expected shape \(480, 640\), got \(240, 320\)"):
         tracker.track(gray[::2, ::2], depth)
@@ -128,7 +128,7 @@ def test_bad_frames_keep_the_last_pose(device, arm_cross):
     np.testing.assert_array_equal(est.params, seq.params[0])
     # a pose that puts the person out of view: no template can be made, the pose is kept
     lost = BodyTracker(device, seq.params[0] + np.r_[0, 0, 0, 20000.0, 0, 0, np.zeros(8)],
-                       config=TrackerConfig(lm_iterations=0, samples=100))  # fmt: skip
+                       config=BodyTrackerConfig(lm_iterations=0, samples=100))  # fmt: skip
     est = lost.track(gray, depth)
     assert est.confidence == 0.0 and np.isfinite(est.params).all()
     with pytest.raises(ValueError, match="initial_params: expected shape"):
@@ -160,7 +160,7 @@ def test_icl_nuim_camera_motion(device):
     deg = np.pi / 180
     sigma = np.array([1 * deg, 1 * deg, 1 * deg, 10.0, 10.0, 10.0])
     # ICL-NUIM depth carries simulated sensor noise of 1-2 % (20-50 mm at 2.5 m): c' = 50 mm, lambda = 0.5
-    cfg = TrackerConfig(lm_iterations=10, c_depth=50.0, lam=0.5)
+    cfg = BodyTrackerConfig(lm_iterations=10, c_depth=50.0, lam=0.5)
     errors = []
     for i in range(4):
         tracker = BodyTracker(device, np.zeros(6), camera=camera, chain=chain, sigma=sigma, config=cfg)

@@ -18,7 +18,7 @@ from gputrack.ops.particles import best_k, sample_around
 from gputrack.ops.pf import pf_stage
 from gputrack.ops.template import rgbd_cost
 from gputrack.sim import sequence
-from gputrack.trackers.body import BodyTracker, TrackerConfig
+from gputrack.trackers.body import BodyTracker, BodyTrackerConfig
 
 REF = gputrack.device("numpy")
 SEED = 2**40 + 12345
@@ -28,7 +28,7 @@ SEED = 2**40 + 12345
 def scene():
     """Frame 1 of a simulated sequence, the template at frame 0, and 10 candidates near the truth."""
     seq = sequence("arm_cross", frames=2, seed=0)
-    tracker = BodyTracker(REF, seq.params[0], config=TrackerConfig(lm_iterations=0, samples=200))
+    tracker = BodyTracker(REF, seq.params[0], config=BodyTrackerConfig(lm_iterations=0, samples=200))
     tracker.track(seq[1].gray, seq[1].depth)
     rgb, dep = tracker._templates
     rng = np.random.default_rng(3)

@@ -23,7 +23,7 @@ def cases(device, args):
     import gputrack
 
     from ..sim import sequence
-    from ..trackers.body import BodyTracker, TrackerConfig
+    from ..trackers.body import BodyTracker, BodyTrackerConfig
     from ..trackers.body_template import sparse_template
 
     seq = sequence(args.sequence, frames=3, seed=0)
@@ -31,7 +31,7 @@ def cases(device, args):
     reference = gputrack.device("numpy")
     out = []
     for lm in (0, 10):
-        cfg = TrackerConfig(lm_iterations=lm, samples=args.samples, template_every=10**9)
+        cfg = BodyTrackerConfig(lm_iterations=lm, samples=args.samples, template_every=10**9)
         tracker = BodyTracker(device, seq.params[0], config=cfg)
         ref = BodyTracker(reference, seq.params[0], config=cfg)
         label = "PF 3 stages" + (f" + LM {lm}" if lm else "")

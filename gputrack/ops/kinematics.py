@@ -8,7 +8,8 @@ chain and dtype and cached (Taichi compiles the structure into its kernel and re
 offsets), so the kernels work for any chain, not only the upper body.
 
 For fused kernels (sample + kinematics + score in one launch) the per-pose code is reusable:
-OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)`` with the tables of :func:`gputrack.models.chain.chain_tables`; Taichi
+OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)`` with the
+tables of :func:`gputrack.models.chain.chain_tables`; Taichi
 ``gputrack.backends.taichi.kinematics.pose_f32`` / ``pose_f64`` (``ti.func``) with the chain's
 structure as a compile-time value (``chain.structure()``, the parts unrolled) and the offsets
 of :func:`gputrack.models.chain.chain_tables`.

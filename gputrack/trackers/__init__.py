@@ -5,14 +5,14 @@
   real RGB-D frame for rigid scenes).
 """
 
-from .body import BodyEstimate, BodyTracker, TrackerConfig
+from .body import BodyEstimate, BodyTracker, BodyTrackerConfig
 from .body_template import TemplatePixels, frame_template, select_pixels, sparse_template
 
 __all__ = [
     "BodyEstimate",
     "BodyTracker",
     "TemplatePixels",
-    "TrackerConfig",
+    "BodyTrackerConfig",
     "frame_template",
     "select_pixels",
     "sparse_template",

@@ -36,7 +36,7 @@ from .body_template import sparse_template
 
 log = logging.getLogger("gputrack")
 
-__all__ = ["BodyTracker", "BodyEstimate", "TrackerConfig"]
+__all__ = ["BodyTracker", "BodyEstimate", "BodyTrackerConfig"]
 
 DEG = np.pi / 180.0
 
@@ -46,7 +46,7 @@ LM_STEP = {"angle": 2e-3, "length": 1.0}
 
 
 @dataclasses.dataclass
-class TrackerConfig:
+class BodyTrackerConfig:
     """Settings of :class:`BodyTracker` (defaults: the paper's, Tables 3-4)."""
 
     candidates: int = 10  # C: candidate poses kept between stages and frames
@@ -96,7 +96,7 @@ class BodyEstimate:
 class BodyTracker:
     """Track the upper body of paper 000 in a sequence of gray + depth frames.
 
-    ``BodyTracker(device, initial_params, camera=..., config=TrackerConfig(...))``, then
+    ``BodyTracker(device, initial_params, camera=..., config=BodyTrackerConfig(...))``, then
     ``track(gray, depth)`` per frame -> :class:`BodyEstimate`. ``pipeline`` holds the per-stage
     timings and transfer counts (Tables 1-2 layout via ``pipeline.table()``).
 
@@ -107,11 +107,11 @@ class BodyTracker:
     """
 
     def __init__(self, device: Device, initial_params, *, camera: Camera | None = None, size=DEFAULT_SIZE,
-                 config: TrackerConfig | None = None, chain=None, sigma=None):  # fmt: skip
+                 config: BodyTrackerConfig | None = None, chain=None, sigma=None):  # fmt: skip
         if not isinstance(device, Device):
             raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
         self.device = device
-        self.config = cfg = config or TrackerConfig()
+        self.config = cfg = config or BodyTrackerConfig()
         self.chain = chain or upper_body(shoulders=cfg.shoulders)
         self.camera = camera or DEFAULT_CAMERA
         self.size = tuple(int(s) for s in size)  # (width, height)
