@@ -31,7 +31,7 @@ from ..ops.lm import least_squares
 from ..ops.pf import pf_stage
 from ..ops.pose_residuals import pose_residuals
 from ..ops.template import Camera
-from ..scheduler import Pipeline
+from ..profiler import Profiler
 from ..sim.render import DEFAULT_CAMERA, DEFAULT_SIZE
 from .body_template import sparse_template
 
@@ -123,7 +123,7 @@ class BodyTracker:
             raise ValueError("initial_params: expected finite values, got NaN or inf")
         self.params = p0
         self.candidates = np.repeat(p0[None], cfg.candidates, axis=0)
-        self.pipeline = Pipeline(device)
+        self.pipeline = Profiler(device)
         self.frame_index = 0
         self._rng = np.random.default_rng(cfg.seed)
         self._templates = None
