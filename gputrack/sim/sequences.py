@@ -191,6 +191,6 @@ def sequence(index, frames: int = 60, seed: int = 0, **kwargs) -> Sequence:
     """Sequence ``index`` (0..8 or a name from :data:`SEQUENCES`) with ``frames`` frames at 30 fps.
 
     Keyword arguments: ``shoulders`` (20-parameter ground truth), ``camera``, ``size``,
-    ``noise`` (gray noise sigma, seeded per frame) and :func:`gputrack.sim.render` options.
+    ``noise`` (gray noise sigma, seeded per frame) and :func:`gputrack.models.render.render` options.
     """
     return Sequence(index, frames, seed, **kwargs)
