@@ -35,9 +35,9 @@ def cmd_bench(args) -> int:
     import pkgutil
 
     from . import benchmarks
-    from .benchmark import bench_main
+    from .benchmarks.harness import bench_main
 
-    names = sorted(m.name for m in pkgutil.iter_modules(benchmarks.__path__))
+    names = sorted(m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name != "harness")
     ops = args.op or names
     unknown = sorted(set(ops) - set(names))
     if unknown:

@@ -147,7 +147,7 @@ MIN_GAIN = 0.03
 def _confirm(device, tunable, problem, size, ok, min_time, progress) -> dict:
     """Re-time the three fastest candidates and the default (a busy machine makes single medians
     noisy) and return the fastest; the default stays unless the winner beats it by MIN_GAIN."""
-    from .benchmark import time_call
+    from .benchmarks.harness import time_call
 
     default = tunable.default_for(device)
     ranked = sorted(ok, key=lambda t: t.timing.median_s)
@@ -191,7 +191,7 @@ def tune(
     work-group size the device does not support) is skipped; a size where every candidate fails
     stores nothing.
     """
-    from .benchmark import time_call
+    from .benchmarks.harness import time_call
 
     problem = problem or problem_for(tunable)
     cache = cache or default_cache()

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Scaling sweeps and the paper 000 Table 1/2 layout, per backend.
 
-Sweeps (each point timed with the shared harness, gputrack/benchmark.py: warm-up excluded, device
+Sweeps (each point timed with the shared harness, gputrack/benchmarks/harness.py: warm-up excluded, device
 synchronised, repeat count grown to --min-time, median and p10/p90, the NumPy reference in the same
 run; each device in its own subprocess):
 
@@ -76,7 +76,7 @@ def _scaled(tf, b, rng):
 def _k_cases(device, args, ref, rng):
     """rgbd_cost of K hypotheses around 10 candidates, N = N' = 128 (its own scope: the lambdas
     below must not see the N sweep's templates)."""
-    from gputrack.benchmark import Case
+    from gputrack.benchmarks.harness import Case
     from gputrack.ops.template import rgbd_cost
     from gputrack.sim.problems import pf_scene
 
@@ -110,7 +110,7 @@ def _k_cases(device, args, ref, rng):
 def cases(device, args):
     """The sweep points on ``device`` (called in the device's subprocess by the harness)."""
     import gputrack
-    from gputrack.benchmark import Case
+    from gputrack.benchmarks.harness import Case
     from gputrack.ops.kalman import kf_update, shared_matrix
     from gputrack.ops.template import rgbd_cost
     from gputrack.sim.problems import kalman_tracks, pf_scene
@@ -218,7 +218,7 @@ def plot(doc: dict, path: str) -> bool:
 def tables_child(spec: str, frames: int, samples: int) -> dict:
     """Run the body tracker on ``spec``; per-stage figures of the frames after the first."""
     import gputrack
-    from gputrack.benchmark import environment
+    from gputrack.benchmarks.harness import environment
     from gputrack.sim import sequence
     from gputrack.trackers.body import BodyTracker, BodyTrackerConfig
 
@@ -292,7 +292,7 @@ def tables_main(args) -> int:
               f"commit {docs[0]['commit']}")  # fmt: skip
         print(format_tables(docs))
     if args.json:
-        from gputrack.benchmark import environment
+        from gputrack.benchmarks.harness import environment
 
         text = json.dumps({"schema": "gputrack-tables/1", **environment(), "runs": docs}, indent=2)
         if args.json == "-":
@@ -322,11 +322,11 @@ def main(argv=None) -> int:
     if known.tables:
         return tables_main(known)
     if known.child:
-        from gputrack.benchmark import bench_main
+        from gputrack.benchmarks.harness import bench_main
 
         return bench_main(sys.modules[__name__], argv)
     # the parent: the harness runs each device in a subprocess (python -m perf.sweep --child SPEC)
-    from gputrack.benchmark import _strip_options, bench_main
+    from gputrack.benchmarks.harness import _strip_options, bench_main
 
     # the children start as ``python -m perf.sweep`` in the repository root (where perf/ is)
     for opt in ("--json", "--plot"):

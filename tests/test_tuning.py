@@ -278,7 +278,7 @@ def test_a_failing_candidate_is_skipped(tmp_path, numpy_device):
 @pytest.mark.parametrize("fast, expected", [(0.99, 128), (0.5, 32)])
 def test_the_default_is_kept_unless_clearly_faster(tmp_path, numpy_device, monkeypatch, fast, expected):
     """A candidate 1% faster than the default (noise) does not replace it; one 2x faster does."""
-    from gputrack import benchmark
+    from gputrack.benchmarks import harness
 
     ms = {32: fast, 64: 1.2, 128: 1.0}  # the default is wg=128
 
@@ -291,9 +291,9 @@ def test_the_default_is_kept_unless_clearly_faster(tmp_path, numpy_device, monke
 
     def fake_time_call(fn, sync=None, **kw):
         s = ms[fn.wg] * 1e-3
-        return benchmark.Timing(s, s, s, 5)
+        return harness.Timing(s, s, s, 5)
 
-    monkeypatch.setattr(benchmark, "time_call", fake_time_call)
+    monkeypatch.setattr(harness, "time_call", fake_time_call)
     chosen = tuning.tune(numpy_device, make_tunable(), problem=problem, cache=tuning.TuningCache(tmp_path / "t.json"),
                          min_time=0.002)  # fmt: skip
     assert chosen == {"B=2048,N=128": {"wg": expected}}

@@ -1,6 +1,7 @@
-"""Benchmark definitions, one module per primitive or tracker (run by ``perf/`` and ``gputrack bench``).
+"""Benchmark definitions, one module per primitive or tracker (run by ``perf/`` and ``gputrack bench``),
+and the harness that times them (:mod:`.harness`).
 
-Each module has ``NAME``, ``cases(device, args) -> list[gputrack.benchmark.Case]``, optionally
+Each definition module has ``NAME``, ``cases(device, args) -> list[gputrack.benchmarks.harness.Case]``, optionally
 ``add_arguments(parser)``, and ends with::
 
     if __name__ == "__main__":

@@ -9,7 +9,7 @@ for the right-arm group of the cascade (the torso and left arm do not move), inp
 
 import sys
 
-from ..benchmark import Case, bench_main
+from .harness import Case, bench_main
 
 NAME = "body"
 
@@ -20,15 +20,14 @@ def add_arguments(parser):
 
 
 def cases(device, args):
-    import gputrack
-
+    from ..device import device as get_device
     from ..sim import sequence
     from ..trackers.body import BodyTracker, BodyTrackerConfig
     from ..trackers.body_template import sparse_template
 
     seq = sequence(args.sequence, frames=3, seed=0)
     frame = seq[1]
-    reference = gputrack.device("numpy")
+    reference = get_device("numpy")
     out = []
     for lm in (0, 10):
         cfg = BodyTrackerConfig(lm_iterations=lm, samples=args.samples, template_every=10**9)

@@ -22,7 +22,7 @@ import sys
 
 import numpy as np
 
-from ..benchmark import Case, bench_main
+from .harness import Case, bench_main
 from ..sim.problems import kalman_tracks
 
 NAME = "kalman"
@@ -72,11 +72,10 @@ def _stereo_textbook(x, P, F, Q, z, R, f, b):
 
 
 def cases(device, args):
-    import gputrack
-
+    from ..device import device as get_device
     from ..ops.kalman import ekf_update_stereo, kf_update, mahalanobis, shared_matrix
 
-    ref = gputrack.device("numpy")
+    ref = get_device("numpy")
     rng = np.random.default_rng(0)
     sizes = [int(t) for t in (args.tracks or [1e3, 1e4, 1e5, 1e6])]
     out = []

@@ -24,7 +24,7 @@ import sys
 
 import numpy as np
 
-from ..benchmark import Case, bench_main
+from .harness import Case, bench_main
 from ..sim.problems import lm_body_scene
 
 NAME = "lm"
@@ -56,12 +56,11 @@ def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
 
 
 def cases(device, args):
-    import gputrack
-
+    from ..device import device as get_device
     from ..ops import lm
     from ..ops.lm import Layout, _constants, least_squares
 
-    ref = gputrack.device("numpy")
+    ref = get_device("numpy")
     dt = np.float64 if device.fp64 else np.float32
     out = []
     rng = np.random.default_rng(0)

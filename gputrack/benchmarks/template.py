@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from ..benchmark import Case, bench_main
+from .harness import Case, bench_main
 from ..sim.problems import pf_scene
 
 NAME = "template"

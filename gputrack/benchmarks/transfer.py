@@ -4,7 +4,7 @@ import sys
 
 import numpy as np
 
-from ..benchmark import Case, bench_main
+from .harness import Case, bench_main
 
 NAME = "transfer"
 

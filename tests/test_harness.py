@@ -5,28 +5,28 @@ import subprocess
 import sys
 from pathlib import Path
 
-from gputrack import benchmark
+from gputrack.benchmarks import harness
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_repeat_count_grows_until_stable():
     # nothing timed yet: at least min_reps
-    assert benchmark.repeat_count(0.0, 0, min_time=0.2, min_reps=5, max_reps=1000) == 5
+    assert harness.repeat_count(0.0, 0, min_time=0.2, min_reps=5, max_reps=1000) == 5
     # 5 calls of 1 ms: about 195 more to reach 0.2 s
-    assert benchmark.repeat_count(0.005, 5, min_time=0.2, min_reps=5, max_reps=1000) == 195
+    assert harness.repeat_count(0.005, 5, min_time=0.2, min_reps=5, max_reps=1000) == 195
     # enough time and reps: stop
-    assert benchmark.repeat_count(0.3, 5, min_time=0.2, min_reps=5, max_reps=1000) == 0
+    assert harness.repeat_count(0.3, 5, min_time=0.2, min_reps=5, max_reps=1000) == 0
     # capped by max_reps
-    assert benchmark.repeat_count(0.001, 999, min_time=10.0, min_reps=5, max_reps=1000) == 1
-    assert benchmark.repeat_count(0.001, 1000, min_time=10.0, min_reps=5, max_reps=1000) == 0
+    assert harness.repeat_count(0.001, 999, min_time=10.0, min_reps=5, max_reps=1000) == 1
+    assert harness.repeat_count(0.001, 1000, min_time=10.0, min_reps=5, max_reps=1000) == 0
     # slow calls: min_reps still honoured
-    assert benchmark.repeat_count(2.0, 2, min_time=0.2, min_reps=5, max_reps=1000) == 3
+    assert harness.repeat_count(2.0, 2, min_time=0.2, min_reps=5, max_reps=1000) == 3
 
 
 def test_time_call_excludes_warmup_and_syncs_each_call():
     calls, syncs = [], []
-    t = benchmark.time_call(lambda: calls.append(1), lambda: syncs.append(1), warmup=3, min_time=0.0, min_reps=7)
+    t = harness.time_call(lambda: calls.append(1), lambda: syncs.append(1), warmup=3, min_time=0.0, min_reps=7)
     assert t.reps == 7
     assert len(calls) == 10 and len(syncs) == 10
     assert 0 <= t.p10_s <= t.median_s <= t.p90_s
@@ -40,7 +40,7 @@ def test_bench_json_schema(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     doc = json.loads(out.read_text())
-    assert doc["schema"] == benchmark.SCHEMA and doc["bench"] == "transfer"
+    assert doc["schema"] == harness.SCHEMA and doc["bench"] == "transfer"
     assert {"date", "commit", "host", "versions"} <= set(doc)
     (run,) = doc["runs"]
     assert run["device"]["spec"] == "numpy" and run["device"]["name"]
@@ -53,3 +53,13 @@ def test_bench_json_schema(tmp_path):
 def test_cli_bench_rejects_unknown_op():
     r = subprocess.run([sys.executable, "-m", "gputrack.cli", "bench", "--op", "nope"], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "unknown --op nope" in r.stderr
+
+
+def test_cli_bench_lists_the_definitions_not_the_harness(capsys):
+    from gputrack import cli
+
+    assert cli.main(["bench", "--op", "harness", "--device", "numpy"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown --op harness" in err
+    names = err.split("expected one of: ")[1].strip().split(", ")
+    assert names == ["body", "kalman", "lm", "template", "transfer"]

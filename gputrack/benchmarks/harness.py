@@ -139,7 +139,7 @@ def environment(device=None) -> dict:
 
 
 def _cpu() -> str:
-    from .backends.reference.device import cpu_name
+    from ..backends.reference.device import cpu_name
 
     return cpu_name()
 
@@ -183,9 +183,9 @@ def format_table(rows: list[dict]) -> str:
 
 
 def _child(name: str, cases_fn, spec: str, args) -> dict:
-    import gputrack
+    from ..device import device
 
-    dev = gputrack.device(spec)
+    dev = device(spec)
     cases = cases_fn(dev, args)
     rows = run_cases(dev, cases, min_time=args.min_time, progress=lambda m: print(m, file=sys.stderr, flush=True))
     return {"schema": SCHEMA, "bench": name, **environment(dev), "results": rows}
@@ -197,7 +197,7 @@ def bench_main(module, argv=None) -> int:
     Each device runs in a subprocess (``python -m <module> --child SPEC``), which times the
     device and the NumPy reference in the same process, so ratios compare like with like.
     """
-    import gputrack
+    from ..device import devices
 
     name, cases_fn = module.NAME, module.cases
     add_arguments = getattr(module, "add_arguments", None)
@@ -217,7 +217,7 @@ def bench_main(module, argv=None) -> int:
         return 0
     specs = args.device or ["all"]
     if "all" in specs:
-        specs = [d.spec for d in gputrack.devices() if d.available and d.spec != "numpy" and not d.spec.startswith("opencl:")]
+        specs = [d.spec for d in devices() if d.available and d.spec != "numpy" and not d.spec.startswith("opencl:")]
     forwarded = [a for a in (argv if argv is not None else sys.argv[1:])]
     forwarded = _strip_options(forwarded, {"--device", "--json"})
     docs, failures = [], []
