@@ -57,14 +57,14 @@ def cmd_bench(args) -> int:
 def cmd_demo(args) -> int:
     import gputrack
 
-    from . import demo
+    from .demos import body
 
     dev = gputrack.device(args.device)
-    report = demo.body(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
+    report = body.run(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
                        shoulders=args.shoulders, seed=args.seed, template_every=args.template_every,
                        depth_tol=args.depth_tol, n_depth=args.depth_points)  # fmt: skip
     if args.json:
-        demo.write_json(report, args.json)
+        body.write_json(report, args.json)
     return 0
 
 

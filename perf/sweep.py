@@ -17,7 +17,7 @@ The NumPy reference is timed up to --reference-max-k (default 1000) and --refere
 iterations, N = N' = 128, 640x480) on each device (numpy included), ``--frames`` frames after a
 warm-up frame (which compiles the kernels) of simulated sequence 0, and print ms per frame
 per stage, one column per device (the papers' Tables 1-2 layout; stages named as in
-gputrack/trackers/body.py).
+gputrack/trackers/body/tracker.py).
 
 Usage::
 

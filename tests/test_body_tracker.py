@@ -6,13 +6,12 @@ import numpy as np
 import pytest
 
 import gputrack
-from gputrack.demo import shoulders_off
-from gputrack.metrics import arm_axis_errors, shoulder_camera_errors, shoulder_errors
 from gputrack.models import rigid
 from gputrack.models.chain import joint_transform
-from gputrack.sim import sequence
+from gputrack.sim import sequence, shoulders_off
 from gputrack.trackers.body import BodyTracker, BodyTrackerConfig
-from gputrack.trackers.body_template import frame_template
+from gputrack.trackers.body.metrics import arm_axis_errors, shoulder_camera_errors, shoulder_errors
+from gputrack.trackers.body.template import frame_template
 
 ICL = Path(__file__).resolve().parents[2] / "shared" / "data" / "icl_nuim_rgbd"
 FRAMES = 7

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gputrack.cli import main
-from gputrack.demo import shoulders_off
+from gputrack.sim import shoulders_off
 from gputrack.models import upper_body
 
 

@@ -15,7 +15,7 @@ from gputrack.ops.pose_residuals import _plan, pose_residuals
 from gputrack.ops.template import rgbd_residuals
 from gputrack.sim import sequence
 from gputrack.models.camera import DEFAULT_CAMERA as CAM
-from gputrack.trackers.body_template import sparse_template
+from gputrack.trackers.body.template import sparse_template
 
 REF = gputrack.device("numpy")
 SENTINEL = 1e9  # entries a central call may leave as they were

@@ -5,7 +5,7 @@ import pytest
 
 import gputrack
 from gputrack.backends.reference.kinematics import forward_kinematics
-from gputrack.metrics import ARM_PARTS, arm_axis_errors, axis_angle, mean_arm_errors, shoulder_errors
+from gputrack.trackers.body.metrics import ARM_PARTS, arm_axis_errors, axis_angle, mean_arm_errors, shoulder_errors
 from gputrack.models import upper_body
 from gputrack.ops.template import SparseTemplate
 from gputrack.models.camera import DEFAULT_CAMERA

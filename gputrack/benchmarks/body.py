@@ -23,7 +23,7 @@ def cases(device, args):
     from ..device import device as get_device
     from ..sim import sequence
     from ..trackers.body import BodyTracker, BodyTrackerConfig
-    from ..trackers.body_template import sparse_template
+    from ..trackers.body.template import sparse_template
 
     seq = sequence(args.sequence, frames=3, seed=0)
     frame = seq[1]

@@ -1,6 +1,6 @@
 """Synthetic input with ground truth, one module per tracker, and the neutral problem generators.
 
-- :mod:`.sequences` — paper 000's upper-body motion sequences, rendered with
+- :mod:`.body` — paper 000's upper-body motion sequences (the body tracker's input), rendered with
   :func:`gputrack.models.render.render`::
 
       from gputrack.sim import sequence
@@ -11,7 +11,7 @@
 - :mod:`.problems` — problem and scene generators shared by the tests, benchmarks and the tuner.
 """
 
-from .sequences import FPS, SEQUENCES, Frame, Sequence, sequence, sequence_params
+from .body import FPS, SEQUENCES, Frame, Sequence, sequence, sequence_params, shoulders_off
 
 __all__ = [
     "FPS",
@@ -20,4 +20,5 @@ __all__ = [
     "Sequence",
     "sequence",
     "sequence_params",
+    "shoulders_off",
 ]

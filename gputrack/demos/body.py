@@ -4,7 +4,8 @@ Paper 000's evaluation on its own simulator: a seeded motion sequence is rendere
 gray + depth quantised to 5 mm, 30 fps), the tracker starts from the true first pose and
 tracks the rest; the report has the mean arm-axis angle error per part (Tables 5-6), the
 shoulder-position error per axis when the shoulders are estimated (Table 7; they start 30 mm
-off, :func:`shoulders_off`), and the per-stage timing table (Tables 1-2 layout, ms per frame).
+off, :func:`gputrack.sim.body.shoulders_off`), and the per-stage timing table (Tables 1-2
+layout, ms per frame).
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ import time
 
 import numpy as np
 
-from .metrics import ARM_PARTS, arm_axis_errors, shoulder_camera_errors, shoulder_errors
+from ..sim import SEQUENCES, sequence, shoulders_off
+from ..trackers.body import BodyTracker, BodyTrackerConfig
+from ..trackers.body.metrics import ARM_PARTS, arm_axis_errors, shoulder_camera_errors, shoulder_errors
 
 log = logging.getLogger("gputrack")
 
 
-def body(
+def run(
     device,
     *,
     frames: int = 30,
@@ -36,9 +39,6 @@ def body(
     out=None,
 ) -> dict:
     """Run the body-tracking demo on ``device``; print progress and tables to ``out`` (default: stdout); return the report."""
-    from .sim import SEQUENCES, sequence
-    from .trackers.body import BodyTracker, BodyTrackerConfig
-
     out = sys.stdout if out is None else out
     if frames < 2:
         raise ValueError(f"frames: expected at least 2 (the first is the start pose), got {frames}")
@@ -112,19 +112,6 @@ def body(
     report["stages"] = tracker.scheduler.report()
     report["median_frame_ms"] = float(np.median(ms[1:] if len(ms) > 1 else ms))
     return report
-
-
-def shoulders_off(params, seed: int, mm: float = 30.0) -> np.ndarray:
-    """A copy of the 20-parameter pose ``params`` with t_RS and t_LS each moved ``mm`` in a seeded direction.
-
-    Table 7's start: the shoulder positions are not known, the tracker starts them off by 30 mm.
-    """
-    out = np.array(params, dtype=np.float64)
-    if out.shape != (20,):
-        raise ValueError(f"params: expected a 20-parameter pose (shoulders estimated), got shape {out.shape}")
-    direction = np.random.default_rng([7, seed]).normal(size=(2, 3))
-    out[14:] += (mm * direction / np.linalg.norm(direction, axis=1, keepdims=True)).ravel()
-    return out
 
 
 def write_json(report: dict, path: str) -> None:

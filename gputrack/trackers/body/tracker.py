@@ -25,14 +25,14 @@ import logging
 
 import numpy as np
 
-from ..device import Device
-from ..models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
-from ..models.upper_body import pf_sigma, upper_body
-from ..ops.lm import least_squares
-from ..ops.pf import pf_stage
-from ..ops.pose_residuals import pose_residuals
-from ..scheduler import Scheduler, SkipFrame, Stage
-from .body_template import sparse_template
+from ...device import Device
+from ...models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
+from ...models.upper_body import pf_sigma, upper_body
+from ...ops.lm import least_squares
+from ...ops.pf import pf_stage
+from ...ops.pose_residuals import pose_residuals
+from ...scheduler import Scheduler, SkipFrame, Stage
+from .template import sparse_template
 
 log = logging.getLogger("gputrack")
 

@@ -35,10 +35,10 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
-from ..models.camera import DEFAULT_SIZE
-from ..models.chain import Chain
-from ..models.render import Rendering, Texture, render
-from ..ops.template import SparseTemplate
+from ...models.camera import DEFAULT_SIZE
+from ...models.chain import Chain
+from ...models.render import Rendering, Texture, render
+from ...ops.template import SparseTemplate
 
 __all__ = ["TemplatePixels", "frame_template", "select_pixels", "sparse_template"]
 

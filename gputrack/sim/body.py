@@ -5,7 +5,8 @@ truth (float64), and frames rendered on demand (``seq[i]`` or iteration) with ``
 ``.depth`` (mm, quantised to 5 mm), ``.part`` and ``.params``. Each sequence is a smooth motion
 of the 5-part model (:func:`gputrack.models.upper_body`); ``seed`` varies the person's position
 and the motion's amplitudes and phases a little, reproducibly (``default_rng([seed, index])``).
-The person stays 1.5-2.5 m from the camera and fully in view.
+The person stays 1.5-2.5 m from the camera and fully in view. :func:`shoulders_off` gives
+Table 7's start pose (the shoulders 30 mm off their true positions).
 """
 
 from __future__ import annotations
@@ -194,3 +195,16 @@ def sequence(index, frames: int = 60, seed: int = 0, **kwargs) -> Sequence:
     ``noise`` (gray noise sigma, seeded per frame) and :func:`gputrack.models.render.render` options.
     """
     return Sequence(index, frames, seed, **kwargs)
+
+
+def shoulders_off(params, seed: int, mm: float = 30.0) -> np.ndarray:
+    """A copy of the 20-parameter pose ``params`` with t_RS and t_LS each moved ``mm`` in a seeded direction.
+
+    Table 7's start: the shoulder positions are not known, the tracker starts them off by 30 mm.
+    """
+    out = np.array(params, dtype=np.float64)
+    if out.shape != (20,):
+        raise ValueError(f"params: expected a 20-parameter pose (shoulders estimated), got shape {out.shape}")
+    direction = np.random.default_rng([7, seed]).normal(size=(2, 3))
+    out[14:] += (mm * direction / np.linalg.norm(direction, axis=1, keepdims=True)).ravel()
+    return out
