@@ -20,9 +20,9 @@ def format_devices(infos) -> str:
 
 
 def cmd_devices(args) -> int:
-    import gputrack
+    from .device import devices
 
-    infos = gputrack.devices()
+    infos = devices()
     if args.json:
         print(json.dumps([d.as_dict() for d in infos], indent=2))
     else:
@@ -55,11 +55,10 @@ def cmd_bench(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    import gputrack
-
     from .demos import body
+    from .device import device
 
-    dev = gputrack.device(args.device)
+    dev = device(args.device)
     report = body.run(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
                        shoulders=args.shoulders, seed=args.seed, template_every=args.template_every,
                        depth_tol=args.depth_tol, n_depth=args.depth_points)  # fmt: skip
@@ -91,14 +90,13 @@ def format_trials(tunable, size, trials, best, default) -> str:
 
 
 def cmd_tune(args) -> int:
-    import gputrack
-
     from . import tuning
+    from .device import device
 
     if args.min_time <= 0:
         print(f"gputrack tune: --min-time: expected seconds > 0, got {args.min_time}", file=sys.stderr)
         return 2
-    dev = gputrack.device(args.device)
+    dev = device(args.device)
     found = tuning.tunables(dev.backend)
     names = sorted({t.op for t in found})
     if args.op:

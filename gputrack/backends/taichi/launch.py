@@ -15,8 +15,8 @@ arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (p
 as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch
 context is not reused between launches (Taichi's LLVM launcher does not support that). A restarted
 Taichi (another program object) empties the cache; one started while arrays of the stopped program
-are still referenced turns direct launches off for the process (kernels launched directly then
-were seen to overwrite the new program's arrays; ``kernel(...)`` did not). If Taichi's internal
+are still referenced turns direct launches off for the process (``runtime.direct_off``: kernels
+launched directly then were seen to overwrite the new program's arrays; ``kernel(...)`` did not). If Taichi's internal
 interface is not what this module expects (another Taichi version), every call goes through
 ``kernel(...)`` from then on.
 """
@@ -27,6 +27,7 @@ import logging
 
 import numpy as np
 
+from . import runtime
 from .runtime import ti
 
 log = logging.getLogger("gputrack")
@@ -70,7 +71,7 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
     """
     global _enabled
     key = None
-    if _enabled:
+    if _enabled and runtime.direct_off is None:
         key = (kernel, templates, scalarize, *(_kind(a) for a in arrays), *(type(c) for c in scalars))
         hit = _cache.get(key)
         if hit is not None:

@@ -30,6 +30,8 @@ ARCHS = {"cpu": ti.cpu, "vulkan": ti.vulkan, "cuda": ti.cuda}
 
 _lock = threading.Lock()
 _current: str | None = None
+#: why every kernel goes through Taichi's public launch path in this process (read by launch.py), or None
+direct_off: str | None = None
 _generation = 0  # Taichi programs started and stopped by gputrack so far
 _alive: dict = {}  # generation -> arrays of that program (from ndarray()) not yet freed
 
@@ -70,7 +72,7 @@ def start(arch: str) -> None:
 
     Raises RuntimeError (with Taichi's words) if the arch cannot start, e.g. no CUDA driver.
     """
-    global _current
+    global _current, direct_off
     with _lock:
         if _current == arch:
             return
@@ -80,13 +82,12 @@ def start(arch: str) -> None:
                 f"(re-initialising would free every Taichi array); close the taichi:{_current} device first "
                 "or use another process"
             )
-        if _stale_arrays():
+        if _stale_arrays() and direct_off is None:
             # arrays of a stopped program are still referenced: kernels launched directly (launch.py)
             # in the next program were seen to corrupt its arrays then (Taichi 1.7), Taichi's own
             # launches were not
-            from .launch import disable_direct
-
-            disable_direct("arrays of a stopped Taichi program are still alive")
+            direct_off = "arrays of a stopped Taichi program are still alive"
+            log.debug("taichi: direct kernel launches off (%s)", direct_off)
         threads = {"cpu_max_num_threads": cpu_threads()} if arch == "cpu" else {}
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
