@@ -148,7 +148,8 @@ def package_copy(tmp_path_factory):
 
 
 def _with_import(root: Path, module: str, statement: str):
-    """Append a function that makes ``statement`` to ``module`` (path relative to gputrack/); return the original text."""
+    """Append a function that makes ``statement`` to ``module`` (a path under gputrack/); return
+    (the path, its original text)."""
     path = root / "gputrack" / module
     original = path.read_text()
     path.write_text(original + "\n\n" + textwrap.dedent(f"""

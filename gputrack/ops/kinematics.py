@@ -25,6 +25,7 @@ from ._args import FLOAT, arg, check_device, out_array
 
 __all__ = ["forward_kinematics"]
 
+
 def forward_kinematics(device, chain: Chain, params, *, out=None):
     """Camera-from-part transforms for a batch of poses.
 

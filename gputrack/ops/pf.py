@@ -23,8 +23,8 @@ import numpy as np
 
 from ..device import DeviceArray
 from ..models.chain import Chain
-from . import backend_module
 from ..uploads import constant
+from . import backend_module
 from ._args import arg, check_device
 from .kinematics import forward_kinematics
 from .particles import BestK, _seed, best_k, best_k_out, sample_around

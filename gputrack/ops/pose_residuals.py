@@ -24,10 +24,9 @@ import weakref
 import numpy as np
 
 from ..device import per_device_cache
-from ..models.chain import Chain
-from . import backend_module
-from ..models.chain import chain_tables
+from ..models.chain import Chain, chain_tables
 from ..uploads import constant
+from . import backend_module
 from ._args import arg, check_device, out_array
 from .kinematics import forward_kinematics
 from .template import rgbd_residuals, scene_args
