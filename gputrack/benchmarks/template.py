@@ -69,7 +69,7 @@ def pf_scene(rng, b=1500, n=128, m=128, *, parts=5, candidates=10, h=480, w=640)
 
 
 def cases(device, args):
-    from ..device import device as get_device
+    from ..registry import device as get_device
     from ..ops.particles import best_k, sample_around
     from ..ops.template import patch_ncc, rgbd_cost, rgbd_residuals
 

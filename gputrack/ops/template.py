@@ -429,7 +429,7 @@ def _selftest_scene(rng, b=7, j=2, n=29, m=23, h=24, w=32):
 
 def _selftest(device) -> None:
     """Tiny rgbd_cost and patch_ncc on ``device`` against the NumPy reference (AssertionError with the max error)."""
-    from ..device import device as get_device
+    from ..registry import device as get_device
     from ..device import to_numpy
 
     rng = np.random.default_rng(3)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
+from ...device import per_device
+
 _HERE = Path(__file__).resolve()
 
 
@@ -25,14 +27,14 @@ def kernel_files() -> list[Path]:
     return sorted(kernel_dir().glob("*.cl"))
 
 
-def build(context, source_name: str, defines: dict | None = None):
-    """Build ``kernels/<source_name>`` for ``context`` (cached); ``defines`` become -D options."""
-    items = tuple(sorted((defines or {}).items()))
-    return _build(context, source_name, items)
+def build(device, source_name: str, defines: dict | None = None):
+    """Build ``kernels/<source_name>`` for ``device`` (memoised per device and defines);
+    ``defines`` become -D options."""
+    return _build(device, source_name, tuple(sorted((defines or {}).items())))
 
 
-@functools.lru_cache(maxsize=None)
-def _build(context, source_name: str, defines: tuple):
+@per_device
+def _build(device, source_name: str, defines: tuple):
     import pyopencl as cl
 
     path = kernel_dir() / source_name
@@ -40,6 +42,6 @@ def _build(context, source_name: str, defines: tuple):
         raise FileNotFoundError(f"expected an OpenCL source {path}, found none")
     options = [f"-I{kernel_dir()}"] + [f"-D{k}={v}" for k, v in defines]
     try:
-        return cl.Program(context, path.read_text()).build(options=options)
+        return cl.Program(device.context, path.read_text()).build(options=options)
     except cl.RuntimeError as e:
-        raise RuntimeError(f"building {source_name} failed on {context.devices[0].name}: {e}") from None
+        raise RuntimeError(f"building {source_name} failed on {device.cl_device.name}: {e}") from None
