@@ -23,7 +23,18 @@ from collections.abc import Callable
 
 from .device import Device, DeviceInfo, DeviceUnavailable
 
-__all__ = ["BACKENDS", "Backend", "backend_for", "device", "devices", "implementation", "register", "spec_forms", "specs", "unregister"]
+__all__ = [
+    "BACKENDS",
+    "Backend",
+    "backend_for",
+    "device",
+    "devices",
+    "implementation",
+    "register",
+    "spec_forms",
+    "specs",
+    "unregister",
+]
 
 log = logging.getLogger("gputrack")
 
@@ -222,7 +233,9 @@ def _default_spec() -> str:
             if rank is not None:
                 ranked.append((rank, info.spec))
     if not ranked:
-        raise DeviceUnavailable(f"a default device is not available: no GPU backend and no taichi:cpu. Available: {_available()}")
+        raise DeviceUnavailable(
+            f"a default device is not available: no GPU backend and no taichi:cpu. Available: {_available()}"
+        )
     return min(ranked)[1]
 
 

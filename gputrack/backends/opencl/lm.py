@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...abi import LMLayout, LMStatus
 from ...device import per_device
 
-RUNNING = 0
+RUNNING = int(LMStatus.RUNNING)
 _CTYPE = {"float32": "float", "float64": "double"}
 
 
@@ -198,7 +199,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
 
 def solver_active(state) -> int:
     I = state.I.numpy()
-    return int(np.count_nonzero(state.lay.iblock(I)[:, 0] == RUNNING))
+    return int(np.count_nonzero(state.lay.iblock(I)[:, LMLayout.I_STATUS] == RUNNING))
 
 
 def solver_result(state):
