@@ -46,9 +46,10 @@ class Backend:
     name: ``Device.backend`` of its devices. forms: the spec forms, for messages.
     specs: the fixed specs it lists (each parametrises the tests' ``device`` fixture).
     parse(spec): for a stripped spec, the argument its ``open`` takes, or None if the spec is not
-    this backend's. probe: ``"module:function"`` returning a DeviceInfo or a list of them (one
-    per spec, available or not, with the reason). open: ``"module:function"`` taking parse's argument and
-    returning a Device, or raising DeviceUnavailable (see :func:`gputrack.device.unavailable`).
+    this backend's. probe: ``"module:function"`` (or a callable) returning a DeviceInfo or a list of
+    them (one per spec, available or not, with the reason). open: ``"module:function"`` (or a
+    callable) taking parse's argument and returning a Device, or raising DeviceUnavailable (see
+    :func:`gputrack.device.unavailable`).
     package: the package holding one module per primitive (``<package>.kalman`` etc.).
     preference(info): rank of an available device for the default device (lower first), or None
     for a device that is chosen only by name.
@@ -58,13 +59,15 @@ class Backend:
     forms: tuple[str, ...]
     specs: tuple[str, ...]
     parse: Callable[[str], str | None]
-    probe: str
-    open: str
+    probe: str | Callable
+    open: str | Callable
     package: str
     preference: Callable[[DeviceInfo], int | None]
 
 
-def _resolve(target: str) -> Callable:
+def _resolve(target) -> Callable:
+    if callable(target):
+        return target
     module, func = target.split(":")
     return getattr(importlib.import_module(module), func)
 
@@ -140,7 +143,7 @@ BACKENDS: list[Backend] = [
 _lock = threading.RLock()
 _modules: dict = {}  # (backend name, primitive) -> implementing module
 _devices: dict[str, Device] = {}  # spec as asked, and the device's own spec -> open device
-_probe_cache: list[DeviceInfo] | None = None
+_probed: dict[str, list[DeviceInfo]] = {}  # backend name -> what its probe found
 
 
 def spec_forms() -> str:
@@ -171,42 +174,39 @@ def implementation(name: str, primitive: str):
 
 def register(backend: Backend) -> None:
     """Add a backend row (replacing one of the same name); the next ``devices()`` probes it."""
-    global _probe_cache
     if not isinstance(backend, Backend):
         raise TypeError(f"expected a gputrack.registry.Backend, got {type(backend).__name__}")
     with _lock:
         BACKENDS[:] = [b for b in BACKENDS if b.name != backend.name] + [backend]
         _modules.clear()
-        _probe_cache = None
+        _probed.pop(backend.name, None)
 
 
 def unregister(name: str) -> None:
     """Remove the row of backend ``name`` and forget its open devices (they are not closed)."""
-    global _probe_cache
     with _lock:
         BACKENDS[:] = [b for b in BACKENDS if b.name != name]
         _modules.clear()
         for key in [k for k, d in _devices.items() if d.backend == name]:
             del _devices[key]
-        _probe_cache = None
+        _probed.pop(name, None)
 
 
 def devices(refresh: bool = False) -> list[DeviceInfo]:
     """Probe every backend; one DeviceInfo per spec, available or not (with the reason).
 
     The Taichi archs are probed in a subprocess (Taichi allows one arch per process), the
-    OpenCL devices by building and running a trivial kernel. The result is cached per process;
-    ``refresh=True`` probes again.
+    OpenCL devices by building and running a trivial kernel. The result is cached per process and
+    backend; ``refresh=True`` probes again.
     """
-    global _probe_cache
     with _lock:
-        if _probe_cache is None or refresh:
-            found = []
-            for b in BACKENDS:
+        found = []
+        for b in BACKENDS:
+            if refresh or b.name not in _probed:
                 infos = _resolve(b.probe)()
-                found += [infos] if isinstance(infos, DeviceInfo) else list(infos)
-            _probe_cache = found
-        return list(_probe_cache)
+                _probed[b.name] = [infos] if isinstance(infos, DeviceInfo) else list(infos)
+            found += _probed[b.name]
+        return found
 
 
 def _parse(spec) -> tuple[Backend, str, str]:

@@ -333,7 +333,7 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     __global REAL *h = Sb + GT_LM_S_H * P;
     __global REAL *Wb = W + (long)b * WB_(P, M);
     __global REAL *A = Wb + GT_LM_W_A * P * P, *L = Wb + GT_LM_W_L * P * P, *Jt = Wb + GT_LM_W_NSQ * P * P;
-    __global REAL *sc = Sb + GT_LM_S_NVEC * P;  // F, C, nu, pred, Ft, snorm (GT_LM_SC_*)
+    __global REAL *sc = Sb + GT_LM_S_NVEC * P;  // F, C, nu, pred, Ft, snorm: the SC slots
     __global const REAL *G = S + (long)B * SB;
     __global const REAL *mask = G + GT_LM_NGLOB;
     __global int *ib = I + IB_(b, P);  // status, iterations, accepted, reason, fin[P]
