@@ -37,6 +37,9 @@ def summary(doc: dict) -> str:
                     f"  allocations {b['pool']['allocated']} -> {a['pool']['allocated']}"
                     f"  reused {b['pool']['reused']} -> {a['pool']['reused']}"
                 )
+                trace = mem.get("rss_trace") or [a["rss_bytes"]]
+                lo, hi = min(trace) / mib, max(trace) / mib
+                memory.append(f"{'':<16}RSS at {len(trace)} points in between: {lo:.1f}-{hi:.1f} MiB")
     if memory:
         lines += ["", "memory check (kf_predict+kf_update and rgbd_cost, fresh outputs each call):", *memory]
     return "\n".join(lines)

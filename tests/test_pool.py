@@ -203,3 +203,30 @@ def test_closing_a_device_releases_its_pool():
     for spec in ("taichi:cpu", "opencl"):
         if infos[spec].available:
             assert f"{spec} HELD 4 AFTER 0" in r.stdout, r.stdout + r.stderr
+
+
+def test_the_alloc_benchmark_cases_run_and_report_flat_memory(device):
+    """perf/bench_alloc.py's cases at small sizes: each runs, and the memory check's pool figures
+    show no allocation during its calls (no timing asserted)."""
+    import argparse
+
+    from gputrack.benchmarks import alloc
+
+    parser = argparse.ArgumentParser()
+    alloc.add_arguments(parser)
+    args = parser.parse_args(["--tracks", "13", "--batch", "7", "--memory-calls", "20", "--memory-tracks", "5"])
+    cases = alloc.cases(device, args)
+    assert [c.name for c in cases] == [
+        "kf_predict+kf_update T=1e+01 fresh", "kf_predict+kf_update T=1e+01 out=", "rgbd_cost B=7 fresh",
+        "rgbd_cost B=7 out=", "memory: 20 calls fresh",
+    ]  # fmt: skip
+    for c in cases:
+        c.run()
+        if c.reference is not None:
+            c.reference()
+    device.synchronize()
+    mem = cases[-1].params["memory"]
+    assert mem["calls"] == 20 and mem["before"]["rss_bytes"] > 0
+    assert mem["after"]["pool"]["allocated"] == mem["before"]["pool"]["allocated"]
+    if device.backend != "numpy":
+        assert mem["after"]["pool"]["reused"] >= mem["before"]["pool"]["reused"] + 20 * 8

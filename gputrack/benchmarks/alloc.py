@@ -89,21 +89,28 @@ def _rgbd(device, B, rng):
     return fresh, into
 
 
-def memory_check(device, calls: int, fns) -> dict:
-    """RSS and pool figures before and after ``calls`` rounds of ``fns`` (fresh outputs each)."""
+def memory_check(device, calls: int, fns, checkpoints: int = 10) -> dict:
+    """RSS and pool figures before and after ``calls`` rounds of ``fns`` (fresh outputs each), and
+    the RSS at ``checkpoints`` evenly spaced points in between (``rss_trace``: a leak shows as a
+    trend; on a machine that reclaims idle pages, RSS also moves by some MiB without one)."""
     for fn in fns:  # warm up: compile, and fill the pool with what one round frees
         fn()
         fn()
     device.synchronize()
     gc.collect()
     before = {"rss_bytes": rss_bytes(), "pool": device.pool_stats()._asdict()}
-    for _ in range(calls):
+    trace = []
+    step = max(1, calls // max(1, checkpoints))
+    for i in range(calls):
         for fn in fns:
             fn()
+        if (i + 1) % step == 0:
+            device.synchronize()
+            trace.append(rss_bytes())
     device.synchronize()
     gc.collect()
     after = {"rss_bytes": rss_bytes(), "pool": device.pool_stats()._asdict()}
-    return {"calls": calls, "before": before, "after": after}
+    return {"calls": calls, "before": before, "after": after, "rss_trace": trace}
 
 
 def cases(device, args):
