@@ -15,10 +15,9 @@ from .device import (
     DeviceInfo,
     DeviceUnavailable,
     TaichiArchConflict,
-    device,
-    devices,
     to_numpy,
 )
+from .registry import device, devices
 from . import tuning
 from .profiler import FrameStats, Profiler, StageStats
 from .scheduler import Scheduler, SkipFrame, Stage

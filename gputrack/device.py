@@ -1,35 +1,43 @@
-"""Backend registry, device discovery and selection, and device-resident arrays.
+"""The base every backend builds on: devices, device-resident arrays, errors, transfer counts,
+the per-device memo and the per-device buffer pool.
 
-A *spec* names a backend: ``numpy``, ``taichi:cpu``, ``taichi:vulkan``, ``taichi:cuda``,
-``opencl`` (the best OpenCL device) or ``opencl:<substring>`` (the first OpenCL device whose
-platform name, device name or listed spec contains the substring, case-insensitively).
+This module imports no backend. The backends (``gputrack/backends/*``) subclass :class:`Device`;
+the table of backends, ``device(spec)`` and ``devices()`` live in :mod:`gputrack.registry`
+(``gputrack.device(...)`` and ``gputrack.devices()`` are re-exported from there).
 
-``devices()`` probes every backend and returns one :class:`DeviceInfo` per spec;
-``device(spec)`` returns the :class:`Device` for a spec (one object per spec and process).
 Arrays on a device are :class:`DeviceArray` objects; the ``numpy`` device's arrays are plain
 NumPy arrays. Every upload and download goes through the device, which counts the bytes
 moved (``Device.transfers``) so that :class:`gputrack.Pipeline` can report them per stage.
+
+Everything a backend builds per device (compiled programs, kernel objects, scratch buffers,
+uploaded constants) is memoised with :func:`per_device`: entries live on the device and go when
+it is closed. Fresh output arrays come from the device's caching allocator (:class:`BufferPool`:
+freed buffers of the same size and dtype are reused; see ``Device.pool_stats``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
-import os
 import threading
 import weakref
 
 import numpy as np
 
+from .pool import PoolStats, check_limit, limit_from_env
+
 __all__ = [
+    "BufferPool",
     "Device",
     "DeviceArray",
     "DeviceInfo",
     "DeviceUnavailable",
+    "PoolStats",
     "TaichiArchConflict",
     "Transfers",
-    "device",
-    "devices",
+    "per_device",
+    "per_device_cache",
     "to_numpy",
 ]
 
@@ -38,12 +46,16 @@ log = logging.getLogger("gputrack")
 #: dtypes a DeviceArray may hold (bool arrays are converted by the ops that take masks).
 SUPPORTED_DTYPES = tuple(np.dtype(t) for t in ("float32", "float64", "int32", "int64", "uint32", "uint8"))
 
-TAICHI_ARCHS = ("cpu", "vulkan", "cuda")
-SPEC_FORMS = "numpy, taichi:cpu, taichi:vulkan, taichi:cuda, opencl, opencl:<platform or device substring>"
 
 
 class DeviceUnavailable(RuntimeError):
     """The requested backend exists but cannot run on this machine."""
+
+
+def unavailable(spec: str, reason: str) -> DeviceUnavailable:
+    """The error a backend raises when ``spec`` cannot run here: "<spec> is not available: <reason>"
+    (:func:`gputrack.registry.device` adds the specs that are available)."""
+    return DeviceUnavailable(f"{spec} is not available: {reason}")
 
 
 class TaichiArchConflict(RuntimeError):
@@ -85,7 +97,9 @@ class Transfers:
 class Device:
     """One backend on one piece of hardware. Obtain it with :func:`gputrack.device`.
 
-    Subclasses implement ``_upload``, ``_upload_into``, ``_download``, ``_empty`` and ``synchronize``.
+    Subclasses implement ``_upload``, ``_upload_into``, ``_download``, ``_empty`` and ``synchronize``,
+    and, where they keep freed buffers for reuse (the caching allocator, :mod:`gputrack.pool`),
+    ``pool_stats``, ``_set_pool_limit`` and ``empty_pool``.
     """
 
     backend: str = ""
@@ -94,6 +108,8 @@ class Device:
         self.info = info
         self.transfers = Transfers()
         self.closed = False
+        self._memo: dict = {}  # per_device: {function: {args: value}}
+        self._pool_limit = limit_from_env()
 
     # -- description -------------------------------------------------------------------------
     @property
@@ -176,14 +192,40 @@ class Device:
         """Wait until all work queued on the device has finished."""
 
     def close(self) -> None:
-        """Release the device; its arrays become unusable. Needed only to switch Taichi archs."""
+        """Release the device; its arrays become unusable. Needed only to switch Taichi archs.
+
+        Everything memoised for it (:func:`per_device`, :func:`per_device_cache`) and every
+        buffer its caching allocator holds is released while the device still runs."""
         self.closed = True
-        _forget(self)
+        self._memo.clear()
         with _lock:
             caches = [r() for r in _CACHES]
         for cache in caches:
             if cache is not None:
                 cache.pop(self, None)
+        self.empty_pool()
+
+    # -- caching allocator (gputrack/pool.py) --------------------------------------------------
+    @property
+    def pool_limit(self) -> int:
+        """Bytes of freed buffers this device keeps for reuse (``$GPUTRACK_POOL_BYTES``, default
+        256 MiB; 0: none). Setting it releases held buffers past the new limit."""
+        return self._pool_limit
+
+    @pool_limit.setter
+    def pool_limit(self, value: int) -> None:
+        self._pool_limit = check_limit(value)
+        self._set_pool_limit(self._pool_limit)
+
+    def pool_stats(self) -> PoolStats:
+        """What the caching allocator holds (freed buffers kept for reuse) and how often it reused one."""
+        return PoolStats(0, 0, self._pool_limit, 0, 0)
+
+    def empty_pool(self) -> None:
+        """Release every freed buffer the caching allocator holds (arrays in use are not affected)."""
+
+    def _set_pool_limit(self, limit: int) -> None:
+        pass
 
     # -- backend hooks -----------------------------------------------------------------------
     def _wrap(self, buffer, shape, dtype):
@@ -267,120 +309,62 @@ def to_numpy(array) -> np.ndarray:
     return np.asarray(array)
 
 
-# -- registry ----------------------------------------------------------------------------------
+
+# -- things built per device -------------------------------------------------------------------
+# One idiom for everything built per device (compiled programs, kernel objects, scratch buffers,
+# uploaded constants): a function of the device memoised on the device itself, as PyOpenCL's
+# ``first_arg_dependent_memoize`` memoises on the context. The values live in ``device._memo``,
+# which ``Device.close()`` empties while the device still runs, so nothing built for a device
+# outlives it (a Taichi array kept past a restart of Taichi corrupts the next program's memory).
+
+
+def per_device(func=None, *, maxsize: int | None = None):
+    """Memoise ``func(device, *args)`` per device (``args`` hashable, positional only).
+
+    ``maxsize``: at most this many values per device, the oldest dropped first (for values keyed
+    by sizes that change, e.g. scratch buffers of an op called with several batch sizes). The
+    values of a device go when it is closed. ``func.cache_clear(device)`` drops them earlier.
+
+    Use it for anything a backend or an op builds once per device::
+
+        @per_device
+        def _kernel(device, name, defines):
+            return cl.Kernel(device.program("gt_template.cl", dict(defines)), name)
+    """
+
+    def decorate(f):
+        @functools.wraps(f)
+        def wrapper(device, *args):
+            try:
+                return device._memo[wrapper][args]
+            except KeyError:
+                pass
+            value = f(device, *args)
+            memo = device._memo.setdefault(wrapper, {})
+            if maxsize is not None and len(memo) >= maxsize:
+                del memo[next(iter(memo))]
+            memo[args] = value
+            return value
+
+        wrapper.cache_clear = lambda device: device._memo.pop(wrapper, None)
+        return wrapper
+
+    return decorate(func) if func is not None else decorate
+
+
 _lock = threading.RLock()
-_devices: dict[str, Device] = {}
 _CACHES: list = []  # weak references to the per-device caches (per_device_cache)
 
 
 def per_device_cache() -> weakref.WeakKeyDictionary:
-    """A new {device: value} cache whose entry for a device goes when that device is closed.
+    """A new {device: value} table whose entry for a device goes when that device is closed.
 
-    Caches of device arrays (scratch buffers, uploaded constants, template copies) are made with
-    this: ``Device.close()`` drops their arrays while the device still runs, so that none outlives
-    it (a Taichi array kept past a restart of Taichi corrupts the next program's memory).
+    For state an object keeps per device (a template's copies on each device, a solver's buffer
+    pool); a value computed from the device and hashable arguments is memoised with
+    :func:`per_device` instead.
     """
     cache = weakref.WeakKeyDictionary()
     with _lock:
         _CACHES[:] = [r for r in _CACHES if r() is not None]
         _CACHES.append(weakref.ref(cache))
     return cache
-
-
-_probe_cache: list[DeviceInfo] | None = None
-
-
-def _forget(dev: Device) -> None:
-    with _lock:
-        for key, value in list(_devices.items()):
-            if value is dev:
-                del _devices[key]
-
-
-def devices(refresh: bool = False) -> list[DeviceInfo]:
-    """Probe every backend; one DeviceInfo per spec, available or not (with the reason).
-
-    The Taichi archs are probed in a subprocess (Taichi allows one arch per process), the
-    OpenCL devices by building and running a trivial kernel. The result is cached per process;
-    ``refresh=True`` probes again.
-    """
-    global _probe_cache
-    with _lock:
-        if _probe_cache is None or refresh:
-            from .backends.opencl.device import probe_opencl
-            from .backends.reference.device import probe_numpy
-            from .backends.taichi.device import probe_taichi
-
-            _probe_cache = [probe_numpy(), *probe_taichi(), *probe_opencl()]
-        return list(_probe_cache)
-
-
-def _parse(spec: str) -> tuple[str, str]:
-    if not isinstance(spec, str):
-        raise TypeError(f"expected a device spec string ({SPEC_FORMS}), got {type(spec).__name__}")
-    s = spec.strip().lower()
-    if s == "numpy":
-        return "numpy", ""
-    if s.startswith("taichi:") and s[7:] in TAICHI_ARCHS:
-        return "taichi", s[7:]
-    if s == "opencl":
-        return "opencl", ""
-    if s.startswith("opencl:") and len(s) > 7:
-        return "opencl", spec.strip()[7:]
-    raise ValueError(f"unknown device spec {spec!r}; expected one of: {SPEC_FORMS}")
-
-
-def _preference(info: DeviceInfo) -> int:
-    """Rank for the default device: a real GPU first, taichi:cpu last."""
-    if info.spec == "taichi:cuda":
-        return 0
-    if info.spec == "taichi:vulkan" and info.kind == "gpu":
-        return 1
-    if info.backend == "opencl" and info.kind == "gpu":
-        return 2
-    if info.spec == "taichi:cpu":
-        return 3
-    return 9  # CPU OpenCL, software Vulkan and numpy are chosen only by name
-
-
-def _unavailable(spec: str, reason: str) -> DeviceUnavailable:
-    avail = [d.spec for d in devices() if d.available]
-    return DeviceUnavailable(f"{spec} is not available: {reason}. Available: {', '.join(avail) or 'none'}")
-
-
-def device(spec: str | None = None) -> Device:
-    """Return the Device for ``spec``.
-
-    With no spec, ``GPUTRACK_DEVICE`` is used if set, else the best available device
-    (taichi:cuda, taichi:vulkan on a real GPU, an OpenCL GPU, then taichi:cpu).
-    Raises ValueError for an unknown spec and DeviceUnavailable for one that cannot run here.
-    """
-    if spec is None:
-        spec = os.environ.get("GPUTRACK_DEVICE") or None
-    with _lock:
-        if spec is None:
-            ranked = sorted((d for d in devices() if d.available), key=_preference)
-            ranked = [d for d in ranked if _preference(d) < 9]
-            if not ranked:
-                raise _unavailable("a default device", "no GPU backend and no taichi:cpu")
-            spec = ranked[0].spec
-        backend, arg = _parse(spec)
-        key = spec.strip().lower() if backend != "opencl" else spec.strip()
-        if key in _devices:
-            return _devices[key]
-        if backend == "numpy":
-            from .backends.reference.device import NumpyDevice
-
-            dev = NumpyDevice()
-        elif backend == "taichi":
-            from .backends.taichi.device import open_taichi
-
-            dev = open_taichi(arg)
-        else:
-            from .backends.opencl.device import open_opencl
-
-            dev = open_opencl(arg)
-        _devices[key] = dev
-        _devices.setdefault(dev.spec, dev)
-        log.info("using %s (%s)", dev.spec, dev.name)
-        return dev

@@ -28,14 +28,14 @@ def build_kernels(info) -> list[dict]:
     import pyopencl as cl
 
     from gputrack.backends.opencl.device import _enumerate
-    from gputrack.backends.opencl.program import kernel_dir, kernel_files
+    from gputrack.backends.opencl.program import build_options, kernel_files
 
     cl_dev = next(d for s, _, d in _enumerate() if s == info.spec)
     rows = []
     for path in kernel_files():
         try:
             ctx = cl.Context([cl_dev])
-            cl.Program(ctx, path.read_text()).build(options=[f"-I{kernel_dir()}"])
+            cl.Program(ctx, path.read_text()).build(options=build_options())
             rows.append({"device": info.spec, "kernel": path.name, "ok": True, "detail": ""})
         except Exception as e:  # noqa: BLE001 - reported
             rows.append({"device": info.spec, "kernel": path.name, "ok": False, "detail": " ".join(str(e).split())[:300]})

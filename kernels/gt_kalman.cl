@@ -15,8 +15,9 @@
 //                 F, Q, H and R (all ones when unknown); known zeros are skipped at compile time
 //   PD_TOL        PD_EPS_FACTOR * machine epsilon of REAL
 //   VW            tracks per work-item (1, 2, 4, 8 or 16; default 1)
+//   GT_ABI, GT_KF_*  the status codes (gputrack/abi.py; every build gets them, a build without them fails)
 
-// Defaults: a plain build (no -D options, as host/doctor.py does) gives the float32 linear update
+// Defaults: a build with only the ABI defines (as host/doctor.py does) gives the float32 linear update
 // of the papers' constant-velocity model (N = 6, M = 3, shared dense matrices).
 #ifndef REAL
 #define REAL float
@@ -63,10 +64,10 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #endif
 
-#define GT_UPDATED 0
-#define GT_SKIPPED 1
-#define GT_NOT_PD 2
-#define GT_BAD_DEPTH 3
+// status codes: GT_KF_UPDATED, GT_KF_SKIPPED, GT_KF_NOT_PD, GT_KF_BAD_DEPTH (gputrack/abi.py KalmanStatus)
+#ifndef GT_ABI
+#error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
+#endif
 
 
 __constant uint gt_fpat[N] = {FPAT};
@@ -397,9 +398,9 @@ __kernel void gt_kf(
         }
     {
         // status: SKIPPED where not valid, else BAD_DEPTH, else NOT_PD, else UPDATED
-        const INTV code = CAT(convert_, INTV)(select(select(select((MASKV)GT_NOT_PD, (MASKV)GT_UPDATED, pd_ok),
-                                                           (MASKV)GT_BAD_DEPTH, (MASKV)(depth_ok == 0)),
-                                                    (MASKV)GT_SKIPPED, (MASKV)(valid == 0)));
+        const INTV code = CAT(convert_, INTV)(select(select(select((MASKV)GT_KF_NOT_PD, (MASKV)GT_KF_UPDATED, pd_ok),
+                                                           (MASKV)GT_KF_BAD_DEPTH, (MASKV)(depth_ok == 0)),
+                                                    (MASKV)GT_KF_SKIPPED, (MASKV)(valid == 0)));
 #if VW == 1
         st[t0] = (uchar)code;
 #else

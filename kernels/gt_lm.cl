@@ -1,8 +1,8 @@
 // Batched Levenberg-Marquardt (paper 000 eq. 22-24; paper 003 eq. 8-9): the same steps as
 // gputrack/backends/reference/lm.py. Built with -DREAL=float|double (solver precision),
 // -DRTYPE (residual input type), -DJTYPE (Jacobian input type, with USE_JAC), -DXTYPE
-// (points output type) and -DX0TYPE (start points input type); each defaults to float (a plain
-// build, as host/doctor.py makes, gives the all-float32 variant).
+// (points output type) and -DX0TYPE (start points input type); each defaults to float (a build
+// with only the ABI defines, as host/doctor.py makes, gives the all-float32 variant).
 // One work-group per problem; its work-items share the O(P^2 M) normal equations by rows.
 #ifndef REAL
 #define REAL float
@@ -24,17 +24,11 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #endif
 
-#define RUNNING 0
-#define CONVERGED 1
-#define MAX_ITER 2
-#define FAILED 3
-#define R_FTOL 1
-#define R_XTOL 2
-#define R_GTOL 3
-#define R_MAXIT 4
-#define R_NONFINITE 5
-#define R_NOTPD 6
-#define R_DAMPING 7
+// Status and reason codes (GT_LM_RUNNING ..., GT_LM_R_FTOL ...) and the slots of the packed state
+// (GT_LM_S_X ...) come from gputrack/abi.py as build defines (gputrack/backends/opencl/program.py).
+#ifndef GT_ABI
+#error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
+#endif
 #define MAX_CHOL_TRIES 40
 
 // In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
@@ -174,8 +168,9 @@ static REAL gt_dot(__global const REAL *a, __global const REAL *b, const int M)
     return (s0 + s1) + (s2 + s3);
 }
 
-#define SB_(P) (7 * (P) + 8)
-#define WB_(P, M) (2 * (P) * (P) + (P) * (M))
+#define SB_(P) (GT_LM_S_NVEC * (P) + GT_LM_NSCAL)
+#define WB_(P, M) (GT_LM_W_NSQ * (P) * (P) + (P) * (M))
+#define IB_(b, P) (GT_LM_NIGLOB + (b) * (GT_LM_I_NFIX + (P)))
 
 // Rows of Xb (SX rows of P): the point src and, when SX > 1, its perturbed copies (eq. 24);
 // their denominators (over the stored, possibly rounded, points) into den.
@@ -209,11 +204,11 @@ static void gt_lm_export(__global const REAL *x, __global const REAL *sc, __glob
 {
     for (int n = 0; n < P; ++n)
         Ob[n] = x[n];
-    Ob[P] = sc[0];
-    Ob[P + 1] = sc[1];
-    Ob[P + 2] = (REAL)ib[0];
-    Ob[P + 3] = (REAL)ib[1];
-    Ob[P + 4] = (REAL)ib[3];
+    Ob[P + GT_LM_O_F] = sc[GT_LM_SC_F];
+    Ob[P + GT_LM_O_C] = sc[GT_LM_SC_C];
+    Ob[P + GT_LM_O_STATUS] = (REAL)ib[GT_LM_I_STATUS];
+    Ob[P + GT_LM_O_ITER] = (REAL)ib[GT_LM_I_ITER];
+    Ob[P + GT_LM_O_REASON] = (REAL)ib[GT_LM_I_REASON];
 }
 
 // S and I from the start points X0 (B, P) and the constants K (gputrack.ops.lm.Layout); the
@@ -225,37 +220,38 @@ __kernel void gt_lm_init(__global const X0TYPE *X0, __global const REAL *K, __gl
     const int b = get_global_id(0);
     if (b >= B)
         return;
-    const int SB = SB_(P), KB = 2 * P + 1;
+    const int SB = SB_(P), KB = GT_LM_K_NVEC * P + 1;
     __global const REAL *kh = K + (long)B * KB, *kg = kh + P;
     if (b == 0) {
-        for (int t = 0; t < 8; ++t)
+        for (int t = 0; t < GT_LM_NIGLOB; ++t)
             I[t] = 0;
-        I[1] = B;
-        I[2] = nk > 8;
-        I[3] = P;
+        I[GT_LM_IG_B] = B;
+        I[GT_LM_IG_HAS_MASK] = nk > GT_LM_NGLOB;
+        I[GT_LM_IG_P] = P;
         for (int t = 0; t < nk; ++t)
             S[(long)B * SB + t] = kg[t];
     }
-    __global int *ib = I + 8 + b * (4 + P);
-    for (int t = 0; t < 4 + P; ++t)
+    __global int *ib = I + IB_(b, P);
+    for (int t = 0; t < GT_LM_I_NFIX + P; ++t)
         ib[t] = 0;
     __global REAL *Sb = S + (long)b * SB;
     __global const REAL *Kb = K + (long)b * KB;
     for (int n = 0; n < P; ++n) {
         const REAL x = (REAL)X0[(long)b * P + n];
-        Sb[n] = x;
-        Sb[P + n] = x;
-        Sb[2 * P + n] = 0;
-        Sb[4 * P + n] = Kb[n];
-        Sb[5 * P + n] = Kb[P + n];
-        Sb[6 * P + n] = kh[n];
+        Sb[GT_LM_S_X * P + n] = x;
+        Sb[GT_LM_S_XT * P + n] = x;
+        Sb[GT_LM_S_G * P + n] = 0;
+        Sb[GT_LM_S_LO * P + n] = Kb[GT_LM_K_LO * P + n];
+        Sb[GT_LM_S_HI * P + n] = Kb[GT_LM_K_HI * P + n];
+        Sb[GT_LM_S_H * P + n] = kh[n];
     }
-    __global REAL *sc = Sb + 7 * P;
-    for (int k = 0; k < 8; ++k)
+    __global REAL *sc = Sb + GT_LM_S_NVEC * P;
+    for (int k = 0; k < GT_LM_NSCAL; ++k)
         sc[k] = 0;
-    sc[1] = Kb[2 * P];  // C
-    sc[2] = 2;  // nu
-    gt_lm_points(Sb, Sb + 3 * P, Sb + 4 * P, Sb + 5 * P, Sb + 6 * P, X + (long)b * SX * P, SX, P, kg[3]);
+    sc[GT_LM_SC_C] = Kb[GT_LM_K_NVEC * P];  // C
+    sc[GT_LM_SC_NU] = 2;  // nu
+    gt_lm_points(Sb + GT_LM_S_X * P, Sb + GT_LM_S_DEN * P, Sb + GT_LM_S_LO * P, Sb + GT_LM_S_HI * P,
+                 Sb + GT_LM_S_H * P, X + (long)b * SX * P, SX, P, kg[GT_LM_G_REL]);
 }
 
 // 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group)
@@ -265,7 +261,7 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
                        __global XTYPE *Xb, const int SX, const int P, const REAL gtol, const REAL rel,
                        const REAL ctiny, const REAL cmax)
 {
-    if (ib[0] == RUNNING && ib[2]) {
+    if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING && ib[GT_LM_I_ACCEPTED]) {
         REAL gmax = 0;
         for (int i = 0; i < P; ++i) {
             const REAL gi = g[i];
@@ -273,16 +269,16 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
                 gmax = fmax(gmax, fabs(gi));
         }
         if (gmax <= gtol) {
-            ib[0] = CONVERGED;
-            ib[3] = R_GTOL;
+            ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;
+            ib[GT_LM_I_REASON] = GT_LM_R_GTOL;
         }
     }
-    if (ib[0] == RUNNING) {
+    if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING) {
         REAL dmax = 0;
         for (int i = 0; i < P; ++i)
             dmax = fmax(dmax, A[i * P + i]);
         dmax += 1;
-        REAL C = sc[1];
+        REAL C = sc[GT_LM_SC_C];
         int ok = 0;
         for (int tries = 0; tries <= MAX_CHOL_TRIES; ++tries) {
             // parameters held at a bound by the gradient stay there (identity rows, rhs 0)
@@ -299,10 +295,10 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
                 break;
             C = fmax(10 * C, ctiny * dmax);  // not PD: raise C tenfold and try again
         }
-        sc[1] = C;
+        sc[GT_LM_SC_C] = C;
         if (!ok) {
-            ib[0] = FAILED;
-            ib[3] = R_NOTPD;
+            ib[GT_LM_I_STATUS] = GT_LM_FAILED;
+            ib[GT_LM_I_REASON] = GT_LM_R_NOT_PD;
         } else {
             for (int i = 0; i < P; ++i)
                 xt[i] = fmin(fmax(x[i] - xt[i], lo[i]), hi[i]);  // projected step (paper 003 eq. 8-9)
@@ -314,10 +310,10 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
                     As += A[i * P + j] * (x[j] - xt[j]);
                 pr += 2 * si * g[i] - si * As;
             }
-            sc[3] = pr;
+            sc[GT_LM_SC_PRED] = pr;
         }
     }
-    gt_lm_points(ib[0] == RUNNING ? xt : x, den, lo, hi, h, Xb, SX, P, rel);
+    gt_lm_points(ib[GT_LM_I_STATUS] == GT_LM_RUNNING ? xt : x, den, lo, hi, h, Xb, SX, P, rel);
 }
 
 // One LM iteration for every running problem. R: (B*SR, M) residuals of the last call
@@ -329,20 +325,22 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                            const int SR, const int SX, const int first, const int final_)
 {
     const int b = get_group_id(0), lid = get_local_id(0), ls = get_local_size(0);
-    const int B = I[1], has_mask = I[2], P = I[3];
+    const int B = I[GT_LM_IG_B], has_mask = I[GT_LM_IG_HAS_MASK], P = I[GT_LM_IG_P];
     const int SB = SB_(P);
     __global REAL *Sb = S + (long)b * SB;
-    __global REAL *x = Sb, *xt = Sb + P, *g = Sb + 2 * P, *den = Sb + 3 * P;
-    __global REAL *lo = Sb + 4 * P, *hi = Sb + 5 * P, *h = Sb + 6 * P;
+    __global REAL *x = Sb + GT_LM_S_X * P, *xt = Sb + GT_LM_S_XT * P, *g = Sb + GT_LM_S_G * P;
+    __global REAL *den = Sb + GT_LM_S_DEN * P, *lo = Sb + GT_LM_S_LO * P, *hi = Sb + GT_LM_S_HI * P;
+    __global REAL *h = Sb + GT_LM_S_H * P;
     __global REAL *Wb = W + (long)b * WB_(P, M);
-    __global REAL *A = Wb, *L = Wb + P * P, *Jt = Wb + 2 * P * P;
-    __global REAL *sc = Sb + 7 * P;  // F, C, nu, pred, Ft, snorm
+    __global REAL *A = Wb + GT_LM_W_A * P * P, *L = Wb + GT_LM_W_L * P * P, *Jt = Wb + GT_LM_W_NSQ * P * P;
+    __global REAL *sc = Sb + GT_LM_S_NVEC * P;  // F, C, nu, pred, Ft, snorm: the SC slots
     __global const REAL *G = S + (long)B * SB;
-    __global const REAL *mask = G + 8;
-    __global int *ib = I + 8 + b * (4 + P);  // status, iterations, accepted, reason, fin[P]
+    __global const REAL *mask = G + GT_LM_NGLOB;
+    __global int *ib = I + IB_(b, P);  // status, iterations, accepted, reason, fin[P]
     __global const RTYPE *rt = R + (long)b * SR * M;
-    const REAL ftol = G[0], xtol = G[1], gtol = G[2], rel = G[3], ctiny = G[4], cmax = G[5];
-    const int running = ib[0] == RUNNING;
+    const REAL ftol = G[GT_LM_G_FTOL], xtol = G[GT_LM_G_XTOL], gtol = G[GT_LM_G_GTOL], rel = G[GT_LM_G_REL];
+    const REAL ctiny = G[GT_LM_G_CTINY], cmax = G[GT_LM_G_CMAX];
+    const int running = ib[GT_LM_I_STATUS] == GT_LM_RUNNING;
 
     // 1. Jacobian at the evaluated trial: eq. 24 over the stored points, or given
     if (running && !final_) {
@@ -370,14 +368,14 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                 row[m] = v;
             }
 #endif
-            ib[4 + n] = okn;
+            ib[GT_LM_I_FIN + n] = okn;
         }
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
 
     // 2. acceptance of the trial, damping update (Nielsen), ftol / xtol
     if (lid == 0) {
-        ib[2] = 0;
+        ib[GT_LM_I_ACCEPTED] = 0;
         if (running) {
             int ok = 1;
             REAL Ft = 0;
@@ -389,28 +387,28 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
             ok &= isfinite(Ft) ? 1 : 0;
             if (!final_)
                 for (int n = 0; n < P; ++n)
-                    ok &= ib[4 + n];
-            sc[4] = Ft;
+                    ok &= ib[GT_LM_I_FIN + n];
+            sc[GT_LM_SC_FT] = Ft;
             int acc = 0;
             if (!ok) {
-                ib[0] = FAILED;
-                ib[3] = R_NONFINITE;
+                ib[GT_LM_I_STATUS] = GT_LM_FAILED;
+                ib[GT_LM_I_REASON] = GT_LM_R_NONFINITE;
                 if (first)
-                    sc[0] = INFINITY;
+                    sc[GT_LM_SC_F] = INFINITY;
             } else if (first) {
                 acc = 1;
             } else {
-                ib[1] += 1;
-                const REAL F = sc[0], pred = sc[3], dF = F - Ft;
+                ib[GT_LM_I_ITER] += 1;
+                const REAL F = sc[GT_LM_SC_F], pred = sc[GT_LM_SC_PRED], dF = F - Ft;
                 if (dF > 0) {
                     acc = 1;
                     const REAL rho = pred > 0 ? dF / pred : (REAL)1;
                     const REAL q = 2 * rho - 1;
-                    sc[1] *= fmax((REAL)1 / 3, 1 - q * q * q);
-                    sc[2] = 2;
+                    sc[GT_LM_SC_C] *= fmax((REAL)1 / 3, 1 - q * q * q);
+                    sc[GT_LM_SC_NU] = 2;
                 } else {
-                    sc[1] *= sc[2];
-                    sc[2] *= 2;
+                    sc[GT_LM_SC_C] *= sc[GT_LM_SC_NU];
+                    sc[GT_LM_SC_NU] *= 2;
                     REAL dmax = 0, sn = 0, xn = 0;
                     for (int i = 0; i < P; ++i) {
                         dmax = fmax(dmax, A[i * P + i]);
@@ -418,16 +416,16 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                         xn += x[i] * x[i];
                     }
                     if (sqrt(sn) <= xtol * (xtol + sqrt(xn))) {
-                        ib[0] = CONVERGED;  // no step this small improves the cost
-                        ib[3] = R_XTOL;
-                    } else if (sc[1] > cmax * (1 + dmax)) {
-                        ib[0] = FAILED;
-                        ib[3] = R_DAMPING;
+                        ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;  // no step this small improves the cost
+                        ib[GT_LM_I_REASON] = GT_LM_R_XTOL;
+                    } else if (sc[GT_LM_SC_C] > cmax * (1 + dmax)) {
+                        ib[GT_LM_I_STATUS] = GT_LM_FAILED;
+                        ib[GT_LM_I_REASON] = GT_LM_R_DAMPING;
                     }
                 }
             }
             if (acc) {
-                ib[2] = 1;
+                ib[GT_LM_I_ACCEPTED] = 1;
                 REAL sn = 0, xn = 0;
                 for (int i = 0; i < P; ++i) {
                     const REAL d = xt[i] - x[i];
@@ -436,22 +434,22 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                     xn += x[i] * x[i];
                 }
                 sn = sqrt(sn);
-                sc[5] = sn;
-                const REAL F_old = sc[0];
-                sc[0] = Ft;
+                sc[GT_LM_SC_SNORM] = sn;
+                const REAL F_old = sc[GT_LM_SC_F];
+                sc[GT_LM_SC_F] = Ft;
                 if (!first) {
                     if (F_old - Ft <= ftol * F_old) {
-                        ib[0] = CONVERGED;
-                        ib[3] = R_FTOL;
+                        ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;
+                        ib[GT_LM_I_REASON] = GT_LM_R_FTOL;
                     } else if (sn <= xtol * (xtol + sqrt(xn))) {
-                        ib[0] = CONVERGED;
-                        ib[3] = R_XTOL;
+                        ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;
+                        ib[GT_LM_I_REASON] = GT_LM_R_XTOL;
                     }
                 }
             }
-            if (final_ && ib[0] == RUNNING) {
-                ib[0] = MAX_ITER;
-                ib[3] = R_MAXIT;
+            if (final_ && ib[GT_LM_I_STATUS] == GT_LM_RUNNING) {
+                ib[GT_LM_I_STATUS] = GT_LM_MAX_ITER;
+                ib[GT_LM_I_REASON] = GT_LM_R_MAX_ITER;
             }
         }
     }
@@ -459,7 +457,7 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
 
     // 3. J^T J and J^T r at the accepted point (eq. 22): the P (P + 1) / 2 entries of the lower
     // triangle and the P entries of J^T r are shared out over the work-items
-    if (!final_ && ib[2]) {
+    if (!final_ && ib[GT_LM_I_ACCEPTED]) {
         const int npairs = P * (P + 1) / 2;
         for (int q = lid; q < npairs + P; q += ls) {
             if (q < npairs) {

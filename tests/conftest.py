@@ -11,8 +11,10 @@ import os
 import pytest
 
 import gputrack
+from gputrack.registry import specs as registry_specs
 
-ALL_SPECS = ["numpy", "opencl", "taichi:cpu", "taichi:vulkan", "taichi:cuda"]
+#: every backend's fixed specs, from the backend table (gputrack/registry.py)
+ALL_SPECS = registry_specs()
 
 
 def _required() -> set[str]:

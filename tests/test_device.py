@@ -114,3 +114,28 @@ def test_device_array_is_not_implicitly_converted(device):
 
 def test_same_device_object_per_spec(device):
     assert gputrack.device(device.spec) is device
+
+
+def test_per_device_memoises_per_device_and_forgets_a_closed_device():
+    from gputrack.backends.reference.device import NumpyDevice
+    from gputrack.device import per_device
+
+    built = []
+
+    @per_device(maxsize=2)
+    def thing(device, key):
+        built.append((device, key))
+        return object()
+
+    a, b = NumpyDevice(), NumpyDevice()
+    first = thing(a, 1)
+    assert thing(a, 1) is first and thing(b, 1) is not first  # one value per device and arguments
+    thing(a, 2)
+    thing(a, 3)  # maxsize 2: the oldest (key 1) goes
+    assert len(built) == 4
+    assert thing(a, 1) is not first and len(built) == 5
+    kept = thing(b, 1)
+    a.close()
+    assert a._memo == {} and thing(b, 1) is kept
+    thing.cache_clear(b)
+    assert thing(b, 1) is not kept

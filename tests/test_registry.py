@@ -8,6 +8,7 @@ import textwrap
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import gputrack
@@ -156,8 +157,8 @@ def test_ci_runs_the_readme_test_command():
 
 
 def test_closing_a_taichi_device_drops_the_arrays_cached_for_it():
-    """Scratch buffers, constants, template copies and solver pools of a closed Taichi device go
-    with it (a Taichi array kept past a restart corrupts the next program's memory), and a
+    """Scratch buffers, constants, template copies, solver pools, memoised values and the caching
+    allocator's buffers of a closed Taichi device go with it (a Taichi array kept past a restart corrupts the next program's memory), and a
     restarted device computes what the first one did."""
     r = run_py("""
         import numpy as np, gputrack
@@ -173,14 +174,15 @@ def test_closing_a_taichi_device_drops_the_arrays_cached_for_it():
 
         dev = gputrack.device("taichi:cpu")
         first = work(dev)
+        memo, pooled = len(dev._memo), dev.pool_stats().held_buffers
         dev.close()
         held = sum(1 for ref in _CACHES if ref() is not None and dev in ref())
-        print("HELD", held)
+        print("HELD", held, "MEMO", len(dev._memo), "POOL", dev.pool_stats().held_buffers, "BEFORE", memo > 0)
         again = gputrack.device("taichi:cpu")
         same = all(np.array_equal(work(again), first) for _ in range(3))
         print("SAME", same)
     """)
-    assert "HELD 0" in r.stdout, r.stdout + r.stderr
+    assert "HELD 0 MEMO 0 POOL 0 BEFORE True" in r.stdout, r.stdout + r.stderr
     assert "SAME True" in r.stdout, r.stdout + r.stderr
 
 
@@ -223,3 +225,126 @@ def test_taichi_cpu_thread_count_follows_the_environment():
     r = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=300,
                        cwd=ROOT, env=env)  # fmt: skip
     assert f"DEFAULT {2 * len(os.sched_getaffinity(0))}" in r.stdout, (r.stdout, r.stderr)
+
+
+# -- a backend is one row of the registry table ----------------------------------------------------
+def types_module(name):
+    import types
+
+    mod = types.ModuleType(name)
+    mod.__path__ = []  # a package
+    return mod
+
+
+class _HostDevice(gputrack.Device):
+    """A device whose arrays are DeviceArrays over host NumPy buffers (for the fake backend)."""
+
+    backend = "fakehost"
+
+    def _upload(self, host):
+        return host.copy()
+
+    def _upload_into(self, buffer, host):
+        np.copyto(buffer, host)
+
+    def _download(self, buffer, shape, dtype):
+        return buffer.copy()
+
+    def _empty(self, shape, dtype):
+        return np.empty(shape, dtype)
+
+
+def _fake_kalman_module():
+    """``<package>.kalman`` of the fake backend: the NumPy reference over the DeviceArrays' buffers."""
+    import types
+
+    from gputrack.backends.reference import kalman as ref
+
+    mod = types.ModuleType("fakehost_impl.kalman")
+
+    def kf_predict(device, x, P, F, Q, out=None, pats=None):
+        mod.calls += 1
+        xo, Po = ref.kf_predict(None, x.buffer, P.buffer, F.buffer, Q.buffer)
+        return tuple(device.asarray(a) for a in (xo, Po))
+
+    mod.kf_predict = kf_predict
+    mod.calls = 0
+    return mod
+
+
+@pytest.fixture
+def fake_backend(monkeypatch):
+    from gputrack import registry
+    from gputrack.device import DeviceInfo
+
+    info = DeviceInfo("fakehost", "fakehost", True, name="host memory", fp64=True, kind="cpu")
+    package = types_module("fakehost_impl")
+    kalman = _fake_kalman_module()
+    monkeypatch.setitem(sys.modules, "fakehost_impl", package)
+    monkeypatch.setitem(sys.modules, "fakehost_impl.kalman", kalman)
+    row = registry.Backend(
+        name="fakehost",
+        forms=("fakehost",),
+        specs=("fakehost",),
+        parse=lambda s: "" if s.lower() == "fakehost" else None,
+        probe=lambda: info,
+        open=lambda arg: _HostDevice(info),
+        package="fakehost_impl",
+        preference=lambda i: None,
+    )
+    registry.register(row)
+    yield kalman
+    registry.unregister("fakehost")
+
+
+def test_a_backend_registered_as_one_row_is_listed_opened_and_runs_the_ops(fake_backend):
+    from gputrack import registry
+    from gputrack.ops import backend_module
+    from gputrack.ops.kalman import constant_velocity, kf_predict
+
+    infos = {d.spec: d for d in gputrack.devices()}
+    assert infos["fakehost"].available and infos["fakehost"].backend == "fakehost"
+    assert SPECS <= set(infos)  # the other rows are still there
+    assert "fakehost" in registry.specs() and "fakehost" in registry.spec_forms()
+    dev = gputrack.device("fakehost")
+    assert isinstance(dev, _HostDevice) and gputrack.device(" FakeHost ") is dev
+    assert backend_module(dev, "kalman") is fake_backend
+
+    rng = np.random.default_rng(0)
+    F, Q = constant_velocity(3, 0.5, 0.2)
+    x = rng.normal(size=(13, 6)).astype(np.float32)
+    P = np.tile(np.eye(6, dtype=np.float32), (13, 1, 1))
+    xp, Pp = kf_predict(dev, x, P, F, Q)
+    assert fake_backend.calls == 1
+    assert isinstance(xp, gputrack.DeviceArray) and xp.device is dev
+    want = kf_predict(gputrack.device("numpy"), x, P, F, Q)
+    np.testing.assert_array_equal(xp.numpy(), want[0])
+    np.testing.assert_array_equal(Pp.numpy(), want[1])
+
+    # the default device never picks a backend whose preference is None
+    assert registry._default_spec() != "fakehost"
+
+
+def test_an_unregistered_backend_is_gone():
+    from gputrack import registry
+
+    assert "fakehost" not in {d.spec for d in gputrack.devices()}
+    with pytest.raises(ValueError, match="unknown device spec 'fakehost'"):
+        gputrack.device("fakehost")
+    with pytest.raises(ValueError, match="unknown backend 'fakehost'"):
+        registry.backend_for("fakehost")
+    with pytest.raises(TypeError, match="expected a gputrack.registry.Backend"):
+        registry.register("fakehost")
+
+
+def test_the_test_fixture_and_the_registry_list_the_same_specs():
+    from conftest import ALL_SPECS
+
+    from gputrack import registry
+
+    assert ALL_SPECS == registry.specs()
+    assert {"numpy", "taichi:cpu", "taichi:vulkan", "taichi:cuda", "opencl"} == set(ALL_SPECS)
+    for row in registry.BACKENDS:
+        assert row.package.startswith("gputrack.backends.")
+        for spec in row.specs:
+            assert row.parse(spec) is not None

@@ -23,7 +23,7 @@ def add_arguments(parser):
 
 
 def cases(device, args):
-    from ..device import device as get_device
+    from ..registry import device as get_device
     from ..ops.particles import best_k, sample_around
     from ..ops.ncc import patch_ncc
     from ..ops.template import rgbd_cost, rgbd_residuals

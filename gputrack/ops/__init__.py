@@ -13,23 +13,15 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.kalman`     batched Kalman filters and gating
 """
 
-import importlib
-
 from ..device import Device
-
-
-_MODULES: dict = {}
+from ..registry import implementation
 
 
 def backend_module(device: Device, primitive: str):
-    """The module ``gputrack.backends.<backend>.<primitive>`` that implements ``primitive``
-    (looked up once per backend and primitive: ops call this on every call)."""
-    key = (device.backend, primitive)
-    found = _MODULES.get(key)
-    if found is None:
-        backend = "reference" if device.backend == "numpy" else device.backend
-        found = _MODULES[key] = importlib.import_module(f"gputrack.backends.{backend}.{primitive}")
-    return found
+    """The module that implements ``primitive`` on ``device``: ``<package>.<primitive>``, where
+    ``package`` is the implementation package of the device's backend in the registry
+    (gputrack/registry.py; memoised there: ops call this on every call)."""
+    return implementation(device.backend, primitive)
 
 
 from .kalman import (  # noqa: E402

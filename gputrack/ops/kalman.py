@@ -58,11 +58,11 @@ for the n and m of each call and compile once per combination).
 
 from __future__ import annotations
 
-import enum
 from typing import NamedTuple
 
 import numpy as np
 
+from ..abi import KalmanStatus
 from ..device import DeviceArray
 from . import backend_module
 from ._args import FLOAT, arg, check_device, out_arrays
@@ -81,15 +81,6 @@ __all__ = [
 
 MAX_N = 12
 MAX_M = 6
-
-
-class KalmanStatus(enum.IntEnum):
-    """Per-track outcome of an update (the ``status`` array holds these values as uint8)."""
-
-    UPDATED = 0
-    SKIPPED = 1  # mask False, or a non-finite observation (treated as missing)
-    NOT_PD = 2  # innovation covariance not positive definite: track left unchanged
-    BAD_DEPTH = 3  # stereo EKF: predicted depth z <= 0: track left unchanged
 
 
 class KalmanState(NamedTuple):

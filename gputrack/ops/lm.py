@@ -23,7 +23,6 @@ protocol, bounds, sparsity, precision and the bad-input policy.
 from __future__ import annotations
 
 import dataclasses
-import enum
 import inspect
 import logging
 import weakref
@@ -31,6 +30,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from ..abi import LMLayout, LMReason, LMStatus
 from ..device import Device, DeviceArray, per_device_cache
 from . import backend_module
 from ._args import arg, check_device, out_arrays
@@ -60,27 +60,18 @@ _CTINY = {"float64": 1e-12, "float32": 1e-6}
 _CMAX = {"float64": 1e16, "float32": 1e10}
 
 
-class LMStatus(enum.IntEnum):
-    """Per-problem outcome of :func:`least_squares` (``RUNNING`` only appears internally)."""
-
-    RUNNING = 0
-    CONVERGED = 1
-    MAX_ITER = 2
-    FAILED = 3
-
-
-Status = LMStatus  # short name inside this module
+Status = LMStatus  # short name inside this module (LMStatus and LMReason: gputrack/abi.py)
 
 #: why a problem stopped (``LeastSquaresResult.reason`` holds these codes; ``REASONS`` the words).
 REASONS = {
-    0: "running",
-    1: "ftol: relative cost reduction below ftol",
-    2: "xtol: relative step below xtol",
-    3: "gtol: projected gradient below gtol",
-    4: "max_iter reached",
-    5: "non-finite residuals or Jacobian",
-    6: "damped normal matrix not positive definite at the largest damping",
-    7: "no acceptable step: damping overflow",
+    LMReason.RUNNING: "running",
+    LMReason.FTOL: "ftol: relative cost reduction below ftol",
+    LMReason.XTOL: "xtol: relative step below xtol",
+    LMReason.GTOL: "gtol: projected gradient below gtol",
+    LMReason.MAX_ITER: "max_iter reached",
+    LMReason.NONFINITE: "non-finite residuals or Jacobian",
+    LMReason.NOT_PD: "damped normal matrix not positive definite at the largest damping",
+    LMReason.DAMPING: "no acceptable step: damping overflow",
 }
 
 
@@ -123,7 +114,8 @@ class LeastSquaresResult:
 
 
 class Layout:
-    """Offsets of the solver's arrays (shared by every backend).
+    """Offsets of the solver's arrays for B problems of P parameters and M residuals (from the
+    slots of :class:`gputrack.abi.LMLayout`, which every backend's kernels read).
 
     A solve moves only what carries information. Up: X0 and K (K only when it differs from the
     last K uploaded into the same pooled buffer, see :meth:`_Pool.upload_cached`: a solve with
@@ -168,30 +160,33 @@ class Layout:
     without a mask.
     """
 
-    NSCAL = 8
-    NGLOB = 8
+    NSCAL = LMLayout.NSCAL
+    NGLOB = LMLayout.NGLOB
 
     def __init__(self, B: int, P: int, M: int = 0, has_mask: bool = False):
+        L = LMLayout
         self.B, self.P, self.M, self.has_mask = B, P, M, bool(has_mask)
-        self.x, self.xt, self.g, self.den = 0, P, 2 * P, 3 * P
-        self.lo, self.hi, self.h = 4 * P, 5 * P, 6 * P
-        self.scal = 7 * P
-        self.F, self.C, self.nu, self.pred, self.Ft, self.snorm = (self.scal + i for i in range(6))
+        self.x, self.xt, self.g, self.den = L.S_X * P, L.S_XT * P, L.S_G * P, L.S_DEN * P
+        self.lo, self.hi, self.h = L.S_LO * P, L.S_HI * P, L.S_H * P
+        self.scal = L.S_NVEC * P
+        self.F, self.C, self.nu, self.pred, self.Ft, self.snorm = (
+            self.scal + i for i in (L.SC_F, L.SC_C, L.SC_NU, L.SC_PRED, L.SC_FT, L.SC_SNORM)
+        )
         self.SB = self.scal + self.NSCAL
         self.glob = B * self.SB
         self.mask = self.glob + self.NGLOB
         # W
-        self.A, self.L, self.Jt = 0, P * P, 2 * P * P
-        self.WB = 2 * P * P + P * M
+        self.A, self.L, self.Jt = L.W_A * P * P, L.W_L * P * P, L.W_NSQ * P * P
+        self.WB = L.W_NSQ * P * P + P * M
         # K
-        self.KB = 2 * P + 1
+        self.KB = L.K_NVEC * P + 1
         self.kh = B * self.KB
         self.kglob = self.kh + P
         self.kmask = self.kglob + self.NGLOB
         # I, Out
-        self.IB = 4 + P
-        self.ib = 8  # first per-problem int block
-        self.OB = P + 5
+        self.IB = L.I_NFIX + P
+        self.ib = L.NIGLOB  # first per-problem int block
+        self.OB = P + L.O_N
 
     def s_size(self) -> int:
         return self.mask + (self.M * self.P if self.has_mask else 0)
@@ -639,17 +634,18 @@ class _Solver:
             out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
         finally:
             pool.release()
-        status = out[:, P + 2].astype(np.int8)
+        L = LMLayout
+        status = out[:, P + L.O_STATUS].astype(np.int8)
         status[status == Status.RUNNING] = Status.MAX_ITER  # stopped early only when none is running
-        reason = out[:, P + 4].astype(np.int8)
-        reason[(reason == 0)] = 4
+        reason = out[:, P + L.O_REASON].astype(np.int8)
+        reason[(reason == LMReason.RUNNING)] = LMReason.MAX_ITER
         return LeastSquaresResult(
             x=out[:, :P].astype(dt, copy=True),
-            cost=out[:, P].astype(dt, copy=True),
-            iterations=out[:, P + 3].astype(np.int32),
+            cost=out[:, P + L.O_F].astype(dt, copy=True),
+            iterations=out[:, P + L.O_ITER].astype(np.int32),
             status=status,
             reason=reason,
-            damping=out[:, P + 1].astype(dt, copy=True),
+            damping=out[:, P + L.O_C].astype(dt, copy=True),
             nfev=self.nfev,
             njev=self.njev,
             npoints=self.npoints,
@@ -742,14 +738,17 @@ def _rel_step(dt, pdt=None) -> float:
 
 def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None):
     """The constants array K of a solve (see :class:`Layout`), on the host."""
+    L = LMLayout
     K = np.zeros(lay.k_size(), dtype=dt)
     kb = lay.kblock(K)
     P = lay.P
-    kb[:, :P] = np.maximum(lo, np.finfo(dt).min)
-    kb[:, P : 2 * P] = np.minimum(hi, np.finfo(dt).max)
-    kb[:, 2 * P] = c0
+    kb[:, L.K_LO * P : (L.K_LO + 1) * P] = np.maximum(lo, np.finfo(dt).min)
+    kb[:, L.K_HI * P : (L.K_HI + 1) * P] = np.minimum(hi, np.finfo(dt).max)
+    kb[:, L.K_NVEC * P] = c0
     K[lay.kh : lay.kh + P] = h
-    K[lay.kglob : lay.kglob + 6] = (*tols, _rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
+    glob = K[lay.kglob : lay.kglob + lay.NGLOB]
+    glob[[L.G_FTOL, L.G_XTOL, L.G_GTOL]] = tols
+    glob[[L.G_REL, L.G_CTINY, L.G_CMAX]] = (_rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
     if mask is not None:
         K[lay.kmask : lay.kmask + lay.M * P] = np.asarray(mask, dtype=dt).ravel()
     return K

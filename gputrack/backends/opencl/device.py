@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
 
-from ...device import Device, DeviceInfo, _unavailable
+from ...device import Device, DeviceInfo, unavailable
 
 _TRIVIAL = """
 __kernel void gt_probe(__global float *y) { const int i = get_global_id(0); y[i] = 2.0f * y[i] + 1.0f; }
@@ -113,18 +114,18 @@ def open_opencl(selector: str) -> "OpenCLDevice":
     try:
         import pyopencl  # noqa: F401
     except ImportError as e:
-        raise _unavailable(spec, f"pyopencl is not installed ({e})") from None
+        raise unavailable(spec, f"pyopencl is not installed ({e})") from None
     try:
         found = _enumerate()
     except RuntimeError as e:
-        raise _unavailable(spec, str(e)) from None
+        raise unavailable(spec, str(e)) from None
     key = selector.lower()
     if key:
         matches = [
             (s, p, d) for s, p, d in found if key == s[7:] or key in s[7:] or key in d.name.lower() or key in p.name.lower()
         ]
         if not matches:
-            raise _unavailable(spec, f"no OpenCL device matches {selector!r} (found: {', '.join(s for s, _, _ in found) or 'none'})")
+            raise unavailable(spec, f"no OpenCL device matches {selector!r} (found: {', '.join(s for s, _, _ in found) or 'none'})")
     else:
         matches = sorted(found, key=lambda f: _kind(f[2]) != "gpu")
     reasons = []
@@ -134,34 +135,101 @@ def open_opencl(selector: str) -> "OpenCLDevice":
             info = _info(s if key else "opencl", p, d, "")
             return OpenCLDevice(info, d)
         reasons.append(f"{s}: {reason}")
-    raise _unavailable(spec, "; ".join(reasons) or "no OpenCL device found")
+    raise unavailable(spec, "; ".join(reasons) or "no OpenCL device found")
+
+
+_STRIDES: dict = {}
+
+
+def _strides(shape: tuple, itemsize: int) -> tuple:
+    """C-contiguous strides, as PyOpenCL computes them (memoised: a handful of shapes recur)."""
+    key = (shape, itemsize)
+    found = _STRIDES.get(key)
+    if found is None:
+        acc, out = itemsize, []
+        for s in reversed(shape):
+            out.append(acc)
+            acc *= max(1, s)
+        found = _STRIDES[key] = tuple(reversed(out))
+        if len(_STRIDES) > 4096:
+            _STRIDES.clear()
+    return found
 
 
 class OpenCLDevice(Device):
-    """Arrays are ``pyopencl.array.Array`` objects on one context and in-order queue."""
+    """Arrays are ``pyopencl.array.Array`` objects on one context and in-order queue.
+
+    Their buffers come from PyOpenCL's caching allocator (``pyopencl.tools.MemoryPool``): the
+    buffer of a garbage-collected array is kept and reused for the next array of the same size
+    bin. Safe on the in-order queue: the commands of the buffer's next user are enqueued after
+    every command that used it before (gputrack/pool.py). Past ``pool_limit`` bytes of freed
+    buffers the pool releases them all at the next allocation.
+    """
 
     backend = "opencl"
 
     def __init__(self, info: DeviceInfo, cl_device):
         import pyopencl as cl
+        import pyopencl.tools as cl_tools
 
         super().__init__(info)
         self.cl_device = cl_device
         self.context = cl.Context([cl_device])
         self.queue = cl.CommandQueue(self.context)
+        self._mem_pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue))
+        self._reused = self._allocated = 0
+
+    def _allocate(self, nbytes: int):
+        """A buffer of ``nbytes`` for a new array: from the pool when the limit allows one."""
+        pool = self._mem_pool
+        if not self._pool_limit:
+            import pyopencl as cl
+
+            self._allocated += 1
+            return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
+        held = pool.held_blocks
+        buf = pool.allocate(nbytes)
+        if pool.held_blocks < held:
+            self._reused += 1
+        else:
+            self._allocated += 1
+            if pool.managed_bytes - pool.active_bytes > self._pool_limit:
+                pool.free_held()
+        return buf
+
+    def pool_stats(self):
+        """As Device.pool_stats; ``held_bytes`` also counts the rounding of the buffers in use up to
+        the pool's size bins (PyOpenCL reports only managed and requested bytes)."""
+        from ...pool import PoolStats
+
+        pool = self._mem_pool
+        return PoolStats(pool.managed_bytes - pool.active_bytes, pool.held_blocks, self._pool_limit, self._reused,
+                         self._allocated)  # fmt: skip
+
+    def empty_pool(self) -> None:
+        self._mem_pool.free_held()
+
+    def _set_pool_limit(self, limit: int) -> None:
+        pool = self._mem_pool
+        if pool.managed_bytes - pool.active_bytes > limit:
+            pool.free_held()
 
     def _upload(self, host: np.ndarray):
-        import pyopencl.array as cla
-
-        return cla.to_device(self.queue, host)
+        arr = self._empty(host.shape, host.dtype)
+        arr.set(host, queue=self.queue)
+        return arr
 
     def _upload_into(self, buffer, host: np.ndarray) -> None:
         buffer.set(host, queue=self.queue)
 
     def _empty(self, shape, dtype):
+        """A C-contiguous array (``shape``: a tuple of ints, ``dtype``: a NumPy dtype), made with
+        PyOpenCL's fast constructor: its checks cost ~50 us a call, more than the reuse saves."""
         import pyopencl.array as cla
 
-        return cla.empty(self.queue, shape, dtype)
+        strides = _strides(shape, dtype.itemsize)
+        return cla.Array(None, shape, dtype, allocator=self._allocate, strides=strides, _fast=True,
+                         _size=math.prod(shape), _context=self.context, _queue=self.queue)  # fmt: skip
 
     def _download(self, buffer, shape, dtype) -> np.ndarray:
         return buffer.get(queue=self.queue).reshape(shape)
@@ -170,7 +238,7 @@ class OpenCLDevice(Device):
         self.queue.finish()
 
     def program(self, source_name: str, defines: dict | None = None):
-        """The built program for ``kernels/<source_name>`` on this device (cached)."""
+        """The built program for ``kernels/<source_name>`` on this device (memoised per device)."""
         from .program import build
 
-        return build(self.context, source_name, defines)
+        return build(self, source_name, defines)

@@ -18,6 +18,7 @@ import numpy as np
 from ... import tuning_cache
 from ...tuning_cache import Tunable
 from .program import source
+from ...device import per_device
 
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
 PD_EPS_FACTOR = 4.0
@@ -96,12 +97,6 @@ def _defines(dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, v
     )
 
 
-@functools.cache
-def _kernel(program, name: str):
-    """One kernel object per built program (retrieving it anew each call is costly in PyOpenCL)."""
-    import pyopencl as cl
-
-    return cl.Kernel(program, name)
 
 
 def _pt(a):
@@ -112,27 +107,45 @@ def _data(a):
     return a.buffer.data if a is not None else None
 
 
-_KERNELS: dict = {}  # variant -> cl.Kernel (building the defines and finding the program costs ~10 us)
-_ARGS: dict = {}  # cl.Kernel -> the arguments it was last given (set_args is skipped when unchanged)
-
-
 def _variant_kernel(device, dt, n, m, mode, F, Q, H, R, mask, gain_scale, pats, vw):
-    key = (device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None,
-           (_pt(F), _pt(Q), _pt(H), _pt(R)), tuple(pats), vw)  # fmt: skip
-    knl = _KERNELS.get(key)
-    if knl is None:
-        if mode == MODE_STEREO:
-            hrows = _STEREO_ROWS
-        elif mode == MODE_LINEAR:
-            hrows = _rows(pats[2], m, n)
-        else:
-            hrows = [0]
-        prg = _program(
-            device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None, key[8],
-            (pats[0], pats[1], -1, pats[3]) if F is not None else (-1, -1, -1, pats[3]), hrows, vw,
-        )  # fmt: skip
-        knl = _KERNELS[key] = _kernel(prg, "gt_kf")
-    return knl
+    return _filter_kernel(device, dt, n, m, mode, F is not None, mask is not None, gain_scale is not None,
+                          (_pt(F), _pt(Q), _pt(H), _pt(R)), tuple(pats), vw)  # fmt: skip
+
+
+@per_device
+def _filter_kernel(device, dt, n, m, mode, predict, has_mask, has_gain, pts, pats, vw):
+    """gt_kf of one variant (memoised: building the defines and finding the program costs ~10 us)."""
+    import pyopencl as cl
+
+    if mode == MODE_STEREO:
+        hrows = _STEREO_ROWS
+    elif mode == MODE_LINEAR:
+        hrows = _rows(pats[2], m, n)
+    else:
+        hrows = [0]
+    prg = _program(
+        device, dt, n, m, mode, predict, has_mask, has_gain, pts,
+        (pats[0], pats[1], -1, pats[3]) if predict else (-1, -1, -1, pats[3]), hrows, vw,
+    )  # fmt: skip
+    return cl.Kernel(prg, "gt_kf")
+
+
+@per_device
+def _gate_kernel(device, dt, n, m, pt_h, pt_r, pat_h, pat_r, vw):
+    """gt_gate of one variant (memoised)."""
+    import pyopencl as cl
+
+    prg = _program(
+        device, dt, n, m, MODE_LINEAR, False, False, False, (0, 0, pt_h, pt_r), (-1, -1, -1, pat_r),
+        _rows(pat_h, m, n), vw,
+    )  # fmt: skip
+    return cl.Kernel(prg, "gt_gate")
+
+
+@per_device
+def _last_args(device) -> dict:
+    """cl.Kernel -> the arguments it was last given on ``device`` (set_args is skipped when unchanged)."""
+    return {}
 
 
 def _enqueue(device, knl, gsize, lsize, args):
@@ -140,10 +153,11 @@ def _enqueue(device, knl, gsize, lsize, args):
     (buffers compared by identity, scalars by value), as in a tracker's steady state."""
     import pyopencl as cl
 
-    last = _ARGS.get(knl)
+    seen = _last_args(device)
+    last = seen.get(knl)
     if last is None or len(last) != len(args) or any(a is not b and a != b for a, b in zip(args, last)):
         knl.set_args(*args)
-        _ARGS[knl] = args
+        seen[knl] = args
     cl.enqueue_nd_range_kernel(device.queue, knl, gsize, lsize)
 
 
@@ -205,14 +219,7 @@ def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     D, m = z.shape
     out = out if out is not None else device.empty((T, D), x.dtype)
     vw = lanes(device)
-    key = ("gate", device, x.dtype, n, m, _pt(H), _pt(R), pats[2], pats[3], vw)
-    knl = _KERNELS.get(key)
-    if knl is None:
-        prg = _program(
-            device, x.dtype, n, m, MODE_LINEAR, False, False, False, (0, 0, _pt(H), _pt(R)), (-1, -1, -1, pats[3]),
-            _rows(pats[2], m, n), vw,
-        )  # fmt: skip
-        knl = _KERNELS[key] = _kernel(prg, "gt_gate")
+    knl = _gate_kernel(device, x.dtype, n, m, _pt(H), _pt(R), pats[2], pats[3], vw)
     args = (_data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D))
     _enqueue(device, knl, ((T + vw - 1) // vw,), None, args)
     return out

@@ -2,26 +2,25 @@
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
+from ...device import per_device
 from ...models.chain import chain_tables
 
 
-@functools.lru_cache(maxsize=None)
-def _kernel(program):
-    """One Kernel object per built program (retrieving it from the program each call is costly)."""
+@per_device
+def _kernel(device, double: int):
+    """The kernel, once per device and precision (retrieving it from the program each call is costly)."""
     import pyopencl as cl
 
-    return cl.Kernel(program, "gt_forward_kinematics")
+    return cl.Kernel(device.program("gt_kinematics.cl", {"GT_FK_DOUBLE": double}), "gt_forward_kinematics")
 
 
 def forward_kinematics(device, chain, params, out):
     table, offsets = chain_tables(device, chain, params.dtype)
     b, p = params.shape
     j = chain.n_parts
-    kernel = _kernel(device.program("gt_kinematics.cl", {"GT_FK_DOUBLE": int(params.dtype == np.float64)}))
+    kernel = _kernel(device, int(params.dtype == np.float64))
     kernel(
         device.queue,
         (b,),

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...device import per_device_cache
+from ...abi import LMLayout, LMStatus
+from ...device import per_device
 
-RUNNING = 0
+RUNNING = int(LMStatus.RUNNING)
 _CTYPE = {"float32": "float", "float64": "double"}
 
 
@@ -40,19 +41,12 @@ def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0
     return device.program("gt_lm.cl", defines)
 
 
-_kernels: dict = {}
-
-
-def _kernel(prg, name):
+@per_device
+def _kernel(device, prg, name):
     """One cl.Kernel per program and name (retrieving ``prg.name`` builds a new one each time)."""
     import pyopencl as cl
 
-    key = (id(prg), name)
-    k = _kernels.get(key)
-    if k is None or k[0] is not prg:
-        k = (prg, cl.Kernel(prg, name))
-        _kernels[key] = k
-    return k[1]
+    return cl.Kernel(prg, name)
 
 
 def _local_size(device, P):
@@ -61,16 +55,10 @@ def _local_size(device, P):
     return int(max(1, min(want, device.info.max_work_group_size or want)))
 
 
-_work_cache = per_device_cache()
-
-
+@per_device(maxsize=8)
 def _work(device, shape, dtype):
-    per_device = _work_cache.setdefault(device, {})
-    key = (tuple(shape), np.dtype(dtype).name)
-    w = per_device.get(key)
-    if w is None:
-        w = per_device[key] = device.empty(shape, dtype)
-    return w
+    """A work array of ``shape`` and ``dtype`` kept per device (contents undefined between calls)."""
+    return device.empty(shape, dtype)
 
 
 def normal_equations(device, J, r, out):
@@ -78,7 +66,7 @@ def normal_equations(device, J, r, out):
     JtJ, Jtr = out
     prg = _program(device, J.dtype)
     n = B * P
-    _kernel(prg, "gt_normal_equations")(
+    _kernel(device, prg, "gt_normal_equations")(
         device.queue,
         (n,),
         None,
@@ -98,7 +86,7 @@ def lm_step(device, JtJ, Jtr, damping, out):
     delta, ok = out
     W = _work(device, (B, P, P), Jtr.dtype)
     prg = _program(device, Jtr.dtype)
-    _kernel(prg, "gt_lm_step")(
+    _kernel(device, prg, "gt_lm_step")(
         device.queue,
         (B,),
         None,
@@ -120,7 +108,7 @@ def lm_solve(device, J, r, damping, out):
     W = _work(device, (B, P, P), J.dtype)
     prg = _program(device, J.dtype)
     ls = _local_size(device, P)
-    _kernel(prg, "gt_lm_solve")(
+    _kernel(device, prg, "gt_lm_solve")(
         device.queue,
         (B * ls,),
         (ls,),
@@ -162,7 +150,7 @@ def solver_init(state, X0, K, X):
     dev, lay = state.device, state.lay
     B = lay.B
     prg = _program(dev, state.S.dtype, None, X.dtype, None, x0type=X0.dtype)
-    _kernel(prg, "gt_lm_init")(
+    _kernel(dev, prg, "gt_lm_init")(
         dev.queue,
         (B,),
         None,
@@ -190,7 +178,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
         use_jac=jac is not None,
     )
     Jg = jac if jac is not None else R
-    _kernel(prg, "gt_lm_update")(
+    _kernel(dev, prg, "gt_lm_update")(
         dev.queue,
         (B * state.ls,),
         (state.ls,),
@@ -211,7 +199,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
 
 def solver_active(state) -> int:
     I = state.I.numpy()
-    return int(np.count_nonzero(state.lay.iblock(I)[:, 0] == RUNNING))
+    return int(np.count_nonzero(state.lay.iblock(I)[:, LMLayout.I_STATUS] == RUNNING))
 
 
 def solver_result(state):

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...device import per_device_cache
-
-_kernels = per_device_cache()
+from ...device import per_device
 
 # scalar argument types per kernel (None = a buffer): pyopencl then packs the arguments directly
 _I = np.int32
@@ -20,16 +18,13 @@ ARG_TYPES = {
 }
 
 
+@per_device
 def _kernel(device, name):
     """The kernel ``name`` of gt_ncc.cl (one cl.Kernel per device)."""
     import pyopencl as cl
 
-    per_device = _kernels.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None:
-        found = cl.Kernel(device.program("gt_ncc.cl"), name)
-        found.set_scalar_arg_dtypes(ARG_TYPES[name])
-        per_device[name] = found
+    found = cl.Kernel(device.program("gt_ncc.cl"), name)
+    found.set_scalar_arg_dtypes(ARG_TYPES[name])
     return found
 
 

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...device import per_device_cache
+from ...device import per_device
 
-_kernels = per_device_cache()
-_scratch = per_device_cache()
 _I, _U, _F = np.int32, np.uint32, np.float32
 # scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
 ARG_TYPES = {
@@ -16,15 +14,12 @@ ARG_TYPES = {
 }
 
 
+@per_device
 def _kernel(device, name):
     import pyopencl as cl
 
-    per_device = _kernels.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None:
-        found = cl.Kernel(device.program("gt_particles.cl"), name)
-        found.set_scalar_arg_dtypes(ARG_TYPES[name])
-        per_device[name] = found
+    found = cl.Kernel(device.program("gt_particles.cl"), name)
+    found.set_scalar_arg_dtypes(ARG_TYPES[name])
     return found
 
 
@@ -38,16 +33,12 @@ def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidate
     return out
 
 
+@per_device(maxsize=4)
 def _keys(device, k):
-    """A scratch buffer for the k-list's keys, kept per device."""
+    """A scratch buffer for the k-list's keys, kept per device and k."""
     import pyopencl as cl
 
-    per_device = _scratch.setdefault(device, {})
-    found = per_device.get("keys")
-    if found is None or found.size < 4 * k:
-        found = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, 4 * k)
-        per_device["keys"] = found
-    return found
+    return cl.Buffer(device.context, cl.mem_flags.READ_WRITE, 4 * k)
 
 
 def best_k(device, scores, k, rows, out):

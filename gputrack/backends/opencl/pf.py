@@ -12,20 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...device import per_device_cache
+from ...device import per_device
 from ...uploads import constant
 from . import kinematics, particles, template
 
-_arrays = per_device_cache()
-
-
+@per_device(maxsize=16)
 def _array(device, name, shape):
-    """A float32 device array kept per device and name (reallocated when the shape changes)."""
-    per_device = _arrays.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None or found.shape != shape:
-        found = per_device[name] = device.empty(shape, np.float32)
-    return found
+    """A float32 device array kept per device, name and shape (the stages of a filter differ in
+    size: a few shapes per name are kept)."""
+    return device.empty(shape, np.float32)
 
 
 def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera, moved_parts, k, out, **consts):

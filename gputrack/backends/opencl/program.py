@@ -1,10 +1,17 @@
-"""Locate the OpenCL C sources in ``kernels/`` and build them once per device and options."""
+"""Locate the OpenCL C sources in ``kernels/`` and build them once per device and options.
+
+Every build gets the codes and slots of gputrack/abi.py as ``-D`` defines (:func:`build_options`):
+the sources hold no copy of them.
+"""
 
 from __future__ import annotations
 
 import functools
 import os
 from pathlib import Path
+
+from ...abi import cl_defines
+from ...device import per_device
 
 _HERE = Path(__file__).resolve()
 
@@ -45,21 +52,27 @@ def kernel_files() -> list[Path]:
     return sorted(kernel_dir().glob("*.cl"))
 
 
-def build(context, source_name: str, defines: dict | None = None):
-    """Build ``kernels/<source_name>`` for ``context`` (cached); ``defines`` become -D options."""
-    items = tuple(sorted((defines or {}).items()))
-    return _build(context, source_name, items)
+def build_options(defines=()) -> list[str]:
+    """The options of every build: the include path, the ABI defines, then ``defines`` (pairs)."""
+    abi = [f"-D{k}={v}" for k, v in cl_defines().items()]
+    return [f"-I{kernel_dir()}", *abi, *(f"-D{k}={v}" for k, v in defines)]
 
 
-@functools.lru_cache(maxsize=None)
-def _build(context, source_name: str, defines: tuple):
+def build(device, source_name: str, defines: dict | None = None):
+    """Build ``kernels/<source_name>`` for ``device`` (memoised per device and defines);
+    ``defines`` become -D options."""
+    return _build(device, source_name, tuple(sorted((defines or {}).items())))
+
+
+@per_device
+def _build(device, source_name: str, defines: tuple):
     import pyopencl as cl
 
     path = kernel_dir() / source_name
     if not path.is_file():
         raise FileNotFoundError(f"expected an OpenCL source {path}, found none")
-    options = [f"-I{kernel_dir()}"] + [f"-D{k}={v}" for k, v in defines]
+    options = build_options(defines)
     try:
-        return cl.Program(context, path.read_text()).build(options=options)
+        return cl.Program(device.context, path.read_text()).build(options=options)
     except cl.RuntimeError as e:
-        raise RuntimeError(f"building {source_name} failed on {context.devices[0].name}: {e}") from None
+        raise RuntimeError(f"building {source_name} failed on {device.cl_device.name}: {e}") from None

@@ -10,14 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from ... import tuning_cache
-from ...device import per_device_cache
+from ...device import per_device
 from ...tuning_cache import Tunable
 from .program import source
 
 CPU_LANES = 8
 WORK_GROUP = 4
-_scratch = per_device_cache()
-_kernels = per_device_cache()
 
 
 def lanes(device) -> int:
@@ -56,15 +54,16 @@ def _tuned(device, op, tf, rgb, depth) -> dict:
 
 
 def _buffer(device, name, nbytes):
-    """A scratch buffer of at least ``nbytes`` kept per device."""
+    """A scratch buffer of at least ``nbytes`` kept per device (sizes rounded up to a power of two,
+    so that batches of similar sizes share one)."""
+    return _scratch(device, name, 1 << max(2, (int(nbytes) - 1).bit_length()))
+
+
+@per_device(maxsize=12)
+def _scratch(device, name, nbytes):
     import pyopencl as cl
 
-    per_device = _scratch.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None or found.size < nbytes:
-        found = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
-        per_device[name] = found
-    return found
+    return cl.Buffer(device.context, cl.mem_flags.READ_WRITE, nbytes)
 
 
 # scalar argument types per kernel (None = a buffer): with them pyopencl packs the arguments
@@ -78,15 +77,15 @@ ARG_TYPES = {
 
 def _kernel(device, name, **defines):
     """The kernel ``name`` of gt_template.cl built with ``defines`` (one cl.Kernel per device)."""
+    return _built_kernel(device, name, tuple(sorted(defines.items())))
+
+
+@per_device
+def _built_kernel(device, name, defines):
     import pyopencl as cl
 
-    key = (name, tuple(sorted(defines.items())))
-    per_device = _kernels.setdefault(device, {})
-    found = per_device.get(key)
-    if found is None:
-        found = cl.Kernel(device.program("gt_template.cl", defines), name)
-        found.set_scalar_arg_dtypes(ARG_TYPES[name])
-        per_device[key] = found
+    found = cl.Kernel(device.program("gt_template.cl", dict(defines)), name)
+    found.set_scalar_arg_dtypes(ARG_TYPES[name])
     return found
 
 

@@ -25,6 +25,11 @@ def probe_numpy() -> DeviceInfo:
     return DeviceInfo("numpy", "numpy", True, name=f"NumPy {np.__version__} on {cpu_name()}", fp64=True, kind="cpu")
 
 
+def open_numpy(arg: str = "") -> "NumpyDevice":
+    """The ``numpy`` device (``arg``: the registry's parse of the spec, always '')."""
+    return NumpyDevice()
+
+
 class NumpyDevice(Device):
     """Runs the reference implementation; ``asarray`` returns a contiguous NumPy array."""
 

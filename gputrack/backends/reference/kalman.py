@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
-# Status codes of an update (kept equal to gputrack.ops.kalman.KalmanStatus).
-UPDATED, SKIPPED, NOT_PD, BAD_DEPTH = 0, 1, 2, 3
+from ...abi import KalmanStatus
+
+# status codes of an update (gputrack/abi.py)
+UPDATED, SKIPPED, NOT_PD, BAD_DEPTH = (int(s) for s in (KalmanStatus.UPDATED, KalmanStatus.SKIPPED,
+                                                         KalmanStatus.NOT_PD, KalmanStatus.BAD_DEPTH))
 PD_EPS_FACTOR = 4.0
 
 

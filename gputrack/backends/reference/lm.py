@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-# status / reason codes (gputrack.ops.lm.Status and REASONS)
-RUNNING, CONVERGED, MAX_ITER, FAILED = 0, 1, 2, 3
-R_FTOL, R_XTOL, R_GTOL, R_MAXIT, R_NONFINITE, R_NOTPD, R_DAMPING = 1, 2, 3, 4, 5, 6, 7
+from ...abi import LMLayout as LAY
+from ...abi import LMReason, LMStatus
+
+# status / reason codes (gputrack/abi.py)
+RUNNING, CONVERGED, MAX_ITER, FAILED = LMStatus.RUNNING, LMStatus.CONVERGED, LMStatus.MAX_ITER, LMStatus.FAILED
+R_FTOL, R_XTOL, R_GTOL, R_MAXIT = LMReason.FTOL, LMReason.XTOL, LMReason.GTOL, LMReason.MAX_ITER
+R_NONFINITE, R_NOTPD, R_DAMPING = LMReason.NONFINITE, LMReason.NOT_PD, LMReason.DAMPING
 
 MAX_CHOL_TRIES = 40
 
@@ -97,26 +101,26 @@ def solver_init(state, X0, K, X):
     dt = S.dtype
     S[:] = 0
     I[:] = 0
-    I[1], I[2], I[3] = B, int(lay.has_mask), P
+    I[LAY.IG_B], I[LAY.IG_HAS_MASK], I[LAY.IG_P] = B, int(lay.has_mask), P
     kb = lay.kblock(K)
     x0 = np.asarray(X0).astype(dt)
     lay.vec(S, lay.x)[:] = x0
     lay.vec(S, lay.xt)[:] = x0
-    lay.vec(S, lay.lo)[:] = kb[:, :P]
-    lay.vec(S, lay.hi)[:] = kb[:, P : 2 * P]
+    lay.vec(S, lay.lo)[:] = kb[:, LAY.K_LO * P : (LAY.K_LO + 1) * P]
+    lay.vec(S, lay.hi)[:] = kb[:, LAY.K_HI * P : (LAY.K_HI + 1) * P]
     lay.vec(S, lay.h)[:] = K[lay.kh : lay.kh + P]
-    lay.sc(S, lay.C)[:] = kb[:, 2 * P]
+    lay.sc(S, lay.C)[:] = kb[:, LAY.K_NVEC * P]
     lay.sc(S, lay.nu)[:] = 2.0
     n_const = lay.NGLOB + (lay.M * P if lay.has_mask else 0)
     S[lay.glob : lay.glob + n_const] = K[lay.kglob : lay.kglob + n_const]
-    rel = S[lay.glob + 3]
+    rel = S[lay.glob + LAY.G_REL]
     SX = X.shape[0] // B
     for b in range(B):
         _points(lay, S, X, b, x0[b], SX, rel)
 
 
 def solver_active(state) -> int:
-    return int(np.count_nonzero(state.lay.iblock(state.I)[:, 0] == RUNNING))
+    return int(np.count_nonzero(state.lay.iblock(state.I)[:, LAY.I_STATUS] == RUNNING))
 
 
 def solver_result(state):
@@ -145,10 +149,13 @@ def solver_update(state, R, X, *, first, final, jac=None):
     A = lay.wmat(W, lay.A, P, P)
     Jt = lay.wmat(W, lay.Jt, P, M)
     F, C, nu, pred, Ft, snorm = (lay.sc(S, o) for o in (lay.F, lay.C, lay.nu, lay.pred, lay.Ft, lay.snorm))
-    ftol, xtol, gtol, rel, ctiny, cmax = S[lay.glob : lay.glob + 6]
-    mask = lay.maskview(S) if I[2] else np.ones((M, P), dt)
+    glob = S[lay.glob : lay.glob + lay.NGLOB]
+    ftol, xtol, gtol = glob[[LAY.G_FTOL, LAY.G_XTOL, LAY.G_GTOL]]
+    rel, ctiny, cmax = glob[[LAY.G_REL, LAY.G_CTINY, LAY.G_CMAX]]
+    mask = lay.maskview(S) if I[LAY.IG_HAS_MASK] else np.ones((M, P), dt)
     ib = lay.iblock(I)
-    status, iters, accepted, reason, fin = ib[:, 0], ib[:, 1], ib[:, 2], ib[:, 3], ib[:, 4:]
+    status, iters, accepted, reason = ib[:, LAY.I_STATUS], ib[:, LAY.I_ITER], ib[:, LAY.I_ACCEPTED], ib[:, LAY.I_REASON]
+    fin = ib[:, LAY.I_FIN :]
     Rb = R.reshape(B, SR, M).astype(dt)
     rt = Rb[:, 0]  # residuals at the trial points
     have_J = not final
@@ -273,11 +280,11 @@ def _export(state):
     P = lay.P
     ib = lay.iblock(state.I)
     Out[:, :P] = lay.vec(S, lay.x)
-    Out[:, P] = lay.sc(S, lay.F)
-    Out[:, P + 1] = lay.sc(S, lay.C)
-    Out[:, P + 2] = ib[:, 0]
-    Out[:, P + 3] = ib[:, 1]
-    Out[:, P + 4] = ib[:, 3]
+    Out[:, P + LAY.O_F] = lay.sc(S, lay.F)
+    Out[:, P + LAY.O_C] = lay.sc(S, lay.C)
+    Out[:, P + LAY.O_STATUS] = ib[:, LAY.I_STATUS]
+    Out[:, P + LAY.O_ITER] = ib[:, LAY.I_ITER]
+    Out[:, P + LAY.O_REASON] = ib[:, LAY.I_REASON]
 
 
 def _perturbed(p, lo, hi, h, rel):

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from ...device import Device, DeviceInfo, DeviceUnavailable, TaichiArchConflict, _unavailable
+from ...device import Device, DeviceInfo, TaichiArchConflict, unavailable
 from ..reference.device import cpu_name
 
 PROBE_TIMEOUT_S = 120
@@ -65,7 +65,7 @@ def open_taichi(arch: str) -> "TaichiDevice":
     try:
         from . import runtime
     except ImportError as e:
-        raise _unavailable(f"taichi:{arch}", f"taichi is not installed ({e})") from None
+        raise unavailable(f"taichi:{arch}", f"taichi is not installed ({e})") from None
     from .probe import _axpy32, _axpy64, _check
 
     try:
@@ -73,10 +73,10 @@ def open_taichi(arch: str) -> "TaichiDevice":
     except TaichiArchConflict:
         raise
     except Exception as e:  # noqa: BLE001 - becomes the reason
-        raise _unavailable(f"taichi:{arch}", " ".join(str(e).split())[:300]) from None
+        raise unavailable(f"taichi:{arch}", " ".join(str(e).split())[:300]) from None
     try:
         if not _check(_axpy32, np.float32):
-            raise DeviceUnavailable(f"taichi:{arch}: a float32 test kernel gave wrong results")
+            raise unavailable(f"taichi:{arch}", "a float32 test kernel gave wrong results")
         try:
             fp64 = _check(_axpy64, np.float64)
         except Exception:  # noqa: BLE001 - no fp64
@@ -101,8 +101,11 @@ class TaichiDevice(Device):
     backend = "taichi"
 
     def __init__(self, arch: str, info: DeviceInfo):
+        from . import runtime
+
         super().__init__(info)
         self.arch = arch
+        runtime.set_pool_limit(self.pool_limit)
 
     def _upload(self, host: np.ndarray):
         from .runtime import DTYPES, ndarray
@@ -137,6 +140,21 @@ class TaichiDevice(Device):
         from .runtime import ti
 
         ti.sync()
+
+    def pool_stats(self):
+        from . import runtime
+
+        return runtime.pool.stats()
+
+    def empty_pool(self) -> None:
+        from . import runtime
+
+        runtime.empty_pool()
+
+    def _set_pool_limit(self, limit: int) -> None:
+        from . import runtime
+
+        runtime.set_pool_limit(limit)
 
     def close(self) -> None:
         from . import runtime

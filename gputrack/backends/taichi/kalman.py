@@ -27,10 +27,13 @@ import dataclasses
 
 import numpy as np
 
+from ...abi import KalmanStatus
 from .launch import launch
 from .runtime import ti
 
-UPDATED, SKIPPED, NOT_PD, BAD_DEPTH = 0, 1, 2, 3
+# status codes (gputrack/abi.py), folded into the kernels at compile time
+UPDATED, SKIPPED, NOT_PD, BAD_DEPTH = (int(s) for s in (KalmanStatus.UPDATED, KalmanStatus.SKIPPED,
+                                                         KalmanStatus.NOT_PD, KalmanStatus.BAD_DEPTH))
 PD_EPS_FACTOR = 4.0
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
 #: batches of at most this many tracks run on the calling thread (a thread-pool wake-up costs

@@ -47,14 +47,19 @@ folded away).
 
 import numpy as np
 
+from ...abi import LMLayout as LAY
+from ...abi import LMReason, LMStatus
 from .arrays import copy
 from .launch import launch
 from .runtime import current_arch, scratch, ti
 
 nd = ti.types.ndarray()
 
-RUNNING, CONVERGED, MAX_ITER, FAILED = 0, 1, 2, 3
-R_FTOL, R_XTOL, R_GTOL, R_MAXIT, R_NONFINITE, R_NOTPD, R_DAMPING = 1, 2, 3, 4, 5, 6, 7
+# status and reason codes and the packed layout's slots (gputrack/abi.py), folded into the kernels
+RUNNING, CONVERGED, MAX_ITER, FAILED = (int(s) for s in (LMStatus.RUNNING, LMStatus.CONVERGED, LMStatus.MAX_ITER,
+                                                          LMStatus.FAILED))
+R_FTOL, R_XTOL, R_GTOL, R_MAXIT = (int(r) for r in (LMReason.FTOL, LMReason.XTOL, LMReason.GTOL, LMReason.MAX_ITER))
+R_NONFINITE, R_NOTPD, R_DAMPING = (int(r) for r in (LMReason.NONFINITE, LMReason.NOT_PD, LMReason.DAMPING))
 MAX_CHOL_TRIES = 40
 GRAM_SEG = 8  # columns per SIMD vector of _gram_static (8 float64: one AVX-512 register)
 STATIC_P_MAX = 32  # _gram_static unrolls P (P (P / 8 + 1) / 2 vector products per row of J)
@@ -446,12 +451,18 @@ def lm_solve(device, J, r, damping, out):
 
 @ti.func
 def _sb(P):
-    return 7 * P + 8
+    return LAY.S_NVEC * P + LAY.NSCAL
+
+
+@ti.func
+def _ib(b, P):
+    """Offset of problem b's int block in I."""
+    return LAY.NIGLOB + b * (LAY.I_NFIX + P)
 
 
 @ti.func
 def _wb(P, M):
-    return 2 * P * P + P * M
+    return LAY.W_NSQ * P * P + P * M
 
 
 @ti.func
@@ -467,12 +478,11 @@ def _phase_jacobian(
     use_jac: ti.template(),
 ):
     """Jt[b, n, :] at the evaluated trial (eq. 24 or given) and its finite flag."""
-    P, M, B = I[3], R.shape[1], I[1]
+    P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     SB = _sb(P)
     base = b * SB
-    IB = 4 + P
-    ibase = 8 + b * IB
-    jt = b * _wb(P, M) + 2 * P * P + n * M
+    ibase = _ib(b, P)
+    jt = b * _wb(P, M) + LAY.W_NSQ * P * P + n * M
     ok = 1
     if ti.static(use_jac):
         mag = ti.cast(0, dt)
@@ -483,15 +493,15 @@ def _phase_jacobian(
         ok = _finite(mag, dt)
     else:
         SR = R.shape[0] // B
-        den = S[base + 3 * P + n]
+        den = S[base + LAY.S_DEN * P + n]
         inv = ti.cast(0, dt)
         if den != 0:
             inv = 1 / den
         rp = b * SR + 1 + 2 * n
-        mbase = B * SB + 8
+        mbase = B * SB + LAY.NGLOB
         # a non-finite difference makes the sum of magnitudes non-finite: one test per row
         mag = ti.cast(0, dt)
-        if I[2]:
+        if I[LAY.IG_HAS_MASK]:
             for m in range(M):
                 d = ti.select(
                     S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt), ti.cast(0, dt)
@@ -504,7 +514,7 @@ def _phase_jacobian(
                 mag += ti.abs(d)
                 W[jt + m] = d * inv  # eq. 24
         ok = _finite(mag, dt)
-    I[ibase + 4 + n] = ok
+    I[ibase + LAY.I_FIN + n] = ok
 
 
 @ti.func
@@ -518,18 +528,17 @@ def _phase_accept(
     first: ti.template(),
     final: ti.template(),
 ):
-    P, M, B = I[3], R.shape[1], I[1]
+    P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     SB = _sb(P)
     base = b * SB
-    sc = base + 7 * P
-    A = b * _wb(P, M)
-    IB = 4 + P
-    ib = 8 + b * IB
+    sc = base + LAY.S_NVEC * P
+    A = b * _wb(P, M) + LAY.W_A * P * P
+    ib = _ib(b, P)
     G = B * SB
-    ftol, xtol, cmax = S[G + 0], S[G + 1], S[G + 5]
+    ftol, xtol, cmax = S[G + LAY.G_FTOL], S[G + LAY.G_XTOL], S[G + LAY.G_CMAX]
     SR = R.shape[0] // B
-    I[ib + 2] = 0
-    if I[ib + 0] == RUNNING:
+    I[ib + LAY.I_ACCEPTED] = 0
+    if I[ib + LAY.I_STATUS] == RUNNING:
         ok = 1
         Ft = ti.cast(0, dt)
         for m in range(M):
@@ -539,20 +548,20 @@ def _phase_accept(
         ok &= _finite(Ft, dt)
         if ti.static(not final):
             for n in range(P):
-                ok &= I[ib + 4 + n]
-        S[sc + 4] = Ft
+                ok &= I[ib + LAY.I_FIN + n]
+        S[sc + LAY.SC_FT] = Ft
         acc = 0
         if not ok:
-            I[ib + 0] = FAILED
-            I[ib + 3] = R_NONFINITE
+            I[ib + LAY.I_STATUS] = FAILED
+            I[ib + LAY.I_REASON] = R_NONFINITE
             if ti.static(first):
-                S[sc + 0] = ti.cast(np.inf, dt)
+                S[sc + LAY.SC_F] = ti.cast(np.inf, dt)
         else:
             if ti.static(first):
                 acc = 1
             else:
-                I[ib + 1] += 1
-                F, pred = S[sc + 0], S[sc + 3]
+                I[ib + LAY.I_ITER] += 1
+                F, pred = S[sc + LAY.SC_F], S[sc + LAY.SC_PRED]
                 dF = F - Ft
                 if dF > 0:
                     acc = 1
@@ -560,49 +569,50 @@ def _phase_accept(
                     if pred > 0:
                         rho = dF / pred
                     q = 2 * rho - 1
-                    S[sc + 1] *= ti.max(ti.cast(1.0 / 3.0, dt), 1 - q * q * q)  # Nielsen: lower C near the optimum
-                    S[sc + 2] = ti.cast(2, dt)
+                    # Nielsen: lower C near the optimum
+                    S[sc + LAY.SC_C] *= ti.max(ti.cast(1.0 / 3.0, dt), 1 - q * q * q)
+                    S[sc + LAY.SC_NU] = ti.cast(2, dt)
                 else:
-                    S[sc + 1] *= S[sc + 2]  # rejected: raise this problem's C only
-                    S[sc + 2] *= 2
+                    S[sc + LAY.SC_C] *= S[sc + LAY.SC_NU]  # rejected: raise this problem's C only
+                    S[sc + LAY.SC_NU] *= 2
                     dmax = ti.cast(0, dt)
                     sn = ti.cast(0, dt)
                     xn = ti.cast(0, dt)
                     for i in range(P):
                         dmax = ti.max(dmax, W[A + i * P + i])
-                        d = S[base + P + i] - S[base + i]
+                        d = S[base + LAY.S_XT * P + i] - S[base + LAY.S_X * P + i]
                         sn += d * d
-                        xn += S[base + i] * S[base + i]
+                        xn += S[base + LAY.S_X * P + i] * S[base + LAY.S_X * P + i]
                     if ti.sqrt(sn) <= xtol * (xtol + ti.sqrt(xn)):
-                        I[ib + 0] = CONVERGED  # no step this small improves the cost
-                        I[ib + 3] = R_XTOL
-                    elif S[sc + 1] > cmax * (1 + dmax):
-                        I[ib + 0] = FAILED
-                        I[ib + 3] = R_DAMPING
+                        I[ib + LAY.I_STATUS] = CONVERGED  # no step this small improves the cost
+                        I[ib + LAY.I_REASON] = R_XTOL
+                    elif S[sc + LAY.SC_C] > cmax * (1 + dmax):
+                        I[ib + LAY.I_STATUS] = FAILED
+                        I[ib + LAY.I_REASON] = R_DAMPING
             if acc:
-                I[ib + 2] = 1
+                I[ib + LAY.I_ACCEPTED] = 1
                 sn = ti.cast(0, dt)
                 xn = ti.cast(0, dt)
                 for i in range(P):
-                    d = S[base + P + i] - S[base + i]
+                    d = S[base + LAY.S_XT * P + i] - S[base + LAY.S_X * P + i]
                     sn += d * d
-                    S[base + i] = S[base + P + i]
-                    xn += S[base + i] * S[base + i]
+                    S[base + LAY.S_X * P + i] = S[base + LAY.S_XT * P + i]
+                    xn += S[base + LAY.S_X * P + i] * S[base + LAY.S_X * P + i]
                 sn = ti.sqrt(sn)
-                S[sc + 5] = sn
-                F_old = S[sc + 0]
-                S[sc + 0] = Ft
+                S[sc + LAY.SC_SNORM] = sn
+                F_old = S[sc + LAY.SC_F]
+                S[sc + LAY.SC_F] = Ft
                 if ti.static(not first):
                     if F_old - Ft <= ftol * F_old:
-                        I[ib + 0] = CONVERGED
-                        I[ib + 3] = R_FTOL
+                        I[ib + LAY.I_STATUS] = CONVERGED
+                        I[ib + LAY.I_REASON] = R_FTOL
                     elif sn <= xtol * (xtol + ti.sqrt(xn)):
-                        I[ib + 0] = CONVERGED
-                        I[ib + 3] = R_XTOL
+                        I[ib + LAY.I_STATUS] = CONVERGED
+                        I[ib + LAY.I_REASON] = R_XTOL
         if ti.static(final):  # noqa: SIM102 - a compile-time branch
-            if I[ib + 0] == RUNNING:
-                I[ib + 0] = MAX_ITER
-                I[ib + 3] = R_MAXIT
+            if I[ib + LAY.I_STATUS] == RUNNING:
+                I[ib + LAY.I_STATUS] = MAX_ITER
+                I[ib + LAY.I_REASON] = R_MAXIT
 
 
 @ti.func
@@ -618,28 +628,30 @@ def _phase_normal(
 ):
     """Rows i and i + 1 of J^T J and J^T r at the accepted point (eq. 22): from the rows of J^T in W,
     or with ``fused`` straight from the stacked residuals (central differences, no mask)."""
-    P, M, B = I[3], R.shape[1], I[1]
-    if I[8 + b * (4 + P) + 2]:
-        A = b * _wb(P, M)
+    P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
+    if I[_ib(b, P) + LAY.I_ACCEPTED]:
+        A = b * _wb(P, M) + LAY.W_A * P * P
         SR = R.shape[0] // B
         base = b * _sb(P)
         if ti.static(fused):
-            _gram_pair(R, b * SR + 1, 2, W, A, R, b * SR, S, base + 2 * P, i, M, P, dt, True, S, base + 3 * P)
+            g, den = base + LAY.S_G * P, base + LAY.S_DEN * P
+            _gram_pair(R, b * SR + 1, 2, W, A, R, b * SR, S, g, i, M, P, dt, True, S, den)
         else:
-            _gram_pair(W, A + 2 * P * P, M, W, A, R, b * SR, S, base + 2 * P, i, M, P, dt, False, S, 0)
+            jt = A + (LAY.W_NSQ - LAY.W_A) * P * P
+            _gram_pair(W, jt, M, W, A, R, b * SR, S, base + LAY.S_G * P, i, M, P, dt, False, S, 0)
 
 
 @ti.func
 def _phase_finite(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: ti.template()):
     """The finite flags of the perturbed rows of problem b (``_phase_jacobian`` without storing J^T)."""
-    P, M, B = I[3], R.shape[1], I[1]
+    P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     SR = R.shape[0] // B
     for n in range(P):
         rp = b * SR + 1 + 2 * n
         mag = ti.cast(0, dt)
         for m in range(M):
             mag += ti.abs(ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt))
-        I[8 + b * (4 + P) + 4 + n] = _finite(mag, dt)
+        I[_ib(b, P) + LAY.I_FIN + n] = _finite(mag, dt)
 
 
 @ti.func
@@ -652,17 +664,18 @@ def _active(S: ti.template(), xo, loo, hio, go, i) -> ti.i32:
 @ti.func
 def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.template(), b, M, dt: ti.template()):
     """gtol test, damped Cholesky step, trial point and the next points to evaluate."""
-    P, B = I[3], I[1]
+    P, B = I[LAY.IG_P], I[LAY.IG_B]
     SB = _sb(P)
     base = b * SB
-    sc = base + 7 * P
-    ib = 8 + b * (4 + P)
+    sc = base + LAY.S_NVEC * P
+    ib = _ib(b, P)
     G = B * SB
-    gtol, rel, ctiny, cmax = S[G + 2], S[G + 3], S[G + 4], S[G + 5]
-    A = b * _wb(P, M)
-    L = A + P * P
-    xo, xto, go, loo, hio = base, base + P, base + 2 * P, base + 4 * P, base + 5 * P
-    if I[ib + 0] == RUNNING and I[ib + 2]:
+    gtol, rel, ctiny, cmax = S[G + LAY.G_GTOL], S[G + LAY.G_REL], S[G + LAY.G_CTINY], S[G + LAY.G_CMAX]
+    A = b * _wb(P, M) + LAY.W_A * P * P
+    L = A + (LAY.W_L - LAY.W_A) * P * P
+    xo, xto, go = base + LAY.S_X * P, base + LAY.S_XT * P, base + LAY.S_G * P
+    loo, hio = base + LAY.S_LO * P, base + LAY.S_HI * P
+    if I[ib + LAY.I_STATUS] == RUNNING and I[ib + LAY.I_ACCEPTED]:
         # projected gradient (components pushing against an active bound removed)
         gmax = ti.cast(0, dt)
         for i in range(P):
@@ -671,14 +684,14 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
             if not ((x >= S[hio + i] and gi < 0) or (x <= S[loo + i] and gi > 0)):
                 gmax = ti.max(gmax, ti.abs(gi))
         if gmax <= gtol:
-            I[ib + 0] = CONVERGED
-            I[ib + 3] = R_GTOL
-    if I[ib + 0] == RUNNING:
+            I[ib + LAY.I_STATUS] = CONVERGED
+            I[ib + LAY.I_REASON] = R_GTOL
+    if I[ib + LAY.I_STATUS] == RUNNING:
         dmax = ti.cast(0, dt)
         for i in range(P):
             dmax = ti.max(dmax, W[A + i * P + i])
         dmax += 1
-        C = S[sc + 1]
+        C = S[sc + LAY.SC_C]
         ok = 0
         tries = 0
         while tries <= MAX_CHOL_TRIES:
@@ -708,10 +721,10 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
                 break
             C = ti.max(10 * C, ctiny * dmax)  # not PD: raise C tenfold and try again
             tries += 1
-        S[sc + 1] = C
+        S[sc + LAY.SC_C] = C
         if not ok:
-            I[ib + 0] = FAILED
-            I[ib + 3] = R_NOTPD
+            I[ib + LAY.I_STATUS] = FAILED
+            I[ib + LAY.I_REASON] = R_NOTPD
         else:
             # delta = (J^T J + C I)^-1 J^T r by substitution, in the xt slots
             for i in range(P):
@@ -738,10 +751,10 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
                 for j in range(P):
                     As += W[A + i * P + j] * (S[xo + j] - S[xto + j])
                 pr += 2 * si * S[go + i] - si * As
-            S[sc + 3] = pr
+            S[sc + LAY.SC_PRED] = pr
     # next points: the trial and its perturbed copies (eq. 24), or the accepted x when stopped
     src = xto
-    if I[ib + 0] != RUNNING:
+    if I[ib + LAY.I_STATUS] != RUNNING:
         src = xo
     _points(S, X, b, src, B, P, rel, dt)
 
@@ -751,7 +764,7 @@ def _points(S: ti.template(), X: ti.template(), b, src, B, P, rel, dt: ti.templa
     """Rows b*SX .. of X: the point S[src : src + P] and, when SX > 1, its perturbed copies
     (eq. 24); their denominators (over the stored, possibly rounded, points) into den."""
     base = b * _sb(P)
-    deno, loo, hio, ho = base + 3 * P, base + 4 * P, base + 5 * P, base + 6 * P
+    deno, loo, hio, ho = base + LAY.S_DEN * P, base + LAY.S_LO * P, base + LAY.S_HI * P, base + LAY.S_H * P
     SX = X.shape[0] // B
     for row in range(SX):
         for n in range(P):
@@ -775,14 +788,14 @@ def _points(S: ti.template(), X: ti.template(), b, src, B, P, rel, dt: ti.templa
 def _export(S: ti.template(), I: ti.template(), Out: ti.template(), b, P):
     """Out[b] = x, F, C, status, iterations, reason."""
     base = b * _sb(P)
-    ib = 8 + b * (4 + P)
+    ib = _ib(b, P)
     for n in range(P):
-        Out[b, n] = S[base + n]
-    Out[b, P] = S[base + 7 * P]
-    Out[b, P + 1] = S[base + 7 * P + 1]
-    Out[b, P + 2] = I[ib + 0]
-    Out[b, P + 3] = I[ib + 1]
-    Out[b, P + 4] = I[ib + 3]
+        Out[b, n] = S[base + LAY.S_X * P + n]
+    Out[b, P + LAY.O_F] = S[base + LAY.S_NVEC * P + LAY.SC_F]
+    Out[b, P + LAY.O_C] = S[base + LAY.S_NVEC * P + LAY.SC_C]
+    Out[b, P + LAY.O_STATUS] = I[ib + LAY.I_STATUS]
+    Out[b, P + LAY.O_ITER] = I[ib + LAY.I_ITER]
+    Out[b, P + LAY.O_REASON] = I[ib + LAY.I_REASON]
 
 
 @ti.kernel
@@ -791,38 +804,38 @@ def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
     first points to evaluate into X."""
     B, P = X0.shape[0], X0.shape[1]
     SB = _sb(P)
-    KB = 2 * P + 1
+    KB = LAY.K_NVEC * P + 1
     kh = B * KB
     kg = kh + P
     nk = K.shape[0] - kg  # globals and mask
     G = B * SB
     ti.loop_config(serialize=True)  # one task: B is small, the work is O(B P + M P)
     for b in range(B):
-        rel = K[kg + 3]
+        rel = K[kg + LAY.G_REL]
         if b == 0:
-            for t in range(8):
+            for t in range(LAY.NIGLOB):
                 I[t] = 0
-            I[1] = B
-            I[2] = ti.i32(nk > 8)
-            I[3] = P
+            I[LAY.IG_B] = B
+            I[LAY.IG_HAS_MASK] = ti.i32(nk > LAY.NGLOB)
+            I[LAY.IG_P] = P
             for t in range(nk):
                 S[G + t] = K[kg + t]
-        for t in range(4 + P):
-            I[8 + b * (4 + P) + t] = 0
+        for t in range(LAY.I_NFIX + P):
+            I[_ib(b, P) + t] = 0
         base = b * SB
         for n in range(P):
             x = ti.cast(X0[b, n], dt)
-            S[base + n] = x
-            S[base + P + n] = x
-            S[base + 2 * P + n] = ti.cast(0, dt)
-            S[base + 4 * P + n] = K[b * KB + n]
-            S[base + 5 * P + n] = K[b * KB + P + n]
-            S[base + 6 * P + n] = K[kh + n]
-        for k in range(8):
-            S[base + 7 * P + k] = ti.cast(0, dt)
-        S[base + 7 * P + 1] = K[b * KB + 2 * P]  # C
-        S[base + 7 * P + 2] = ti.cast(2, dt)  # nu
-        _points(S, X, b, base, B, P, rel, dt)
+            S[base + LAY.S_X * P + n] = x
+            S[base + LAY.S_XT * P + n] = x
+            S[base + LAY.S_G * P + n] = ti.cast(0, dt)
+            S[base + LAY.S_LO * P + n] = K[b * KB + LAY.K_LO * P + n]
+            S[base + LAY.S_HI * P + n] = K[b * KB + LAY.K_HI * P + n]
+            S[base + LAY.S_H * P + n] = K[kh + n]
+        for k in range(LAY.NSCAL):
+            S[base + LAY.S_NVEC * P + k] = ti.cast(0, dt)
+        S[base + LAY.S_NVEC * P + LAY.SC_C] = K[b * KB + LAY.K_NVEC * P]  # C
+        S[base + LAY.S_NVEC * P + LAY.SC_NU] = ti.cast(2, dt)  # nu
+        _points(S, X, b, base + LAY.S_X * P, B, P, rel, dt)
 
 
 @ti.kernel
@@ -843,13 +856,13 @@ def _update(
     """One solver iteration; ``Jg`` is the user's Jacobian when ``use_jac``, else unused (pass R).
     ``fused`` (central differences without a mask): J^T J and J^T r straight from the stacked
     residuals, J^T never stored (on taichi:cpu storing it cost as much as the products)."""
-    B, P, M = I[1], I[3], R.shape[1]
+    B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
     NPR = (P + 1) // 2  # row pairs
     if ti.static(_per_problem()):
         ti.loop_config(serialize=True)
         for b in range(B):  # every phase of problem b, in order
             if ti.static(not final):  # noqa: SIM102 - a compile-time branch
-                if I[8 + b * (4 + P)] == RUNNING:
+                if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
                     if ti.static(fused):
                         _phase_finite(S, I, R, b, dt)
                     else:
@@ -865,7 +878,7 @@ def _update(
         if ti.static(not final):
             for t in range(B * P):
                 b, n = t // P, t % P
-                if I[8 + b * (4 + P)] == RUNNING:
+                if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
                     _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
         ti.loop_config(serialize=True)
         for b in range(B):
@@ -933,7 +946,7 @@ def _download(arr):
 
 def solver_active(state) -> int:
     I = _download(state.I)
-    return int(np.count_nonzero(state.lay.iblock(I)[:, 0] == RUNNING))
+    return int(np.count_nonzero(state.lay.iblock(I)[:, LAY.I_STATUS] == RUNNING))
 
 
 def solver_result(state):

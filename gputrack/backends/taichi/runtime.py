@@ -4,6 +4,12 @@ Taichi can run one arch per process: ``ti.init`` for a second arch silently free
 and ndarray of the first. gputrack therefore initialises Taichi once, and asking for another
 arch while a Taichi device is open raises :class:`TaichiArchConflict`. Closing the open device
 (``Device.close()``) releases Taichi so that another arch can be started.
+
+The arrays of the running program come from a caching allocator (:data:`pool`,
+gputrack/pool.py): the memory of a garbage-collected array is kept, by dtype and shape, and
+handed to the next array of that dtype and shape instead of allocating (and first touching)
+new memory. Reuse is safe in Taichi's launch order: an array is given back only when nothing
+references it, and its next user's kernels and copies run after every kernel launched before.
 """
 
 from __future__ import annotations
@@ -15,14 +21,15 @@ import logging
 import os
 import sys
 import threading
-import weakref
+import math
 
 import numpy as np
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 import taichi as ti  # noqa: E402
 
-from ...device import TaichiArchConflict, per_device_cache  # noqa: E402
+from ...device import TaichiArchConflict, per_device  # noqa: E402
+from ...pool import BufferPool, limit_from_env  # noqa: E402
 
 log = logging.getLogger("gputrack")
 
@@ -34,6 +41,9 @@ _current: str | None = None
 direct_off: str | None = None
 _generation = 0  # Taichi programs started and stopped by gputrack so far
 _alive: dict = {}  # generation -> arrays of that program (from ndarray()) not yet freed
+#: freed arrays of the running program, (Taichi dtype, shape) -> Taichi's array object (not its Python
+#: wrapper); emptied when Taichi stops
+pool = BufferPool(limit_from_env())
 
 
 def cpu_threads() -> int:
@@ -124,10 +134,29 @@ def stop() -> None:
     """Release Taichi (every Taichi array becomes invalid)."""
     global _current, _generation
     with _lock:
+        empty_pool()
         _generation += 1  # arrays of the stopped program must not free memory of the next one
         if _current is not None:
             ti.reset()
             _current = None
+
+
+def _release(arrays) -> None:
+    """Free Taichi arrays of the running program (the pool's ``give``/``clear`` hand them back)."""
+    if arrays:
+        prog = ti.lang.impl.get_runtime().prog
+        if prog is not None:
+            for arr in arrays:
+                prog.delete_ndarray(arr)
+
+
+def empty_pool() -> None:
+    """Free every array the pool holds."""
+    _release(pool.clear())
+
+
+def set_pool_limit(limit: int) -> None:
+    _release(pool.set_limit(limit))
 
 
 def ndarray(dtype, shape):
@@ -143,11 +172,15 @@ def ndarray(dtype, shape):
     shape = tuple(int(s) for s in shape)
     if _fast_alloc:
         try:
-            prog = ti.lang.impl.get_runtime().prog
+            nbytes = math.prod(shape) * _ITEMSIZE[dtype]
             arr = _Array.__new__(_Array)
             _Ndarray.__init__(arr)
             arr.dtype = dtype
-            arr.arr = prog.create_ndarray(dtype, shape, layout=_Layout.NULL, zero_fill=False, dbg_info=_DebugInfo(""))
+            arr.arr = pool.take((dtype, shape), nbytes)
+            if arr.arr is None:
+                prog = ti.lang.impl.get_runtime().prog
+                arr.arr = prog.create_ndarray(dtype, shape, layout=_Layout.NULL, zero_fill=False, dbg_info=_DebugInfo(""))
+            arr._nbytes = nbytes
             arr._generation = _generation
             _alive[_generation] = _alive.get(_generation, 0) + 1
             arr.shape = tuple(arr.arr.shape)
@@ -159,22 +192,16 @@ def ndarray(dtype, shape):
     return ti.ndarray(dtype, shape)
 
 
-_scratch: weakref.WeakKeyDictionary = per_device_cache()  # device -> {name: {(shape, dtype): array}}
-_SCRATCH_SHAPES = 4  # shapes kept per name (an LM alternates two batch sizes of the same op)
-
-
 def scratch(device, name: str, shape, dtype):
-    """A scratch ndarray kept per device, ``name``, shape and dtype (up to ``_SCRATCH_SHAPES``
-    shapes per name, the oldest dropped first; all dropped with the device). Contents are undefined
+    """A scratch ndarray kept per device, ``name``, shape and dtype (the 64 most recently made,
+    all dropped with the device; a dropped one goes back to the pool). Contents are undefined
     between calls."""
-    key = (tuple(int(s) for s in shape), dtype)
-    per_name = _scratch.setdefault(device, {}).setdefault(name, {})
-    found = per_name.get(key)
-    if found is None:
-        if len(per_name) >= _SCRATCH_SHAPES:
-            del per_name[next(iter(per_name))]
-        found = per_name[key] = ndarray(dtype, key[0])
-    return found
+    return _scratch(device, name, tuple(int(s) for s in shape), dtype)
+
+
+@per_device(maxsize=64)
+def _scratch(device, name, shape, dtype):
+    return ndarray(dtype, shape)
 
 
 try:
@@ -187,8 +214,8 @@ try:
     _fast_alloc = True
 
     class _Array(_ScalarNdarray):
-        """A Taichi ndarray that frees its memory only in the Taichi program that allocated it.
-        (Taichi's own frees through the current program: an array that outlives a restart of
+        """A Taichi ndarray that gives its memory back to the pool (or frees it, past the pool's
+        limit) only in the Taichi program that allocated it. (Taichi's own frees through the current program: an array that outlives a restart of
         Taichi, e.g. one kept by a closed device's caches, would free an array of the next one.
         The program is told by gputrack's count of stopped programs, not by a reference to it,
         which would keep the stopped program alive into the next one's life.)"""
@@ -205,7 +232,8 @@ try:
             except (AttributeError, TypeError, KeyError):  # Taichi is being torn down
                 return
             if prog is not None and same:
-                prog.delete_ndarray(self.arr)
+                for arr in self._runtime.pool.give((self.dtype, self.shape), self.arr, getattr(self, "_nbytes", 0)):
+                    prog.delete_ndarray(arr)  # past the pool's limit
 except (ImportError, AttributeError):  # pragma: no cover - another Taichi version
     _fast_alloc = False
 
@@ -218,6 +246,7 @@ DTYPES = {
     "uint32": ti.u32,
     "uint8": ti.u8,
 }
+_ITEMSIZE = {t: np.dtype(name).itemsize for name, t in DTYPES.items()}
 _BY_DTYPE = {}
 
 

@@ -1,0 +1,108 @@
+"""What ops and their kernels agree on: status codes and packed layouts.
+
+The one source of every number that crosses the line between an op (gputrack/ops) and its
+kernels (gputrack/backends, kernels/*.cl): the per-track Kalman status, the LM status and stop
+reason, and the slots of the LM solver's packed arrays. The ops import these (and re-export
+:class:`KalmanStatus` and :class:`LMStatus`); the NumPy and Taichi backends read them as Python
+constants (Taichi folds them into the kernels at compile time); the OpenCL sources get them as
+``-D`` build defines from :func:`cl_defines` (``GT_KF_UPDATED``, ``GT_LM_S_DEN`` ...), which
+``gputrack.backends.opencl.program`` passes to every build: the ``.cl`` files hold no copy and
+refuse to build without them (``#error``).
+
+This module imports nothing of gputrack: it sits below ops and backends.
+"""
+
+from __future__ import annotations
+
+import enum
+
+__all__ = ["KalmanStatus", "LMLayout", "LMReason", "LMStatus", "cl_defines"]
+
+
+class KalmanStatus(enum.IntEnum):
+    """Per-track outcome of a Kalman update (the ``status`` array holds these values as uint8)."""
+
+    UPDATED = 0
+    SKIPPED = 1  # mask False, or a non-finite observation (treated as missing)
+    NOT_PD = 2  # innovation covariance not positive definite: track left unchanged
+    BAD_DEPTH = 3  # stereo EKF: predicted depth z <= 0: track left unchanged
+
+
+class LMStatus(enum.IntEnum):
+    """Per-problem outcome of :func:`gputrack.least_squares` (``RUNNING`` only appears internally)."""
+
+    RUNNING = 0
+    CONVERGED = 1
+    MAX_ITER = 2
+    FAILED = 3
+
+
+class LMReason(enum.IntEnum):
+    """Why an LM problem stopped (``LeastSquaresResult.reason``; the words: ``gputrack.ops.lm.REASONS``)."""
+
+    RUNNING = 0
+    FTOL = 1
+    XTOL = 2
+    GTOL = 3
+    MAX_ITER = 4
+    NONFINITE = 5
+    NOT_PD = 6
+    DAMPING = 7
+
+
+class LMLayout:
+    """Slots of the LM solver's packed arrays (``gputrack.ops.lm.Layout`` turns them into offsets
+    for a batch of B problems with P parameters and M residuals; its docstring describes each array).
+
+    S (solver dtype), per problem a block of ``S_NVEC * P + NSCAL`` values: the vectors of P values
+    at ``slot * P`` (S_X accepted point, S_XT trial point, S_G = J^T r, S_DEN finite-difference
+    denominators, S_LO / S_HI bounds, S_H absolute steps), then the scalars at ``S_NVEC * P + slot``
+    (SC_F cost, SC_C damping, SC_NU damping growth, SC_PRED predicted reduction, SC_FT trial cost,
+    SC_SNORM step norm). After the B blocks the NGLOB globals (G_FTOL ... G_CMAX), then the Jacobian
+    mask (M * P) when there is one.
+
+    K (solver dtype, uploaded): per problem ``K_NVEC * P + 1`` values: lo[P] (K_LO), hi[P] (K_HI),
+    then the initial damping at ``K_NVEC * P``; then h[P]; then the NGLOB globals; then the mask.
+
+    W (solver dtype), per problem ``W_NSQ * P * P + P * M`` values: J^T J (W_A) and its Cholesky
+    factor (W_L) at ``slot * P * P``, then J^T (P rows of M) at ``W_NSQ * P * P``.
+
+    I (int32): NIGLOB globals (IG_B batch size, IG_HAS_MASK, IG_P), then per problem ``I_NFIX + P``
+    values: I_STATUS (LMStatus), I_ITER, I_ACCEPTED, I_REASON (LMReason), then P finite flags at I_FIN.
+
+    Out (solver dtype), per problem ``P + O_N`` values: x[P], then O_F, O_C, O_STATUS, O_ITER, O_REASON
+    at ``P + slot``.
+    """
+
+    S_X, S_XT, S_G, S_DEN, S_LO, S_HI, S_H = range(7)
+    S_NVEC = 7
+    SC_F, SC_C, SC_NU, SC_PRED, SC_FT, SC_SNORM = range(6)
+    NSCAL = 8
+    G_FTOL, G_XTOL, G_GTOL, G_REL, G_CTINY, G_CMAX = range(6)
+    NGLOB = 8
+    K_LO, K_HI = range(2)
+    K_NVEC = 2
+    W_A, W_L = range(2)
+    W_NSQ = 2
+    IG_B, IG_HAS_MASK, IG_P = 1, 2, 3
+    NIGLOB = 8
+    I_STATUS, I_ITER, I_ACCEPTED, I_REASON = range(4)
+    I_FIN = 4
+    I_NFIX = 4
+    O_F, O_C, O_STATUS, O_ITER, O_REASON = range(5)
+    O_N = 5
+
+
+def _layout_slots() -> dict[str, int]:
+    return {k: v for k, v in vars(LMLayout).items() if k.isupper() and isinstance(v, int)}
+
+
+def cl_defines() -> dict[str, int]:
+    """Every code and slot as an OpenCL build define: ``GT_KF_<status>``, ``GT_LM_<status>``,
+    ``GT_LM_R_<reason>``, ``GT_LM_<slot>``, and ``GT_ABI = 1`` (the sources check it)."""
+    out = {"GT_ABI": 1}
+    out.update({f"GT_KF_{s.name}": int(s) for s in KalmanStatus})
+    out.update({f"GT_LM_{s.name}": int(s) for s in LMStatus})
+    out.update({f"GT_LM_R_{r.name}": int(r) for r in LMReason})
+    out.update({f"GT_LM_{k}": v for k, v in _layout_slots().items()})
+    return out
