@@ -20,7 +20,7 @@ def format_devices(infos) -> str:
 
 
 def cmd_devices(args) -> int:
-    from .device import devices
+    from .registry import devices
 
     infos = devices()
     if args.json:
@@ -56,7 +56,7 @@ def cmd_bench(args) -> int:
 
 def cmd_demo(args) -> int:
     from .demos import body
-    from .device import device
+    from .registry import device
 
     dev = device(args.device)
     report = body.run(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
@@ -91,7 +91,7 @@ def format_trials(tunable, size, trials, best, default) -> str:
 
 def cmd_tune(args) -> int:
     from . import tuning
-    from .device import device
+    from .registry import device
 
     if args.min_time <= 0:
         print(f"gputrack tune: --min-time: expected seconds > 0, got {args.min_time}", file=sys.stderr)

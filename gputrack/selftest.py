@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from .device import Device, to_numpy
-from .device import device as get_device
+from .registry import device as get_device
 from .sim import problems
 
 

@@ -11,7 +11,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from gputrack.benchmark import bench_main
+from gputrack.benchmarks.harness import bench_main
 from gputrack.benchmarks import alloc
 
 

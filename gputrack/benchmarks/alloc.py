@@ -23,7 +23,9 @@ import sys
 
 import numpy as np
 
-from ..benchmark import Case, bench_main
+from ..registry import device as get_device
+from ..sim.problems import kalman_tracks, pf_scene
+from .harness import Case, bench_main
 
 NAME = "alloc"
 
@@ -50,9 +52,8 @@ def rss_bytes() -> int:
 def _kalman(device, T, rng):
     """(fresh, out) callables: kf_predict then kf_update of T tracks."""
     from ..ops.kalman import kf_predict, kf_update, shared_matrix
-    from .kalman import _problem
 
-    F, Q, H, R, x0, P0, z, _det = _problem(T, rng)
+    F, Q, H, R, x0, P0, z, _det = kalman_tracks(T, rng)
     Fs, Qs, Hs, Rs = (shared_matrix(device, a) for a in (F, Q, H, R))
     x, P, zd = device.asarray(x0), device.asarray(P0), device.asarray(z)
     xp, Pp = device.asarray(x0), device.asarray(P0)
@@ -72,7 +73,6 @@ def _kalman(device, T, rng):
 def _rgbd(device, B, rng):
     """(fresh, out) callables: rgbd_cost of B hypotheses."""
     from ..ops.template import rgbd_cost
-    from .template import pf_scene
 
     tf, rgb, dep, gray, depth, cam = pf_scene(rng, B)
     d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
@@ -114,9 +114,7 @@ def memory_check(device, calls: int, fns, checkpoints: int = 10) -> dict:
 
 
 def cases(device, args):
-    import gputrack
-
-    ref = gputrack.device("numpy")
+    ref = get_device("numpy")
     T, B = int(args.tracks), int(args.batch)
     rng = np.random.default_rng(0)
     kf_fresh, kf_out = _kalman(device, T, rng)

@@ -20,7 +20,7 @@ def add_arguments(parser):
 
 
 def cases(device, args):
-    from ..device import device as get_device
+    from ..registry import device as get_device
     from ..sim import sequence
     from ..trackers.body import BodyTracker, BodyTrackerConfig
     from ..trackers.body.template import sparse_template

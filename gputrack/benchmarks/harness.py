@@ -183,7 +183,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def _child(name: str, cases_fn, spec: str, args) -> dict:
-    from ..device import device
+    from ..registry import device
 
     dev = device(spec)
     cases = cases_fn(dev, args)
@@ -197,7 +197,7 @@ def bench_main(module, argv=None) -> int:
     Each device runs in a subprocess (``python -m <module> --child SPEC``), which times the
     device and the NumPy reference in the same process, so ratios compare like with like.
     """
-    from ..device import devices
+    from ..registry import devices
 
     name, cases_fn = module.NAME, module.cases
     add_arguments = getattr(module, "add_arguments", None)

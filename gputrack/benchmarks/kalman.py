@@ -72,7 +72,7 @@ def _stereo_textbook(x, P, F, Q, z, R, f, b):
 
 
 def cases(device, args):
-    from ..device import device as get_device
+    from ..registry import device as get_device
     from ..ops.kalman import ekf_update_stereo, kf_update, mahalanobis, shared_matrix
 
     ref = get_device("numpy")

@@ -56,7 +56,7 @@ def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
 
 
 def cases(device, args):
-    from ..device import device as get_device
+    from ..registry import device as get_device
     from ..ops import lm
     from ..ops.lm import Layout, _constants, least_squares
 

@@ -216,11 +216,13 @@ class OpenCLDevice(Device):
 
     def _upload(self, host: np.ndarray):
         arr = self._empty(host.shape, host.dtype)
-        arr.set(host, queue=self.queue)
+        if host.size:  # nothing to copy (and NumPy gives an empty array strides PyOpenCL would refuse)
+            arr.set(host, queue=self.queue)
         return arr
 
     def _upload_into(self, buffer, host: np.ndarray) -> None:
-        buffer.set(host, queue=self.queue)
+        if host.size:
+            buffer.set(host, queue=self.queue)
 
     def _empty(self, shape, dtype):
         """A C-contiguous array (``shape``: a tuple of ints, ``dtype``: a NumPy dtype), made with
