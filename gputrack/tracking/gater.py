@@ -1,0 +1,170 @@
+"""The gater role: which (track, detection) pairs may be associated, and at what cost.
+
+A gater returns a :class:`Gated`: the sparse gated cost graph of one frame on the host, edges
+``rows`` (slots) x ``cols`` (detections) with their ``cost``. Two gaters:
+
+- :class:`MahalanobisGater`: squared Mahalanobis distances of every track to every detection on
+  the device (paper 001 eq. 8) with :func:`gputrack.ops.gating.gate_pairs`, gated by a
+  chi-square quantile; only the gated pairs come back to the host.
+- :class:`CostGater`: a cost matrix of the caller's choice (a function of the table and the
+  detections), gated by a threshold.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+
+import numpy as np
+from scipy.stats import chi2
+
+from ..device import DeviceArray
+from ..ops.gating import gate_pairs
+from ._staging import Staging
+from .table import TrackStatus, TrackTable
+
+__all__ = ["CostGater", "Gated", "Gater", "MahalanobisGater"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Gated:
+    """The gated pairs of one frame (host arrays), E edges.
+
+    - ``rows`` (E,) int64: slots of the table; ``cols`` (E,) int64: detection indices;
+    - ``cost`` (E,) float64: the pair's cost (smaller is better), below ``threshold``;
+    - ``trace`` (C,) or None: trace(H P H^T) of each slot's predicted covariance (its position
+      variance in measurement space), where the gater computes it (read by
+      :class:`gputrack.tracking.CovarianceDeleter`);
+    - ``n_slots`` C, ``n_detections`` D, ``threshold``: the gate.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    cost: np.ndarray
+    trace: np.ndarray | None
+    n_slots: int
+    n_detections: int
+    threshold: float
+
+
+class Gater(abc.ABC):
+    """Gates the tracks of a table against the detections of a frame."""
+
+    @abc.abstractmethod
+    def gate(self, table: TrackTable, z: np.ndarray) -> Gated:
+        """z (D,m) host detections (finite) -> the gated pairs (only occupied slots)."""
+
+
+def _host(a) -> np.ndarray:
+    return a.numpy() if isinstance(a, DeviceArray) else np.asarray(a)
+
+
+class MahalanobisGater(Gater):
+    """Mahalanobis gating on the device: pair (t, d) is gated when
+    d2 = (z_d - H x_t)^T S_t^-1 (z_d - H x_t) < threshold, S_t = H P_t H^T + R (paper 001 eq. 8).
+
+    H (m,n), R (m,m) host matrices. ``threshold`` defaults to the chi-square quantile of
+    ``probability`` with m degrees of freedom (a true detection falls inside its track's gate
+    with that probability). One launch per frame: the detections are sorted by their first
+    coordinate on the host (so that the kernel sweeps only a strip per track, exact; see
+    :mod:`gputrack.ops.gating`) and uploaded, and per slot at most ``max_pairs`` gated
+    detections, their count, distances and trace(H P H^T) come back. A frame in which some track
+    gates more than ``max_pairs`` detections is gated again with ``max_pairs`` raised to the
+    next power of two above the largest count (kept for later frames), so no pair is lost.
+    """
+
+    def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 8):
+        H = np.asarray(H, dtype=np.float64)
+        R = np.asarray(R, dtype=np.float64)
+        if H.ndim != 2:
+            raise ValueError(f"H: expected an (m, n) matrix, got shape {H.shape}")
+        if R.shape != (H.shape[0], H.shape[0]):
+            raise ValueError(f"R: expected shape ({H.shape[0]}, {H.shape[0]}), got {R.shape}")
+        if not (np.isfinite(H).all() and np.isfinite(R).all()):
+            raise ValueError("H, R: expected finite values")
+        if threshold is None:
+            if not 0.0 < probability < 1.0:
+                raise ValueError(f"probability: expected a value in (0, 1), got {probability!r}")
+            threshold = float(chi2.ppf(probability, H.shape[0]))
+        threshold = float(threshold)
+        if not (np.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"threshold: expected a positive finite number, got {threshold!r}")
+        if isinstance(max_pairs, bool) or not isinstance(max_pairs, (int, np.integer)) or max_pairs < 1:
+            raise ValueError(f"max_pairs: expected a positive integer, got {max_pairs!r}")
+        self.H, self.R, self.threshold, self.max_pairs = H, R, threshold, int(max_pairs)
+        self._staging: dict = {}
+        self._outs: dict = {}
+
+    @property
+    def m(self) -> int:
+        return self.H.shape[0]
+
+    def _outputs(self, table, K):
+        """The gate's output arrays, reused while the capacity and K stay the same."""
+        dev, C = table.device, table.capacity
+        key = (dev, table.dtype)
+        found = self._outs.get(key)
+        if found is None or found[1].shape != (C, K):
+            found = self._outs[key] = (dev.empty((C,), np.int32), dev.empty((C, K), np.int32),
+                                       dev.empty((C, K), table.dtype), dev.empty((C,), table.dtype))  # fmt: skip
+        return found
+
+    def gate(self, table: TrackTable, z: np.ndarray) -> Gated:
+        if table.n != self.H.shape[1]:
+            raise ValueError(f"table: expected state size n={self.H.shape[1]} (H's columns), got n={table.n}")
+        dev = table.device
+        st = self._staging.get(dev)
+        if st is None:
+            st = self._staging[dev] = Staging(dev)
+        D = len(z)
+        order = np.argsort(z[:, 0], kind="stable")
+        zs = z[order].astype(table.dtype, copy=False)
+        zd = st.put("z", zs) if D else zs
+        H, R = st.matrix(f"H{table.dtype}", self.H.astype(table.dtype)), st.matrix(f"R{table.dtype}", self.R.astype(table.dtype))
+        active = table.sync_active()
+        K = self.max_pairs
+        g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True,
+                       out=self._outputs(table, K))  # fmt: skip
+        count = _host(g.count)
+        most = int(count.max(initial=0))
+        if most > K:  # some track gates more than K detections: gate again with room for all
+            K = self.max_pairs = 1 << (most - 1).bit_length()
+            g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True,
+                           out=self._outputs(table, K))  # fmt: skip
+            count = _host(g.count)
+        trace = _host(g.trace)
+        if most == 0:
+            empty = np.zeros(0, np.int64)
+            return Gated(empty, empty, np.zeros(0), trace, table.capacity, D, self.threshold)
+        det, d2 = _host(g.det), _host(g.d2)
+        rows, k = np.nonzero(np.arange(K)[None, :] < count[:, None])
+        return Gated(rows.astype(np.int64), order[det[rows, k]].astype(np.int64), d2[rows, k].astype(np.float64),
+                     trace, table.capacity, D, self.threshold)  # fmt: skip
+
+
+class CostGater(Gater):
+    """A cost matrix of the caller's choice: ``cost(table, z)`` returns a (C, D) array (NumPy
+    or a DeviceArray of the table's device, downloaded) of pair costs, smaller is better; a
+    pair of an occupied slot is gated when its cost is finite and < ``threshold``. Reports no
+    ``trace`` (a covariance deleter needs :class:`MahalanobisGater`)."""
+
+    def __init__(self, cost, threshold: float):
+        if not callable(cost):
+            raise TypeError(f"cost: expected a function (table, z) -> (C, D) array, got {type(cost).__name__}")
+        threshold = float(threshold)
+        if not np.isfinite(threshold):
+            raise ValueError(f"threshold: expected a finite number, got {threshold!r}")
+        self.cost, self.threshold = cost, threshold
+
+    def gate(self, table: TrackTable, z: np.ndarray) -> Gated:
+        C, D = table.capacity, len(z)
+        c = _host(self.cost(table, z))
+        if c.shape != (C, D):
+            raise ValueError(f"cost: expected a (C={C}, D={D}) matrix (slots x detections), got shape {c.shape}")
+        if c.dtype.kind not in "iuf":
+            raise TypeError(f"cost: expected a real matrix, got dtype {c.dtype.name}")
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(c) & (c < self.threshold) & (table.status != TrackStatus.FREE)[:, None]
+        rows, cols = np.nonzero(ok)
+        return Gated(rows.astype(np.int64), cols.astype(np.int64), c[rows, cols].astype(np.float64), None, C, D,
+                     self.threshold)  # fmt: skip

@@ -1,0 +1,166 @@
+"""A multi-target tracker as a short composition of the roles, all tracks in one TrackTable.
+
+One frame (:meth:`MultiTargetTracker.step`) is five stages, each a role call that works on all
+tracks at once:
+
+====================  ======================================================  ===========
+stage                 what                                                    where
+====================  ======================================================  ===========
+predict               every slot, one launch (Predictor)                      device
+gate                  tracks x detections, one launch; the gated pairs        device -> host
+                      come back (Gater)
+assign                one detection per track from the gated pairs            host
+                      (Associator)
+update                every assigned slot, one launch (Updater)               host -> device
+start/end             lifecycle bookkeeping on the host mirror, M-of-N        host (+ one
+                      confirmation, deletions (Deleter), new tracks written   scatter per
+                      into free slots (Initiator)                             array)
+====================  ======================================================  ===========
+
+As in Stone Soup's ``MultiTargetTracker`` (associate, update, delete, initiate), but no Python
+object per track: states stay on the device; the host holds the lifecycle mirror of the table
+(ids, status, hits, misses, age), computed from the assignment it already has.
+
+Per steady-state frame the host uploads the sorted detections (D m values), the per-slot
+detection rows (C m), the occupied-slot flags when they changed (C bytes) and the new tracks
+(index, x0, P0), and downloads the gate's pairs (C (2 + 2 K) values). States come to the host
+only through :meth:`MultiTargetTracker.tracks`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..device import Device, DeviceArray
+from .associator import Associator, GNNAssociator
+from .deleter import AnyDeleter, CovarianceDeleter, Deleter, MissDeleter
+from .gater import Gater, MahalanobisGater
+from .initiator import Initiator, MofNInitiator
+from .predictor import KalmanPredictor, Predictor
+from .table import TrackStatus, TrackTable, Tracks
+from .updater import KalmanUpdater, Updater
+
+__all__ = ["MultiTargetTracker", "TrackingFrame"]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingFrame:
+    """What one :meth:`MultiTargetTracker.step` did (host arrays).
+
+    - ``det_ids`` (D,) int64: the id of the track each detection updated or started (-1: none,
+      i.e. a birth dropped because the table was full); a track may have ended in the same frame;
+    - ``started``, ``confirmed``, ``deleted`` (k,) int64: ids started, confirmed, ended;
+    - ``dropped``: detections that could not start a track (table at ``max_capacity``).
+    """
+
+    det_ids: np.ndarray
+    started: np.ndarray
+    confirmed: np.ndarray
+    deleted: np.ndarray
+    dropped: int
+
+
+class MultiTargetTracker:
+    """Predictor, gater, associator, updater, initiator and deleter composed over one TrackTable.
+
+    Every role is replaceable (any object of the role's base class). ``table``: the TrackTable
+    to use (default: a new one for the predictor's state size with ``capacity``,
+    ``max_capacity`` and ``dtype``). :meth:`constant_velocity` builds the usual configuration.
+    """
+
+    def __init__(self, device: Device, *, predictor: Predictor, gater: Gater, associator: Associator,
+                 updater: Updater, initiator: Initiator, deleter: Deleter, m: int, table: TrackTable | None = None,
+                 capacity: int = 1024, max_capacity: int = 1 << 20, dtype=np.float32):  # fmt: skip
+        for name, role, base in (("predictor", predictor, Predictor), ("gater", gater, Gater),
+                                 ("associator", associator, Associator), ("updater", updater, Updater),
+                                 ("initiator", initiator, Initiator), ("deleter", deleter, Deleter)):  # fmt: skip
+            if not isinstance(role, base):
+                raise TypeError(f"{name}: expected a gputrack.tracking.{base.__name__}, got {type(role).__name__}")
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
+            raise ValueError(f"m: expected the detection size, a positive integer, got {m!r}")
+        if table is None:
+            n = getattr(predictor, "n", None)
+            if n is None:
+                raise ValueError("table: expected a TrackTable when the predictor does not say its state size (n)")
+            table = TrackTable(device, n, capacity=capacity, max_capacity=max_capacity, dtype=dtype)
+        elif table.device is not device:
+            raise ValueError(f"table: expected a TrackTable on {device.spec}, got one on {table.device.spec}")
+        self.device, self.table, self.m = device, table, int(m)
+        self.predictor, self.gater, self.associator = predictor, gater, associator
+        self.updater, self.initiator, self.deleter = updater, initiator, deleter
+
+    @classmethod
+    def constant_velocity(cls, device: Device, *, dim: int = 2, dt: float = 1.0, q=1.0, R=1.0,
+                          gate_probability: float = 0.999, m_of_n=(2, 3), max_misses: int = 3,
+                          max_trace: float | None = None, velocity_var: float = 1.0, **table) -> "MultiTargetTracker":  # fmt: skip
+        """Constant-velocity tracks (state [x xdot y ydot ...], ``dim`` axes, acceleration
+        variance ``q``) from position detections with noise covariance ``R`` (a variance or a
+        (dim, dim) matrix): Kalman predictor and updater, Mahalanobis gate at
+        ``gate_probability``, GNN association, M-of-N start, deletion after more than
+        ``max_misses`` misses (and, with ``max_trace``, on covariance growth). ``table``:
+        capacity, max_capacity, dtype."""
+        predictor = KalmanPredictor.constant_velocity(dim, dt, q)
+        H = np.zeros((dim, 2 * dim))
+        H[np.arange(dim), 2 * np.arange(dim)] = 1.0
+        R = np.asarray(R, dtype=np.float64)
+        R = R * np.eye(dim) if R.ndim == 0 else R
+        deleter = MissDeleter(max_misses)
+        if max_trace is not None:
+            deleter = AnyDeleter(deleter, CovarianceDeleter(max_trace))
+        return cls(device, predictor=predictor, gater=MahalanobisGater(H, R, probability=gate_probability),
+                   associator=GNNAssociator(), updater=KalmanUpdater(H, R),
+                   initiator=MofNInitiator(H, R, m_of_n=m_of_n, velocity_var=velocity_var), deleter=deleter, m=dim,
+                   **table)  # fmt: skip
+
+    # -- one frame -----------------------------------------------------------------------------
+    def step(self, detections, *, gain_scale=None) -> TrackingFrame:
+        """Track one frame of detections (D, m) (host, finite; D = 0 is a frame without any).
+        ``gain_scale`` (D,) >= 0 scales each detection's Kalman gain (paper 002), or None."""
+        z, gain = self._inputs(detections, gain_scale)
+        self.predictor.predict(self.table)  # predict (device)
+        gated = self.gater.gate(self.table, z)  # gate (device; the gated pairs to the host)
+        assignment = self.associator.associate(gated)  # assign (host)
+        self.updater.update(self.table, z, assignment, gain)  # update (device)
+        return self._start_end(z, assignment, gated)  # start/end (host mirror; new tracks to the device)
+
+    def _start_end(self, z, assignment, gated) -> TrackingFrame:
+        table = self.table
+        table.record(assignment.track_det >= 0)
+        confirm, reject = self.initiator.review(table)
+        confirmed = table.confirm(confirm)
+        det_ids = np.where(assignment.det_track >= 0, table.ids[np.maximum(assignment.det_track, 0)], -1)
+        deleted = table.remove(np.union1d(reject, self.deleter.delete(table, assignment, gated)))
+        _, started, dets, dropped = self.initiator.initiate(table, z, assignment)
+        det_ids[dets] = started
+        return TrackingFrame(det_ids, started, confirmed, deleted, int(dropped))
+
+    def _inputs(self, detections, gain_scale):
+        if isinstance(detections, DeviceArray):
+            raise TypeError("detections: expected host (NumPy) detections (D, m), got a DeviceArray")
+        z = np.asarray(detections)
+        if z.dtype.kind not in "iuf":
+            raise TypeError(f"detections: expected real values, got dtype {z.dtype.name}")
+        if z.size == 0 and z.ndim <= 2:
+            z = z.reshape(0, self.m)
+        if z.ndim != 2 or z.shape[1] != self.m:
+            raise ValueError(f"detections: expected shape (D, m={self.m}), got {z.shape}")
+        if not np.isfinite(z).all():
+            bad = np.argwhere(~np.isfinite(z))[0]
+            raise ValueError(f"detections: expected finite values, got {z[tuple(bad)]} at index "
+                             f"{tuple(int(i) for i in bad)} (drop or fill such rows first)")  # fmt: skip
+        z = z.astype(self.table.dtype, copy=False)
+        if gain_scale is None:
+            return z, None
+        g = np.asarray(gain_scale, dtype=np.float64)
+        if g.shape != (len(z),):
+            raise ValueError(f"gain_scale: expected shape ({len(z)},) (one per detection), got {g.shape}")
+        if not (np.isfinite(g).all() and (g >= 0).all()):
+            raise ValueError("gain_scale: expected finite values >= 0")
+        return z, g
+
+    # -- reading -------------------------------------------------------------------------------
+    def tracks(self, *, covariance: bool = False, confirmed_only: bool = False) -> Tracks:
+        """The tracks, downloaded (see :meth:`TrackTable.tracks`)."""
+        return self.table.tracks(covariance=covariance, status=TrackStatus.CONFIRMED if confirmed_only else None)
