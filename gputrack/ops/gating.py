@@ -39,6 +39,7 @@ T = 0 or D = 0 returns counts of 0 (and the traces).
 
 from __future__ import annotations
 
+import numbers
 from typing import NamedTuple
 
 import numpy as np
@@ -79,25 +80,23 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
     if not 1 <= dims["n"] <= MAX_N:
         raise ValueError(f"x: expected a state size n between 1 and {MAX_N}, got n={dims['n']}")
     P = arg(device, P, "P", ("T", "n", "n"), dims, dtype=dt, cast=True)
-    if not isinstance(z, DeviceArray) and np.asarray(z).ndim == 2 and np.asarray(z).shape[0] == 0:
-        dims["D"] = 0  # an empty frame: any m is accepted below, checked against H
+    z_host = None if isinstance(z, DeviceArray) else np.asarray(z)
     z = arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
     if not 1 <= dims["m"] <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
     H = _shared(device, H, "H", ("m", "n"), dims, dt)
     R = _shared(device, R, "R", ("m", "m"), dims, dt)
-    try:
-        thr = float(threshold)
-    except (TypeError, ValueError):
-        raise TypeError(f"threshold: expected a real number, got {type(threshold).__name__}") from None
+    if isinstance(threshold, bool) or not isinstance(threshold, (numbers.Real, np.floating, np.integer)):
+        raise TypeError(f"threshold: expected a real number, got {type(threshold).__name__}")
+    thr = float(threshold)
     if not (np.isfinite(thr) and thr > 0):
         raise ValueError(f"threshold: expected a positive finite number, got {threshold!r}")
     if active is not None:
         if not isinstance(active, DeviceArray) and np.asarray(active).dtype == np.bool_:
             active = np.asarray(active).astype(np.uint8)
         active = arg(device, active, "active", ("T",), dims, dtype=np.uint8)
-    if sorted_z and not isinstance(z, DeviceArray) and dims["D"] > 1:
-        col = np.asarray(z)[:, 0]
+    if sorted_z and z_host is not None and dims["D"] > 1:
+        col = z_host[:, 0]
         if (np.diff(col) < 0).any():
             i = int(np.argmax(np.diff(col) < 0))
             raise ValueError(f"z: expected rows sorted by z[:, 0] (sorted_z=True), got z[{i + 1}, 0] < z[{i}, 0]")
