@@ -31,6 +31,16 @@ def test_scatter_rows_matches_numpy(device, shape, dtype):
     np.testing.assert_array_equal(gputrack.to_numpy(dst), want)
 
 
+def test_scatter_rows_one_row_for_every_index(device):
+    base = np.zeros((6, 3, 3), np.float32)
+    one = np.arange(9, dtype=np.float32).reshape(1, 3, 3)
+    dst = _dev(device, base)
+    scatter_rows(device, dst, [4, 0, 2], one)
+    want = base.copy()
+    want[[4, 0, 2]] = one
+    np.testing.assert_array_equal(gputrack.to_numpy(dst), want)
+
+
 def test_scatter_rows_empty_and_bad_input(device):
     dst = _dev(device, np.zeros((4, 2), np.float32))
     assert scatter_rows(device, dst, np.zeros(0, np.int32), np.zeros((0, 2), np.float32)) is dst
@@ -40,8 +50,10 @@ def test_scatter_rows_empty_and_bad_input(device):
         scatter_rows(device, dst, [1, 1], np.zeros((2, 2), np.float32))
     with pytest.raises(TypeError, match="index: expected integer row indices"):
         scatter_rows(device, dst, [1.0], np.zeros((1, 2), np.float32))
-    with pytest.raises(ValueError, match=r"src: expected shape \(K=1, 2\), got \(1, 3\)"):
+    with pytest.raises(ValueError, match=r"src: expected shape \(1, 2\), got \(1, 3\)"):
         scatter_rows(device, dst, [1], np.zeros((1, 3), np.float32))
+    with pytest.raises(ValueError, match=r"src: expected shape \(K=2, 2\), got \(3, 2\)"):
+        scatter_rows(device, dst, [1, 2], np.zeros((3, 2), np.float32))
     with pytest.raises(TypeError, match="src: expected dtype float32, got float64"):
         scatter_rows(device, dst, [1], np.zeros((1, 2), np.float64))
     with pytest.raises(ValueError, match="src: expected finite values"):

@@ -350,7 +350,7 @@ def test_mofn_confirms_and_rejects(device):
     assert table.status.tolist() == [TrackStatus.CONFIRMED, 0, 0, 0]
     x0, P0 = init.start_state(np.array([[4.0]]))
     np.testing.assert_allclose(x0, [[4.0, 0.0]])
-    np.testing.assert_allclose(P0, [[[1.0, 0.0], [0.0, 1.0]]])
+    np.testing.assert_allclose(P0, [[1.0, 0.0], [0.0, 1.0]])
 
 
 def test_deleters(device):

@@ -6,8 +6,9 @@ old rows, without a round trip through the host per track::
 
     scatter_rows(device, dst, index, src)      # dst[index[k]] = src[k], k = 0 .. K-1
 
-Shapes: ``dst`` (C, *row), ``index`` (K,) int32 with distinct values in [0, C), ``src``
-(K, *row) of ``dst``'s dtype. ``dst`` is written in place and returned; rows not named by
+Shapes: ``dst`` (C, *row) (rank 1 to 3), ``index`` (K,) int32 with distinct values in [0, C),
+``src`` (K, *row) of ``dst``'s dtype, or (1, *row): that one row written at every index (e.g.
+the same initial covariance for every new track, uploaded once). ``dst`` is written in place and returned; rows not named by
 ``index`` are left as they are. Every dtype a DeviceArray holds is copied bit for bit (the
 OpenCL kernel moves 4-byte words when a row's size allows, else bytes).
 
@@ -58,8 +59,11 @@ def scatter_rows(device, dst, index, src):
         if np.unique(h).size != h.size:
             raise ValueError("index: expected distinct row indices (two rows written to one slot), got duplicates")
         index = h.astype(np.int32, copy=False)
+    if dst.ndim > 3:
+        raise ValueError(f"dst: expected an array of rank 1 to 3 (C, *row), got shape {tuple(dst.shape)}")
     index = arg(device, index, "index", ("K",), dims, dtype=np.int32)
-    src = arg(device, src, "src", ("K", *dst.shape[1:]), dims, dtype=dst.dtype)
+    rows = 1 if tuple(getattr(src, "shape", np.shape(src)))[:1] == (1,) else "K"  # one row for every index
+    src = arg(device, src, "src", (rows, *dst.shape[1:]), dims, dtype=dst.dtype)
     if dims["K"] == 0:
         return dst
     backend_module(device, "rows").scatter_rows(device, dst, index, src)

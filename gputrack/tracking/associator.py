@@ -31,7 +31,7 @@ import dataclasses
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .gater import Gated
@@ -84,49 +84,76 @@ class GNNAssociator(Associator):
         miss = gated.threshold if self.miss_cost is None else self.miss_cost
         worth = gated.cost < miss  # a pair costing at least a miss is never better than the miss
         rows, cols, cost = gated.rows[worth], gated.cols[worth], gated.cost[worth]
+        self.last_components = (0, 0)
         if rows.size == 0:
-            self.last_components = (0, 0)
             return Assignment.from_pairs([], [], C, D)
         tracks, ri = np.unique(rows, return_inverse=True)  # graph nodes: tracks 0..nr-1, detections nr..
         dets, ci = np.unique(cols, return_inverse=True)
         nr, nc = len(tracks), len(dets)
-        graph = coo_matrix((np.ones(rows.size, np.int8), (ri, nr + ci)), shape=(nr + nc, nr + nc))
-        ncomp, label = connected_components(graph, directed=False)
+        # A component has one track iff each detection of that track has no other track, and one
+        # detection iff each track of that detection has no other detection: found from the
+        # degrees, without a graph search.
+        deg_t, deg_d = np.bincount(ri, minlength=nr), np.bincount(ci, minlength=nc)
+        solo_t = np.zeros(nr, bool)  # track whose detections are all its own
+        solo_t[ri] = True
+        solo_t[ri[deg_d[ci] > 1]] = False
+        solo_d = np.zeros(nc, bool)  # detection whose tracks are all its own
+        solo_d[ci] = True
+        solo_d[ci[deg_t[ri] > 1]] = False
+        one_track, one_det = solo_t[ri], solo_d[ci]
+        star = one_track | one_det
+        # those components: the cheapest pair of each, all at once
+        e = np.flatnonzero(star)
+        key = np.where(one_track[e], ri[e], nr + ci[e])  # the component's single track or detection
+        e = e[np.lexsort((cols[e], rows[e], cost[e], key))]
+        key = np.where(one_track[e], ri[e], nr + ci[e])
+        first = e[np.r_[True, key[1:] != key[:-1]]] if e.size else e
+        slots, chosen = [rows[first]], [cols[first]]
+        general = self._general(np.flatnonzero(~star), rows, cols, cost, miss, slots, chosen)
+        self.last_components = (len(first), general)
+        return Assignment.from_pairs(np.concatenate(slots), np.concatenate(chosen), C, D)
+
+    @staticmethod
+    def _general(g, rows, cols, cost, miss, slots, chosen) -> int:
+        """Components with several tracks and several detections (edges g): their connected
+        components, then one linear_sum_assignment per component on r x (c + r); components of
+        one shape are laid out together. Appends the matched pairs; returns the component count."""
+        if g.size == 0:
+            return 0
+        tracks, ri = np.unique(rows[g], return_inverse=True)
+        dets, ci = np.unique(cols[g], return_inverse=True)
+        nr, nc = len(tracks), len(dets)
+        order = np.argsort(ri, kind="stable")  # edges track -> detection, as CSR rows of the track nodes
+        indptr = np.zeros(nr + nc + 1, np.int32)
+        indptr[1 : nr + 1] = np.cumsum(np.bincount(ri, minlength=nr))
+        indptr[nr + 1 :] = indptr[nr]
+        graph = csr_matrix((np.ones(g.size, np.int8), (nr + ci[order]).astype(np.int32), indptr),
+                           shape=(nr + nc, nr + nc))  # fmt: skip
+        ncomp, label = connected_components(graph, directed=True, connection="weak")
+        tnodes = np.argsort(label[:nr], kind="stable")  # track nodes grouped by component
+        dnodes = np.argsort(label[nr:], kind="stable")
         tcount = np.bincount(label[:nr], minlength=ncomp)
         dcount = np.bincount(label[nr:], minlength=ncomp)
-        comp = label[ri]  # component of each edge
-        star = (tcount[comp] == 1) | (dcount[comp] == 1)
-        # components with one track or one detection: their cheapest pair, all at once
-        e = np.flatnonzero(star)
-        e = e[np.lexsort((cols[e], rows[e], cost[e], comp[e]))]
-        first = e[np.r_[True, comp[e][1:] != comp[e][:-1]]] if e.size else e
-        slots, chosen = [rows[first]], [cols[first]]
-        # the other components: one linear_sum_assignment each on r x (c + r)
-        g = np.flatnonzero(~star)
-        general = 0
-        if g.size:
-            g = g[np.argsort(comp[g], kind="stable")]
-            tnodes = np.argsort(label[:nr], kind="stable")  # track nodes grouped by component
-            dnodes = np.argsort(label[nr:], kind="stable")
-            tstart = np.r_[0, np.cumsum(tcount)]
-            dstart = np.r_[0, np.cumsum(dcount)]
-            tlocal = np.empty(nr, np.int64)
-            tlocal[tnodes] = np.arange(nr) - tstart[label[:nr][tnodes]]
-            dlocal = np.empty(nc, np.int64)
-            dlocal[dnodes] = np.arange(nc) - dstart[label[nr:][dnodes]]
-            gc = comp[g]
-            bounds = np.flatnonzero(np.r_[True, gc[1:] != gc[:-1], True])
-            general = len(bounds) - 1
-            for s, t in zip(bounds[:-1], bounds[1:]):
-                k = gc[s]
-                r, c = tcount[k], dcount[k]
-                edges = g[s:t]
-                M = np.full((r, c + r), np.inf)
-                M[tlocal[ri[edges]], dlocal[ci[edges]]] = cost[edges]
-                M[np.arange(r), c + np.arange(r)] = miss  # the "missed" column of each track
-                a, b = linear_sum_assignment(M)
+        tstart = np.r_[0, np.cumsum(tcount)]
+        dstart = np.r_[0, np.cumsum(dcount)]
+        tlocal = np.empty(nr, np.int64)
+        tlocal[tnodes] = np.arange(nr) - tstart[label[:nr][tnodes]]
+        dlocal = np.empty(nc, np.int64)
+        dlocal[dnodes] = np.arange(nc) - dstart[label[nr:][dnodes]]
+        comp = label[ri]
+        shape_key = tcount * (nc + 1) + dcount  # components of one (r, c) are solved from one array
+        for key in np.unique(shape_key):
+            comps = np.flatnonzero(shape_key == key)
+            r, c = int(tcount[comps[0]]), int(dcount[comps[0]])
+            where = np.full(ncomp, -1, np.int64)
+            where[comps] = np.arange(len(comps))
+            edges = np.flatnonzero(where[comp] >= 0)
+            M = np.full((len(comps), r, c + r), np.inf)
+            M[where[comp[edges]], tlocal[ri[edges]], dlocal[ci[edges]]] = cost[g[edges]]
+            M[:, np.arange(r), c + np.arange(r)] = miss  # the "missed" column of each track
+            for j, k in enumerate(comps):
+                a, b = linear_sum_assignment(M[j])
                 hit = b < c
                 slots.append(tracks[tnodes[tstart[k] + a[hit]]])
                 chosen.append(dets[dnodes[dstart[k] + b[hit]]])
-        self.last_components = (len(first), general)
-        return Assignment.from_pairs(np.concatenate(slots), np.concatenate(chosen), C, D)
+        return int(ncomp)

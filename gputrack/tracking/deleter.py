@@ -58,8 +58,8 @@ class CovarianceDeleter(Deleter):
 
     def delete(self, table, assignment, gated) -> np.ndarray:
         if gated.trace is None:
-            raise ValueError("CovarianceDeleter: expected a gater that reports trace(H P H^T) (MahalanobisGater), "
-                             "got gated pairs without it")  # fmt: skip
+            raise ValueError("CovarianceDeleter: expected a gater that reports trace(H P H^T) "
+                             "(MahalanobisGater(..., trace=True)), got gated pairs without it")  # fmt: skip
         with np.errstate(invalid="ignore"):
             grown = ~(gated.trace <= self.max_trace)  # NaN counts as grown
         return np.flatnonzero((table.status == TrackStatus.CONFIRMED) & (assignment.track_det < 0) & grown)

@@ -71,9 +71,12 @@ class MahalanobisGater(Gater):
     detections, their count, distances and trace(H P H^T) come back. A frame in which some track
     gates more than ``max_pairs`` detections is gated again with ``max_pairs`` raised to the
     next power of two above the largest count (kept for later frames), so no pair is lost.
+    ``trace=True`` also downloads trace(H P H^T) per slot (:class:`Gated` ``trace``, read by
+    :class:`gputrack.tracking.CovarianceDeleter`); otherwise ``trace`` is None.
     """
 
-    def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 8):
+    def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 8,
+                 trace: bool = False):  # fmt: skip
         H = np.asarray(H, dtype=np.float64)
         R = np.asarray(R, dtype=np.float64)
         if H.ndim != 2:
@@ -92,6 +95,7 @@ class MahalanobisGater(Gater):
         if isinstance(max_pairs, bool) or not isinstance(max_pairs, (int, np.integer)) or max_pairs < 1:
             raise ValueError(f"max_pairs: expected a positive integer, got {max_pairs!r}")
         self.H, self.R, self.threshold, self.max_pairs = H, R, threshold, int(max_pairs)
+        self.trace = bool(trace)
         self._staging: dict = {}
         self._outs: dict = {}
 
@@ -132,7 +136,7 @@ class MahalanobisGater(Gater):
             g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True,
                            out=self._outputs(table, K))  # fmt: skip
             count = _host(g.count)
-        trace = _host(g.trace)
+        trace = _host(g.trace) if self.trace else None
         if most == 0:
             empty = np.zeros(0, np.int64)
             return Gated(empty, empty, np.zeros(0), trace, table.capacity, D, self.threshold)

@@ -76,10 +76,10 @@ class MofNInitiator(Initiator):
         self.dropped = 0  # detections that could not start a track (table full), since construction
 
     def start_state(self, z: np.ndarray):
-        """x0 (k,n) and P0 (k,n,n) of tracks started from detections z (k,m)."""
+        """x0 (k,n) of tracks started from detections z (k,m), and their covariance P0 (n,n),
+        the same for all."""
         x0 = self.x_base[None, :] + z.astype(np.float64) @ self.pinv.T
-        P0 = np.broadcast_to(self.P_base, (len(z),) + self.P_base.shape)
-        return x0, P0
+        return x0, self.P_base
 
     def review(self, table: TrackTable) -> tuple:
         tentative = table.status == TrackStatus.TENTATIVE

@@ -39,7 +39,7 @@ import enum
 import numpy as np
 
 from ..device import Device, DeviceArray
-from ..ops._args import check_device
+from ..ops._args import check_device, constant
 from ..ops.rows import scatter_rows
 
 __all__ = ["TrackStatus", "TrackTable", "TrackTableFull", "Tracks"]
@@ -172,7 +172,8 @@ class TrackTable:
 
     # -- lifecycle ---------------------------------------------------------------------------
     def add(self, x0, P0, status: TrackStatus = TrackStatus.TENTATIVE):
-        """Start k tracks with states x0 (k,n) and covariances P0 (k,n,n) (host arrays, finite).
+        """Start k tracks with states x0 (k,n) and covariances P0 (k,n,n), or one covariance
+        (n,n) for all of them (host arrays, finite; a shared P0 is uploaded once per value).
 
         They take the lowest free slots (the table grows if needed) and new ids in order, with
         hits = age = 1 and misses = 0. Returns (slots (k,) int64, ids (k,) int64). Raises
@@ -185,8 +186,9 @@ class TrackTable:
         if x0.ndim != 2 or x0.shape[1] != self.n:
             raise ValueError(f"x0: expected shape (k, {self.n}), got {x0.shape}")
         k = x0.shape[0]
-        if P0.shape != (k, self.n, self.n):
-            raise ValueError(f"P0: expected shape ({k}, {self.n}, {self.n}), got {P0.shape}")
+        if P0.shape != (k, self.n, self.n) and P0.shape != (self.n, self.n):
+            raise ValueError(f"P0: expected shape ({k}, {self.n}, {self.n}) or ({self.n}, {self.n}) (one for all), "
+                             f"got {P0.shape}")  # fmt: skip
         for name, a in (("x0", x0), ("P0", P0)):
             if a.dtype.kind not in "iuf":
                 raise TypeError(f"{name}: expected a real array, got dtype {a.dtype.name}")
@@ -210,7 +212,9 @@ class TrackTable:
         slots = free[:k]
         index = self.device.asarray(slots.astype(np.int32))
         scatter_rows(self.device, self.x, index, x0.astype(self.dtype, copy=False))
-        scatter_rows(self.device, self.P, index, P0.astype(self.dtype, copy=False))
+        if P0.ndim == 2:  # one covariance for every new track: uploaded once per value
+            P0 = constant(self.device, np.ascontiguousarray(P0[None], dtype=self.dtype))
+        scatter_rows(self.device, self.P, index, P0.astype(self.dtype, copy=False) if isinstance(P0, np.ndarray) else P0)
         ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
         self.next_id += k
         self.ids[slots] = ids

@@ -109,7 +109,7 @@ class MultiTargetTracker:
         deleter = MissDeleter(max_misses)
         if max_trace is not None:
             deleter = AnyDeleter(deleter, CovarianceDeleter(max_trace))
-        return cls(device, predictor=predictor, gater=MahalanobisGater(H, R, probability=gate_probability),
+        return cls(device, predictor=predictor, gater=MahalanobisGater(H, R, probability=gate_probability, trace=max_trace is not None),
                    associator=GNNAssociator(), updater=KalmanUpdater(H, R),
                    initiator=MofNInitiator(H, R, m_of_n=m_of_n, velocity_var=velocity_var), deleter=deleter, m=dim,
                    **table)  # fmt: skip

@@ -9,7 +9,7 @@ from ...device import per_device_cache
 
 _kernels = per_device_cache()
 _I = np.int32
-ARG_TYPES = [None, None, None, _I, _I]
+ARG_TYPES = [None, None, None, _I, _I, _I]
 
 
 def _kernel(device, name):
@@ -25,11 +25,12 @@ def _kernel(device, name):
 
 
 def scatter_rows(device, dst, index, src):
-    K = src.shape[0]
-    row_bytes = src.nbytes // K
+    K = index.shape[0]
+    row_bytes = src.nbytes // src.shape[0]
     if row_bytes % 4 == 0:
         name, row = "gt_scatter_words", row_bytes // 4
     else:
         name, row = "gt_scatter_bytes", row_bytes
-    _kernel(device, name)(device.queue, (row, K), None, dst.buffer.data, index.buffer.data, src.buffer.data, row, K)
+    _kernel(device, name)(device.queue, (row, K), None, dst.buffer.data, index.buffer.data, src.buffer.data, row, K,
+                          src.shape[0])  # fmt: skip
     return dst

@@ -22,6 +22,11 @@ PD_EPS_FACTOR = 4.0
 #: pair at the gate's edge is never skipped by rounding; the d2 test decides
 STRIP_SLACK = 1e-3
 
+#: a scan of at most this many (track, detection) pairs, and any sorted sweep (a few detections
+#: per track), runs on the calling thread: a parallel loop's dispatch costs ~60 us on a CPU and
+#: far more on a busy one
+SERIAL_PAIRS = 1 << 15
+
 _REAL = {"float32": ti.f32, "float64": ti.f64}
 
 
@@ -32,6 +37,7 @@ class _Variant:
     m: int
     active: bool
     sorted_z: bool
+    serial: bool  # one thread runs the loop over tracks (small work: no thread-pool dispatch)
 
 
 @ti.kernel
@@ -43,6 +49,7 @@ def _gate(x: nd, P: nd, H: nd, R: nd, z: nd, active: nd, cnt: nd, det: nd, d2: n
     tol = ti.static(float(np.finfo(v.real).eps) * PD_EPS_FACTOR)
     K = det.shape[1]
     thr = ti.cast(thr_in, real)
+    ti.loop_config(serialize=v.serial)
     for t in range(x.shape[0]):
         Ps = ti.Matrix.zero(real, n, n)
         for i in ti.static(range(n)):
@@ -126,7 +133,8 @@ def _gate(x: nd, P: nd, H: nd, R: nd, z: nd, active: nd, cnt: nd, det: nd, d2: n
 
 def gate_pairs(device, x, P, H, R, z, D, threshold, active, sorted_z, out):
     count, det, d2, trace = out
-    v = _Variant(x.dtype.name, x.shape[1], H.shape[0], active is not None, sorted_z)
+    serial = sorted_z or x.shape[0] * max(int(D), 1) <= SERIAL_PAIRS
+    v = _Variant(x.dtype.name, x.shape[1], H.shape[0], active is not None, sorted_z, serial)
     act = active.buffer if active is not None else count.buffer
     arrays = (x.buffer, P.buffer, H.buffer, R.buffer, z.buffer, act, count.buffer, det.buffer, d2.buffer, trace.buffer)
     launch(_gate, arrays, (v,), scalars=(int(D), float(threshold)))

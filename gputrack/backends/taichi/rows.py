@@ -1,19 +1,53 @@
-"""Taichi kernel of :mod:`gputrack.ops.rows`: one thread per element of ``src``."""
+"""Taichi kernels of :mod:`gputrack.ops.rows`: one loop over the K rows written, nested loops
+over a row (one kernel per rank of ``dst``, as gputrack/backends/taichi/arrays.py does: a
+``ti.grouped`` loop recomputes the multi-index per element)."""
+
+import numpy as np
 
 from .launch import launch
 from .runtime import ti
 
-nd = ti.types.ndarray()
+#: scatters of at most this many elements run on the calling thread (a parallel loop's dispatch
+#: costs more than the copy)
+SERIAL = 1 << 16
 
 
 @ti.kernel
-def _scatter(dst: nd, index: nd, src: nd):
-    for I in ti.grouped(src):  # I = (k, row element ...)
-        J = I
-        J[0] = index[I[0]]
-        dst[J] = src[I]
+def _scatter1(dst: ti.types.ndarray(ndim=1), index: ti.types.ndarray(ndim=1), src: ti.types.ndarray(ndim=1),
+              serial: ti.template()):  # fmt: skip
+    ti.loop_config(serialize=serial)
+    for k in range(index.shape[0]):
+        dst[index[k]] = src[ti.min(k, src.shape[0] - 1)]  # src (1,): one value for every index
+
+
+@ti.kernel
+def _scatter2(dst: ti.types.ndarray(ndim=2), index: ti.types.ndarray(ndim=1), src: ti.types.ndarray(ndim=2),
+              serial: ti.template()):  # fmt: skip
+    ti.loop_config(serialize=serial)
+    for k in range(index.shape[0]):
+        s = ti.min(k, src.shape[0] - 1)
+        for i in range(dst.shape[1]):
+            dst[index[k], i] = src[s, i]
+
+
+@ti.kernel
+def _scatter3(dst: ti.types.ndarray(ndim=3), index: ti.types.ndarray(ndim=1), src: ti.types.ndarray(ndim=3),
+              serial: ti.template()):  # fmt: skip
+    ti.loop_config(serialize=serial)
+    for k in range(index.shape[0]):
+        s = ti.min(k, src.shape[0] - 1)
+        for i, j in ti.ndrange(dst.shape[1], dst.shape[2]):
+            dst[index[k], i, j] = src[s, i, j]
+
+
+_KERNELS = {1: _scatter1, 2: _scatter2, 3: _scatter3}
 
 
 def scatter_rows(device, dst, index, src):
-    launch(_scatter, (dst.buffer, index.buffer, src.buffer))
+    K = index.shape[0]
+    row = int(np.prod(dst.shape[1:], dtype=np.int64))
+    kernel = _KERNELS.get(dst.ndim)
+    if kernel is None:  # rows of rank > 2: flat views are not available on Taichi ndarrays
+        raise ValueError(f"dst: expected an array of rank 1 to 3 on {device.spec}, got shape {dst.shape}")
+    launch(kernel, (dst.buffer, index.buffer, src.buffer), (K * row <= SERIAL,))
     return dst
