@@ -71,8 +71,12 @@ def _shared(device, A, name, shape, dims, dt):
     return arg(device, A, name, shape, dims, dtype=dt, cast=True)
 
 
-def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, sorted_z=False, out=None) -> GatedPairs:
-    """The detections inside each track's Mahalanobis gate (see the module for shapes and rules)."""
+def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, sorted_z=False, n_z=None,
+               out=None) -> GatedPairs:  # fmt: skip
+    """The detections inside each track's Mahalanobis gate (see the module for shapes and rules).
+
+    ``n_z``: only the first n_z rows of z are detections (default: all), so that a caller can
+    upload every frame's detections into one buffer of a fixed number of rows."""
     device = check_device(device)
     dims: dict = {}
     x = arg(device, x, "x", ("T", "n"), dims, dtype=FLOAT)
@@ -95,8 +99,13 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
         if not isinstance(active, DeviceArray) and np.asarray(active).dtype == np.bool_:
             active = np.asarray(active).astype(np.uint8)
         active = arg(device, active, "active", ("T",), dims, dtype=np.uint8)
-    if sorted_z and z_host is not None and dims["D"] > 1:
-        col = z_host[:, 0]
+    D = dims["D"]
+    if n_z is not None:
+        if isinstance(n_z, bool) or not isinstance(n_z, (int, np.integer)) or not 0 <= n_z <= D:
+            raise ValueError(f"n_z: expected an integer in [0, {D}] (rows of z), got {n_z!r}")
+        D = int(n_z)
+    if sorted_z and z_host is not None and D > 1:
+        col = z_host[:D, 0]
         if (np.diff(col) < 0).any():
             i = int(np.argmax(np.diff(col) < 0))
             raise ValueError(f"z: expected rows sorted by z[:, 0] (sorted_z=True), got z[{i + 1}, 0] < z[{i}, 0]")
@@ -116,7 +125,6 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
     out = out_arrays(device, out, specs)
     if T == 0:
         return GatedPairs(*out)
-    D = dims["D"]
     if D == 0 and device.backend != "numpy":  # the kernels still compute the traces; z is never read
         z = constant(device, np.zeros((1, dims["m"]), dt))
     be = backend_module(device, "gating")

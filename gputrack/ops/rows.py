@@ -41,32 +41,42 @@ def _dst(device, dst):
     return dst
 
 
-def scatter_rows(device, dst, index, src):
-    """``dst[index[k]] = src[k]`` for every k, in one launch; returns ``dst`` (see the module)."""
+def scatter_rows(device, dst, index, src, *, n_rows=None):
+    """``dst[index[k]] = src[k]`` for every k, in one launch; returns ``dst`` (see the module).
+
+    ``n_rows``: only the first n_rows entries of ``index`` (and rows of ``src``) are used
+    (default: all), so that a caller can upload every frame's rows into one buffer of a fixed
+    size; the entries after them are not read."""
     device = check_device(device)
     dst = _dst(device, dst)
+    if dst.ndim > 3:
+        raise ValueError(f"dst: expected an array of rank 1 to 3 (C, *row), got shape {tuple(dst.shape)}")
     C = dst.shape[0]
     dims: dict = {}
+    host = None
     if not isinstance(index, DeviceArray):
-        h = np.asarray(index)
-        if h.dtype.kind not in "iu":
-            raise TypeError(f"index: expected integer row indices (int32), got dtype {h.dtype.name}")
-        if h.ndim != 1:
-            raise ValueError(f"index: expected shape (K,), got {h.shape}")
+        host = np.asarray(index)
+        if host.dtype.kind not in "iu":
+            raise TypeError(f"index: expected integer row indices (int32), got dtype {host.dtype.name}")
+        index = host.astype(np.int32, copy=False)
+    index = arg(device, index, "index", ("K",), dims, dtype=np.int32)
+    rows = 1 if tuple(getattr(src, "shape", np.shape(src)))[:1] == (1,) else "K"  # one row for every index
+    src = arg(device, src, "src", (rows, *dst.shape[1:]), dims, dtype=dst.dtype)
+    K = dims["K"]
+    if n_rows is not None:
+        if isinstance(n_rows, bool) or not isinstance(n_rows, (int, np.integer)) or not 0 <= n_rows <= K:
+            raise ValueError(f"n_rows: expected an integer in [0, {K}] (entries of index), got {n_rows!r}")
+        K = int(n_rows)
+    if host is not None:
+        h = host[:K]
         if h.size and (h.min() < 0 or h.max() >= C):
             bad = int(h[(h < 0) | (h >= C)][0])
             raise ValueError(f"index: expected row indices in [0, {C}), got {bad}")
         if np.unique(h).size != h.size:
             raise ValueError("index: expected distinct row indices (two rows written to one slot), got duplicates")
-        index = h.astype(np.int32, copy=False)
-    if dst.ndim > 3:
-        raise ValueError(f"dst: expected an array of rank 1 to 3 (C, *row), got shape {tuple(dst.shape)}")
-    index = arg(device, index, "index", ("K",), dims, dtype=np.int32)
-    rows = 1 if tuple(getattr(src, "shape", np.shape(src)))[:1] == (1,) else "K"  # one row for every index
-    src = arg(device, src, "src", (rows, *dst.shape[1:]), dims, dtype=dst.dtype)
-    if dims["K"] == 0:
+    if K == 0:
         return dst
-    backend_module(device, "rows").scatter_rows(device, dst, index, src)
+    backend_module(device, "rows").scatter_rows(device, dst, index, src, K)
     return dst
 
 

@@ -2,8 +2,10 @@
 
 A fresh device array costs an allocation (~0.1-0.2 ms for a small Taichi or OpenCL array on a
 2-core CPU); :class:`Staging` keeps one array per name and uploads into it while the shape and
-dtype stay the same (``Device.asarray(out=)``). On the ``numpy`` device the host array itself
-is used.
+dtype stay the same (``Device.asarray(out=)``). Inputs whose number of rows changes every frame
+(detections, new tracks) go through :meth:`Staging.put_rows`: a buffer of a power-of-two number
+of rows, padded, with the count of rows that hold data (the ops take it as ``n_z`` /
+``n_rows``). On the ``numpy`` device the host array itself is used.
 """
 
 from __future__ import annotations
@@ -28,6 +30,24 @@ class Staging:
             return self.device.asarray(host, out=prev)
         found = self._arrays[name] = self.device.asarray(host)
         return found
+
+    def put_rows(self, name: str, host: np.ndarray):
+        """(device array of >= len(host) rows whose first rows are ``host``, len(host)); the
+        buffer keeps a power-of-two number of rows (at least 16), growing when needed."""
+        k = len(host)
+        if self.device.backend == "numpy":
+            return np.ascontiguousarray(host), k
+        prev = self._arrays.get(name)
+        rows = prev.shape[0] if prev is not None and prev.shape[1:] == host.shape[1:] and prev.dtype == host.dtype else 0
+        if rows < k:
+            rows = max(16, 1 << (k - 1).bit_length())
+            prev = None
+        padded = np.zeros((rows, *host.shape[1:]), host.dtype)
+        padded[:k] = host
+        if prev is None:
+            found = self._arrays[name] = self.device.asarray(padded)
+            return found, k
+        return self.device.asarray(padded, out=prev), k
 
     def matrix(self, name: str, host: np.ndarray):
         """A constant matrix, uploaded the first time only (the caller must not change it)."""

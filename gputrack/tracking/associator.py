@@ -20,8 +20,8 @@ connected components (``scipy.sparse.csgraph.connected_components``) are indepen
   r x (c + r) matrix (its c detections and r "missed" columns), one call per component.
 
 Everything runs on the host (the gated pairs are small); no greedy or device path is used.
-Ties between equal costs go to the lower slot, then the lower detection (in the vectorised
-case) or as SciPy resolves them.
+Ties between equal costs go to the pair the gater lists first (in the vectorised case) or as
+SciPy resolves them.
 """
 
 from __future__ import annotations
@@ -87,27 +87,26 @@ class GNNAssociator(Associator):
         self.last_components = (0, 0)
         if rows.size == 0:
             return Assignment.from_pairs([], [], C, D)
-        tracks, ri = np.unique(rows, return_inverse=True)  # graph nodes: tracks 0..nr-1, detections nr..
-        dets, ci = np.unique(cols, return_inverse=True)
-        nr, nc = len(tracks), len(dets)
         # A component has one track iff each detection of that track has no other track, and one
         # detection iff each track of that detection has no other detection: found from the
         # degrees, without a graph search.
-        deg_t, deg_d = np.bincount(ri, minlength=nr), np.bincount(ci, minlength=nc)
-        solo_t = np.zeros(nr, bool)  # track whose detections are all its own
-        solo_t[ri] = True
-        solo_t[ri[deg_d[ci] > 1]] = False
-        solo_d = np.zeros(nc, bool)  # detection whose tracks are all its own
-        solo_d[ci] = True
-        solo_d[ci[deg_t[ri] > 1]] = False
-        one_track, one_det = solo_t[ri], solo_d[ci]
+        deg_t, deg_d = np.bincount(rows, minlength=C), np.bincount(cols, minlength=D)
+        shared_t = np.zeros(C, bool)  # track with a detection that another track also gates
+        shared_t[rows[deg_d[cols] > 1]] = True
+        shared_d = np.zeros(D, bool)  # detection that a track with other detections also gates
+        shared_d[cols[deg_t[rows] > 1]] = True
+        one_track, one_det = ~shared_t[rows], ~shared_d[cols]
         star = one_track | one_det
-        # those components: the cheapest pair of each, all at once
+        # those components: the cheapest pair of each, all at once (a lone pair is its own)
         e = np.flatnonzero(star)
-        key = np.where(one_track[e], ri[e], nr + ci[e])  # the component's single track or detection
-        e = e[np.lexsort((cols[e], rows[e], cost[e], key))]
-        key = np.where(one_track[e], ri[e], nr + ci[e])
-        first = e[np.r_[True, key[1:] != key[:-1]]] if e.size else e
+        key = np.where(one_track[e], rows[e], C + cols[e])  # the component's single track or detection
+        lone = np.bincount(key, minlength=C + D)[key] == 1
+        many = e[~lone]
+        many = many[np.argsort(cost[many], kind="stable")]
+        kmany = np.where(one_track[many], rows[many], C + cols[many])
+        many = many[np.argsort(kmany, kind="stable")]
+        kmany = np.sort(kmany, kind="stable")
+        first = np.concatenate([e[lone], many[np.r_[True, kmany[1:] != kmany[:-1]]] if many.size else many])
         slots, chosen = [rows[first]], [cols[first]]
         general = self._general(np.flatnonzero(~star), rows, cols, cost, miss, slots, chosen)
         self.last_components = (len(first), general)
@@ -116,12 +115,13 @@ class GNNAssociator(Associator):
     @staticmethod
     def _general(g, rows, cols, cost, miss, slots, chosen) -> int:
         """Components with several tracks and several detections (edges g): their connected
-        components, then one linear_sum_assignment per component on r x (c + r); components of
-        one shape are laid out together. Appends the matched pairs; returns the component count."""
+        components, then one linear_sum_assignment per component on r x (c + r); the components
+        of one shape (r, c) are laid out in one (G, r, c + r) array and their results gathered
+        at once. Appends the matched pairs; returns the component count."""
         if g.size == 0:
             return 0
-        tracks, ri = np.unique(rows[g], return_inverse=True)
-        dets, ci = np.unique(cols[g], return_inverse=True)
+        tracks, ri = _compact(rows[g])
+        dets, ci = _compact(cols[g])
         nr, nc = len(tracks), len(dets)
         order = np.argsort(ri, kind="stable")  # edges track -> detection, as CSR rows of the track nodes
         indptr = np.zeros(nr + nc + 1, np.int32)
@@ -134,26 +134,39 @@ class GNNAssociator(Associator):
         dnodes = np.argsort(label[nr:], kind="stable")
         tcount = np.bincount(label[:nr], minlength=ncomp)
         dcount = np.bincount(label[nr:], minlength=ncomp)
-        tstart = np.r_[0, np.cumsum(tcount)]
-        dstart = np.r_[0, np.cumsum(dcount)]
+        tstart = np.cumsum(tcount) - tcount
+        dstart = np.cumsum(dcount) - dcount
         tlocal = np.empty(nr, np.int64)
         tlocal[tnodes] = np.arange(nr) - tstart[label[:nr][tnodes]]
         dlocal = np.empty(nc, np.int64)
         dlocal[dnodes] = np.arange(nc) - dstart[label[nr:][dnodes]]
         comp = label[ri]
-        shape_key = tcount * (nc + 1) + dcount  # components of one (r, c) are solved from one array
-        for key in np.unique(shape_key):
-            comps = np.flatnonzero(shape_key == key)
+        shape_key = tcount * (nc + 1) + dcount
+        corder = np.argsort(shape_key, kind="stable")  # components grouped by shape (r, c)
+        cpos = np.empty(ncomp, np.int64)  # position of a component within its group
+        keys, gstart = np.unique(shape_key[corder], return_index=True)
+        gsize = np.diff(np.r_[gstart, ncomp])
+        cpos[corder] = np.arange(ncomp) - np.repeat(gstart, gsize)
+        eorder = np.argsort(shape_key[comp], kind="stable")  # edges grouped likewise
+        ebounds = np.searchsorted(shape_key[comp][eorder], keys)
+        ebounds = np.r_[ebounds, len(eorder)]
+        for j, key in enumerate(keys):
+            comps = corder[gstart[j] : gstart[j] + gsize[j]]
             r, c = int(tcount[comps[0]]), int(dcount[comps[0]])
-            where = np.full(ncomp, -1, np.int64)
-            where[comps] = np.arange(len(comps))
-            edges = np.flatnonzero(where[comp] >= 0)
+            edges = eorder[ebounds[j] : ebounds[j + 1]]
             M = np.full((len(comps), r, c + r), np.inf)
-            M[where[comp[edges]], tlocal[ri[edges]], dlocal[ci[edges]]] = cost[g[edges]]
+            M[cpos[comp[edges]], tlocal[ri[edges]], dlocal[ci[edges]]] = cost[g[edges]]
             M[:, np.arange(r), c + np.arange(r)] = miss  # the "missed" column of each track
-            for j, k in enumerate(comps):
-                a, b = linear_sum_assignment(M[j])
-                hit = b < c
-                slots.append(tracks[tnodes[tstart[k] + a[hit]]])
-                chosen.append(dets[dnodes[dstart[k] + b[hit]]])
+            b = np.array([linear_sum_assignment(m)[1] for m in M])  # (G, r): rows come back in order
+            hit = b < c
+            slots.append(tracks[tnodes[(tstart[comps][:, None] + np.arange(r))[hit]]])
+            chosen.append(dets[dnodes[(dstart[comps][:, None] + b)[hit]]])
         return int(ncomp)
+
+
+def _compact(v: np.ndarray):
+    """(the distinct values of v ascending, v's index into them): np.unique(return_inverse=True)
+    for small non-negative integers, without its sort."""
+    present = np.zeros(int(v.max()) + 1, bool)
+    present[v] = True
+    return np.flatnonzero(present), (np.cumsum(present) - 1)[v]

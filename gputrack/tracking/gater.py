@@ -123,17 +123,17 @@ class MahalanobisGater(Gater):
         D = len(z)
         order = np.argsort(z[:, 0], kind="stable")
         zs = z[order].astype(table.dtype, copy=False)
-        zd = st.put("z", zs) if D else zs
+        zd, _ = st.put_rows("z", zs)
         H, R = st.matrix(f"H{table.dtype}", self.H.astype(table.dtype)), st.matrix(f"R{table.dtype}", self.R.astype(table.dtype))
         active = table.sync_active()
         K = self.max_pairs
-        g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True,
+        g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True, n_z=D,
                        out=self._outputs(table, K))  # fmt: skip
         count = _host(g.count)
         most = int(count.max(initial=0))
         if most > K:  # some track gates more than K detections: gate again with room for all
             K = self.max_pairs = 1 << (most - 1).bit_length()
-            g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True,
+            g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True, n_z=D,
                            out=self._outputs(table, K))  # fmt: skip
             count = _host(g.count)
         trace = _host(g.trace) if self.trace else None
@@ -141,7 +141,10 @@ class MahalanobisGater(Gater):
             empty = np.zeros(0, np.int64)
             return Gated(empty, empty, np.zeros(0), trace, table.capacity, D, self.threshold)
         det, d2 = _host(g.det), _host(g.d2)
-        rows, k = np.nonzero(np.arange(K)[None, :] < count[:, None])
+        rows = np.flatnonzero(count)  # slot of each pair, and its column k < count
+        n = count[rows]
+        rows = np.repeat(rows, n)
+        k = np.arange(len(rows)) - np.repeat(np.cumsum(n) - n, n)
         return Gated(rows.astype(np.int64), order[det[rows, k]].astype(np.int64), d2[rows, k].astype(np.float64),
                      trace, table.capacity, D, self.threshold)  # fmt: skip
 

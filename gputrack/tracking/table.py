@@ -41,6 +41,7 @@ import numpy as np
 from ..device import Device, DeviceArray
 from ..ops._args import check_device, constant
 from ..ops.rows import scatter_rows
+from ._staging import Staging
 
 __all__ = ["TrackStatus", "TrackTable", "TrackTableFull", "Tracks"]
 
@@ -112,6 +113,7 @@ class TrackTable:
         self.x, self.P = self._fresh(C)
         self.active = self.device.asarray(np.zeros(C, np.uint8))
         self._active_dirty = False
+        self._staging = Staging(self.device)
 
     # -- sizes -------------------------------------------------------------------------------
     @property
@@ -210,11 +212,14 @@ class TrackTable:
             self._grow(self.size + k)
             free = np.flatnonzero(self.status == TrackStatus.FREE)
         slots = free[:k]
-        index = self.device.asarray(slots.astype(np.int32))
-        scatter_rows(self.device, self.x, index, x0.astype(self.dtype, copy=False))
+        index, _ = self._staging.put_rows("index", slots.astype(np.int32))
+        xs, _ = self._staging.put_rows("x0", x0.astype(self.dtype, copy=False))
+        scatter_rows(self.device, self.x, index, xs, n_rows=k)
         if P0.ndim == 2:  # one covariance for every new track: uploaded once per value
-            P0 = constant(self.device, np.ascontiguousarray(P0[None], dtype=self.dtype))
-        scatter_rows(self.device, self.P, index, P0.astype(self.dtype, copy=False) if isinstance(P0, np.ndarray) else P0)
+            Ps = constant(self.device, np.ascontiguousarray(P0[None], dtype=self.dtype))
+        else:
+            Ps, _ = self._staging.put_rows("P0", P0.astype(self.dtype, copy=False))
+        scatter_rows(self.device, self.P, index, Ps, n_rows=k)
         ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
         self.next_id += k
         self.ids[slots] = ids

@@ -24,8 +24,7 @@ def _kernel(device, name):
     return found
 
 
-def scatter_rows(device, dst, index, src):
-    K = index.shape[0]
+def scatter_rows(device, dst, index, src, K):
     row_bytes = src.nbytes // src.shape[0]
     if row_bytes % 4 == 0:
         name, row = "gt_scatter_words", row_bytes // 4

@@ -19,7 +19,7 @@ def gate_pairs(device, x, P, H, R, z, D, threshold, active, sorted_z, out):
     det = np.full((T, K), -1, np.int32)
     d2 = np.full((T, K), np.inf, x.dtype)
     if D > 0:
-        full = _kalman.mahalanobis(None, x, P, H, R, z)  # (T, D), inf where S is not positive definite
+        full = _kalman.mahalanobis(None, x, P, H, R, z[:D])  # (T, D), inf where S is not positive definite
         inside = full < x.dtype.type(threshold)  # gated: d2 < threshold
         if active is not None:
             inside &= active.astype(bool)[:, None]

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 
-def scatter_rows(device, dst, index, src):
-    """dst[index[k]] = src[k] (index distinct, validated by the op); src (1, ...) broadcasts."""
-    dst[index] = src
+def scatter_rows(device, dst, index, src, K):
+    """dst[index[k]] = src[k] for k < K (index distinct, validated by the op); src (1, ...)
+    broadcasts."""
+    dst[index[:K]] = src[:K] if src.shape[0] > 1 else src
     return dst

@@ -14,17 +14,17 @@ SERIAL = 1 << 16
 
 @ti.kernel
 def _scatter1(dst: ti.types.ndarray(ndim=1), index: ti.types.ndarray(ndim=1), src: ti.types.ndarray(ndim=1),
-              serial: ti.template()):  # fmt: skip
+              K: ti.i32, serial: ti.template()):  # fmt: skip
     ti.loop_config(serialize=serial)
-    for k in range(index.shape[0]):
+    for k in range(K):
         dst[index[k]] = src[ti.min(k, src.shape[0] - 1)]  # src (1,): one value for every index
 
 
 @ti.kernel
 def _scatter2(dst: ti.types.ndarray(ndim=2), index: ti.types.ndarray(ndim=1), src: ti.types.ndarray(ndim=2),
-              serial: ti.template()):  # fmt: skip
+              K: ti.i32, serial: ti.template()):  # fmt: skip
     ti.loop_config(serialize=serial)
-    for k in range(index.shape[0]):
+    for k in range(K):
         s = ti.min(k, src.shape[0] - 1)
         for i in range(dst.shape[1]):
             dst[index[k], i] = src[s, i]
@@ -32,9 +32,9 @@ def _scatter2(dst: ti.types.ndarray(ndim=2), index: ti.types.ndarray(ndim=1), sr
 
 @ti.kernel
 def _scatter3(dst: ti.types.ndarray(ndim=3), index: ti.types.ndarray(ndim=1), src: ti.types.ndarray(ndim=3),
-              serial: ti.template()):  # fmt: skip
+              K: ti.i32, serial: ti.template()):  # fmt: skip
     ti.loop_config(serialize=serial)
-    for k in range(index.shape[0]):
+    for k in range(K):
         s = ti.min(k, src.shape[0] - 1)
         for i, j in ti.ndrange(dst.shape[1], dst.shape[2]):
             dst[index[k], i, j] = src[s, i, j]
@@ -43,11 +43,10 @@ def _scatter3(dst: ti.types.ndarray(ndim=3), index: ti.types.ndarray(ndim=1), sr
 _KERNELS = {1: _scatter1, 2: _scatter2, 3: _scatter3}
 
 
-def scatter_rows(device, dst, index, src):
-    K = index.shape[0]
+def scatter_rows(device, dst, index, src, K):
     row = int(np.prod(dst.shape[1:], dtype=np.int64))
     kernel = _KERNELS.get(dst.ndim)
     if kernel is None:  # rows of rank > 2: flat views are not available on Taichi ndarrays
         raise ValueError(f"dst: expected an array of rank 1 to 3 on {device.spec}, got shape {dst.shape}")
-    launch(kernel, (dst.buffer, index.buffer, src.buffer), (K * row <= SERIAL,))
+    launch(kernel, (dst.buffer, index.buffer, src.buffer), (K * row <= SERIAL,), scalars=(int(K),))
     return dst
