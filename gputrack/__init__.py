@@ -20,7 +20,8 @@ from .device import (
     to_numpy,
 )
 from . import tuning
-from .scheduler import FrameStats, Pipeline, StageStats
+from .profiler import FrameStats, Profiler, StageStats
+from .scheduler import Scheduler, SkipFrame, Stage
 from .ops import (
     BestK,
     Camera,
@@ -88,7 +89,10 @@ __all__ = [
     "DeviceInfo",
     "DeviceUnavailable",
     "FrameStats",
-    "Pipeline",
+    "Profiler",
+    "Scheduler",
+    "SkipFrame",
+    "Stage",
     "StageStats",
     "TaichiArchConflict",
     "device",

@@ -60,7 +60,7 @@ def body(
         dt = time.perf_counter() - t0
         err = arm_axis_errors(seq.chain, est.params, f.params)[0]
         if not per_frame:
-            tracker.pipeline.reset()  # the first frame compiles the kernels: leave it out of the tables
+            tracker.scheduler.reset()  # the first frame compiles the kernels: leave it out of the tables
         estimates.append(est.params)
         per_frame.append({"frame": f.index, "ms": dt * 1e3, "cost": est.cost, "confidence": est.confidence,
                           "arm_errors_deg": err.tolist()})  # fmt: skip
@@ -107,9 +107,9 @@ def body(
         report["torso_turn_error_deg"] = float(turn)
     ms = np.array([p["ms"] for p in per_frame])
     print("\nper-stage time, Table 1/2 layout (ms; frames after the first, which compiles kernels)", file=out)
-    print(tracker.pipeline.table(), file=out)
+    print(tracker.scheduler.table(), file=out)
     print(f"median frame time {np.median(ms[1:] if len(ms) > 1 else ms):.1f} ms", file=out)
-    report["stages"] = tracker.pipeline.report()
+    report["stages"] = tracker.scheduler.report()
     report["median_frame_ms"] = float(np.median(ms[1:] if len(ms) > 1 else ms))
     return report
 

@@ -1,155 +1,242 @@
-"""Host scheduler: device-resident pipelines with per-stage timing and transfer counts.
+"""Host scheduler: a tracker's frame as declared stages over named device buffers.
 
-A :class:`Pipeline` runs named stages on one device. Buffers stay on the device between
-stages (keep them in ``pipeline.buffers`` or in your own variables); each stage records its wall
-time, measured after a device synchronisation, and the bytes that crossed the bus
-(host->device and device->host) while it ran, as counted by the device. A frame groups the
-stages of one input frame so that a caller can check what a steady-state frame moved::
+A tracker declares its stages once, each with the buffers it reads and writes; per frame the
+:class:`Scheduler` uploads the inputs (into last frame's arrays when the shapes match), runs the
+stages in order and downloads the outputs. Nothing waits for the device between stages except a
+stage that declares ``host_reads``: the scheduler downloads those buffers for it (a host
+synchronisation, counted). Buffers persist from frame to frame, so a stage can write into last
+frame's array (``out=b.get(name)``) and a tracker's state stays on the device::
 
-    pipe = gputrack.Pipeline(dev)
-    with pipe.frame() as frame:
-        with pipe.stage("upload"):
-            gray = dev.asarray(gray_host)
-        with pipe.stage("score"):
-            cost = gputrack.ops.rgbd_cost(dev, ...)
-        with pipe.stage("download"):
-            best = cost.total.numpy()
-    print(pipe.table())
-    assert frame.h2d == gray_host.nbytes
+    stages = [
+        Stage("predict", predict, reads=("x", "P"), writes=("x", "P")),
+        Stage("gate", gate, reads=("x", "P", "z"), writes=("d2",)),
+        Stage("assign", assign, host_reads=("d2",), writes=("pairs",)),
+        Stage("update", update, reads=("x", "P", "z", "pairs"), writes=("x", "P")),
+    ]
+    sched = Scheduler(dev, stages, inputs=("z",), state=("x", "P"), outputs=("x",))
+    sched.set("x", x0); sched.set("P", P0)
+    out = sched.run(z=detections)           # {"x": NumPy array}
+    sched.last_frame.h2d                      # bytes uploaded in that frame
+    print(sched.table())                      # per-stage time and bytes
+
+A stage function takes one argument, a :class:`StageBuffers` view: ``b["x"]`` reads a declared buffer
+(a NumPy array for a ``host_reads`` name), ``b["d2"] = array`` writes one, ``b.get("d2")`` is last
+frame's array or None (for ``out=``). A stage that touches a buffer it did not declare raises, and
+the declarations are checked when the scheduler is built: a stage that reads a buffer which no earlier
+stage writes and which is neither an input nor state is an error then, not a wrong frame later.
+A stage may leave a declared write unwritten (e.g. a template re-rendered every other frame); its
+readers then see the buffer's value from an earlier frame. A stage may end the frame early by raising
+:class:`SkipFrame`; ``run`` raises it on to the caller after recording the stages that ran.
+
+``profile=True`` synchronises the device around each stage so that its time is the device's
+(``table()`` then gives Tables 1-2 of paper 000); ``profile=False`` runs without those waits and the
+times are what the host spent issuing the work. Bytes moved are counted either way.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import statistics
-import time
+from collections.abc import Callable, Iterable, Mapping
 
-from .device import Device, Transfers
+import numpy as np
 
-__all__ = ["Pipeline", "StageStats", "FrameStats"]
+from .device import Device, DeviceArray
+from .profiler import FrameStats, Profiler
+
+__all__ = ["Scheduler", "SkipFrame", "Stage", "StageBuffers"]
+
+UPLOAD = "upload inputs"
+DOWNLOAD = "download outputs"
 
 
-@dataclasses.dataclass
-class StageStats:
-    """Accumulated figures for one named stage."""
+class SkipFrame(Exception):
+    """Raised by a stage to end the frame early (e.g. an unusable image); carries the reason."""
+
+
+def _names(value, what: str, stage: str) -> tuple[str, ...]:
+    if isinstance(value, str):
+        value = (value,)
+    try:
+        names = tuple(value)
+    except TypeError:
+        raise TypeError(f"stage {stage!r}: {what}: expected a tuple of buffer names, got {value!r}") from None
+    for n in names:
+        if not isinstance(n, str) or not n:
+            raise TypeError(f"stage {stage!r}: {what}: expected non-empty strings, got {n!r}")
+    return names
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One step of a frame: ``fn(buffers)`` with the names it reads and writes.
+
+    ``reads``: device buffers it reads (no wait); ``host_reads``: buffers it needs on the host (the
+    scheduler downloads them first: a synchronisation point); ``writes``: buffers it binds or fills.
+    """
 
     name: str
-    times_s: list = dataclasses.field(default_factory=list)
-    h2d: int = 0
-    d2h: int = 0
+    fn: Callable
+    reads: tuple = ()
+    writes: tuple = ()
+    host_reads: tuple = ()
 
-    @property
-    def calls(self) -> int:
-        return len(self.times_s)
-
-    @property
-    def total_s(self) -> float:
-        return float(sum(self.times_s))
-
-    @property
-    def median_s(self) -> float:
-        return float(statistics.median(self.times_s)) if self.times_s else 0.0
-
-    def as_dict(self) -> dict:
-        return {
-            "name": self.name,
-            "calls": self.calls,
-            "median_ms": self.median_s * 1e3,
-            "total_ms": self.total_s * 1e3,
-            "h2d_bytes": self.h2d,
-            "d2h_bytes": self.d2h,
-        }
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"expected a non-empty stage name, got {self.name!r}")
+        if not callable(self.fn):
+            raise TypeError(f"stage {self.name!r}: expected a callable fn(buffers), got {type(self.fn).__name__}")
+        for field in ("reads", "writes", "host_reads"):
+            object.__setattr__(self, field, _names(getattr(self, field), field, self.name))
 
 
-@dataclasses.dataclass
-class FrameStats:
-    """What one frame (one ``with pipeline.frame()`` block) cost: time and bytes per stage."""
+class StageBuffers(Mapping):
+    """The buffers one stage may touch: its reads, host reads and writes (see :class:`Stage`)."""
 
-    stages: dict = dataclasses.field(default_factory=dict)  # name -> (seconds, h2d, d2h)
-    wall_s: float = 0.0
+    __slots__ = ("_stage", "_buffers", "_host", "_readable")
 
-    @property
-    def h2d(self) -> int:
-        return sum(s[1] for s in self.stages.values())
+    def __init__(self, stage: Stage, buffers: dict, host: dict):
+        self._stage, self._buffers, self._host = stage, buffers, host
+        self._readable = set(stage.reads) | set(stage.writes)
 
-    @property
-    def d2h(self) -> int:
-        return sum(s[2] for s in self.stages.values())
+    def __getitem__(self, name: str):
+        if name in self._host:
+            return self._host[name]
+        if name not in self._readable:
+            raise KeyError(f"stage {self._stage.name!r} reads {name!r}, which it does not declare "
+                           f"(reads={self._stage.reads}, host_reads={self._stage.host_reads})")  # fmt: skip
+        if name not in self._buffers:
+            raise KeyError(f"stage {self._stage.name!r} reads {name!r}, which has no value yet "
+                           "(no stage has written it and it was not set)")  # fmt: skip
+        return self._buffers[name]
 
-
-class Pipeline:
-    """Named stages on one device, timed after device sync, with bytes moved per stage."""
-
-    def __init__(self, device: Device):
-        if not isinstance(device, Device):
-            raise TypeError(f"expected a gputrack.Device, got {type(device).__name__}")
-        self.device = device
-        self.buffers: dict = {}
-        self.stats: dict[str, StageStats] = {}
-        self._frame: FrameStats | None = None
-        self.frames: list[FrameStats] = []
-
-    @contextlib.contextmanager
-    def stage(self, name: str):
-        """Time the block as stage ``name``: sync, run, sync; record time and transfers."""
-        if not isinstance(name, str) or not name:
-            raise ValueError(f"expected a non-empty stage name, got {name!r}")
-        dev = self.device
-        dev.synchronize()
-        before: Transfers = dev.transfers.copy()
-        t0 = time.perf_counter()
-        yield
-        dev.synchronize()
-        dt = time.perf_counter() - t0
-        moved = dev.transfers - before
-        st = self.stats.setdefault(name, StageStats(name))
-        st.times_s.append(dt)
-        st.h2d += moved.h2d
-        st.d2h += moved.d2h
-        if self._frame is not None:
-            prev = self._frame.stages.get(name, (0.0, 0, 0))
-            self._frame.stages[name] = (prev[0] + dt, prev[1] + moved.h2d, prev[2] + moved.d2h)
-
-    @contextlib.contextmanager
-    def frame(self):
-        """Group the stages run inside the block into one :class:`FrameStats` (yielded)."""
-        if self._frame is not None:
-            raise RuntimeError("expected frames one after another, got a frame inside a frame")
-        fs = FrameStats()
-        self._frame = fs
-        t0 = time.perf_counter()
+    def get(self, name: str, default=None):
+        """The buffer's current value (e.g. last frame's array, for ``out=``), or ``default``."""
         try:
-            yield fs
-        finally:
-            self.device.synchronize()
-            fs.wall_s = time.perf_counter() - t0
-            self._frame = None
-            self.frames.append(fs)
+            return self[name]
+        except KeyError:
+            return default
+
+    def __setitem__(self, name: str, value) -> None:
+        if name not in self._stage.writes:
+            raise KeyError(f"stage {self._stage.name!r} writes {name!r}, which it does not declare "
+                           f"(writes={self._stage.writes})")  # fmt: skip
+        self._buffers[name] = value
+
+    def __iter__(self):
+        return iter([n for n in (*self._stage.reads, *self._stage.host_reads, *self._stage.writes)
+                     if n in self._buffers])  # fmt: skip
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+
+class Scheduler:
+    """Runs a tracker's declared stages per frame on one device (see the module docstring)."""
+
+    def __init__(self, device: Device, stages: Iterable[Stage], *, inputs=(), state=(), outputs=(),
+                 profile: bool = False):  # fmt: skip
+        if not isinstance(device, Device):
+            raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
+        self.device = device
+        self.stages = tuple(stages)
+        for s in self.stages:
+            if not isinstance(s, Stage):
+                raise TypeError(f"stages: expected gputrack.Stage objects, got {type(s).__name__}")
+        self.inputs = _names(inputs, "inputs", "<scheduler>")
+        self.state = _names(state, "state", "<scheduler>")
+        self.outputs = _names(outputs, "outputs", "<scheduler>")
+        self.profile = bool(profile)
+        self._check()
+        self.buffers: dict = {}
+        self.profiler = Profiler(device)
+        self.last_frame: FrameStats | None = None
+
+    def _check(self) -> None:
+        seen, known = set(), set(self.inputs) | set(self.state)
+        for n in self.inputs:
+            if n in self.state:
+                raise ValueError(f"{n!r} is declared both as an input and as state; expected one of them")
+        for s in self.stages:
+            if s.name in seen or s.name in (UPLOAD, DOWNLOAD):
+                raise ValueError(f"expected unique stage names, got {s.name!r} twice (or a reserved name)")
+            seen.add(s.name)
+            for n in (*s.reads, *s.host_reads):
+                if n not in known:
+                    raise ValueError(f"stage {s.name!r} reads {n!r}, which no earlier stage writes and which is "
+                                     f"neither an input {self.inputs} nor state {self.state}")  # fmt: skip
+            known.update(s.writes)
+        for n in self.outputs:
+            if n not in known:
+                raise ValueError(f"output {n!r} is written by no stage and is neither an input nor state")
+
+    # -- buffers -----------------------------------------------------------------------------------
+    def _put(self, name: str, value) -> None:
+        """Copy ``value`` into buffer ``name``: into the array it holds when shape and dtype match (no
+        allocation), else into a new one. A caller's NumPy array is never kept (stages write in place)."""
+        dev = self.device
+        if isinstance(value, DeviceArray):
+            self.buffers[name] = dev.asarray(value)  # this device's array (checked), taken as it is
+            return
+        host = np.asarray(value)
+        old = self.buffers.get(name)
+        mine = isinstance(old, DeviceArray) or (dev.backend == "numpy" and isinstance(old, np.ndarray))
+        if mine and old.shape == host.shape and old.dtype == host.dtype:
+            self.buffers[name] = dev.asarray(host, out=old)
+        else:
+            self.buffers[name] = dev.asarray(np.array(host, copy=True) if dev.backend == "numpy" else host)
+
+    def set(self, name: str, value) -> None:
+        """Set a state buffer (e.g. a tracker's initial x and P) from NumPy or this device's array."""
+        if name not in self.state:
+            raise KeyError(f"{name!r} is not a state buffer of this scheduler; expected one of {self.state}")
+        self._put(name, value)
+
+    # -- a frame -----------------------------------------------------------------------------------
+    def run(self, **inputs) -> dict:
+        """Run one frame: upload ``inputs`` (NumPy arrays by name), run the stages, return the outputs
+        as NumPy arrays by name. Raises :class:`SkipFrame` when a stage ends the frame early."""
+        missing = [n for n in self.inputs if n not in inputs]
+        extra = [n for n in inputs if n not in self.inputs]
+        if missing or extra:
+            raise TypeError(f"run: expected the inputs {self.inputs}, got {tuple(inputs)}")
+        prof, sync = self.profiler, self.profile
+        with prof.frame(sync=sync) as frame:
+            try:
+                if self.inputs:
+                    with prof.stage(UPLOAD, sync=sync):
+                        for name in self.inputs:
+                            self._put(name, inputs[name])
+                for s in self.stages:
+                    with prof.stage(s.name, sync=sync):
+                        host = {}
+                        for n in s.host_reads:
+                            if n not in self.buffers:
+                                raise KeyError(f"stage {s.name!r} reads {n!r}, which has no value yet "
+                                               "(no stage has written it and it was not set)")  # fmt: skip
+                            v = self.buffers[n]
+                            host[n] = v.numpy() if isinstance(v, DeviceArray) else v
+                        s.fn(StageBuffers(s, self.buffers, host))
+                out = {}
+                if self.outputs:
+                    with prof.stage(DOWNLOAD, sync=sync):
+                        for n in self.outputs:
+                            v = self.buffers[n]
+                            out[n] = v.numpy() if isinstance(v, DeviceArray) else v
+            finally:
+                self.last_frame = frame
+        return out
+
+    # -- figures -----------------------------------------------------------------------------------
+    @property
+    def frames(self) -> list[FrameStats]:
+        return self.profiler.frames
 
     def reset(self) -> None:
-        """Forget the recorded figures (e.g. after warm-up frames)."""
-        self.stats.clear()
-        self.frames.clear()
+        """Forget the recorded figures (e.g. after warm-up frames); the buffers stay."""
+        self.profiler.reset()
 
     def report(self) -> list[dict]:
-        """One dict per stage, in first-run order: calls, median/total ms, bytes each way."""
-        return [s.as_dict() for s in self.stats.values()]
+        return self.profiler.report()
 
     def table(self, title: str | None = None) -> str:
-        """The figures as a text table: ms per call (median, total) and, when frames were recorded,
-        ms per frame (total / frames, the papers' Tables 1-2 figure) and bytes each way."""
-        rows = self.report()
-        nf = len(self.frames)
-        head = f"{'stage':<24}{'calls':>7}{'median ms':>12}{'total ms':>12}{'ms/frame':>10}{'H->D bytes':>14}{'D->H bytes':>14}"
-        lines = [title or f"stages on {self.device.spec} ({self.device.name})", head, "-" * len(head)]
-        for r in rows:
-            per_frame = f"{r['total_ms'] / nf:10.3f}" if nf else f"{'-':>10}"
-            lines.append(
-                f"{r['name']:<24}{r['calls']:>7}{r['median_ms']:>12.3f}{r['total_ms']:>12.3f}{per_frame}"
-                f"{r['h2d_bytes']:>14}{r['d2h_bytes']:>14}"
-            )
-        if self.frames:
-            med = statistics.median(f.wall_s for f in self.frames) * 1e3
-            lines.append(f"{'frame (median)':<24}{len(self.frames):>7}{med:>12.3f}")
-        return "\n".join(lines)
+        return self.profiler.table(title)

@@ -230,9 +230,9 @@ def tables_child(spec: str, frames: int, samples: int) -> dict:
     for i, f in enumerate(list(seq)[1:]):
         tracker.track(f.gray, f.depth)
         if i == 0:
-            tracker.pipeline.reset()  # the first frame compiles the kernels
+            tracker.scheduler.reset()  # the first frame compiles the kernels
         print(f"{spec}: frame {f.index}", file=sys.stderr, flush=True)
-    pipe = tracker.pipeline
+    pipe = tracker.scheduler
     print(pipe.table(), file=sys.stderr, flush=True)
     return {
         **environment(dev),

@@ -49,14 +49,20 @@ def test_steady_state_frame_moves_only_frame_and_poses(device, arm_cross):
     tracker = BodyTracker(device, seq.params[0], config=cfg)
     tracker.track(frames[1].gray, frames[1].depth)  # builds and uploads the template
     tracker.track(frames[2].gray, frames[2].depth)
-    frame = tracker.pipeline.frames[-1]
+    frame = tracker.scheduler.frames[-1]
     if device.backend == "numpy":
         assert (frame.h2d, frame.d2h) == (0, 0)
         return
     image_bytes = frames[2].gray.nbytes + frames[2].depth.nbytes
     poses = cfg.candidates * seq.chain.n_params * 4  # the C candidate poses, float32
-    assert frame.stages["upload frame"][1] == image_bytes
-    assert "template" not in frame.stages
+    # the scheduler's inputs: the two images and the C start candidates, into last frame's arrays
+    assert frame.stages["upload inputs"][1:] == (image_bytes + poses, 0)
+    assert frame.stages["template"][1:] == (0, 0)  # not due: nothing rendered, nothing moved
+    assert all(frame.stages[n][1:] == (0, 0) for n in frame.stages if n.startswith("PF stage")), frame.stages
+    assert frame.stages["download outputs"][1:] == (0, 0)  # the LM's estimate is on the host already
+    # the LM downloads the PF's candidates (its declared host read) and exchanges the points it
+    # evaluates and their costs per iteration
+    assert frame.stages["LM"][2] >= poses
     assert frame.h2d <= image_bytes + 2 * poses, frame.stages
     assert frame.d2h <= 2 * poses * 2, frame.stages
 

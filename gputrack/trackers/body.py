@@ -25,13 +25,13 @@ import logging
 
 import numpy as np
 
-from ..device import Device, to_numpy
+from ..device import Device
 from ..models.upper_body import pf_sigma, upper_body
 from ..ops.lm import least_squares
 from ..ops.pf import pf_stage
 from ..ops.pose_residuals import pose_residuals
 from ..ops.template import Camera
-from ..scheduler import Pipeline
+from ..scheduler import Scheduler, SkipFrame, Stage
 from ..sim.render import DEFAULT_CAMERA, DEFAULT_SIZE
 from .body_template import sparse_template
 
@@ -98,8 +98,11 @@ class BodyTracker:
     """Track the upper body of paper 000 in a sequence of gray + depth frames.
 
     ``BodyTracker(device, initial_params, camera=..., config=TrackerConfig(...))``, then
-    ``track(gray, depth)`` per frame -> :class:`BodyEstimate`. ``pipeline`` holds the per-stage
-    timings and transfer counts (Tables 1-2 layout via ``pipeline.table()``).
+    ``track(gray, depth)`` per frame -> :class:`BodyEstimate`. The frame runs as stages of a
+    :class:`gputrack.Scheduler` (``scheduler``): upload the images and the C candidates, the template,
+    the PF stages (one per stage and cascade group), then the LM, whose result is the only download
+    besides the LM's own per-iteration exchange. ``scheduler.table()`` gives the per-stage timings and
+    transfer counts (Tables 1-2 layout); ``profile=False`` drops the device waits that time each stage.
 
     The same machinery tracks any chain: pass ``chain`` and the first-stage ``sigma`` (P,)
     (default: Table 4 for :func:`gputrack.models.upper_body`), and give ``track`` the
@@ -108,7 +111,7 @@ class BodyTracker:
     """
 
     def __init__(self, device: Device, initial_params, *, camera: Camera | None = None, size=DEFAULT_SIZE,
-                 config: TrackerConfig | None = None, chain=None, sigma=None):  # fmt: skip
+                 config: TrackerConfig | None = None, chain=None, sigma=None, profile: bool = True):  # fmt: skip
         if not isinstance(device, Device):
             raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
         self.device = device
@@ -123,10 +126,10 @@ class BodyTracker:
             raise ValueError("initial_params: expected finite values, got NaN or inf")
         self.params = p0
         self.candidates = np.repeat(p0[None], cfg.candidates, axis=0)
-        self.pipeline = Pipeline(device)
         self.frame_index = 0
         self._rng = np.random.default_rng(cfg.seed)
         self._templates = None
+        self._given_templates = None  # templates passed to track() for this frame
         # constant device data, uploaded once: per-stage (and per-cascade-group) sigmas
         sigma = pf_sigma(self.chain) if sigma is None else np.asarray(sigma, dtype=np.float64)
         if sigma.shape != (self.chain.n_params,) or not np.isfinite(sigma).all() or (sigma < 0).any():
@@ -137,11 +140,9 @@ class BodyTracker:
         angle[[i for part in self.chain.parts for i in part.angles]] = True
         self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
         self._sparsity = None
-        self._buffers = {}  # device arrays reused as out= of the ops, keyed by op and shape
-        # the frame's gray and depth on the device: the tracker's own arrays, each frame is uploaded
-        # into them (a caller's frame is never written to)
-        w, h = self.size
-        self._images = (device.empty((h, w), np.float32), device.empty((h, w), np.float32))
+        self._residual_out = {}  # pose_residuals' output arrays by shape, reused as out=
+        self.scheduler = Scheduler(device, self._stages(), inputs=("gray", "depth", "start"),
+                                   outputs=("estimate", "cost"), profile=profile)  # fmt: skip
 
     # -- helpers ---------------------------------------------------------------------------------
     def _groups(self) -> list[np.ndarray]:
@@ -184,23 +185,79 @@ class BodyTracker:
         parts = np.concatenate([rgb.part, dep.part])
         self._sparsity = self.chain.jacobian_sparsity(parts)
 
-    def _reuse(self, key, value):
-        """Keep an op's result as the ``out=`` buffer of the next call with the same key (saves allocations)."""
-        self._buffers[key] = value
-        return value
-
     def _residuals(self, gray, depth):
         rgb, dep = self._templates
         dev, cfg = self.device, self.config
 
         def residuals(points):  # with the sparse Jacobian, only the entries it reads (Fig. 2)
-            key = ("residuals", points.shape[0], rgb.n + dep.n)
+            key = (points.shape[0], rgb.n + dep.n)
             r = pose_residuals(dev, self.chain, points, rgb, dep, gray, depth, self.camera, lam=cfg.lam,
                                c_depth=cfg.c_depth, depth_tol=cfg.depth_tol, central=cfg.sparse_jacobian,
-                               out=self._buffers.get(key))  # fmt: skip
-            return self._reuse(key, r)
+                               out=self._residual_out.get(key))  # fmt: skip
+            self._residual_out[key] = r
+            return r
 
         return residuals
+
+    # -- the frame's stages (run by self.scheduler) -----------------------------------------------
+    def _stages(self) -> list[Stage]:
+        cfg, images = self.config, ("gray", "depth", "rgb", "dep")
+        stages = [Stage("template", self._template_stage, writes=("rgb", "dep"))]
+        calls = 0
+        for s in range(cfg.stages):
+            for g, sigma in enumerate(self._sigmas[s]):
+                name = f"PF stage {s + 1}" + (f".{g + 1}" if len(self._sigmas[s]) > 1 else "")
+                prev = "start" if calls == 0 else "candidates"
+                stages.append(Stage(name, self._pf_stage(sigma, prev, f"pf{calls % 2}"), reads=(*images, prev),
+                                    writes=("candidates", "scores", f"pf{calls % 2}")))  # fmt: skip
+                calls += 1
+        if cfg.lm_iterations:
+            stages.append(Stage("LM", self._lm_stage, reads=images, host_reads=("candidates",),
+                                writes=("estimate", "cost")))  # fmt: skip
+        else:
+            stages.append(Stage("download", self._download_stage, host_reads=("candidates", "scores"),
+                                writes=("estimate", "cost")))  # fmt: skip
+        return stages
+
+    def _template_stage(self, b):
+        """Sec. 2.3: the 3D sparse template, rendered at the previous estimate when due (or given)."""
+        if self._given_templates is not None:
+            self._set_templates(*self._given_templates)
+        elif self._templates is None or self.frame_index % self.config.template_every == 0:
+            try:
+                self._update_template()
+            except ValueError as e:  # the model is out of view at the last pose
+                raise SkipFrame(str(e)) from None
+        else:
+            return
+        b["rgb"], b["dep"] = self._templates
+
+    def _pf_stage(self, sigma, prev: str, out: str):
+        """One particle-filter stage (sec. 3.1, eq. 12-19) around the candidates in ``prev``; two
+        results in turn (``out`` = pf0 / pf1): a stage reads the other's rows."""
+        cfg = self.config
+
+        def stage(b):
+            seed = int(self._rng.integers(2**63))
+            best = pf_stage(self.device, self.chain, b[prev], sigma, cfg.samples, seed, b["rgb"], b["dep"], b["gray"],
+                            b["depth"], self.camera, k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth,
+                            depth_tol=cfg.depth_tol, out=b.get(out))  # fmt: skip
+            b[out], b["candidates"], b["scores"] = best, best.rows, best.scores
+
+        return stage
+
+    def _lm_stage(self, b):
+        """Sec. 3.4, eq. 20-24: LM on all C candidates at once; the estimate sorted by cost."""
+        cfg = self.config
+        res = least_squares(self._residuals(b["gray"], b["depth"]), b["candidates"].astype(np.float64),
+                            device=self.device, max_iter=cfg.lm_iterations, step=self._lm_step,
+                            points_dtype=np.float32, jac_sparsity=self._sparsity if cfg.sparse_jacobian else None,
+                            early_stop=False)  # fmt: skip
+        order = np.argsort(res.cost, kind="stable")
+        b["estimate"], b["cost"] = res.x[order], float(res.cost[order[0]])
+
+    def _download_stage(self, b):
+        b["estimate"], b["cost"] = b["candidates"].astype(np.float64), float(b["scores"][0])
 
     # -- one frame ---------------------------------------------------------------------------------
     def track(self, gray, depth, templates=None) -> BodyEstimate:
@@ -210,51 +267,16 @@ class BodyTracker:
         model at the previous estimate.
         """
         self._check_frame(gray, depth)
-        cfg, dev, pipe = self.config, self.device, self.pipeline
-        valid_depth = np.isfinite(depth) & (depth > 0)
-        with pipe.frame():
-            if not valid_depth.any():
-                return self._keep("no valid depth in the frame")
-            with pipe.stage("upload frame"):  # into the tracker's arrays
-                g = dev.asarray(gray, out=self._images[0])
-                d = dev.asarray(depth, out=self._images[1])
-            if templates is not None:
-                with pipe.stage("template"):
-                    self._set_templates(*templates)
-            elif self._templates is None or self.frame_index % cfg.template_every == 0:
-                with pipe.stage("template"):
-                    try:
-                        self._update_template()
-                    except ValueError as e:  # the model is out of view at the last pose
-                        return self._keep(str(e))
-            with pipe.stage("upload candidates"):
-                key = ("candidates", self.candidates.shape)
-                cand = self._reuse(key, dev.asarray(self.candidates.astype(np.float32), out=self._buffers.get(key)))
-            rgb, dep = self._templates
-            calls = 0
-            for s in range(cfg.stages):
-                for sigma in self._sigmas[s]:
-                    with pipe.stage(f"PF stage {s + 1}"):
-                        seed = int(self._rng.integers(2**63))
-                        key = ("pf_stage", calls % 2)  # two results in turn: a stage reads the other's rows
-                        best = pf_stage(dev, self.chain, cand, sigma, cfg.samples, seed, rgb, dep, g, d, self.camera,
-                                        k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth,
-                                        depth_tol=cfg.depth_tol, out=self._buffers.get(key))  # fmt: skip
-                        cand = self._reuse(key, best).rows
-                        calls += 1
-            if cfg.lm_iterations:
-                with pipe.stage("LM"):
-                    x0 = to_numpy(cand).astype(np.float64)
-                    res = least_squares(self._residuals(g, d), x0, device=dev, max_iter=cfg.lm_iterations,
-                                        step=self._lm_step, points_dtype=np.float32,
-                                        jac_sparsity=self._sparsity if cfg.sparse_jacobian else None,
-                                        early_stop=False)  # fmt: skip
-                    order = np.argsort(res.cost, kind="stable")
-                    candidates, best_cost = res.x[order], float(res.cost[order[0]])
-            else:
-                with pipe.stage("download"):
-                    candidates = to_numpy(cand).astype(np.float64)
-                    best_cost = float(to_numpy(best.scores)[0])
+        if not (np.isfinite(depth) & (depth > 0)).any():
+            return self._keep("no valid depth in the frame")
+        self._given_templates = templates
+        try:
+            out = self.scheduler.run(gray=gray, depth=depth, start=self.candidates.astype(np.float32))
+        except SkipFrame as e:
+            return self._keep(str(e))
+        finally:
+            self._given_templates = None
+        candidates, best_cost = out["estimate"], out["cost"]
         if not np.isfinite(candidates).all():
             return self._keep("the estimate is not finite")
         self.candidates = candidates
