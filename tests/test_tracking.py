@@ -171,13 +171,19 @@ class _StubPredictor(Predictor):
 
 
 class _StubGater(Gater):
-    """Gates slot 0 with detection 1 (cost 0.5) when slot 0 is occupied."""
+    """Gates slot 0 with detection 1 (cost 0.5) when slot 0 is occupied; its device buffer is x."""
+
+    buffers = ("stub_x",)
 
     def __init__(self, log):
         self.log = log
 
-    def gate(self, table, z):
+    def launch(self, table, z):
         self.log.append(("gate", table, z.copy()))
+        return {"stub_x": table.x}
+
+    def collect(self, table, z, host):
+        self.log.append(("collect", host["stub_x"]))
         occ = table.status[0] != TrackStatus.FREE and len(z) > 1
         rows = np.array([0] if occ else [], np.int64)
         cols = np.array([1] if occ else [], np.int64)
@@ -242,13 +248,16 @@ def test_composition_calls_each_role_with_its_data(device):
     z0 = np.array([[1.0, 2.0], [3.0, 4.0]], np.float32)
     f0 = tracker.step(z0, gain_scale=[1.0, 0.5])
     names = [e[0] for e in log]
-    assert names == ["predict", "gate", "associate", "update", "review", "delete", "initiate"]
+    assert names == ["predict", "gate", "collect", "associate", "update", "review", "delete", "initiate"]
     assert log[0][1] is table and log[1][1] is table
     np.testing.assert_array_equal(log[1][2], z0)
-    assert log[2][1] is roles["gater"].gated  # the associator gets the gater's pairs
-    assert log[3][3] is roles["associator"].assignment  # the updater gets the assignment
-    np.testing.assert_array_equal(log[3][4], [1.0, 0.5])
-    assert log[5][1] is roles["associator"].assignment and log[5][2] is roles["gater"].gated
+    assert isinstance(log[2][1], np.ndarray) and log[2][1].shape == (2, 4)  # the gate's buffer, on the host
+    assert log[3][1] is roles["gater"].gated  # the associator gets the gater's pairs
+    assert log[4][3] is roles["associator"].assignment  # the updater gets the assignment
+    np.testing.assert_array_equal(log[4][4], [1.0, 0.5])
+    assert log[6][1] is roles["associator"].assignment and log[6][2] is roles["gater"].gated
+    stages = [s.name for s in tracker.scheduler.stages]
+    assert stages == ["predict", "gate", "assign", "update", "start/end"]
     assert f0.started.tolist() == [0, 1] and f0.det_ids.tolist() == [0, 1]
     t = tracker.tracks()
     np.testing.assert_allclose(t.x, [[1, 0, 2, 0], [3, 0, 4, 0]])  # written by the stub initiator
@@ -256,7 +265,7 @@ def test_composition_calls_each_role_with_its_data(device):
     log.clear()
     f1 = tracker.step(np.array([[5.0, 5.0], [1.1, 2.1]], np.float32))
     assert f1.det_ids.tolist() == [2, 0] and f1.started.tolist() == [2]
-    np.testing.assert_array_equal(log[3][3].track_det[:2], [1, -1])
+    np.testing.assert_array_equal(log[4][3].track_det[:2], [1, -1])
     assert tracker.table.capacity == 4  # grew from 2 for the third track
     # frames 3, 4 without detections: the stub deleter ends each track at its second miss
     # (track 1 missed in frame 2 already)
@@ -501,3 +510,27 @@ def test_gate_overflow_raises_max_pairs(device):
     z = np.stack([np.linspace(-0.3, 0.3, 12), np.zeros(12)], 1).astype(np.float32)
     gated = tracker.gater.gate(tracker.table, z)
     assert tracker.gater.max_pairs == 16 and sorted(gated.cols.tolist()) == list(range(12))
+
+
+def test_steady_state_frame_moves_only_its_inputs_and_outputs(device):
+    # through the scheduler: per stage, the bytes a frame moves. Steady state (no track starts
+    # or ends): the sorted detections up (padded to 16 rows), the gated pairs down (count, det,
+    # d2 of every slot, K = 8), one detection row per slot up; nothing else.
+    C, K, m = 16, 8, 2
+    tracker = _tracker(device, capacity=C)
+    z = np.array([[1.0, 1.0], [9.0, 9.0], [20.0, 4.0]], np.float32)
+    first = [tracker.step(z) for _ in range(3)]
+    assert [len(f.started) for f in first] == [3, 0, 0] and len(tracker.tracks(confirmed_only=True)) == 3
+    frame = tracker.scheduler.last_frame.stages
+    moves = device.backend != "numpy"  # the numpy device moves nothing
+    want = {"predict": (0, 0), "gate": (16 * m * 4, 0), "assign": (0, C * (1 + 2 * K) * 4),
+            "update": (C * m * 4, 0), "start/end": (0, 0)}  # fmt: skip
+    got = {name: (h2d, d2h) for name, (_, h2d, d2h) in frame.items()}
+    assert got == {k: (v[0] * moves, v[1] * moves) for k, v in want.items()}
+    # a frame that starts a track also uploads its slot index and state (16-row buffers), and
+    # the next frame's gate the occupied-slot flags (C bytes)
+    tracker.step(np.concatenate([z, [[40.0, 40.0]]]).astype(np.float32))
+    started = tracker.scheduler.last_frame.stages["start/end"]
+    assert started[1:] == ((16 * 4 + 16 * 4 * 4) * moves, 0)
+    tracker.step(np.concatenate([z, [[40.0, 40.0]]]).astype(np.float32))
+    assert tracker.scheduler.last_frame.stages["gate"][1:] == ((16 * m * 4 + C) * moves, 0)

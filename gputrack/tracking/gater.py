@@ -48,11 +48,25 @@ class Gated:
 
 
 class Gater(abc.ABC):
-    """Gates the tracks of a table against the detections of a frame."""
+    """Gates the tracks of a table against the detections of a frame, in two halves that map
+    onto the tracker's stages: :meth:`launch` (device work, no wait) returns the device buffers
+    named in :attr:`buffers`; :meth:`collect` turns those buffers, downloaded, into a
+    :class:`Gated` on the host. :meth:`gate` runs both."""
+
+    #: names of the device buffers :meth:`launch` returns (declared by the tracker's gate stage)
+    buffers: tuple = ()
 
     @abc.abstractmethod
+    def launch(self, table: TrackTable, z: np.ndarray) -> dict:
+        """Start gating z (D,m) host detections (finite); returns {name: device array}."""
+
+    @abc.abstractmethod
+    def collect(self, table: TrackTable, z: np.ndarray, host: dict) -> Gated:
+        """The gated pairs (only occupied slots) from launch's buffers downloaded to the host."""
+
     def gate(self, table: TrackTable, z: np.ndarray) -> Gated:
-        """z (D,m) host detections (finite) -> the gated pairs (only occupied slots)."""
+        """:meth:`launch` then :meth:`collect` (downloading the buffers)."""
+        return self.collect(table, z, {k: _host(v) for k, v in self.launch(table, z).items()})
 
 
 def _host(a) -> np.ndarray:
@@ -113,34 +127,41 @@ class MahalanobisGater(Gater):
                                        dev.empty((C, K), table.dtype), dev.empty((C,), table.dtype))  # fmt: skip
         return found
 
-    def gate(self, table: TrackTable, z: np.ndarray) -> Gated:
+    @property
+    def buffers(self) -> tuple:
+        return ("gate_count", "gate_det", "gate_d2") + (("gate_trace",) if self.trace else ())
+
+    def launch(self, table: TrackTable, z: np.ndarray) -> dict:
         if table.n != self.H.shape[1]:
             raise ValueError(f"table: expected state size n={self.H.shape[1]} (H's columns), got n={table.n}")
+        g = self._launch(table, z, self.max_pairs)
+        names = self.buffers
+        return dict(zip(names, (g.count, g.det, g.d2, g.trace)[: len(names)]))
+
+    def _launch(self, table, z, K):
         dev = table.device
         st = self._staging.get(dev)
         if st is None:
             st = self._staging[dev] = Staging(dev)
         D = len(z)
-        order = np.argsort(z[:, 0], kind="stable")
-        zs = z[order].astype(table.dtype, copy=False)
-        zd, _ = st.put_rows("z", zs)
-        H, R = st.matrix(f"H{table.dtype}", self.H.astype(table.dtype)), st.matrix(f"R{table.dtype}", self.R.astype(table.dtype))
-        active = table.sync_active()
-        K = self.max_pairs
-        g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True, n_z=D,
-                       out=self._outputs(table, K))  # fmt: skip
-        count = _host(g.count)
+        self._order = order = np.argsort(z[:, 0], kind="stable")
+        zd, _ = st.put_rows("z", z[order].astype(table.dtype, copy=False))
+        self._zd = zd
+        H = st.matrix(f"H{table.dtype}", self.H.astype(table.dtype))
+        R = st.matrix(f"R{table.dtype}", self.R.astype(table.dtype))
+        return gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=table.sync_active(), sorted_z=True,
+                          n_z=D, out=self._outputs(table, K))  # fmt: skip
+
+    def collect(self, table: TrackTable, z: np.ndarray, host: dict) -> Gated:
+        count, det, d2 = host["gate_count"], host["gate_det"], host["gate_d2"]
+        trace = host["gate_trace"] if self.trace else None
+        D = len(z)
         most = int(count.max(initial=0))
-        if most > K:  # some track gates more than K detections: gate again with room for all
-            K = self.max_pairs = 1 << (most - 1).bit_length()
-            g = gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=active, sorted_z=True, n_z=D,
-                           out=self._outputs(table, K))  # fmt: skip
-            count = _host(g.count)
-        trace = _host(g.trace) if self.trace else None
-        if most == 0:
-            empty = np.zeros(0, np.int64)
-            return Gated(empty, empty, np.zeros(0), trace, table.capacity, D, self.threshold)
-        det, d2 = _host(g.det), _host(g.d2)
+        if most > det.shape[1]:  # some track gates more than K detections: gate again with room for all
+            self.max_pairs = 1 << (most - 1).bit_length()
+            g = self._launch(table, z, self.max_pairs)
+            count, det, d2 = _host(g.count), _host(g.det), _host(g.d2)
+        order = self._order
         rows = np.flatnonzero(count)  # slot of each pair, and its column k < count
         n = count[rows]
         rows = np.repeat(rows, n)
@@ -163,9 +184,14 @@ class CostGater(Gater):
             raise ValueError(f"threshold: expected a finite number, got {threshold!r}")
         self.cost, self.threshold = cost, threshold
 
-    def gate(self, table: TrackTable, z: np.ndarray) -> Gated:
+    buffers = ("cost",)
+
+    def launch(self, table: TrackTable, z: np.ndarray) -> dict:
+        return {"cost": self.cost(table, z)}
+
+    def collect(self, table: TrackTable, z: np.ndarray, host: dict) -> Gated:
         C, D = table.capacity, len(z)
-        c = _host(self.cost(table, z))
+        c = np.asarray(host["cost"])
         if c.shape != (C, D):
             raise ValueError(f"cost: expected a (C={C}, D={D}) matrix (slots x detections), got shape {c.shape}")
         if c.dtype.kind not in "iuf":

@@ -1,30 +1,35 @@
 """A multi-target tracker as a short composition of the roles, all tracks in one TrackTable.
 
-One frame (:meth:`MultiTargetTracker.step`) is five stages, each a role call that works on all
-tracks at once:
+One frame (:meth:`MultiTargetTracker.step`) is five stages of a :class:`gputrack.scheduler.Scheduler`,
+each a role call that works on all tracks at once:
 
-====================  ======================================================  ===========
-stage                 what                                                    where
-====================  ======================================================  ===========
-predict               every slot, one launch (Predictor)                      device
-gate                  tracks x detections, one launch; the gated pairs        device -> host
-                      come back (Gater)
-assign                one detection per track from the gated pairs            host
-                      (Associator)
-update                every assigned slot, one launch (Updater)               host -> device
-start/end             lifecycle bookkeeping on the host mirror, M-of-N        host (+ one
-                      confirmation, deletions (Deleter), new tracks written   scatter per
-                      into free slots (Initiator)                             array)
-====================  ======================================================  ===========
+===========  =====================================================  ====================  ======
+stage        what                                                   buffers               where
+===========  =====================================================  ====================  ======
+predict      every slot, one launch (Predictor)                     x, P -> x, P          device
+gate         tracks x detections, one launch (Gater.launch); the    x, P, active ->       device
+             detections are uploaded sorted                         the gater's buffers
+assign       the gated pairs (Gater.collect) and one detection per  host read of the      host
+             track (Associator)                                     gater's buffers
+update       every assigned slot, one launch (Updater)              x, P -> x, P          device
+start/end    lifecycle bookkeeping on the host mirror, M-of-N       -> x, P, active       host,
+             confirmation, deletions (Deleter), new tracks written                        one
+             into free slots (Initiator)                                                  scatter
+                                                                                          per array
+===========  =====================================================  ====================  ======
 
-As in Stone Soup's ``MultiTargetTracker`` (associate, update, delete, initiate), but no Python
-object per track: states stay on the device; the host holds the lifecycle mirror of the table
-(ids, status, hits, misses, age), computed from the assignment it already has.
+Only the assign stage waits for the device (its host read). As in Stone Soup's
+``MultiTargetTracker`` (associate, update, delete, initiate), but no Python object per track:
+states stay on the device; the host holds the lifecycle mirror of the table (ids, status, hits,
+misses, age), computed from the assignment it already has. The detections are host data (the
+stages sort, gather and initiate from them); the stage that needs them on the device uploads
+them (gate: sorted, into a reused buffer; update: one row per slot). ``tracker.scheduler``
+reports each stage's time and bytes (``profile=True`` times the device work of each stage).
 
-Per steady-state frame the host uploads the sorted detections (D m values), the per-slot
-detection rows (C m), the occupied-slot flags when they changed (C bytes) and the new tracks
-(index, x0, P0), and downloads the gate's pairs (C (2 + 2 K) values). States come to the host
-only through :meth:`MultiTargetTracker.tracks`.
+Per steady-state frame the host uploads the sorted detections (D m values, padded), the
+occupied-slot flags when they changed (C bytes), one detection row per slot (C m) and the new
+tracks (index, x0), and downloads the gate's pairs (C (1 + 2 K) values). States come to the
+host only through :meth:`MultiTargetTracker.tracks`.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import dataclasses
 import numpy as np
 
 from ..device import Device, DeviceArray
+from ..scheduler import Scheduler, Stage
 from .associator import Associator, GNNAssociator
 from .deleter import AnyDeleter, CovarianceDeleter, Deleter, MissDeleter
 from .gater import Gater, MahalanobisGater
@@ -72,7 +78,8 @@ class MultiTargetTracker:
 
     def __init__(self, device: Device, *, predictor: Predictor, gater: Gater, associator: Associator,
                  updater: Updater, initiator: Initiator, deleter: Deleter, m: int, table: TrackTable | None = None,
-                 capacity: int = 1024, max_capacity: int = 1 << 20, dtype=np.float32):  # fmt: skip
+                 capacity: int = 1024, max_capacity: int = 1 << 20, dtype=np.float32,
+                 profile: bool = False):  # fmt: skip
         for name, role, base in (("predictor", predictor, Predictor), ("gater", gater, Gater),
                                  ("associator", associator, Associator), ("updater", updater, Updater),
                                  ("initiator", initiator, Initiator), ("deleter", deleter, Deleter)):  # fmt: skip
@@ -90,17 +97,27 @@ class MultiTargetTracker:
         self.device, self.table, self.m = device, table, int(m)
         self.predictor, self.gater, self.associator = predictor, gater, associator
         self.updater, self.initiator, self.deleter = updater, initiator, deleter
+        gate = tuple(gater.buffers)
+        self.scheduler = Scheduler(device, [
+            Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
+            Stage("gate", self._gate, reads=("x", "P", "active"), writes=gate),
+            Stage("assign", self._assign, host_reads=gate, writes=("gated", "assignment")),
+            Stage("update", self._update, reads=("x", "P", "assignment"), writes=("x", "P")),
+            Stage("start/end", self._start_end, reads=("gated", "assignment"), writes=("x", "P", "active")),
+        ], state=("x", "P", "active"), profile=profile)  # fmt: skip
+        self._bind(self.scheduler.buffers, "x", "P", "active")
+        self._frame = None
 
     @classmethod
     def constant_velocity(cls, device: Device, *, dim: int = 2, dt: float = 1.0, q=1.0, R=1.0,
                           gate_probability: float = 0.999, m_of_n=(2, 3), max_misses: int = 3,
-                          max_trace: float | None = None, velocity_var: float = 1.0, **table) -> "MultiTargetTracker":  # fmt: skip
+                          max_trace: float | None = None, velocity_var: float = 1.0, **kw) -> "MultiTargetTracker":  # fmt: skip
         """Constant-velocity tracks (state [x xdot y ydot ...], ``dim`` axes, acceleration
         variance ``q``) from position detections with noise covariance ``R`` (a variance or a
         (dim, dim) matrix): Kalman predictor and updater, Mahalanobis gate at
         ``gate_probability``, GNN association, M-of-N start, deletion after more than
-        ``max_misses`` misses (and, with ``max_trace``, on covariance growth). ``table``:
-        capacity, max_capacity, dtype."""
+        ``max_misses`` misses (and, with ``max_trace``, on covariance growth). ``kw``:
+        capacity, max_capacity, dtype, profile."""
         predictor = KalmanPredictor.constant_velocity(dim, dt, q)
         H = np.zeros((dim, 2 * dim))
         H[np.arange(dim), 2 * np.arange(dim)] = 1.0
@@ -112,29 +129,53 @@ class MultiTargetTracker:
         return cls(device, predictor=predictor, gater=MahalanobisGater(H, R, probability=gate_probability, trace=max_trace is not None),
                    associator=GNNAssociator(), updater=KalmanUpdater(H, R),
                    initiator=MofNInitiator(H, R, m_of_n=m_of_n, velocity_var=velocity_var), deleter=deleter, m=dim,
-                   **table)  # fmt: skip
+                   **kw)  # fmt: skip
 
     # -- one frame -----------------------------------------------------------------------------
     def step(self, detections, *, gain_scale=None) -> TrackingFrame:
         """Track one frame of detections (D, m) (host, finite; D = 0 is a frame without any).
         ``gain_scale`` (D,) >= 0 scales each detection's Kalman gain (paper 002), or None."""
-        z, gain = self._inputs(detections, gain_scale)
-        self.predictor.predict(self.table)  # predict (device)
-        gated = self.gater.gate(self.table, z)  # gate (device; the gated pairs to the host)
-        assignment = self.associator.associate(gated)  # assign (host)
-        self.updater.update(self.table, z, assignment, gain)  # update (device)
-        return self._start_end(z, assignment, gated)  # start/end (host mirror; new tracks to the device)
+        self._frame = self._inputs(detections, gain_scale)  # (z, gain): host data the stages read
+        try:
+            self.scheduler.run()
+            return self._result
+        finally:
+            self._frame = None
 
-    def _start_end(self, z, assignment, gated) -> TrackingFrame:
-        table = self.table
+    def _bind(self, b, *names) -> None:
+        """The table's arrays (new ones after a growth) as the scheduler's buffers."""
+        for name in names:
+            b[name] = getattr(self.table, name)
+
+    def _predict(self, b) -> None:
+        self.predictor.predict(self.table)
+        self._bind(b, "x", "P")
+
+    def _gate(self, b) -> None:
+        for name, array in self.gater.launch(self.table, self._frame[0]).items():
+            b[name] = array
+
+    def _assign(self, b) -> None:
+        gated = self.gater.collect(self.table, self._frame[0], {n: b[n] for n in self.gater.buffers})
+        b["gated"] = gated
+        b["assignment"] = self.associator.associate(gated)
+
+    def _update(self, b) -> None:
+        z, gain = self._frame
+        self.updater.update(self.table, z, b["assignment"], gain)
+        self._bind(b, "x", "P")
+
+    def _start_end(self, b) -> None:
+        z, assignment, table = self._frame[0], b["assignment"], self.table
         table.record(assignment.track_det >= 0)
         confirm, reject = self.initiator.review(table)
         confirmed = table.confirm(confirm)
         det_ids = np.where(assignment.det_track >= 0, table.ids[np.maximum(assignment.det_track, 0)], -1)
-        deleted = table.remove(np.union1d(reject, self.deleter.delete(table, assignment, gated)))
+        deleted = table.remove(np.union1d(reject, self.deleter.delete(table, assignment, b["gated"])))
         _, started, dets, dropped = self.initiator.initiate(table, z, assignment)
         det_ids[dets] = started
-        return TrackingFrame(det_ids, started, confirmed, deleted, int(dropped))
+        self._bind(b, "x", "P", "active")
+        self._result = TrackingFrame(det_ids, started, confirmed, deleted, int(dropped))
 
     def _inputs(self, detections, gain_scale):
         if isinstance(detections, DeviceArray):
