@@ -90,3 +90,20 @@ def test_gate_pairs_outputs_and_bad_input(device):
         gate_pairs(device, x, P[:4], H, R, z, 9.0)
     with pytest.raises(ValueError, match=r"H: expected a shared matrix"):
         gate_pairs(device, x, P, np.tile(H, (5, 1, 1)), R, z, 9.0)
+
+
+def test_gate_pairs_reads_only_the_first_n_z_detections(device):
+    # a padded buffer of detections: rows after n_z are never gated, whatever they hold
+    rng = np.random.default_rng(4)
+    x, P, H, R, z = _problem(rng, 30, 20)
+    padded = np.concatenate([z, np.tile(x[:1, [0, 2]], (12, 1))]).astype(np.float32)  # on top of track 0
+    for sorted_z in (False, True):
+        a = _host(gate_pairs(device, x, P, H, R, padded, 9.0, sorted_z=sorted_z, n_z=20))
+        b = _host(gate_pairs(device, x, P, H, R, z, 9.0, sorted_z=sorted_z))
+        np.testing.assert_array_equal(a[0], b[0])
+        keep = np.arange(16)[None, :] < np.minimum(a[0], 16)[:, None]
+        np.testing.assert_array_equal(a[1][keep], b[1][keep])
+    with pytest.raises(ValueError, match=r"n_z: expected an integer in \[0, 32\]"):
+        gate_pairs(device, x, P, H, R, padded, 9.0, n_z=33)
+    g = _host(gate_pairs(device, x, P, H, R, padded, 9.0, n_z=0))
+    assert (g[0] == 0).all()

@@ -61,3 +61,18 @@ def test_scatter_rows_empty_and_bad_input(device):
     with pytest.raises(TypeError, match="dst: expected"):
         scatter_rows(device, [[0.0, 0.0]], [0], np.zeros((1, 2), np.float32))
     np.testing.assert_array_equal(gputrack.to_numpy(dst), 0)  # bad input wrote nothing
+
+
+def test_scatter_rows_uses_only_the_first_n_rows(device):
+    base = np.zeros((8, 2), np.float32)
+    src = np.arange(10, dtype=np.float32).reshape(5, 2)
+    dst = _dev(device, base)
+    scatter_rows(device, dst, np.array([6, 1, 7, 7, 7], np.int32), src, n_rows=2)  # the padding is not read
+    want = base.copy()
+    want[[6, 1]] = src[:2]
+    np.testing.assert_array_equal(gputrack.to_numpy(dst), want)
+    scatter_rows(device, dst, _dev(device, np.array([3, 4, 0, 0, 0], np.int32)), _dev(device, src), n_rows=2)
+    want[[3, 4]] = src[:2]
+    np.testing.assert_array_equal(gputrack.to_numpy(dst), want)
+    with pytest.raises(ValueError, match=r"n_rows: expected an integer in \[0, 5\]"):
+        scatter_rows(device, dst, np.arange(5, dtype=np.int32), src, n_rows=6)

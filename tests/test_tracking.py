@@ -515,8 +515,8 @@ def test_gate_overflow_raises_max_pairs(device):
 def test_steady_state_frame_moves_only_its_inputs_and_outputs(device):
     # through the scheduler: per stage, the bytes a frame moves. Steady state (no track starts
     # or ends): the sorted detections up (padded to 16 rows), the gated pairs down (count, det,
-    # d2 of every slot, K = 8), one detection row per slot up; nothing else.
-    C, K, m = 16, 8, 2
+    # d2 of every slot, K = 4), one detection row per slot up; nothing else.
+    C, K, m = 16, 4, 2
     tracker = _tracker(device, capacity=C)
     z = np.array([[1.0, 1.0], [9.0, 9.0], [20.0, 4.0]], np.float32)
     first = [tracker.step(z) for _ in range(3)]

@@ -33,14 +33,15 @@ class Staging:
 
     def put_rows(self, name: str, host: np.ndarray):
         """(device array of >= len(host) rows whose first rows are ``host``, len(host)); the
-        buffer keeps a power-of-two number of rows (at least 16), growing when needed."""
+        buffer has a power-of-two number of rows (at least 16), made anew when it is too small
+        or more than four times larger than needed (the whole buffer is uploaded every call)."""
         k = len(host)
         if self.device.backend == "numpy":
             return np.ascontiguousarray(host), k
         prev = self._arrays.get(name)
         rows = prev.shape[0] if prev is not None and prev.shape[1:] == host.shape[1:] and prev.dtype == host.dtype else 0
-        if rows < k:
-            rows = max(16, 1 << (k - 1).bit_length())
+        if rows < k or rows > 4 * max(k, 16):
+            rows = max(16, 1 << (max(k, 1) - 1).bit_length())
             prev = None
         padded = np.zeros((rows, *host.shape[1:]), host.dtype)
         padded[:k] = host

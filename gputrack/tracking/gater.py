@@ -89,7 +89,7 @@ class MahalanobisGater(Gater):
     :class:`gputrack.tracking.CovarianceDeleter`); otherwise ``trace`` is None.
     """
 
-    def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 8,
+    def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 4,
                  trace: bool = False):  # fmt: skip
         H = np.asarray(H, dtype=np.float64)
         R = np.asarray(R, dtype=np.float64)
