@@ -7,7 +7,6 @@ from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
-import gputrack
 from gputrack.ops.kalman import constant_velocity
 from gputrack.sim.scenes import cv_scene
 from gputrack.tracking import (

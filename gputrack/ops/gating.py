@@ -116,7 +116,8 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
         K = int(max_pairs)
     else:
         if not isinstance(out, (tuple, list)) or len(out) != 4:
-            raise TypeError(f"out: expected a tuple of 4 arrays (count, det, d2, trace) or None, got {type(out).__name__}")
+            raise TypeError("out: expected a tuple of 4 arrays (count, det, d2, trace) or None, got "
+                            f"{type(out).__name__}")
         K = int(out[1].shape[1]) if getattr(out[1], "ndim", 0) == 2 and out[1].shape[1] >= 1 else -1
         if K < 1:
             raise ValueError(f"out det: expected shape (T={T}, K >= 1), got {tuple(getattr(out[1], 'shape', ()))}")

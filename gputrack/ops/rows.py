@@ -8,9 +8,10 @@ old rows, without a round trip through the host per track::
 
 Shapes: ``dst`` (C, *row) (rank 1 to 3), ``index`` (K,) int32 with distinct values in [0, C),
 ``src`` (K, *row) of ``dst``'s dtype, or (1, *row): that one row written at every index (e.g.
-the same initial covariance for every new track, uploaded once). ``dst`` is written in place and returned; rows not named by
-``index`` are left as they are. Every dtype a DeviceArray holds is copied bit for bit (the
-OpenCL kernel moves 4-byte words when a row's size allows, else bytes).
+the same initial covariance for every new track, uploaded once). ``dst`` is written in place
+and returned; rows not named by ``index`` are left as they are. Every dtype a DeviceArray holds
+is copied bit for bit (the OpenCL kernel moves 4-byte words when a row's size allows, else
+bytes).
 
 Validation: ``dst`` must be an array of ``device`` (a writeable C-contiguous NumPy array on the
 ``numpy`` device). A NumPy ``index`` is checked (range, distinct values); a device ``index`` is

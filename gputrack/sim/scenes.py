@@ -99,7 +99,8 @@ def cv_scene(
     in order of birth. Raises ValueError for a parameter out of range.
     """
     if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng: expected a numpy.random.Generator (np.random.default_rng(seed)), got {type(rng).__name__}")
+        raise TypeError(f"rng: expected a numpy.random.Generator (np.random.default_rng(seed)), got "
+                        f"{type(rng).__name__}")
     for name, v in (("frames", frames), ("targets", targets), ("dim", dim)):
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < (1 if name == "dim" else 0):
             raise ValueError(f"{name}: expected a {'positive' if name == 'dim' else 'non-negative'} integer, got {v!r}")

@@ -39,7 +39,8 @@ class Staging:
         if self.device.backend == "numpy":
             return np.ascontiguousarray(host), k
         prev = self._arrays.get(name)
-        rows = prev.shape[0] if prev is not None and prev.shape[1:] == host.shape[1:] and prev.dtype == host.dtype else 0
+        same = prev is not None and prev.shape[1:] == host.shape[1:] and prev.dtype == host.dtype
+        rows = prev.shape[0] if same else 0
         if rows < k or rows > 4 * max(k, 16):
             rows = max(16, 1 << (max(k, 1) - 1).bit_length())
             prev = None

@@ -63,7 +63,8 @@ class MofNInitiator(Initiator):
         prior_x = np.zeros(n) if prior_x is None else np.asarray(prior_x, dtype=np.float64)
         prior_P = velocity_var * np.eye(n) if prior_P is None else np.asarray(prior_P, dtype=np.float64)
         if prior_x.shape != (n,) or prior_P.shape != (n, n):
-            raise ValueError(f"prior_x, prior_P: expected shapes ({n},) and ({n}, {n}), got {prior_x.shape}, {prior_P.shape}")
+            raise ValueError(f"prior_x, prior_P: expected shapes ({n},) and ({n}, {n}), got {prior_x.shape}, "
+                             f"{prior_P.shape}")  # fmt: skip
         mapped = np.flatnonzero(np.abs(H).sum(axis=0) > 0)  # the measured state components
         self.pinv = np.linalg.pinv(H)
         self.x_base = prior_x.copy()

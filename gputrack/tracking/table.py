@@ -196,7 +196,8 @@ class TrackTable:
                 raise TypeError(f"{name}: expected a real array, got dtype {a.dtype.name}")
             if not np.isfinite(a).all():
                 bad = np.argwhere(~np.isfinite(a))[0]
-                raise ValueError(f"{name}: expected finite values, got {a[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+                where = tuple(int(i) for i in bad)
+                raise ValueError(f"{name}: expected finite values, got {a[tuple(bad)]} at index {where}")
         status = TrackStatus(status)
         if status == TrackStatus.FREE:
             raise ValueError("status: expected TENTATIVE or CONFIRMED for a new track, got FREE")

@@ -111,7 +111,8 @@ class MultiTargetTracker:
     @classmethod
     def constant_velocity(cls, device: Device, *, dim: int = 2, dt: float = 1.0, q=1.0, R=1.0,
                           gate_probability: float = 0.999, m_of_n=(2, 3), max_misses: int = 3,
-                          max_trace: float | None = None, velocity_var: float = 1.0, **kw) -> "MultiTargetTracker":  # fmt: skip
+                          max_trace: float | None = None, velocity_var: float = 1.0,
+                          **kw) -> "MultiTargetTracker":  # fmt: skip
         """Constant-velocity tracks (state [x xdot y ydot ...], ``dim`` axes, acceleration
         variance ``q``) from position detections with noise covariance ``R`` (a variance or a
         (dim, dim) matrix): Kalman predictor and updater, Mahalanobis gate at
@@ -126,7 +127,8 @@ class MultiTargetTracker:
         deleter = MissDeleter(max_misses)
         if max_trace is not None:
             deleter = AnyDeleter(deleter, CovarianceDeleter(max_trace))
-        return cls(device, predictor=predictor, gater=MahalanobisGater(H, R, probability=gate_probability, trace=max_trace is not None),
+        gater = MahalanobisGater(H, R, probability=gate_probability, trace=max_trace is not None)
+        return cls(device, predictor=predictor, gater=gater,
                    associator=GNNAssociator(), updater=KalmanUpdater(H, R),
                    initiator=MofNInitiator(H, R, m_of_n=m_of_n, velocity_var=velocity_var), deleter=deleter, m=dim,
                    **kw)  # fmt: skip
