@@ -50,10 +50,3 @@ class Staging:
             found = self._arrays[name] = self.device.asarray(padded)
             return found, k
         return self.device.asarray(padded, out=prev), k
-
-    def matrix(self, name: str, host: np.ndarray):
-        """A constant matrix, uploaded the first time only (the caller must not change it)."""
-        found = self._arrays.get(name)
-        if found is None:
-            found = self._arrays[name] = self.device.asarray(np.ascontiguousarray(host))
-        return found

@@ -123,13 +123,17 @@ class GNNAssociator(Associator):
         tracks, ri = _compact(rows[g])
         dets, ci = _compact(cols[g])
         nr, nc = len(tracks), len(dets)
-        order = np.argsort(ri, kind="stable")  # edges track -> detection, as CSR rows of the track nodes
-        indptr = np.zeros(nr + nc + 1, np.int32)
-        indptr[1 : nr + 1] = np.cumsum(np.bincount(ri, minlength=nr))
-        indptr[nr + 1 :] = indptr[nr]
-        graph = csr_matrix((np.ones(g.size, np.int8), (nr + ci[order]).astype(np.int32), indptr),
-                           shape=(nr + nc, nr + nc))  # fmt: skip
-        ncomp, label = connected_components(graph, directed=True, connection="weak")
+        # the bipartite graph with each edge in both directions, as a CSR matrix built directly:
+        # its strongly connected components are the connected components (and SciPy finds them
+        # without the transposed copy it makes for weak or undirected ones)
+        N = nr + nc
+        u = np.concatenate([ri, nr + ci])
+        v = np.concatenate([nr + ci, ri])
+        order = np.argsort(u, kind="stable")
+        indptr = np.zeros(N + 1, np.int32)
+        np.cumsum(np.bincount(u, minlength=N), out=indptr[1:])
+        graph = csr_matrix((np.ones(2 * g.size), v[order].astype(np.int32), indptr), shape=(N, N))
+        ncomp, label = connected_components(graph, directed=True, connection="strong")
         tnodes = np.argsort(label[:nr], kind="stable")  # track nodes grouped by component
         dnodes = np.argsort(label[nr:], kind="stable")
         tcount = np.bincount(label[:nr], minlength=ncomp)

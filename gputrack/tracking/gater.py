@@ -112,6 +112,7 @@ class MahalanobisGater(Gater):
         self.trace = bool(trace)
         self._staging: dict = {}
         self._outs: dict = {}
+        self._matrices: dict = {}  # (device, dtype) -> H, R uploaded once
 
     @property
     def m(self) -> int:
@@ -147,8 +148,11 @@ class MahalanobisGater(Gater):
         self._order = order = np.argsort(z[:, 0], kind="stable")
         zd, _ = st.put_rows("z", z[order].astype(table.dtype, copy=False))
         self._zd = zd
-        H = st.matrix(f"H{table.dtype}", self.H.astype(table.dtype))
-        R = st.matrix(f"R{table.dtype}", self.R.astype(table.dtype))
+        HR = self._matrices.get((dev, table.dtype))
+        if HR is None:
+            HR = self._matrices[(dev, table.dtype)] = (dev.asarray(self.H.astype(table.dtype)),
+                                                        dev.asarray(self.R.astype(table.dtype)))  # fmt: skip
+        H, R = HR
         return gate_pairs(dev, table.x, table.P, H, R, zd, self.threshold, active=table.sync_active(), sorted_z=True,
                           n_z=D, out=self._outputs(table, K))  # fmt: skip
 

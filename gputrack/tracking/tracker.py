@@ -173,7 +173,10 @@ class MultiTargetTracker:
         confirm, reject = self.initiator.review(table)
         confirmed = table.confirm(confirm)
         det_ids = np.where(assignment.det_track >= 0, table.ids[np.maximum(assignment.det_track, 0)], -1)
-        deleted = table.remove(np.union1d(reject, self.deleter.delete(table, assignment, b["gated"])))
+        ended = np.zeros(table.capacity, bool)
+        ended[reject] = True
+        ended[self.deleter.delete(table, assignment, b["gated"])] = True
+        deleted = table.remove(np.flatnonzero(ended))
         _, started, dets, dropped = self.initiator.initiate(table, z, assignment)
         det_ids[dets] = started
         self._bind(b, "x", "P", "active")

@@ -3,6 +3,8 @@ when their size allows, else as bytes."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ...device import per_device_cache
@@ -25,7 +27,7 @@ def _kernel(device, name):
 
 
 def scatter_rows(device, dst, index, src, K):
-    row_bytes = src.nbytes // src.shape[0]
+    row_bytes = math.prod(src.shape[1:]) * src.dtype.itemsize
     if row_bytes % 4 == 0:
         name, row = "gt_scatter_words", row_bytes // 4
     else:

@@ -2,7 +2,7 @@
 over a row (one kernel per rank of ``dst``, as gputrack/backends/taichi/arrays.py does: a
 ``ti.grouped`` loop recomputes the multi-index per element)."""
 
-import numpy as np
+import math
 
 from .launch import launch
 from .runtime import ti
@@ -44,7 +44,7 @@ _KERNELS = {1: _scatter1, 2: _scatter2, 3: _scatter3}
 
 
 def scatter_rows(device, dst, index, src, K):
-    row = int(np.prod(dst.shape[1:], dtype=np.int64))
+    row = math.prod(dst.shape[1:])
     kernel = _KERNELS.get(dst.ndim)
     if kernel is None:  # rows of rank > 2: flat views are not available on Taichi ndarrays
         raise ValueError(f"dst: expected an array of rank 1 to 3 on {device.spec}, got shape {dst.shape}")
