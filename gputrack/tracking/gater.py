@@ -79,14 +79,19 @@ class MahalanobisGater(Gater):
 
     H (m,n), R (m,m) host matrices. ``threshold`` defaults to the chi-square quantile of
     ``probability`` with m degrees of freedom (a true detection falls inside its track's gate
-    with that probability). One launch per frame: the detections are sorted by their first
-    coordinate on the host (so that the kernel sweeps only a strip per track, exact; see
-    :mod:`gputrack.ops.gating`) and uploaded, and per slot at most ``max_pairs`` gated
-    detections, their count, distances and trace(H P H^T) come back. A frame in which some track
-    gates more than ``max_pairs`` detections is gated again with ``max_pairs`` raised to the
-    next power of two above the largest count (kept for later frames), so no pair is lost.
-    ``trace=True`` also downloads trace(H P H^T) per slot (:class:`Gated` ``trace``, read by
-    :class:`gputrack.tracking.CovarianceDeleter`); otherwise ``trace`` is None.
+    with that probability).
+
+    :meth:`launch`: one launch per frame. The detections are sorted by their first coordinate
+    on the host (so that the kernel sweeps only a strip per track, exact; see
+    :mod:`gputrack.ops.gating`) and uploaded into a reused buffer; the buffers are, per slot,
+    the count of gated detections, the first ``max_pairs`` of them and their distances
+    (``gate_count`` (C,), ``gate_det`` and ``gate_d2`` (C, max_pairs)), and with ``trace=True``
+    trace(H P H^T) (``gate_trace`` (C,), for :class:`gputrack.tracking.CovarianceDeleter`;
+    otherwise :class:`Gated` ``trace`` is None). :meth:`collect`: the pairs, with detection
+    indices in the caller's order. A frame in which some track gates more than ``max_pairs``
+    detections is gated again by :meth:`collect` (a second launch and download in that frame
+    only) with ``max_pairs`` raised to the next power of two above the largest count (kept for
+    later frames), so no pair is lost.
     """
 
     def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 4,
@@ -175,10 +180,11 @@ class MahalanobisGater(Gater):
 
 
 class CostGater(Gater):
-    """A cost matrix of the caller's choice: ``cost(table, z)`` returns a (C, D) array (NumPy
-    or a DeviceArray of the table's device, downloaded) of pair costs, smaller is better; a
-    pair of an occupied slot is gated when its cost is finite and < ``threshold``. Reports no
-    ``trace`` (a covariance deleter needs :class:`MahalanobisGater`)."""
+    """A cost matrix of the caller's choice: ``cost(table, z)`` (called by :meth:`launch`)
+    returns a (C, D) array of pair costs, smaller is better: NumPy, or a DeviceArray of the
+    table's device (the tracker's assign stage downloads it). A pair of an occupied slot is
+    gated when its cost is finite and < ``threshold``. Reports no ``trace`` (a covariance
+    deleter needs :class:`MahalanobisGater`)."""
 
     def __init__(self, cost, threshold: float):
         if not callable(cost):
