@@ -27,6 +27,7 @@ from gputrack.tracking import (
     MofNInitiator,
     MultiTargetTracker,
     Predictor,
+    StereoUpdater,
     TrackStatus,
     TrackTable,
     TrackTableFull,
@@ -533,3 +534,61 @@ def test_steady_state_frame_moves_only_its_inputs_and_outputs(device):
     assert started[1:] == ((16 * 4 + 16 * 4 * 4) * moves, 0)
     tracker.step(np.concatenate([z, [[40.0, 40.0]]]).astype(np.float32))
     assert tracker.scheduler.last_frame.stages["gate"][1:] == ((16 * m * 4 + C) * moves, 0)
+
+
+def _table_with(device, x, P):
+    table = TrackTable(device, x.shape[1], capacity=len(x) + 2)
+    table.add(x, P, TrackStatus.CONFIRMED)
+    return table
+
+
+def test_kalman_updater_is_kf_update_of_the_assigned_slots(device):
+    # gain_scale is per detection and follows it to its slot; unassigned slots keep their state
+    from gputrack.backends.reference.kalman import kf_update as ref_update
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(0, 3, (5, 4)).astype(np.float32)
+    P = np.tile(np.diag([0.5, 1.0, 0.5, 1.0]).astype(np.float32), (5, 1, 1))
+    H = np.zeros((2, 4), np.float32)
+    H[0, 0] = H[1, 2] = 1
+    R = (0.1 * np.eye(2)).astype(np.float32)
+    table = _table_with(device, x, P)
+    z = rng.normal(0, 3, (3, 2)).astype(np.float32)
+    a = Assignment.from_pairs([4, 0, 2], [0, 2, 1], table.capacity, 3)
+    KalmanUpdater(H, R).update(table, z, a, gain_scale=np.array([0.5, 1.0, 0.0]))
+    rows = np.full((table.capacity, 2), np.nan, np.float32)
+    rows[[4, 0, 2]] = z[[0, 2, 1]]
+    gain = np.ones(table.capacity, np.float32)
+    gain[[4, 0, 2]] = [0.5, 0.0, 1.0]
+    t = table.tracks(covariance=True)
+    pad_x = np.zeros((table.capacity, 4), np.float32)
+    pad_x[:5] = x
+    pad_P = np.tile(np.eye(4, dtype=np.float32), (table.capacity, 1, 1))
+    pad_P[:5] = P
+    wx, wP, _ = ref_update(None, pad_x, pad_P, rows, H, R, None, gain)
+    np.testing.assert_allclose(t.x, wx[:5], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(t.P, wP[:5], rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(t.x[[1, 3]], x[[1, 3]])  # not assigned
+    np.testing.assert_array_equal(t.x[0], x[0])  # gain 0: unchanged
+
+
+def test_stereo_updater_is_ekf_update_stereo_of_the_assigned_slots(device):
+    from gputrack.backends.reference.kalman import ekf_update_stereo as ref_stereo
+
+    rng = np.random.default_rng(3)
+    x = np.zeros((4, 6), np.float32)
+    x[:, 0::2] = rng.uniform([-1, -1, 3], [1, 1, 8], (4, 3))
+    P = np.tile((0.05 * np.eye(6)).astype(np.float32), (4, 1, 1))
+    R = np.diag([1.0, 1.0, 0.2]).astype(np.float32)
+    f, b = 500.0, 0.12
+    table = _table_with(device, x, P)
+    z = np.stack([f * x[:, 0] / x[:, 4], f * x[:, 2] / x[:, 4], f * b / x[:, 4]], 1).astype(np.float32) + 0.7
+    a = Assignment.from_pairs([1, 3], [1, 3], table.capacity, 4)
+    StereoUpdater(R, f=f, b=b).update(table, z, a)
+    rows = np.full((4, 3), np.nan, np.float32)
+    rows[[1, 3]] = z[[1, 3]]
+    wx, wP, _ = ref_stereo(None, x, P, rows, R, f, b)
+    t = table.tracks(covariance=True)
+    np.testing.assert_allclose(t.x, wx, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(t.P, wP, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(t.x[[1, 3]], x[[1, 3]])
