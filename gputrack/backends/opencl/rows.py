@@ -1,0 +1,37 @@
+"""OpenCL launchers of :mod:`gputrack.ops.rows` (kernels/gt_rows.cl): rows moved as 4-byte words
+when their size allows, else as bytes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ...device import per_device_cache
+
+_kernels = per_device_cache()
+_I = np.int32
+ARG_TYPES = [None, None, None, _I, _I, _I]
+
+
+def _kernel(device, name):
+    import pyopencl as cl
+
+    per_device = _kernels.setdefault(device, {})
+    found = per_device.get(name)
+    if found is None:
+        found = cl.Kernel(device.program("gt_rows.cl"), name)
+        found.set_scalar_arg_dtypes(ARG_TYPES)
+        per_device[name] = found
+    return found
+
+
+def scatter_rows(device, dst, index, src, K):
+    row_bytes = math.prod(src.shape[1:]) * src.dtype.itemsize
+    if row_bytes % 4 == 0:
+        name, row = "gt_scatter_words", row_bytes // 4
+    else:
+        name, row = "gt_scatter_bytes", row_bytes
+    _kernel(device, name)(device.queue, (row, K), None, dst.buffer.data, index.buffer.data, src.buffer.data, row, K,
+                          src.shape[0])  # fmt: skip
+    return dst
