@@ -23,6 +23,7 @@ from .profiler import FrameStats, Profiler, StageStats
 from .scheduler import Scheduler, SkipFrame, Stage
 from .ops import (
     BestK,
+    GatedPairs,
     KalmanState,
     KalmanStatus,
     LeastSquaresResult,
@@ -33,6 +34,7 @@ from .ops import (
     constant_velocity,
     ekf_update_stereo,
     forward_kinematics,
+    gate_pairs,
     kf_predict,
     kf_update,
     least_squares,
@@ -44,14 +46,20 @@ from .ops import (
     rgbd_cost,
     rgbd_residuals,
     sample_around,
+    scatter_rows,
 )
 from .models import Camera, Chain, DepthCamera, Part, Shape, StereoCamera, rigid, upper_body
+from .tracking import MultiTargetTracker, TrackStatus, TrackTable
 from .trackers.body import BodyEstimate, BodyTracker, BodyTrackerConfig
 
 __version__ = "0.1.0"
 
 __all__ = [
     "BestK",
+    "GatedPairs",
+    "MultiTargetTracker",
+    "TrackStatus",
+    "TrackTable",
     "BodyEstimate",
     "BodyTracker",
     "BodyTrackerConfig",
@@ -71,6 +79,7 @@ __all__ = [
     "constant_velocity",
     "ekf_update_stereo",
     "forward_kinematics",
+    "gate_pairs",
     "kf_predict",
     "kf_update",
     "least_squares",
@@ -83,6 +92,7 @@ __all__ = [
     "rgbd_residuals",
     "rigid",
     "sample_around",
+    "scatter_rows",
     "upper_body",
     "Device",
     "DeviceArray",

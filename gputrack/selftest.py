@@ -122,12 +122,49 @@ def check_kalman(device: Device) -> None:
         raise AssertionError(f"kalman self-test on {device.spec}: max relative error {worst:.3g} in {where}")
 
 
+def check_gating(device: Device) -> None:
+    """gate_pairs (full scan and the sorted strip) and scatter_rows of the track table's row shapes."""
+    from .ops.gating import gate_pairs
+    from .ops.rows import scatter_rows
+
+    rng = np.random.default_rng(2)
+    T, D, n, m = 37, 29, 4, 2
+    x = rng.uniform(0, 10, (T, n)).astype(np.float32)
+    A = rng.standard_normal((T, n, n)).astype(np.float32)
+    P = (0.1 * A @ np.swapaxes(A, 1, 2) + 0.2 * np.eye(n)).astype(np.float32)
+    H = np.zeros((m, n), np.float32)
+    H[0, 0] = H[1, 2] = 1
+    R = (0.1 * np.eye(m)).astype(np.float32)
+    z = rng.uniform(0, 10, (D, m)).astype(np.float32)
+    z = z[np.argsort(z[:, 0], kind="stable")]
+    active = (np.arange(T) % 5 != 3).astype(np.uint8)
+    ref = get_device("numpy")
+    want = gate_pairs(ref, x, P, H, R, z, 9.0, active=active, max_pairs=4)
+    for sz in (False, True):
+        got = [to_numpy(a) for a in gate_pairs(device, x, P, H, R, z, 9.0, active=active, max_pairs=4, sorted_z=sz)]
+        assert np.array_equal(got[0], want[0]), f"gate_pairs counts differ (sorted_z={sz})"
+        keep = np.arange(4)[None, :] < np.minimum(want[0], 4)[:, None]
+        assert np.array_equal(got[1][keep], want[1][keep]), f"gate_pairs pairs differ (sorted_z={sz})"
+        err = np.max(np.abs(got[2][keep] - want[2][keep]) / (1 + np.abs(want[2][keep])), initial=0.0)
+        err = max(err, float(np.max(np.abs(got[3] - want[3]) / (1 + np.abs(want[3])))))
+        assert err <= 1e-4, f"gate_pairs differs from the reference by {err:.3g} (sorted_z={sz})"
+    for shape, dtype in (((13, 6), np.float32), ((13, 6, 6), np.float32), ((13,), np.uint8), ((13, 3), np.int32)):
+        base = (rng.standard_normal(shape) * 10).astype(dtype)
+        idx = rng.permutation(shape[0])[:5].astype(np.int32)
+        src = (rng.standard_normal((5, *shape[1:])) * 10).astype(dtype)
+        want_rows = base.copy()
+        want_rows[idx] = src
+        got = to_numpy(scatter_rows(device, device.asarray(base.copy()), idx, src))
+        assert np.array_equal(got, want_rows), f"scatter_rows differs from the reference for rows of shape {shape}"
+
+
 CHECKS = [
     ("arrays", check_arrays),
     ("kinematics", check_kinematics),
     ("template", check_template),
     ("lm", check_lm),
     ("kalman", check_kalman),
+    ("gating", check_gating),
 ]
 
 

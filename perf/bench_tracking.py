@@ -3,7 +3,7 @@
 
 import sys
 
-from gputrack.benchmark import bench_main
+from gputrack.benchmarks.harness import bench_main
 from gputrack.benchmarks import tracking
 
 if __name__ == "__main__":

@@ -33,7 +33,8 @@ import sys
 
 import numpy as np
 
-from ..benchmark import Case, bench_main
+from ..registry import device as get_device
+from .harness import Case, bench_main
 
 NAME = "tracking"
 DT, Q, R_STD, P_DETECT, CLUTTER, SPEED = 0.1, 0.5, 0.1, 0.95, 50.0, 1.0
@@ -163,9 +164,7 @@ def stonesoup_cycle(scene, x0, P0, *, kdtree: bool):
 
 
 def cases(device, args):
-    import gputrack
-
-    ref = gputrack.device("numpy")
+    ref = get_device("numpy")
     out = []
     for T in [int(t) for t in (args.tracks or [100, 1000])]:
         scene, x0, P0 = crowd(T, args.frames, args.density)

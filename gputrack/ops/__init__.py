@@ -35,16 +35,19 @@ from .kalman import (  # noqa: E402
     mahalanobis,
     shared_matrix,
 )
+from .gating import GatedPairs, gate_pairs  # noqa: E402
 from .kinematics import forward_kinematics  # noqa: E402
 from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
 from .particles import BestK, best_k, sample_around  # noqa: E402
 from .pf import pf_stage  # noqa: E402
 from .pose_residuals import pose_residuals  # noqa: E402
+from .rows import scatter_rows  # noqa: E402
 from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
 from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
 
 __all__ = [
     "BestK",
+    "GatedPairs",
     "KalmanState",
     "KalmanStatus",
     "LMStatus",
@@ -57,6 +60,7 @@ __all__ = [
     "constant_velocity",
     "ekf_update_stereo",
     "forward_kinematics",
+    "gate_pairs",
     "kf_predict",
     "kf_update",
     "least_squares",
@@ -71,5 +75,6 @@ __all__ = [
     "rgbd_cost",
     "rgbd_residuals",
     "sample_around",
+    "scatter_rows",
     "shared_matrix",
 ]

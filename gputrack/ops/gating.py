@@ -46,7 +46,8 @@ import numpy as np
 
 from ..device import DeviceArray
 from . import backend_module
-from ._args import FLOAT, arg, check_device, constant, out_arrays
+from ..uploads import constant
+from ._args import FLOAT, arg, check_device, out_arrays
 
 __all__ = ["GatedPairs", "gate_pairs"]
 
@@ -130,34 +131,3 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
         z = constant(device, np.zeros((1, dims["m"]), dt))
     be = backend_module(device, "gating")
     return GatedPairs(*be.gate_pairs(device, x, P, H, R, z, D, dt.type(thr), active, bool(sorted_z), out))
-
-
-def _selftest(device) -> None:
-    """A small random problem on ``device`` against the NumPy reference (pairs and distances)."""
-    from ..backends.reference import gating as ref
-
-    rng = np.random.default_rng(2)
-    T, D, n, m = 37, 29, 4, 2
-    x = rng.uniform(0, 10, (T, n)).astype(np.float32)
-    A = rng.standard_normal((T, n, n)).astype(np.float32)
-    P = (0.1 * A @ np.swapaxes(A, 1, 2) + 0.2 * np.eye(n)).astype(np.float32)
-    H = np.zeros((m, n), np.float32)
-    H[0, 0] = H[1, 2] = 1
-    R = (0.1 * np.eye(m)).astype(np.float32)
-    z = rng.uniform(0, 10, (D, m)).astype(np.float32)
-    z = z[np.argsort(z[:, 0], kind="stable")]
-    active = (np.arange(T) % 5 != 3).astype(np.uint8)
-    want = [np.empty((T,), np.int32), np.empty((T, 4), np.int32), np.empty((T, 4), np.float32), np.empty(T, np.float32)]
-    ref.gate_pairs(None, x, P, H, R, z, D, np.float32(9.0), active, False, want)
-    for sz in (False, True):
-        got = [device.to_numpy(a) if device.backend != "numpy" else a
-               for a in gate_pairs(device, x, P, H, R, z, 9.0, active=active, max_pairs=4, sorted_z=sz)]  # fmt: skip
-        if not np.array_equal(got[0], want[0]):
-            raise AssertionError(f"gate_pairs self-test on {device.spec}: counts differ (sorted_z={sz})")
-        keep = np.arange(4)[None, :] < np.minimum(want[0], 4)[:, None]
-        if not np.array_equal(got[1][keep], want[1][keep]):
-            raise AssertionError(f"gate_pairs self-test on {device.spec}: pairs differ (sorted_z={sz})")
-        err = np.max(np.abs(got[2][keep] - want[2][keep]) / (1 + np.abs(want[2][keep])), initial=0.0)
-        err = max(err, float(np.max(np.abs(got[3] - want[3]) / (1 + np.abs(want[3])))))
-        if not err <= 1e-4:
-            raise AssertionError(f"gate_pairs self-test on {device.spec}: max relative error {err:.3g}")

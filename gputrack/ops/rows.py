@@ -79,19 +79,3 @@ def scatter_rows(device, dst, index, src, *, n_rows=None):
         return dst
     backend_module(device, "rows").scatter_rows(device, dst, index, src, K)
     return dst
-
-
-def _selftest(device) -> None:
-    """Scatter rows of every row shape the trackers use; compare with the NumPy reference."""
-    rng = np.random.default_rng(3)
-    for shape, dtype in (((13, 6), np.float32), ((13, 6, 6), np.float32), ((13,), np.uint8), ((13, 3), np.int32)):
-        base = (rng.standard_normal(shape) * 10).astype(dtype)
-        idx = rng.permutation(shape[0])[:5].astype(np.int32)
-        src = (rng.standard_normal((5, *shape[1:])) * 10).astype(dtype)
-        want = base.copy()
-        want[idx] = src
-        dst = device.asarray(base.copy()) if device.backend != "numpy" else base.copy()
-        got = scatter_rows(device, dst, idx, src)
-        got = device.to_numpy(got) if device.backend != "numpy" else got
-        if not np.array_equal(got, want):
-            raise AssertionError(f"scatter_rows self-test on {device.spec}: rows differ for shape {shape}")

@@ -8,16 +8,22 @@
       for frame in seq:                        # frame.gray, frame.depth (mm), frame.params (truth)
           ...
 
+- :mod:`.scenes` — multi-target constant-velocity scenes with ground truth (births, deaths, misses,
+  clutter) for :mod:`gputrack.tracking`: :func:`cv_scene`.
 - :mod:`.problems` — problem and scene generators shared by the tests, benchmarks and the tuner.
 """
 
 from .body import FPS, SEQUENCES, Frame, Sequence, sequence, sequence_params, shoulders_off
+from .scenes import Scene, SceneFrame, cv_scene
 
 __all__ = [
     "FPS",
     "Frame",
     "SEQUENCES",
+    "Scene",
+    "SceneFrame",
     "Sequence",
+    "cv_scene",
     "sequence",
     "sequence_params",
     "shoulders_off",

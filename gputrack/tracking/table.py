@@ -39,7 +39,8 @@ import enum
 import numpy as np
 
 from ..device import Device, DeviceArray
-from ..ops._args import check_device, constant
+from ..ops._args import check_device
+from ..uploads import constant
 from ..ops.rows import scatter_rows
 from ._staging import Staging
 
