@@ -215,19 +215,19 @@ class OpenCLDevice(Device):
             pool.free_held()
 
     def _upload(self, host: np.ndarray):
-        arr = self._empty(host.shape, host.dtype)
-        arr.set(host, queue=self.queue)
+        arr = self._empty(host.shape, host.dtype, host.strides if host.size == 0 else None)
+        arr.set(host, queue=self.queue)  # (an empty NumPy array's strides are zeros: set wants them equal)
         return arr
 
     def _upload_into(self, buffer, host: np.ndarray) -> None:
         buffer.set(host, queue=self.queue)
 
-    def _empty(self, shape, dtype):
+    def _empty(self, shape, dtype, strides=None):
         """A C-contiguous array (``shape``: a tuple of ints, ``dtype``: a NumPy dtype), made with
         PyOpenCL's fast constructor: its checks cost ~50 us a call, more than the reuse saves."""
         import pyopencl.array as cla
 
-        strides = _strides(shape, dtype.itemsize)
+        strides = _strides(shape, dtype.itemsize) if strides is None else tuple(strides)
         return cla.Array(None, shape, dtype, allocator=self._allocate, strides=strides, _fast=True,
                          _size=math.prod(shape), _context=self.context, _queue=self.queue)  # fmt: skip
 
