@@ -11,7 +11,7 @@ moved (``Device.transfers``) so that :class:`gputrack.Pipeline` can report them 
 
 Everything a backend builds per device (compiled programs, kernel objects, scratch buffers,
 uploaded constants) is memoised with :func:`per_device`: entries live on the device and go when
-it is closed. Fresh output arrays come from the device's caching allocator (:class:`BufferPool`:
+it is closed. Fresh output arrays come from the device's caching allocator (gputrack/pool.py:
 freed buffers of the same size and dtype are reused; see ``Device.pool_stats``).
 """
 
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import logging
 import threading
 import weakref
 
@@ -28,7 +27,6 @@ import numpy as np
 from .pool import PoolStats, check_limit, limit_from_env
 
 __all__ = [
-    "BufferPool",
     "Device",
     "DeviceArray",
     "DeviceInfo",
@@ -39,13 +37,11 @@ __all__ = [
     "per_device",
     "per_device_cache",
     "to_numpy",
+    "unavailable",
 ]
-
-log = logging.getLogger("gputrack")
 
 #: dtypes a DeviceArray may hold (bool arrays are converted by the ops that take masks).
 SUPPORTED_DTYPES = tuple(np.dtype(t) for t in ("float32", "float64", "int32", "int64", "uint32", "uint8"))
-
 
 
 class DeviceUnavailable(RuntimeError):

@@ -97,8 +97,6 @@ def _defines(dtype, n, m, mode, predict, has_mask, has_gain, pts, pats, hrows, v
     )
 
 
-
-
 def _pt(a):
     return int(a is not None and a.ndim == 3)
 
