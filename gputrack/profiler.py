@@ -20,6 +20,7 @@ the stages of one input frame so that a caller can check what a steady-state fra
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import statistics
@@ -32,10 +33,16 @@ __all__ = ["FrameStats", "Profiler", "StageStats"]
 
 @dataclasses.dataclass
 class StageStats:
-    """Accumulated figures for one named stage."""
+    """Accumulated figures for one named stage: the times of its last ``history`` calls, and the bytes
+    of all its calls."""
 
     name: str
-    times_s: list = dataclasses.field(default_factory=list)
+    history: int = 10_000
+    times_s: collections.deque = dataclasses.field(default=None)
+
+    def __post_init__(self):
+        if self.times_s is None:
+            self.times_s = collections.deque(maxlen=self.history)
     h2d: int = 0
     d2h: int = 0
 
@@ -79,15 +86,22 @@ class FrameStats:
 
 
 class Profiler:
-    """Named stages on one device: wall time (after a device sync by default) and bytes moved per stage."""
+    """Named stages on one device: wall time (after a device sync by default) and bytes moved per stage.
 
-    def __init__(self, device: Device):
+    ``history``: the figures of the last this many frames (and stage calls) are kept, so that a
+    tracker running for hours holds a bounded record; ``reset()`` forgets them all.
+    """
+
+    def __init__(self, device: Device, history: int = 10_000):
         if not isinstance(device, Device):
             raise TypeError(f"expected a gputrack.Device, got {type(device).__name__}")
+        if isinstance(history, bool) or not isinstance(history, int) or history < 1:
+            raise ValueError(f"history: expected a positive int, got {history!r}")
         self.device = device
+        self.history = history
         self.stats: dict[str, StageStats] = {}
         self._frame: FrameStats | None = None
-        self.frames: list[FrameStats] = []
+        self.frames: collections.deque[FrameStats] = collections.deque(maxlen=history)
 
     @contextlib.contextmanager
     def stage(self, name: str, sync: bool = True):
@@ -107,7 +121,7 @@ class Profiler:
             self._record(name, time.perf_counter() - t0, dev.transfers - before)
 
     def _record(self, name: str, dt: float, moved: Transfers) -> None:
-        st = self.stats.setdefault(name, StageStats(name))
+        st = self.stats.get(name) or self.stats.setdefault(name, StageStats(name, self.history))
         st.times_s.append(dt)
         st.h2d += moved.h2d
         st.d2h += moved.d2h

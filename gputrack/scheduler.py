@@ -228,7 +228,7 @@ class Scheduler:
 
     # -- figures -----------------------------------------------------------------------------------
     @property
-    def frames(self) -> list[FrameStats]:
+    def frames(self):
         return self.profiler.frames
 
     def reset(self) -> None:

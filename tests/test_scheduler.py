@@ -201,3 +201,14 @@ def test_skip_frame_ends_the_frame_and_is_recorded(device):
         sched.run()
     assert ran == ["first"] and sched.last_frame is sched.frames[-1]
     assert "first" in sched.last_frame.stages and "second" not in sched.last_frame.stages
+
+
+def test_profiler_keeps_a_bounded_history(device):
+    prof = Profiler(device, history=5)
+    for _ in range(12):
+        with prof.frame(sync=False):
+            with prof.stage("a", sync=False):
+                pass
+    assert len(prof.frames) == 5 and prof.stats["a"].calls == 5
+    with pytest.raises(ValueError, match="history: expected a positive int, got 0"):
+        Profiler(device, history=0)
