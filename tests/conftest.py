@@ -16,6 +16,16 @@ from gputrack.registry import specs as registry_specs
 #: every backend's fixed specs, from the backend table (gputrack/registry.py)
 ALL_SPECS = registry_specs()
 
+#: the devices that run long accuracy protocols (many frames, many trials) in full: the fast local
+#: backends. Every other device runs a short run of the same code path, pinned to the same bounds
+#: or to the reference (keeps the suite within 10 minutes on a 2-core machine).
+FULL_PROTOCOL = ("taichi:cpu", "opencl")
+
+
+def full_protocol(device) -> bool:
+    """Whether ``device`` runs the long accuracy protocols in full (see FULL_PROTOCOL)."""
+    return device.spec in FULL_PROTOCOL
+
 
 def _required() -> set[str]:
     return {s.strip() for s in os.environ.get("GPUTRACK_REQUIRE", "").split(",") if s.strip()}
