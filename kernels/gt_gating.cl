@@ -4,6 +4,30 @@
 // SORTED_Z, only the strip |z_0 - (H x)_0| <= sqrt(thr S_00), found by a binary search), appending
 // each d2 < thr to the track's row. Defines: REAL, N, M, HAS_ACTIVE, SORTED_Z, PD_TOL, STRIP_SLACK.
 
+// Defaults (a build without the launcher's defines, as host/doctor.py does): float32, the papers'
+// constant-velocity state (N = 6) observed in position (M = 3), full scan, no active mask.
+#ifndef REAL
+#define REAL float
+#endif
+#ifndef N
+#define N 6
+#endif
+#ifndef M
+#define M 3
+#endif
+#ifndef HAS_ACTIVE
+#define HAS_ACTIVE 0
+#endif
+#ifndef SORTED_Z
+#define SORTED_Z 0
+#endif
+#ifndef PD_TOL
+#define PD_TOL 4.7683716e-07
+#endif
+#ifndef STRIP_SLACK
+#define STRIP_SLACK 1e-3
+#endif
+
 __kernel void gt_gate_pairs(
     __global const REAL *x, __global const REAL *P, __global const REAL *H, __global const REAL *R,
     __global const REAL *z, __global const uchar *active, __global int *cnt, __global int *det,

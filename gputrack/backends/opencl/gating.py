@@ -5,32 +5,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...device import per_device_cache
+from ...device import per_device
 
 PD_EPS_FACTOR = 4.0
 STRIP_SLACK = 1e-3  # as gputrack/backends/taichi/gating.py
-_kernels = per_device_cache()
 
 
+@per_device
 def _kernel(device, dtype, n, m, has_active, sorted_z):
     import pyopencl as cl
 
-    key = (dtype, n, m, has_active, sorted_z)
-    per_device = _kernels.setdefault(device, {})
-    found = per_device.get(key)
-    if found is None:
-        defines = {
-            "REAL": "double" if dtype == np.float64 else "float",
-            "N": n,
-            "M": m,
-            "HAS_ACTIVE": int(has_active),
-            "SORTED_Z": int(sorted_z),
-            "PD_TOL": repr(float(np.finfo(dtype).eps) * PD_EPS_FACTOR),
-            "STRIP_SLACK": repr(STRIP_SLACK),
-        }
-        found = cl.Kernel(device.program("gt_gating.cl", defines), "gt_gate_pairs")
-        found.set_scalar_arg_dtypes([None] * 10 + [np.int32, np.int32, np.int32, dtype.type])
-        per_device[key] = found
+    defines = {
+        "REAL": "double" if dtype == np.float64 else "float",
+        "N": n,
+        "M": m,
+        "HAS_ACTIVE": int(has_active),
+        "SORTED_Z": int(sorted_z),
+        "PD_TOL": repr(float(np.finfo(dtype).eps) * PD_EPS_FACTOR),
+        "STRIP_SLACK": repr(STRIP_SLACK),
+    }
+    found = cl.Kernel(device.program("gt_gating.cl", defines), "gt_gate_pairs")
+    found.set_scalar_arg_dtypes([None] * 10 + [np.int32, np.int32, np.int32, dtype.type])
     return found
 
 

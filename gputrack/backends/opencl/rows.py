@@ -7,22 +7,18 @@ import math
 
 import numpy as np
 
-from ...device import per_device_cache
+from ...device import per_device
 
-_kernels = per_device_cache()
 _I = np.int32
 ARG_TYPES = [None, None, None, _I, _I, _I]
 
 
+@per_device
 def _kernel(device, name):
     import pyopencl as cl
 
-    per_device = _kernels.setdefault(device, {})
-    found = per_device.get(name)
-    if found is None:
-        found = cl.Kernel(device.program("gt_rows.cl"), name)
-        found.set_scalar_arg_dtypes(ARG_TYPES)
-        per_device[name] = found
+    found = cl.Kernel(device.program("gt_rows.cl"), name)
+    found.set_scalar_arg_dtypes(ARG_TYPES)
     return found
 
 
