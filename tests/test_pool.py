@@ -145,7 +145,7 @@ def test_fresh_outputs_equal_out_outputs_and_allocate_nothing_in_steady_state(de
 
 
 def test_rgbd_cost_with_fresh_outputs_equals_out(device):
-    from gputrack.benchmarks.template import pf_scene
+    from gputrack.sim.problems import pf_scene
 
     tf, rgb, dep, gray, depth, cam = pf_scene(np.random.default_rng(2), 129)
     d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
