@@ -28,6 +28,12 @@ def _real(owner: str, name: str, value) -> float:
     return float(value)
 
 
+def _reals(obj, *names: str) -> None:
+    """Set each named field of the frozen dataclass ``obj`` to its value as a finite float (or raise)."""
+    for name in names:
+        object.__setattr__(obj, name, _real(type(obj).__name__, name, getattr(obj, name)))
+
+
 @dataclasses.dataclass(frozen=True)
 class Camera:
     """Pinhole camera: u = fx X/Z + cx, v = fy Y/Z + cy (pixels; (u, v) = centre of column u, row v)."""
@@ -38,8 +44,7 @@ class Camera:
     cy: float
 
     def __post_init__(self):
-        for name in ("fx", "fy", "cx", "cy"):
-            object.__setattr__(self, name, _real("Camera", name, getattr(self, name)))
+        _reals(self, "fx", "fy", "cx", "cy")
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"Camera: expected fx > 0 and fy > 0, got fx={self.fx}, fy={self.fy}")
 
@@ -78,8 +83,7 @@ class StereoCamera:
     b: float
 
     def __post_init__(self):
-        for name in ("f", "cx", "cy", "b"):
-            object.__setattr__(self, name, _real("StereoCamera", name, getattr(self, name)))
+        _reals(self, "f", "cx", "cy", "b")
         if self.f <= 0 or self.b <= 0:
             raise ValueError(f"StereoCamera: expected f > 0 and b > 0, got f={self.f}, b={self.b}")
 
@@ -127,8 +131,7 @@ class DepthCamera:
     max_depth: float = 5.0
 
     def __post_init__(self):
-        for name in ("fx", "fy", "cx", "cy", "depth_scale", "min_depth", "max_depth"):
-            object.__setattr__(self, name, _real("DepthCamera", name, getattr(self, name)))
+        _reals(self, "fx", "fy", "cx", "cy", "depth_scale", "min_depth", "max_depth")
         if self.fx <= 0 or self.fy <= 0 or self.depth_scale <= 0:
             raise ValueError(
                 f"DepthCamera: expected fx, fy and depth_scale > 0, got fx={self.fx}, fy={self.fy}, "

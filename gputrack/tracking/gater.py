@@ -20,6 +20,7 @@ from scipy.stats import chi2
 
 from ..device import DeviceArray
 from ..ops.gating import gate_pairs
+from ._checks import observation_model
 from ._staging import Staging
 from .table import TrackStatus, TrackTable
 
@@ -96,14 +97,7 @@ class MahalanobisGater(Gater):
 
     def __init__(self, H, R, *, threshold: float | None = None, probability: float = 0.999, max_pairs: int = 4,
                  trace: bool = False):  # fmt: skip
-        H = np.asarray(H, dtype=np.float64)
-        R = np.asarray(R, dtype=np.float64)
-        if H.ndim != 2:
-            raise ValueError(f"H: expected an (m, n) matrix, got shape {H.shape}")
-        if R.shape != (H.shape[0], H.shape[0]):
-            raise ValueError(f"R: expected shape ({H.shape[0]}, {H.shape[0]}), got {R.shape}")
-        if not (np.isfinite(H).all() and np.isfinite(R).all()):
-            raise ValueError("H, R: expected finite values")
+        H, R = observation_model(H, R)
         if threshold is None:
             if not 0.0 < probability < 1.0:
                 raise ValueError(f"probability: expected a value in (0, 1), got {probability!r}")

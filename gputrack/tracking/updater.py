@@ -14,6 +14,7 @@ import abc
 import numpy as np
 
 from ..ops.kalman import ekf_update_stereo, kf_update, shared_matrix
+from ._checks import observation_model
 from ._staging import Staging
 from .associator import Assignment
 from .table import TrackTable
@@ -65,12 +66,7 @@ class KalmanUpdater(_SlotRows):
 
     def __init__(self, H, R):
         super().__init__()
-        H = np.asarray(H, dtype=np.float64)
-        R = np.asarray(R, dtype=np.float64)
-        if H.ndim != 2:
-            raise ValueError(f"H: expected an (m, n) matrix, got shape {H.shape}")
-        if R.shape != (H.shape[0], H.shape[0]):
-            raise ValueError(f"R: expected shape ({H.shape[0]}, {H.shape[0]}), got {R.shape}")
+        H, R = observation_model(H, R)
         self.H, self.R = H, R
         self._shared: dict = {}
 
