@@ -7,7 +7,7 @@ the table of backends, ``device(spec)`` and ``devices()`` live in :mod:`gputrack
 
 Arrays on a device are :class:`DeviceArray` objects; the ``numpy`` device's arrays are plain
 NumPy arrays. Every upload and download goes through the device, which counts the bytes
-moved (``Device.transfers``) so that :class:`gputrack.Pipeline` can report them per stage.
+moved (``Device.transfers``) so that :class:`gputrack.Profiler` (and the Scheduler) can report them per stage.
 
 Everything a backend builds per device (compiled programs, kernel objects, scratch buffers,
 uploaded constants) is memoised with :func:`per_device`: entries live on the device and go when
