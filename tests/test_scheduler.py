@@ -51,12 +51,10 @@ def test_profiler_rejects_bad_use(device):
 def _kalman_like(device, calls):
     """A three-stage frame: scale the state by the input on the device, a host stage that reads the
     product, and a device stage that adds the host's sum. ``calls`` records what each stage saw."""
-    ops = device  # the stages use only the device's array API and NumPy on the host
-
     def scale(b):
         x = gputrack.to_numpy(b["x"]) if device.backend != "numpy" else b["x"]
         calls.append(("scale", type(b["z"]).__name__))
-        b["y"] = ops.asarray((x * gputrack.to_numpy(b["z"])).astype(np.float32), out=b.get("y"))
+        b["y"] = device.asarray((x * gputrack.to_numpy(b["z"])).astype(np.float32), out=b.get("y"))
 
     def total(b):
         calls.append(("total", type(b["y"]).__name__))
@@ -64,7 +62,7 @@ def _kalman_like(device, calls):
 
     def add(b):
         x = gputrack.to_numpy(b["y"]) + b["s"]
-        b["x"] = ops.asarray(x.astype(np.float32), out=b["x"])
+        b["x"] = device.asarray(x.astype(np.float32), out=b["x"])
 
     return [
         Stage("scale", scale, reads=("x", "z"), writes=("y",)),
@@ -94,8 +92,7 @@ def test_scheduler_runs_stages_in_order_with_state_and_reused_buffers(device):
     assert sched.buffers["x"] is x_first
     x0[:] = -1  # the caller's array was copied, never kept
     assert sched.buffers["x"] is not x0
-    host_kind = "ndarray"
-    assert ("total", host_kind) in calls  # the host stage saw NumPy data
+    assert ("total", "ndarray") in calls  # the host stage saw NumPy data
     assert len(sched.frames) == 4 and [r["name"] for r in sched.report()] == [
         "upload inputs", "scale", "total", "add", "download outputs"]  # fmt: skip
 

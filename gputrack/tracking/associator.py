@@ -30,9 +30,6 @@ import abc
 import dataclasses
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .gater import Gated
 
@@ -120,6 +117,12 @@ class GNNAssociator(Associator):
         at once. Appends the matched pairs; returns the component count."""
         if g.size == 0:
             return 0
+        # imported here, on the first frame that needs them: at module level they cost ~0.5 s of
+        # every `import gputrack`
+        from scipy.optimize import linear_sum_assignment
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import connected_components
+
         tracks, ri = _compact(rows[g])
         dets, ci = _compact(cols[g])
         nr, nc = len(tracks), len(dets)

@@ -16,7 +16,6 @@ import abc
 import dataclasses
 
 import numpy as np
-from scipy.stats import chi2
 
 from ..device import DeviceArray
 from ..ops.gating import gate_pairs
@@ -101,6 +100,8 @@ class MahalanobisGater(Gater):
         if threshold is None:
             if not 0.0 < probability < 1.0:
                 raise ValueError(f"probability: expected a value in (0, 1), got {probability!r}")
+            from scipy.stats import chi2  # here, not at import: scipy.stats costs ~0.5 s to import
+
             threshold = float(chi2.ppf(probability, H.shape[0]))
         threshold = float(threshold)
         if not (np.isfinite(threshold) and threshold > 0):
