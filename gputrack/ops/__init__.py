@@ -11,6 +11,7 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.kinematics` forward kinematics of kinematic chains
 - :mod:`.lm`         batched Levenberg-Marquardt
 - :mod:`.kalman`     batched Kalman filters and gating
+- :mod:`.point_groups` observation points to groups (gate, tie-break) and each group's moments
 """
 
 from ..device import Device
@@ -42,6 +43,7 @@ from .particles import BestK, best_k, sample_around  # noqa: E402
 from .pf import pf_stage  # noqa: E402
 from .pose_residuals import pose_residuals  # noqa: E402
 from .rows import scatter_rows  # noqa: E402
+from .point_groups import PointGroups, assign_points  # noqa: E402
 from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
 from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
 
@@ -52,9 +54,11 @@ __all__ = [
     "KalmanStatus",
     "LMStatus",
     "LeastSquaresResult",
+    "PointGroups",
     "RgbdCost",
     "SharedMatrix",
     "SparseTemplate",
+    "assign_points",
     "backend_module",
     "best_k",
     "constant_velocity",

@@ -1,0 +1,124 @@
+"""gputrack.ops.point_groups.assign_points on every device against the NumPy reference (paper 001
+eq. 7-11), hand-checked cases, and bad input."""
+
+import numpy as np
+import pytest
+
+import gputrack
+from gputrack.backends.reference import point_groups as ref
+from gputrack.ops.point_groups import assign_points
+from tolerances import assert_matches
+
+POS, VEL = [0, 2, 4], [1, 3, 5]
+
+
+def _groups(rng, T, spread=300.0):
+    """T groups on a 3 m grid with random spreads (positions mm, velocities mm/frame)."""
+    means = np.zeros((T, 6), np.float32)
+    means[:, POS] = np.stack([np.arange(T) % 7 * 3000.0, np.arange(T) // 7 * 3000.0, 5000 + rng.uniform(-500, 500, T)], 1)
+    means[:, VEL] = rng.uniform(-30, 30, (T, 3))
+    A = rng.standard_normal((T, 6, 6)) * 0.3 + np.eye(6)
+    S = A @ np.swapaxes(A, 1, 2)
+    S[:, POS] *= spread
+    S[:, :, POS] *= spread
+    S[:, VEL] *= 5.0
+    S[:, :, VEL] *= 5.0
+    return means, S.astype(np.float32)
+
+
+def _points(rng, means, N, scale=900.0):
+    owner = rng.integers(0, len(means), N)
+    y = means[owner][:, POS] + rng.standard_normal((N, 3)) * scale
+    lam = means[owner][:, VEL] + rng.standard_normal((N, 3)) * 8.0
+    return y.astype(np.float32), lam.astype(np.float32)
+
+
+def _reference(y, lam, means, S, gamma, active=None, n=None):
+    N, T = len(y), len(means)
+    out = (np.empty(N, np.int32), np.empty(T, np.int32), np.empty((T, 6), np.float32), np.empty((T, 6, 6), np.float32))
+    return ref.assign_points(None, y, lam, means, S, active, gamma, N if n is None else n, out)
+
+
+@pytest.mark.parametrize("N,T", [(1, 1), (13, 3), (1535, 17), (129, 40)])
+def test_assign_points_matches_reference(device, N, T):
+    rng = np.random.default_rng(N * 100 + T)
+    means, S = _groups(rng, T)
+    y, lam = _points(rng, means, N)
+    y[::11] = np.nan  # "no point" rows
+    got = assign_points(device, y, lam, means, S, 9.0)
+    want = _reference(y, lam, means, S, 9.0)
+    labels = gputrack.to_numpy(got.labels)
+    np.testing.assert_array_equal(labels, want[0])
+    assert (labels[::11] == -1).all()
+    assert 0 < (labels >= 0).sum() < N or N == 1
+    np.testing.assert_array_equal(gputrack.to_numpy(got.counts), want[1])
+    assert_matches(device, got.mean, want[2], scale=50)  # sums of up to N float32 terms
+    cov = gputrack.to_numpy(got.cov)
+    floor = (1e-6 * np.nanmax(np.abs(y))) ** 2  # a float32 rounding of the mean, squared
+    np.testing.assert_allclose(cov, want[3], rtol=2e-4, atol=2e-3 * np.abs(want[3]).max() + floor)
+
+
+def test_gate_and_tie_break_by_hand(device):
+    """Two groups at the same place with the same spread: the velocity term decides (eq. 9-11)."""
+    means = np.zeros((3, 6), np.float32)
+    means[:, 4] = 5000.0
+    means[0, VEL] = [20, 0, 0]
+    means[1, VEL] = [-20, 0, 0]
+    means[2, POS] = [9000, 0, 5000]  # far away: never gated
+    S = np.tile(np.diag([1e4, 4, 1e4, 4, 1e4, 4]).astype(np.float32), (3, 1, 1))
+    y = np.array([[0, 0, 5000], [10, 0, 5000], [500, 0, 5000], [0, 0, 5000]], np.float32)  # point 2: d2 = 25 > 9
+    lam = np.array([[18, 0, 0], [-19, 0, 0], [0, 0, 0], [0, 0, 0]], np.float32)  # point 3: a tie -> slot 0
+    got = assign_points(device, y, lam, means, S, 9.0)
+    np.testing.assert_array_equal(gputrack.to_numpy(got.labels), [0, 1, -1, 0])
+    np.testing.assert_array_equal(gputrack.to_numpy(got.counts), [2, 1, 0])
+    mean = gputrack.to_numpy(got.mean)
+    np.testing.assert_allclose(mean[0], [0, 9, 0, 0, 5000, 0], atol=1e-3)
+    np.testing.assert_allclose(mean[2], means[2])  # no point: the group's own mean, zero covariance
+    cov = gputrack.to_numpy(got.cov)
+    np.testing.assert_allclose(cov[0][1, 1], 81.0, rtol=1e-5)  # velocities 18 and 0 about 9
+    assert not cov[2].any() and not cov[1].any()
+
+
+def test_active_slots_n_points_and_degenerate_spreads(device):
+    rng = np.random.default_rng(5)
+    means, S = _groups(rng, 4)
+    y, lam = _points(rng, means, 200)
+    S[2] = 0.0  # not positive definite: gates nothing
+    S[3][np.ix_(VEL, VEL)] = 0.0  # velocity block singular: position only
+    active = np.array([1, 0, 1, 1], np.uint8)
+    got = assign_points(device, y, lam, means, S, 16.0, active=active, n_points=150)
+    want = _reference(y, lam, means, S, 16.0, active, 150)
+    labels = gputrack.to_numpy(got.labels)
+    np.testing.assert_array_equal(labels, want[0])
+    assert (labels[150:] == -1).all() and not np.isin(labels, [1, 2]).any() and (labels == 3).any()
+    np.testing.assert_array_equal(gputrack.to_numpy(got.counts), want[1])
+    # no group at all, and out= reuse
+    none = assign_points(device, y, lam, np.zeros((0, 6), np.float32), np.zeros((0, 6, 6), np.float32), 9.0)
+    assert (gputrack.to_numpy(none.labels) == -1).all()
+    again = assign_points(device, y, lam, means, S, 16.0, active=active, n_points=150, out=got)
+    assert again.labels is got.labels
+    np.testing.assert_array_equal(gputrack.to_numpy(again.labels), want[0])
+
+
+def test_bad_input(device):
+    y = np.zeros((4, 3), np.float32)
+    m = np.zeros((2, 6), np.float32)
+    S = np.tile(np.eye(6, dtype=np.float32), (2, 1, 1))
+    with pytest.raises(ValueError, match=r"points: expected shape \(N=4, 3\), got \(4, 2\)"):
+        assign_points(device, y[:, :2], y, m, S, 9.0)
+    with pytest.raises(ValueError, match=r"velocities: expected shape \(N=4, 3\), got \(3, 3\)"):
+        assign_points(device, y, y[:3], m, S, 9.0)
+    with pytest.raises(ValueError, match=r"spreads: expected shape \(T=2, 6, 6\), got \(3, 6, 6\)"):
+        assign_points(device, y, y, m, np.tile(S[:1], (3, 1, 1)), 9.0)
+    with pytest.raises(ValueError, match="gamma: expected a positive finite gate, got -1"):
+        assign_points(device, y, y, m, S, -1)
+    with pytest.raises(TypeError, match="gamma: expected a positive number"):
+        assign_points(device, y, y, m, S, "9")
+    with pytest.raises(ValueError, match=r"points: expected finite values or NaN rows \(no point\), got inf"):
+        assign_points(device, np.full((4, 3), np.inf, np.float32), y, m, S, 9.0)
+    with pytest.raises(ValueError, match="means: expected finite values"):
+        assign_points(device, y, y, np.full((2, 6), np.nan, np.float32), S, 9.0)
+    with pytest.raises(ValueError, match=r"n_points: expected an integer in \[0, 4\]"):
+        assign_points(device, y, y, m, S, 9.0, n_points=5)
+    with pytest.raises(TypeError, match="points: expected dtype float32, got complex128"):
+        assign_points(device, y.astype(complex), y, m, S, 9.0)
