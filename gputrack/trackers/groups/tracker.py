@@ -1,0 +1,465 @@
+"""Group tracker of paper 001 (Hoshikawa et al.): groups of people followed by the 3D points of
+their KLT tracks, one extended Kalman filter per group, all groups in one device table.
+
+A frame (:meth:`GroupTracker.update_points`, the observation-level entry point) is five stages
+of a :class:`gputrack.Scheduler`:
+
+=========  ===========================================================================  ======
+stage      what                                                                         where
+=========  ===========================================================================  ======
+predict    every group, constant velocity x = [x xdot y ydot z zdot] (eq. 1-3), one     device
+           launch
+assign     all points x all groups: gate (eq. 8), tie-break m_p m_v (eq. 9-11), and     device
+           each group's point count, mean and covariance (eq. 7), one call
+           (:func:`gputrack.ops.assign_points`)
+update     every group with at least ``min_points`` points: EKF update from the mean    device
+           of its points as z = [u v d] (eq. 4-6), one :func:`ekf_update_stereo` call;
+           the others are predicted only
+groups     spreads (eq. 7), merges (eq. 13-15), splits, new groups from unassigned     host,
+           points whose search regions overlap (eq. 12), deletions                      small
+=========  ===========================================================================  ======
+
+The host reads the labels (N int32), the groups' moments (T x 43 values) and, after the update,
+the groups' states (T x 42): everything per point stays on the device.
+
+Rules beyond the paper, written down:
+
+- **Gate**: eq. 8 with the position block of the group's spread Sigma, floored at
+  ``min_spread`` (mm) so that a group of one person still gates its own points.
+- **Merge** (eq. 13): groups whose gate regions intersect in position *and* in velocity
+  (exact ellipsoid test, :func:`rules.ellipsoids_overlap`, at ``merge_gamma``) merge, all
+  connected groups at once; the merged group keeps the id of the member with the most points
+  (ties: the oldest), its state and spread by eq. 14-15, its Kalman covariance by the same rule.
+- **Split**: a group whose points fall into two or more components of the ``link_radius`` graph
+  of all points (eq. 12's relation), each with at least ``min_new`` points, for ``split_frames``
+  frames in a row, splits: the largest component keeps the id, each other becomes a new group
+  (with its points' mean, spread and velocity). People walking apart end as two groups; two
+  groups crossing do not split, since the graph over *all* points links them while they pass.
+- **Start**: unassigned points whose ``link_radius`` regions overlap are linked (eq. 12:
+  connected components of the radius graph); a component of at least ``min_new`` points starts
+  a group.
+- **End**: a group with fewer than ``min_points`` points for more than ``max_missed`` frames in a
+  row is deleted. Ids are never reused.
+
+Units: millimetres and frames (velocities in mm per frame), camera coordinates x right, y down,
+z forward.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ...device import Device, DeviceArray
+from ...models.camera import StereoCamera
+from ...ops import assign_points, constant_velocity, ekf_update_stereo, kf_predict
+from ...ops._args import check_device
+from ...scheduler import Scheduler, Stage
+from ...tracking._staging import Staging
+from . import rules
+from .rules import POS, VEL
+
+__all__ = ["Group", "GroupConfig", "GroupFrame", "GroupTracker"]
+
+MOMENTS = ("labels", "counts", "mean", "cov")  # assign_points' results, by buffer name
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupConfig:
+    """Constants of the group tracker (paper 001), with the paper's values where it gives them.
+
+    - ``gamma``: eq. 8 gate on the squared Mahalanobis distance (chi-square 3 dof, 99 %);
+    - ``alpha_s``: eq. 7 weight of the previous spread;
+    - ``min_points``: a group is updated from its points only with at least this many (paper: 2);
+    - ``link_radius``: eq. 12 search region, mm (paper: 1 m);
+    - ``min_new``: points a linked set needs to start a group (and each part to split one);
+    - ``merge_gamma``: eq. 13 regions (squared Mahalanobis radius in position and velocity);
+    - ``split_frames``: frames a group's points must stay apart before it splits;
+    - ``max_missed``: frames without ``min_points`` points before a group ends;
+    - ``q``: acceleration variance of the constant-velocity model, (mm/frame^2)^2;
+    - ``R``: (3,) observation variances of the group mean's (u, v, d), px^2;
+    - ``p0``: (2,) initial standard deviations of a new group's position (mm) and velocity (mm/frame);
+    - ``min_spread``: (2,) floors of the spread's standard deviations, position (mm) and velocity (mm/frame);
+    - ``capacity``: initial slots of the group table (it grows).
+    """
+
+    gamma: float = 11.34
+    alpha_s: float = 0.9
+    min_points: int = 2
+    link_radius: float = 1000.0
+    min_new: int = 8
+    merge_gamma: float = 4.0
+    split_frames: int = 12
+    max_missed: int = 24
+    q: float = 1.0
+    R: tuple = (16.0, 16.0, 0.04)
+    p0: tuple = (150.0, 8.0)
+    min_spread: tuple = (150.0, 3.0)
+    capacity: int = 16
+
+    def __post_init__(self):
+        for name in ("gamma", "link_radius", "merge_gamma", "q"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"GroupConfig.{name}: expected a positive finite number, got {v!r}")
+        if not (isinstance(self.alpha_s, (int, float)) and 0.0 <= self.alpha_s <= 1.0):
+            raise ValueError(f"GroupConfig.alpha_s: expected a weight in [0, 1], got {self.alpha_s!r}")
+        for name in ("min_points", "min_new", "split_frames", "max_missed", "capacity"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"GroupConfig.{name}: expected a positive integer, got {v!r}")
+        for name, k in (("R", 3), ("p0", 2), ("min_spread", 2)):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != (k,) or not (np.isfinite(v).all() and (v > 0).all()):
+                raise ValueError(f"GroupConfig.{name}: expected {k} positive finite numbers, got {getattr(self, name)!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Group:
+    """One tracked group: ``position`` (3,) mm and ``velocity`` (3,) mm/frame (camera frame),
+    ``covariance`` (6, 6) the Kalman covariance of the state [x xdot y ydot z zdot],
+    ``spread`` (6, 6) the spread of its points (eq. 7), ``n_points`` this frame, ``age`` frames."""
+
+    id: int
+    position: np.ndarray
+    velocity: np.ndarray
+    covariance: np.ndarray
+    spread: np.ndarray
+    n_points: int
+    age: int
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupFrame:
+    """One frame's result: ``labels`` (N,) int64 the group id of each point (-1: none);
+    ``groups`` the live groups (ascending id); ``started``, ``merged`` ((absorbed id, into id)
+    pairs), ``split`` ((new id, from id) pairs), ``ended``: what changed."""
+
+    labels: np.ndarray
+    groups: list
+    started: list
+    merged: list
+    split: list
+    ended: list
+
+
+def _points(a, name: str, N=None) -> np.ndarray:
+    if isinstance(a, DeviceArray):
+        raise TypeError(f"{name}: expected host (NumPy) points (N, 3), got a DeviceArray")
+    h = np.asarray(a)
+    if h.dtype.kind not in "iuf":
+        raise TypeError(f"{name}: expected real values, got dtype {h.dtype.name}")
+    if h.size == 0 and h.ndim <= 2:
+        h = h.reshape(0, 3)
+    if h.ndim != 2 or h.shape[1] != 3 or (N is not None and len(h) != N):
+        want = "(N, 3)" if N is None else f"(N={N}, 3)"
+        raise ValueError(f"{name}: expected shape {want}, got {h.shape}")
+    if np.isinf(h).any():
+        bad = tuple(int(i) for i in np.argwhere(np.isinf(h))[0])
+        raise ValueError(f"{name}: expected finite values or NaN rows (no point), got {h[bad]} at index {bad}")
+    return h.astype(np.float32, copy=False)
+
+
+def _components(points: np.ndarray, radius: float) -> np.ndarray:
+    """Connected components of the graph linking points within ``radius`` (eq. 12): (k,) labels."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    k = len(points)
+    if k == 0:
+        return np.zeros(0, np.int64)
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
+    return connected_components(g, directed=False)[1]
+
+
+class GroupTracker:
+    """Paper 001's group tracker on one device (see the module for the frame and the rules).
+
+    ``camera``: the rectified stereo pair (:class:`gputrack.models.StereoCamera`, f in pixels,
+    baseline in mm); ``config``: :class:`GroupConfig`; ``profile``: time each stage on the device.
+    """
+
+    def __init__(self, device: Device, *, camera: StereoCamera, config: GroupConfig | None = None,
+                 profile: bool = False):  # fmt: skip
+        self.device = check_device(device)
+        if not isinstance(camera, StereoCamera):
+            raise TypeError(f"camera: expected a gputrack.models.StereoCamera, got {type(camera).__name__}")
+        config = GroupConfig() if config is None else config
+        if not isinstance(config, GroupConfig):
+            raise TypeError(f"config: expected a GroupConfig, got {type(config).__name__}")
+        self.camera, self.config = camera, config
+        self.F, self.Q = constant_velocity(3, 1.0, config.q)
+        self.R = np.diag(np.asarray(config.R, np.float32))
+        C = config.capacity
+        self.ids = np.full(C, -1, np.int64)  # host mirror of the table: -1 = free slot
+        self.age = np.zeros(C, np.int64)
+        self.missed = np.zeros(C, np.int64)
+        self.apart = np.zeros(C, np.int64)  # frames in a row a group's points stayed apart
+        self.Sigma = np.tile(np.eye(6, dtype=np.float32), (C, 1, 1))  # eq. 7 spreads (host, uploaded)
+        self.next_id = 0
+        self._staging = Staging(self.device)
+        self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))  # host copies, set each frame
+        self._relabel: dict = {}
+        self.scheduler = Scheduler(self.device, [
+            Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
+            Stage("assign", self._assign, reads=("x", "Sigma", "active"), writes=MOMENTS),
+            Stage("update", self._update, reads=("x", "P"), host_reads=MOMENTS, writes=("x", "P", "obs")),
+            Stage("groups", self._groups, host_reads=("x", "P"), reads=("obs",),
+                  writes=("x", "P", "Sigma", "active")),
+        ], state=("x", "P", "Sigma", "active"), profile=profile)  # fmt: skip
+        self._upload_table()
+        self._frame = None
+
+    # -- the table on the device ---------------------------------------------------------------
+    @property
+    def capacity(self) -> int:
+        return len(self.ids)
+
+    def _upload_table(self) -> None:
+        s = self.scheduler
+        s.set("x", self._x.astype(np.float32))
+        s.set("P", self._P.astype(np.float32))
+        s.set("Sigma", self.Sigma)
+        s.set("active", (self.ids >= 0).astype(np.uint8))
+
+    def _grow(self, need: int) -> None:
+        C = self.capacity
+        new = max(2 * C, need)
+        grow = new - C
+        self.ids = np.concatenate([self.ids, np.full(grow, -1, np.int64)])
+        for name in ("age", "missed", "apart"):
+            setattr(self, name, np.concatenate([getattr(self, name), np.zeros(grow, np.int64)]))
+        eye = np.tile(np.eye(6), (grow, 1, 1))
+        self.Sigma = np.concatenate([self.Sigma, eye.astype(np.float32)])
+        self._x = np.concatenate([self._x, np.zeros((grow, 6))])
+        self._P = np.concatenate([self._P, eye])
+
+    # -- one frame -----------------------------------------------------------------------------
+    def update_points(self, xyz, velocity) -> GroupFrame:
+        """Track one frame of observation points: ``xyz`` (N, 3) mm camera coordinates, ``velocity``
+        (N, 3) mm per frame (host arrays; a NaN row is no point). Returns a :class:`GroupFrame`."""
+        y = _points(xyz, "xyz")
+        lam = _points(velocity, "velocity", len(y))
+        self._frame = {"y": y, "lam": lam}
+        try:
+            self.scheduler.run()
+            return self._result
+        finally:
+            self._frame = None
+
+    def _predict(self, b) -> None:
+        b["x"], b["P"] = kf_predict(self.device, b["x"], b["P"], self.F, self.Q, out=(b["x"], b["P"]))
+
+    def _assign(self, b) -> None:
+        f = self._frame
+        y, n = self._staging.put_rows("points", f["y"])
+        lam, _ = self._staging.put_rows("velocities", f["lam"])
+        prev = tuple(b.get(k) for k in MOMENTS)
+        fits = prev[0] is not None and prev[0].shape[0] == len(y) and prev[1].shape[0] == self.capacity
+        got = assign_points(self.device, y, lam, b["x"], b["Sigma"], self.config.gamma, active=b["active"],
+                            n_points=n, out=prev if fits else None)  # fmt: skip
+        for k, v in zip(MOMENTS, got):
+            b[k] = v
+
+    def _update(self, b) -> None:
+        N = len(self._frame["y"])
+        labels, counts, mean = b["labels"][:N].astype(np.int64), b["counts"].astype(np.int64), b["mean"]
+        seen = (counts >= self.config.min_points) & (self.ids >= 0)
+        z = np.full((self.capacity, 3), np.nan, np.float32)  # NaN row: predicted only (SKIPPED)
+        c = mean[:, POS].astype(np.float64)
+        seen &= c[:, 2] > 0
+        if seen.any():
+            z[seen] = self.camera.project(c[seen])  # eq. 4-6: the mean of the group's points as [u v d]
+        zd = self._staging.put("z", z)
+        cam = self.camera
+        ekf_update_stereo(self.device, b["x"], b["P"], zd, self.R, f=cam.f, b=cam.b, cx=cam.cx, cy=cam.cy,
+                          out=(b["x"], b["P"], self._status()))  # fmt: skip
+        b["obs"] = (labels, counts, np.asarray(b["cov"], np.float64), seen)
+
+    def _status(self):
+        st = getattr(self, "_status_array", None)
+        if st is None or st.shape != (self.capacity,):
+            st = self._status_array = self.device.empty((self.capacity,), np.uint8)
+        return st
+
+    def _groups(self, b) -> None:
+        cfg = self.config
+        labels, counts, cov, seen = b["obs"]
+        self._x, self._P = np.array(b["x"], np.float64), np.array(b["P"], np.float64)  # host working copies
+        self._relabel = {}
+        y, lam = self._frame["y"], self._frame["lam"]
+        live = self.ids >= 0
+        a = cfg.alpha_s
+        self.Sigma[seen] = a * self.Sigma[seen] + (1 - a) * cov[seen]  # eq. 7
+        self.age[live] += 1
+        self.missed = np.where(live & ~seen, self.missed + 1, 0)
+        valid = np.isfinite(y).all(1) & np.isfinite(lam).all(1)
+        merged = self._merge(counts, labels)
+        split = self._split(labels, valid, y, lam)
+        started = self._start(labels, valid, y, lam)
+        gone = np.flatnonzero((self.ids >= 0) & (self.missed > cfg.max_missed))
+        ended = [int(i) for i in self.ids[gone]]
+        self.ids[gone] = -1
+        self._floor_spreads()
+        b["Sigma"] = self._put("Sigma", self.Sigma)
+        if merged or split or started or ended or len(self._x) != b["x"].shape[0]:
+            b["x"] = self._put("x", self._x.astype(np.float32))
+            b["P"] = self._put("P", self._P.astype(np.float32))
+        b["active"] = self._put("active", (self.ids >= 0).astype(np.uint8))
+        out = np.where(labels >= 0, self.ids[np.maximum(labels, 0)], -1)
+        for slot, pts in self._relabel.items():
+            out[pts] = self.ids[slot]
+        counts = np.concatenate([counts, np.zeros(self.capacity - len(counts), np.int64)])
+        for slot, pts in self._relabel.items():
+            counts[slot] = np.count_nonzero(out == self.ids[slot])
+        self._result = GroupFrame(out, self._list(self._x, self._P, counts), started, merged, split, ended)
+
+    def _put(self, name, host):
+        """``host`` on the device, into last frame's array ``name`` when the shape still fits."""
+        host = np.ascontiguousarray(host)
+        dev = self.scheduler.buffers.get(name)
+        if self.device.backend == "numpy":
+            return host.copy()
+        if dev is not None and tuple(dev.shape) == host.shape and dev.dtype == host.dtype:
+            return self.device.asarray(host, out=dev)
+        return self.device.asarray(host)
+
+    # the rules, on the host copies of the table --------------------------------------------------
+    def _merge(self, counts, labels) -> list:
+        """Eq. 13-15: groups whose regions intersect in position and velocity become one."""
+        live = np.flatnonzero(self.ids >= 0)
+        if len(live) < 2:
+            return []
+        pairs = rules.overlapping_pairs(self._x[live], self.Sigma[live].astype(np.float64), self.config.merge_gamma)
+        if not len(pairs):
+            return []
+        comp = _union(len(live), pairs)
+        out = []
+        for c in np.unique(comp):
+            members = live[comp == c]
+            if len(members) < 2:
+                continue
+            order = sorted(members, key=lambda s: (-counts[s], self.ids[s]))
+            keep = order[0]
+            w = counts[members].astype(np.float64)
+            xs = self._x[members]
+            self._x[keep], self.Sigma[keep] = rules.merge_states(w, xs, self.Sigma[members].astype(np.float64))
+            _, self._P[keep] = rules.merge_states(w, xs, self._P[members])
+            counts[keep] = counts[members].sum()
+            self.age[keep] = self.age[members].max()
+            self.missed[keep] = self.missed[members].min()
+            pts = [self._relabel.get(keep, np.flatnonzero(labels == keep))]
+            for s in order[1:]:
+                out.append((int(self.ids[s]), int(self.ids[keep])))
+                pts.append(np.flatnonzero(labels == s))
+                self.ids[s] = -1
+            self._relabel[keep] = np.concatenate(pts)
+        return out
+
+    def _split(self, labels, valid, y, lam) -> list:
+        """A group whose points stay in two or more linked sets for ``split_frames`` frames splits."""
+        cfg = self.config
+        live = np.flatnonzero(self.ids >= 0)
+        owner = labels.copy()
+        for slot, pts in self._relabel.items():
+            owner[pts] = slot
+        sizes = np.bincount(owner[owner >= 0], minlength=self.capacity)
+        if not (sizes[live] >= 2 * cfg.min_new).any():
+            self.apart[live] = 0
+            return []
+        use = valid & (owner >= 0)
+        comp = np.full(len(y), -1, np.int64)
+        comp[use] = _components(y[use], cfg.link_radius)  # eq. 12's relation over all points
+        out = []
+        for s in live:
+            parts = []
+            if self.ids[s] >= 0 and sizes[s] >= 2 * cfg.min_new:
+                ids, n = np.unique(comp[owner == s], return_counts=True)
+                parts = [c for c, k in sorted(zip(ids, n), key=lambda t: -t[1]) if k >= cfg.min_new]
+            if len(parts) < 2:
+                self.apart[s] = 0
+                continue
+            self.apart[s] += 1
+            if self.apart[s] < cfg.split_frames:
+                continue
+            self.apart[s] = 0
+            for c in parts:
+                pts = np.flatnonzero((owner == s) & (comp == c))
+                m, S = rules.moments(y[pts], lam[pts])
+                if c == parts[0]:  # the largest part keeps the group
+                    self._x[s, POS], self.Sigma[s] = m[POS], S
+                    self._relabel[s] = pts
+                    continue
+                new = self._add(m, S, self._P[s])
+                out.append((int(self.ids[new]), int(self.ids[s])))
+                self._relabel[new] = pts
+        return out
+
+    def _start(self, labels, valid, y, lam) -> list:
+        """Eq. 12: unassigned points whose search regions overlap, linked; big sets start groups."""
+        cfg = self.config
+        free = np.flatnonzero(valid & (labels < 0))
+        if len(free) < cfg.min_new:
+            return []
+        comp = _components(y[free], cfg.link_radius)
+        ids, n = np.unique(comp, return_counts=True)
+        p0 = np.zeros(6)
+        p0[POS], p0[VEL] = cfg.p0[0] ** 2, cfg.p0[1] ** 2
+        out = []
+        for c in ids[n >= cfg.min_new]:
+            pts = free[comp == c]
+            m, S = rules.moments(y[pts], lam[pts])
+            slot = self._add(m, S, np.diag(p0))
+            out.append(int(self.ids[slot]))
+            self._relabel[slot] = pts
+        return out
+
+    def _add(self, m, S, P0) -> int:
+        """A new group in the lowest free slot (the table grows when full); returns the slot."""
+        free = np.flatnonzero(self.ids < 0)
+        if not len(free):
+            self._grow(self.capacity + 1)
+            free = np.flatnonzero(self.ids < 0)
+        s = int(free[0])
+        self.ids[s] = self.next_id
+        self.next_id += 1
+        self.age[s], self.missed[s], self.apart[s] = 1, 0, 0
+        self.Sigma[s] = S
+        self._x[s], self._P[s] = m, P0
+        return s
+
+    def _floor_spreads(self) -> None:
+        """Spreads no narrower than ``min_spread`` (symmetric, eigenvalues floored per block)."""
+        lo = (self.config.min_spread[0] ** 2, self.config.min_spread[1] ** 2)
+        S = ((self.Sigma + np.swapaxes(self.Sigma, 1, 2)) / 2).astype(np.float64)
+        for idx, floor in zip((POS, VEL), lo):
+            w, V = np.linalg.eigh(S[:, idx][:, :, idx])
+            S[:, idx[:, None], idx[None, :]] = np.einsum("kij,kj,klj->kil", V, np.maximum(w, floor), V)
+        self.Sigma = S.astype(np.float32)
+
+    # -- reading -------------------------------------------------------------------------------
+    def groups(self) -> list:
+        """The live groups (ascending id), downloaded from the device (n_points: 0)."""
+        b = self.scheduler.buffers
+        x = np.asarray(b["x"] if self.device.backend == "numpy" else b["x"].numpy())
+        P = np.asarray(b["P"] if self.device.backend == "numpy" else b["P"].numpy())
+        return self._list(x, P, np.zeros(self.capacity, np.int64))
+
+    def _list(self, x, P, counts) -> list:
+        live = np.flatnonzero(self.ids >= 0)
+        return [Group(int(self.ids[s]), x[s, POS].astype(np.float64), x[s, VEL].astype(np.float64),
+                      P[s].astype(np.float64), self.Sigma[s].astype(np.float64), int(counts[s]), int(self.age[s]))
+                for s in live[np.argsort(self.ids[live], kind="stable")]]  # fmt: skip
+
+
+def _union(k: int, pairs: np.ndarray) -> np.ndarray:
+    """Connected components of k nodes joined by ``pairs`` (eq. 13's relation, transitive)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
+    return connected_components(g, directed=False)[1]
