@@ -38,10 +38,10 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
     Wp, ldp, pdp = _block_factors(S[:, POS][:, :, POS], on)
     Wv, ldv, pdv = _block_factors(S[:, VEL][:, :, VEL], on)
     valid = np.isfinite(y).all(1) & np.isfinite(lam).all(1)
-    ep = np.einsum("tab,ntb->nta", Wp, y[:, None, :] - xi[None, :, POS])  # whitened y_i - xi_j
-    d2p = (ep * ep).sum(-1)  # eq. 8: (y_i - xi_j)^T Sigma^-1 (y_i - xi_j)
-    ev = np.einsum("tab,ntb->nta", Wv, lam[:, None, :] - xi[None, :, VEL])
-    d2v = (ev * ev).sum(-1)
+    ep = Wp @ (y.T[None] - xi[:, POS, None])  # (T, 3, N): whitened y_i - xi_j
+    d2p = (ep * ep).sum(1).T  # (N, T) eq. 8: (y_i - xi_j)^T Sigma^-1 (y_i - xi_j)
+    ev = Wv @ (lam.T[None] - xi[:, VEL, None])
+    d2v = (ev * ev).sum(1).T
     gated = valid[:, None] & (on & pdp)[None, :] & (d2p < gamma)  # eq. 8
     # eq. 9-11: log m_total = log m_p + log m_v = -(d2p + log det P_xi + d2v + log det P_v) / 2 + const
     # (k_p, k_v and the normal densities' 2 pi factors are common to every group: the argmax drops them)
@@ -52,17 +52,15 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
     labels[:N] = lab
     labels[N:] = -1
     T = len(xi)
+    q = np.concatenate([y, lam], axis=1)[:, [0, 3, 1, 4, 2, 5]]  # each point in state order
+    order = np.argsort(lab, kind="stable")
+    bounds = np.searchsorted(lab[order], np.arange(T + 1))
     for j in range(T):
-        q = np.concatenate([y[lab == j], lam[lab == j]], axis=1)  # (n, [pos vel])
-        n = len(q)
+        pts = q[order[bounds[j]:bounds[j + 1]]]
+        n = len(pts)
         counts[j] = n
-        state = np.empty(6)
-        state[POS], state[VEL] = (q[:, :3].mean(0), q[:, 3:].mean(0)) if n else (xi[j, POS], xi[j, VEL])
-        mean[j] = state
-        c = np.zeros((6, 6))
-        if n:
-            d = np.empty((n, 6))
-            d[:, POS], d[:, VEL] = q[:, :3] - state[POS], q[:, 3:] - state[VEL]
-            c = d.T @ d / n  # eq. 7: cov(C_y), the spread of the group's points (population)
-        cov[j] = c
+        m = pts.mean(0) if n else xi[j]
+        mean[j] = m
+        d = pts - m
+        cov[j] = d.T @ d / n if n else 0.0  # eq. 7: cov(C_y), the spread of the group's points (population)
     return out

@@ -24,17 +24,23 @@ the groups' states (T x 42): everything per point stays on the device.
 
 Rules beyond the paper, written down:
 
-- **Gate**: eq. 8 with the position block of the group's spread Sigma, floored at
-  ``min_spread`` (mm) so that a group of one person still gates its own points.
+- **Gate**: eq. 8 with the position block of the group's spread Sigma widened by
+  diag(``min_spread``^2) (mm^2; velocity block likewise), so that a group of one person, or one
+  whose points were all in a line, still gates its own points; the merge test uses the same.
 - **Merge** (eq. 13): groups whose gate regions intersect in position *and* in velocity
   (exact ellipsoid test, :func:`rules.ellipsoids_overlap`, at ``merge_gamma``) merge, all
-  connected groups at once; the merged group keeps the id of the member with the most points
+  connected groups at once. The velocity region is centred on the mean velocity of the group's
+  points this frame (the state's velocity, observed only through positions, lags a change of
+  pace by the filter's time constant; the KLT tracks measure it directly), or on the state's
+  where the group has fewer than ``min_points`` points; the merged group keeps the id of the member with the most points
   (ties: the oldest), its state and spread by eq. 14-15, its Kalman covariance by the same rule.
-- **Split**: a group whose points fall into two or more components of the ``link_radius`` graph
-  of all points (eq. 12's relation), each with at least ``min_new`` points, for ``split_frames``
-  frames in a row, splits: the largest component keeps the id, each other becomes a new group
-  (with its points' mean, spread and velocity). People walking apart end as two groups; two
-  groups crossing do not split, since the graph over *all* points links them while they pass.
+- **Split**: a group whose points fall into two or more sets, each with at least ``min_new``
+  points, for ``split_frames`` frames in a row, splits: the largest set keeps the id, each
+  other becomes a new group (with its points' mean, spread and velocity). The sets are cut
+  where the points' projections on the group's principal axis leave a gap wider than
+  ``link_radius`` (so eq. 12's relation does not link them), examined only for groups wider
+  than one person along that axis (standard deviation above ``link_radius`` / 2). People
+  walking apart end as two groups.
 - **Start**: unassigned points whose ``link_radius`` regions overlap are linked (eq. 12:
   connected components of the radius graph); a component of at least ``min_new`` points starts
   a group.
@@ -81,7 +87,8 @@ class GroupConfig:
     - ``q``: acceleration variance of the constant-velocity model, (mm/frame^2)^2;
     - ``R``: (3,) observation variances of the group mean's (u, v, d), px^2;
     - ``p0``: (2,) initial standard deviations of a new group's position (mm) and velocity (mm/frame);
-    - ``min_spread``: (2,) floors of the spread's standard deviations, position (mm) and velocity (mm/frame);
+    - ``min_spread``: (2,) standard deviations added to the spread for gating and merging, position
+      (mm) and velocity (mm/frame);
     - ``capacity``: initial slots of the group table (it grows).
     """
 
@@ -193,6 +200,8 @@ class GroupTracker:
             raise TypeError(f"config: expected a GroupConfig, got {type(config).__name__}")
         self.camera, self.config = camera, config
         self.F, self.Q = constant_velocity(3, 1.0, config.q)
+        self._floor = np.zeros((6, 6), np.float32)
+        self._floor[POS, POS], self._floor[VEL, VEL] = config.min_spread[0] ** 2, config.min_spread[1] ** 2
         self.R = np.diag(np.asarray(config.R, np.float32))
         C = config.capacity
         self.ids = np.full(C, -1, np.int64)  # host mirror of the table: -1 = free slot
@@ -223,7 +232,7 @@ class GroupTracker:
         s = self.scheduler
         s.set("x", self._x.astype(np.float32))
         s.set("P", self._P.astype(np.float32))
-        s.set("Sigma", self.Sigma)
+        s.set("Sigma", self._gate_spreads())
         s.set("active", (self.ids >= 0).astype(np.uint8))
 
     def _grow(self, need: int) -> None:
@@ -278,7 +287,7 @@ class GroupTracker:
         cam = self.camera
         ekf_update_stereo(self.device, b["x"], b["P"], zd, self.R, f=cam.f, b=cam.b, cx=cam.cx, cy=cam.cy,
                           out=(b["x"], b["P"], self._status()))  # fmt: skip
-        b["obs"] = (labels, counts, np.asarray(b["cov"], np.float64), seen)
+        b["obs"] = (labels, counts, np.asarray(b["cov"], np.float64), np.asarray(mean, np.float64), seen)
 
     def _status(self):
         st = getattr(self, "_status_array", None)
@@ -288,7 +297,7 @@ class GroupTracker:
 
     def _groups(self, b) -> None:
         cfg = self.config
-        labels, counts, cov, seen = b["obs"]
+        labels, counts, cov, mean, seen = b["obs"]
         self._x, self._P = np.array(b["x"], np.float64), np.array(b["P"], np.float64)  # host working copies
         self._relabel = {}
         y, lam = self._frame["y"], self._frame["lam"]
@@ -298,14 +307,14 @@ class GroupTracker:
         self.age[live] += 1
         self.missed = np.where(live & ~seen, self.missed + 1, 0)
         valid = np.isfinite(y).all(1) & np.isfinite(lam).all(1)
-        merged = self._merge(counts, labels)
+        merged = self._merge(counts, labels, np.where(seen[:, None], mean[:, VEL], self._x[:, VEL]))
         split = self._split(labels, valid, y, lam)
         started = self._start(labels, valid, y, lam)
         gone = np.flatnonzero((self.ids >= 0) & (self.missed > cfg.max_missed))
         ended = [int(i) for i in self.ids[gone]]
         self.ids[gone] = -1
-        self._floor_spreads()
-        b["Sigma"] = self._put("Sigma", self.Sigma)
+        self.Sigma = (self.Sigma + np.swapaxes(self.Sigma, 1, 2)) / 2
+        b["Sigma"] = self._put("Sigma", self._gate_spreads())
         if merged or split or started or ended or len(self._x) != b["x"].shape[0]:
             b["x"] = self._put("x", self._x.astype(np.float32))
             b["P"] = self._put("P", self._P.astype(np.float32))
@@ -329,12 +338,14 @@ class GroupTracker:
         return self.device.asarray(host)
 
     # the rules, on the host copies of the table --------------------------------------------------
-    def _merge(self, counts, labels) -> list:
+    def _merge(self, counts, labels, velocity) -> list:
         """Eq. 13-15: groups whose regions intersect in position and velocity become one."""
         live = np.flatnonzero(self.ids >= 0)
         if len(live) < 2:
             return []
-        pairs = rules.overlapping_pairs(self._x[live], self.Sigma[live].astype(np.float64), self.config.merge_gamma)
+        centre = self._x[live].copy()
+        centre[:, VEL] = velocity[live]
+        pairs = rules.overlapping_pairs(centre, self._gate_spreads()[live].astype(np.float64), self.config.merge_gamma)
         if not len(pairs):
             return []
         comp = _union(len(live), pairs)
@@ -361,25 +372,30 @@ class GroupTracker:
         return out
 
     def _split(self, labels, valid, y, lam) -> list:
-        """A group whose points stay in two or more linked sets for ``split_frames`` frames splits."""
+        """A group whose points stay in two or more sets for ``split_frames`` frames splits (see
+        the module): the sets are cut where the points' projections on the group's principal
+        axis leave a gap wider than ``link_radius`` (then no point of one set is within
+        link_radius of the other: eq. 12's relation does not link them). Only groups wider than
+        a person along that axis (standard deviation above link_radius / 2) are examined."""
         cfg = self.config
         live = np.flatnonzero(self.ids >= 0)
         owner = labels.copy()
         for slot, pts in self._relabel.items():
             owner[pts] = slot
-        sizes = np.bincount(owner[owner >= 0], minlength=self.capacity)
-        if not (sizes[live] >= 2 * cfg.min_new).any():
-            self.apart[live] = 0
-            return []
-        use = valid & (owner >= 0)
-        comp = np.full(len(y), -1, np.int64)
-        comp[use] = _components(y[use], cfg.link_radius)  # eq. 12's relation over all points
+        owner[~valid] = -1
+        B = self.Sigma[live][:, POS][:, :, POS].astype(np.float64)
+        wide = np.trace(B, axis1=1, axis2=2) > (cfg.link_radius / 2) ** 2  # trace >= largest eigenvalue
+        if wide.any():
+            w, V = np.linalg.eigh(B[wide])
+            wide[wide] = w[:, -1] > (cfg.link_radius / 2) ** 2
+        self.apart[live[~wide]] = 0
         out = []
-        for s in live:
-            parts = []
-            if self.ids[s] >= 0 and sizes[s] >= 2 * cfg.min_new:
-                ids, n = np.unique(comp[owner == s], return_counts=True)
-                parts = [c for c, k in sorted(zip(ids, n), key=lambda t: -t[1]) if k >= cfg.min_new]
+        for s, axis in zip(live[wide], np.linalg.eigh(B[wide])[1][:, :, -1] if wide.any() else []):
+            mine = np.flatnonzero(owner == s)
+            proj = y[mine] @ axis
+            order = np.argsort(proj, kind="stable")
+            cut = np.concatenate([[0], np.flatnonzero(np.diff(proj[order]) > cfg.link_radius) + 1, [len(mine)]])
+            parts = [mine[order[a:b]] for a, b in zip(cut[:-1], cut[1:]) if b - a >= cfg.min_new]
             if len(parts) < 2:
                 self.apart[s] = 0
                 continue
@@ -387,10 +403,10 @@ class GroupTracker:
             if self.apart[s] < cfg.split_frames:
                 continue
             self.apart[s] = 0
-            for c in parts:
-                pts = np.flatnonzero((owner == s) & (comp == c))
+            parts.sort(key=len, reverse=True)
+            for i, pts in enumerate(parts):
                 m, S = rules.moments(y[pts], lam[pts])
-                if c == parts[0]:  # the largest part keeps the group
+                if i == 0:  # the largest part keeps the group
                     self._x[s, POS], self.Sigma[s] = m[POS], S
                     self._relabel[s] = pts
                     continue
@@ -432,14 +448,9 @@ class GroupTracker:
         self._x[s], self._P[s] = m, P0
         return s
 
-    def _floor_spreads(self) -> None:
-        """Spreads no narrower than ``min_spread`` (symmetric, eigenvalues floored per block)."""
-        lo = (self.config.min_spread[0] ** 2, self.config.min_spread[1] ** 2)
-        S = ((self.Sigma + np.swapaxes(self.Sigma, 1, 2)) / 2).astype(np.float64)
-        for idx, floor in zip((POS, VEL), lo):
-            w, V = np.linalg.eigh(S[:, idx][:, :, idx])
-            S[:, idx[:, None], idx[None, :]] = np.einsum("kij,kj,klj->kil", V, np.maximum(w, floor), V)
-        self.Sigma = S.astype(np.float32)
+    def _gate_spreads(self) -> np.ndarray:
+        """The spreads the gate and the merge test use: Sigma + diag(min_spread^2) (see the module)."""
+        return self.Sigma + self._floor
 
     # -- reading -------------------------------------------------------------------------------
     def groups(self) -> list:
@@ -451,9 +462,11 @@ class GroupTracker:
 
     def _list(self, x, P, counts) -> list:
         live = np.flatnonzero(self.ids >= 0)
-        return [Group(int(self.ids[s]), x[s, POS].astype(np.float64), x[s, VEL].astype(np.float64),
-                      P[s].astype(np.float64), self.Sigma[s].astype(np.float64), int(counts[s]), int(self.age[s]))
-                for s in live[np.argsort(self.ids[live], kind="stable")]]  # fmt: skip
+        live = live[np.argsort(self.ids[live], kind="stable")]
+        pos, vel = x[live][:, POS].astype(np.float64), x[live][:, VEL].astype(np.float64)
+        cov, spread = P[live].astype(np.float64), self.Sigma[live].astype(np.float64)
+        return [Group(int(self.ids[s]), pos[k], vel[k], cov[k], spread[k], int(counts[s]), int(self.age[s]))
+                for k, s in enumerate(live)]
 
 
 def _union(k: int, pairs: np.ndarray) -> np.ndarray:
