@@ -1,0 +1,219 @@
+"""The front end of paper 001: subtraction stereo and KLT tracks -> 3D points with velocities.
+
+Per frame (:meth:`StereoFrontEnd.points`):
+
+1. **Background subtraction** on the device (:mod:`gputrack.ops.background`): the left camera's
+   background is the per-pixel median of the first ``background_frames`` frames (or of frames
+   given to :meth:`StereoFrontEnd.learn_background`), then follows slow changes with a running
+   average of rate ``background_rate`` where the pixel is background; the foreground is where
+   the frame differs from it by ``foreground_threshold`` grey levels or more.
+2. **Subtraction stereo** on the device (:func:`gputrack.ops.stereo_match`): block matching of
+   the rectified pair restricted to the (dilated) left foreground: the work scales with the
+   moving people, not with the image. Disparity NaN where invalid.
+3. **KLT** on the host (OpenCV: ``goodFeaturesToTrack`` in the foreground, pyramidal
+   ``calcOpticalFlowPyrLK`` with a forward-backward check of ``fb_error`` px). As in the paper's
+   Fig. 3, only tracks that have survived ``window`` frames are observation points; each gives
+   (u, v, d) -> a 3D point (eq. 6 inverted, :meth:`StereoCamera.unproject`; d the median of the
+   valid disparities in a 5 x 5 window at the point) and a velocity, the mean 3D displacement
+   per frame over the window.
+
+Frames before the background is learnt give no points (a documented result, not an error).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ...device import Device
+from ...models.camera import StereoCamera
+from ...ops.background import background_median, foreground_mask, update_background
+from ...ops.stereo import stereo_match
+
+__all__ = ["FrontEndConfig", "StereoFrontEnd", "StereoPoints"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontEndConfig:
+    """Constants of the stereo front end (see the module)."""
+
+    max_disparity: int = 64
+    block: int = 9
+    background_frames: int = 24
+    background_rate: float = 0.02
+    foreground_threshold: float = 20.0
+    dilate: int = 4
+    window: int = 5
+    max_features: int = 800
+    min_distance: int = 5
+    fb_error: float = 1.0
+    klt_window: int = 15
+
+    def __post_init__(self):
+        for name in ("max_disparity", "block", "background_frames", "window", "max_features", "min_distance",
+                     "klt_window"):  # fmt: skip
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"FrontEndConfig.{name}: expected a positive integer, got {v!r}")
+        if isinstance(self.dilate, bool) or not isinstance(self.dilate, int) or self.dilate < 0:
+            raise ValueError(f"FrontEndConfig.dilate: expected an integer >= 0, got {self.dilate!r}")
+        if not 0.0 <= float(self.background_rate) <= 1.0:
+            raise ValueError(f"FrontEndConfig.background_rate: expected a rate in [0, 1], got {self.background_rate!r}")
+        for name in ("foreground_threshold", "fb_error"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"FrontEndConfig.{name}: expected a positive number, got {getattr(self, name)!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class StereoPoints:
+    """One frame's observation points: ``xyz`` (N, 3) mm, ``velocity`` (N, 3) mm/frame, ``uv``
+    (N, 2) pixels in the left image, ``track`` (N,) KLT track ids; ``foreground`` the share of
+    foreground pixels; ``disparity`` the frame's disparity map on the device (or None)."""
+
+    xyz: np.ndarray
+    velocity: np.ndarray
+    uv: np.ndarray
+    track: np.ndarray
+    foreground: float
+    disparity: object = None
+
+
+def _gray(a, name: str, shape=None) -> np.ndarray:
+    h = np.asarray(a)
+    if h.dtype != np.uint8:
+        raise TypeError(f"{name}: expected a uint8 grey image (H, W), got dtype {h.dtype.name}")
+    if h.ndim != 2 or min(h.shape) < 16:
+        raise ValueError(f"{name}: expected a grey image (H, W) of at least 16 x 16, got shape {h.shape}")
+    if shape is not None and h.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape} (the left image's and the first frame's), got {h.shape}")
+    return np.ascontiguousarray(h)
+
+
+class StereoFrontEnd:
+    """Subtraction stereo + KLT on one device (see the module)."""
+
+    def __init__(self, device: Device, camera: StereoCamera, config: FrontEndConfig | None = None):
+        self.device, self.camera = device, camera
+        self.config = FrontEndConfig() if config is None else config
+        self.shape = None
+        self.background = None
+        self._learning: list = []
+        self._prev = None
+        self._pts = np.zeros((0, 2), np.float32)
+        self._ids = np.zeros(0, np.int64)
+        self._age = np.zeros(0, np.int64)
+        self._hist = np.zeros((0, self.config.window, 3))  # the last `window` 3D positions of each track
+        self._next = 0
+        self._mask = None
+
+    def learn_background(self, lefts) -> None:
+        """The left camera's background from empty frames (F, H, W) uint8 (per-pixel median)."""
+        frames = np.asarray(lefts)
+        if frames.ndim != 3 or len(frames) == 0:
+            raise ValueError(f"lefts: expected empty frames (F, H, W) with F >= 1, got shape {frames.shape}")
+        for k, f in enumerate(frames):
+            _gray(f, f"lefts[{k}]", self.shape)
+        self.shape = frames.shape[1:]
+        self.background = background_median(self.device, frames)
+        self._learning = []
+
+    def points(self, left, right) -> StereoPoints:
+        """3D points with velocities of one rectified pair (uint8 grey, same shape)."""
+        left = _gray(left, "left", self.shape)
+        self.shape = left.shape
+        right = _gray(right, "right", self.shape)
+        cfg, dev = self.config, self.device
+        if self.background is None:
+            self._learning.append(left)
+            if len(self._learning) >= cfg.background_frames:
+                self.learn_background(np.stack(self._learning))
+            return self._empty()
+        L = dev.asarray(left.astype(np.float32))
+        fg = foreground_mask(dev, L, self.background, cfg.foreground_threshold)
+        fg_host = np.asarray(fg if dev.backend == "numpy" else fg.numpy()).astype(np.uint8)
+        if cfg.background_rate > 0:
+            self.background = update_background(dev, self.background, L, rate=cfg.background_rate, mask=fg,
+                                                out=self.background)  # fmt: skip
+        mask = self._dilate(fg_host)
+        disp = stereo_match(dev, left, right, mask=mask, max_disparity=cfg.max_disparity, block=cfg.block)
+        d = np.asarray(disp if dev.backend == "numpy" else disp.numpy())
+        self._klt(left, fg_host)
+        xyz = self._triangulate(d)
+        self._hist = np.concatenate([self._hist[:, 1:], xyz[:, None]], axis=1)
+        ok = (self._age >= cfg.window) & np.isfinite(self._hist[:, [0, -1]]).all((1, 2))
+        vel = (self._hist[ok, -1] - self._hist[ok, 0]) / (cfg.window - 1)
+        return StereoPoints(xyz[ok].astype(np.float32), vel.astype(np.float32), self._pts[ok].copy(),
+                            self._ids[ok].copy(), float(fg_host.mean()), disp)  # fmt: skip
+
+    def _empty(self) -> StereoPoints:
+        z = np.zeros((0, 3), np.float32)
+        return StereoPoints(z, z.copy(), np.zeros((0, 2), np.float32), np.zeros(0, np.int64), 0.0, None)
+
+    def _dilate(self, fg):
+        import cv2
+
+        k = self.config.dilate
+        if k == 0:
+            return fg
+        return cv2.dilate(fg, np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+
+    def _klt(self, gray, fg) -> None:
+        """Track the KLT points into ``gray`` (forward-backward checked, in the foreground), then
+        top them up with new corners of the foreground."""
+        import cv2
+
+        cfg = self.config
+        H, W = gray.shape
+        lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=2,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03))  # fmt: skip
+        if self._prev is not None and len(self._pts):
+            p0 = self._pts.reshape(-1, 1, 2)
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(self._prev, gray, p0, None, **lk)
+            pb, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev, p1, None, **lk)
+            p1, pb = p1.reshape(-1, 2), pb.reshape(-1, 2)
+            ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - self._pts, axis=1) < cfg.fb_error)
+            ui, vi = np.round(p1[:, 0]).astype(int), np.round(p1[:, 1]).astype(int)
+            inside = (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
+            ok &= inside
+            ok[ok] &= fg[vi[ok], ui[ok]] > 0  # a track that leaves the foreground ends
+            self._pts, self._ids, self._age, self._hist = p1[ok], self._ids[ok], self._age[ok] + 1, self._hist[ok]
+        room = cfg.max_features - len(self._pts)
+        if room > 0 and fg.any():
+            m = fg.copy()
+            for u, v in np.round(self._pts).astype(int):
+                cv2.circle(m, (int(u), int(v)), cfg.min_distance, 0, -1)
+            new = cv2.goodFeaturesToTrack(gray, maxCorners=room, qualityLevel=0.01, minDistance=cfg.min_distance,
+                                          mask=m, blockSize=5)  # fmt: skip
+            if new is not None:
+                new = new.reshape(-1, 2).astype(np.float32)
+                k = len(new)
+                self._pts = np.concatenate([self._pts, new])
+                self._ids = np.concatenate([self._ids, np.arange(self._next, self._next + k)])
+                self._next += k
+                self._age = np.concatenate([self._age, np.ones(k, np.int64)])
+                self._hist = np.concatenate([self._hist, np.full((k, cfg.window, 3), np.nan)])
+        self._prev = gray
+
+    def _triangulate(self, disp) -> np.ndarray:
+        """(n, 3) mm of the KLT points: the median valid disparity in a 5 x 5 window (NaN if none)."""
+        n = len(self._pts)
+        if n == 0:
+            return np.zeros((0, 3))
+        H, W = disp.shape
+        u = np.clip(np.round(self._pts[:, 0]).astype(int), 2, W - 3)
+        v = np.clip(np.round(self._pts[:, 1]).astype(int), 2, H - 3)
+        off = np.arange(-2, 3)
+        win = disp[v[:, None, None] + off[None, :, None], u[:, None, None] + off[None, None, :]].reshape(n, -1)
+        with np.errstate(all="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                d = np.nanmedian(win, axis=1)
+        out = np.full((n, 3), np.nan)
+        good = np.isfinite(d) & (d > 0)
+        if good.any():
+            out[good] = self.camera.unproject(np.column_stack([self._pts[good], d[good]]))
+        return out
