@@ -239,10 +239,15 @@ def _world(name: str, rng) -> tuple:
         rects.append(_Rect(2, i * rise, (-big, y0), (big, y1), floor_alb + 10.0, 300.0 if i < n else 600.0, 1.0))
     rects.append(_Rect(1, back, (-big, n * rise), (big, 8000.0), wall_alb, 0.0, 0.9))
 
-    def ground(x, y):  # the line through the treads' middles: feet within rise / 2 of a tread
-        return np.clip(rise * ((np.asarray(y, np.float64) - ys) / tread + 0.5), 0.0, n * rise) * (
-            np.asarray(y) > ys - 0.5 * tread
-        )
+    def ground(x, y):
+        """The feet's height: the line through the treads' middles (within rise / 2 of a tread),
+        its corners at the foot and the top of the stairs rounded over about 150 mm (smooth)."""
+        s = np.asarray(y, np.float64) - (ys - 0.5 * tread)
+
+        def relu(v):  # smooth max(v, 0)
+            return 0.5 * (v + np.sqrt(v * v + 150.0**2))
+
+        return rise / tread * (relu(s) - relu(s - n * tread))
 
     return rects, ground, dict(start=ys, rise=rise, tread=tread, steps=n)
 
@@ -359,9 +364,16 @@ class _Walker:
 
 def _walk(w: _Walker, t, ground):
     """World base (feet) positions (T, 3) incl. wander, sway and bob, and headings (T,) at times t."""
-    from scipy.interpolate import PchipInterpolator
+    from scipy.interpolate import CubicHermiteSpline
 
-    path = PchipInterpolator(w.key_t, w.key_xy, axis=0, extrapolate=True)
+    # C1 path through the keys; at an inner key the velocity is the mean velocity between its
+    # neighbours (Catmull-Rom), at the ends the segment's: walkers keep their pace through turns
+    kt, kx = w.key_t, w.key_xy
+    kv = np.empty_like(kx)
+    kv[1:-1] = (kx[2:] - kx[:-2]) / (kt[2:] - kt[:-2])[:, None]
+    kv[0] = (kx[1] - kx[0]) / (kt[1] - kt[0])
+    kv[-1] = (kx[-1] - kx[-2]) / (kt[-1] - kt[-2])
+    path = CubicHermiteSpline(kt, kx, kv, axis=0, extrapolate=True)
     xy = path(t)
     v = path.derivative()(t)
     heading = np.arctan2(v[:, 1], v[:, 0])
@@ -526,7 +538,7 @@ class GroupScene:
         self.size = self.rig.size
         self._seed = int(rng.integers(2**62))
         rects, self._ground, self.stairs = _world(name, rng)
-        self._walkers, t_merge = _scene_walkers(name, rng, (n_frames - self.empty_frames) / FPS)
+        self._walkers, t_merge = _scene_walkers(name, rng, max(dur, (n_frames - self.empty_frames) / FPS))
         self.persons = [w.person for w in self._walkers]
         noise_tex, coarse = _smooth_noise(rng, (512, 512), 1.2), _smooth_noise(rng, (256, 256), 1.5)
         self._bg = {}
