@@ -508,7 +508,10 @@ class GroupScene:
     Arrays over frames F and people P: ``present`` (F, P), ``positions`` / ``positions_world`` /
     ``velocities`` (F, P, 3) (camera coords mm, world mm, camera mm/frame; NaN when absent),
     ``groups`` (F, P) int64 (-1 when absent). ``merge_frame``: the first frame of the merged group
-    (``"merging"``), else None; ``merged_group``: its id.
+    (``"merging"``), else None; ``merged_group``: its id. ``persons``: each person's shape
+    (``height``, ``half_width``, ``half_depth``, ``head`` radius, mm; ``body_top`` = height - 2 head);
+    ``rig``, ``camera`` (the :class:`StereoCamera`), ``size`` (width, height); ``stairs``: the
+    staircase (``start`` Y, ``rise``, ``tread``, ``steps``) or None.
     """
 
     def __init__(self, name, rng, *, frames=None, empty_frames=24, scale=1.0, noise=2.0, exposure=0.03,
@@ -661,9 +664,10 @@ class GroupScene:
     def observations(self, k, rng, *, points_per_person=40, sigma_uv=0.3, sigma_d=0.15, window=4, p_lost=0.1):
         """The 3D points a stereo + KLT front end would give at frame ``k``, without rendering.
 
-        Per present person ``points_per_person`` points are drawn on the surface half facing the
-        camera (body side 75 %, shoulders 10 %, head 15 %); a point is lost when another surface
-        (a person or the static scene) hides it from the left camera, when it falls outside
+        Per present person ``points_per_person`` points are drawn on the surface facing the camera
+        (within 81 deg of the horizontal direction to it, the grazing silhouette left out; body side
+        75 %, shoulders 10 %, head 15 %); a point is lost when another surface (or its own body)
+        hides it from the left camera (people and the static scene), when it falls outside
         either image, or at random with probability ``p_lost`` (a KLT track lost). The survivors'
         true (u, v, d) get Gaussian noise (``sigma_uv``, ``sigma_d`` px) and are back-projected, so
         that the depth noise grows as z^2 sigma_d / (b f); the velocity is the track's
@@ -698,7 +702,7 @@ class GroupScene:
             per, b, th = self.persons[p], self._base[k, p], self._heading[k, p]
             to_cam = math.atan2(origin[1] - b[1], origin[0] - b[0]) - th  # camera's direction, person frame
             part = rng.choice(3, size=n, p=[0.75, 0.10, 0.15])
-            phi = to_cam + rng.uniform(-0.5 * np.pi, 0.5 * np.pi, n)
+            phi = to_cam + rng.uniform(-0.45 * np.pi, 0.45 * np.pi, n)  # not the grazing silhouette
             ca, sa = np.cos(phi), np.sin(phi)
             rho = np.where(part == 1, np.sqrt(rng.random(n)), 1.0)
             along, lat = per.half_depth * ca * rho, per.half_width * sa * rho
