@@ -152,7 +152,7 @@ def test_bad_input():
 def test_an_oracle_on_simulated_observations():
     """Labels = the true groups of the simulator's observation points, reported means = the means
     of each group's points: purity 1, no switches, every group found (the means of the visible
-    surface points lie within a few hundred mm of the true centres), the merge seen at once."""
+    surface points lie 0.2-0.5 m from the true means), the merge seen at once."""
     from gputrack.sim.groups import scene
 
     sc = scene("merging", np.random.default_rng(0), scale=0.25, supersample=1, empty_frames=0)
@@ -169,4 +169,4 @@ def test_an_oracle_on_simulated_observations():
     m = evaluate(recs, merge_frame=8, merged_group=sc.merged_group)
     assert (m.purity == 1.0).all() and m.total_switches == 0 and m.merge_latency == 0
     assert m.mot["mota"] == 1.0 and m.mot["idf1"] == 1.0
-    assert 20.0 < m.mean_error < 400.0
+    assert 100.0 < m.mean_error < 600.0  # see the metrics module: max_dist
