@@ -170,3 +170,44 @@ def test_an_oracle_on_simulated_observations():
     assert (m.purity == 1.0).all() and m.total_switches == 0 and m.merge_latency == 0
     assert m.mot["mota"] == 1.0 and m.mot["idf1"] == 1.0
     assert 100.0 < m.mean_error < 600.0  # see the metrics module: max_dist
+
+
+def test_pictures():
+    from gputrack.trackers.groups.pictures import colour, draw_groups, group_ellipses, plot_trajectories
+
+    rng = np.random.default_rng(0)
+    uv = np.concatenate([rng.normal([80, 60], [4, 15], (40, 2)), rng.normal([200, 100], [10, 5], (30, 2))])
+    labels = np.repeat([3, 4], [40, 30])
+    labels[0] = -1
+    ell = group_ellipses(uv, labels)
+    assert sorted(ell) == [3, 4]
+    assert ell[4][0] == pytest.approx(uv[40:].mean(0)) and ell[4][1] == pytest.approx(np.cov(uv[40:].T))
+    img = np.full((160, 320), 90, np.uint8)
+    out = draw_groups(img, uv, labels, radius=1)
+    assert out.shape == (160, 320, 3) and out.dtype == np.uint8 and (img == 90).all()
+    u, v = np.rint(uv[45]).astype(int)
+    assert tuple(out[v, u]) == colour(4) and colour(3) != colour(4) and colour(-1) == (160, 160, 160)
+    # the ellipse: group 4's 2-sigma ellipse is wide (sigma 10 px in u) and flat (5 px in v)
+    cu, cv = np.rint(ell[4][0]).astype(int)
+    row = np.flatnonzero((out[cv] == colour(4)).all(axis=1))
+    col = np.flatnonzero((out[:, cu] == colour(4)).all(axis=1))
+    assert 14 < (row.max() - row.min()) / 2 < 26 and 6 < (col.max() - col.min()) / 2 < 14
+    with pytest.raises(ValueError, match="uint8"):
+        draw_groups(img.astype(float), uv, labels)
+    with pytest.raises(ValueError, match="labels"):
+        draw_groups(img, uv, labels[:-1])
+
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    t = np.linspace(0, 1, 20)[:, None]
+    tracks = {3: np.hstack([t * 3000, 0 * t, 6000 + 0 * t]), 4: np.hstack([-t * 3000, 0 * t, 7500 + 0 * t])}
+    tracks[4][:5] = np.nan  # not reported at first
+    fig = plot_trajectories(tracks, truth={0: tracks[3] + 30}, title="crossing")
+    ax = fig.axes[0]
+    assert len(ax.lines) == 3 and ax.get_xlabel() == "x (mm)"
+    assert sorted(tx.get_text() for tx in ax.texts) == ["3", "4"]
+    with pytest.raises(ValueError, match=r"\(T, 3\)"):
+        plot_trajectories({1: np.zeros((4, 2))})
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
