@@ -175,3 +175,37 @@ def test_bad_input():
         detection_metrics(np.zeros((2, 1, 3)), [np.zeros((0, 4))] * 2)
     with pytest.raises(ValueError, match="max_distance"):
         clear_mot([np.array([1])], p, [np.array([1])], p, max_distance=0.0)
+
+
+# -- pictures ----------------------------------------------------------------------------------------------
+def test_depth_picture():
+    from gputrack.trackers.pedestrians.pictures import depth_picture
+
+    d = np.zeros((60, 80), np.uint16)
+    d[:, :40] = 1000
+    d[:, 40:] = 4500
+    d[:5] = 0  # no reading
+    d[5:8] = 6000  # beyond the range
+    img = depth_picture(d, boxes=[[20, 40, 10, 30]], ids=[7])
+    assert img.shape == (60, 80, 3) and img.dtype == np.uint8
+    assert (img[:8] == 0).all()
+    assert img[50, 5, 2] > img[50, 5, 0] and img[50, 75, 0] > img[50, 75, 2]  # BGR: near red, far blue
+    assert (img[30, 10] == 255).all() and (img[20, 20] == 255).all()  # the box's outline
+    with pytest.raises(ValueError, match="one per box"):
+        depth_picture(d, boxes=[[0, 1, 0, 1]], ids=[1, 2])
+
+
+def test_top_view():
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gputrack.trackers.pedestrians.pictures import top_view
+
+    ax = top_view([3, 4], [[0, -300, 2000], [500, -300, 3000]], [[-150, 150, 1800, 1900], [350, 650, 2800, 2900]],
+                  history={3: walk(-1000, 2000, 6)}, truth_positions=[[0, -300, 2000]], title="frame 0")  # fmt: skip
+    assert len(ax.patches) == 2 and [t.get_text() for t in ax.texts] == ["3", "4"]
+    assert ax.get_title() == "frame 0"
+    plt.close(ax.figure)

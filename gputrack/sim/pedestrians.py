@@ -368,22 +368,24 @@ def _quadrics(centres, axes, semi):
     return m, half
 
 
-def _boxes(centres, half, sensor_fx, sensor_fy, cx, cy, w, h):
-    """Image boxes (P, 4) [r0, r1, c0, c1) of the projected 3D AABBs; empty where behind the camera."""
-    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
-    corners = centres[:, None, :] + signs[None] * half[:, None, :]  # (P, 8, 3)
+_SIGNS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+
+
+def _boxes(centres, half, fx, fy, cx, cy, w, h):
+    """Image boxes (P, 4) [r0, r1, c0, c1) of the projected 3D AABBs (the projection of a box is the
+    hull of its projected corners); empty where behind the camera, the whole image where a box
+    straddles the camera plane."""
+    corners = centres[:, None, :] + _SIGNS[None] * half[:, None, :]  # (P, 8, 3)
     zc = corners[..., 2]
-    out = np.zeros((len(centres), 4), dtype=np.int64)
-    for p in range(len(centres)):
-        if zc[p].max() <= 1.0:
-            continue
-        if zc[p].min() <= 1.0:  # straddles the camera plane: the whole image (conservative)
-            out[p] = (0, h, 0, w)
-            continue
-        u = sensor_fx * corners[p, :, 0] / zc[p] + cx
-        v = sensor_fy * corners[p, :, 1] / zc[p] + cy
-        out[p] = (max(0, math.floor(v.min())), min(h, math.ceil(v.max()) + 1),
-                  max(0, math.floor(u.min())), min(w, math.ceil(u.max()) + 1))  # fmt: skip
+    front = zc.min(axis=1) > 1.0
+    zs = np.where(front[:, None], zc, 1.0)
+    u = fx * corners[..., 0] / zs + cx
+    v = fy * corners[..., 1] / zs + cy
+    out = np.stack([np.floor(v.min(axis=1)), np.ceil(v.max(axis=1)) + 1,
+                    np.floor(u.min(axis=1)), np.ceil(u.max(axis=1)) + 1], axis=1)  # fmt: skip
+    out = np.clip(out, 0, [h, h, w, w]).astype(np.int64)
+    out[~front] = (0, h, 0, w)
+    out[zc.max(axis=1) <= 1.0] = 0
     return out
 
 
