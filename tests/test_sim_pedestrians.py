@@ -180,6 +180,8 @@ def test_bags_children_and_gait_change_the_body():
     assert np.abs(step[0][3:5, 0] - base[0][3:5, 0]).max() > 100  # the legs swing along the heading (+x)
     still = body_ellipsoids(0.0, 3000.0, 1700.0, 0.0, math.pi / 2, moving=False)
     np.testing.assert_allclose(still[0], base[0])
+    with pytest.raises(ValueError, match="bag"):
+        person(0.0, 3000.0, bag="suitcase")
 
 
 # -- sequences ---------------------------------------------------------------------------------------------
@@ -220,9 +222,12 @@ def test_long_sequence_statistics():
     seq = pedestrian_sequence(np.random.default_rng(11), scale=0.1)
     assert len(seq) == 851 and len(seq.people) == 32
     assert seq.max_in_view == 5
-    counts, first, last, occluded = [], {}, {}, 0
+    counts, first, last, occluded, passing = [], {}, {}, 0, 0
+    heading = {p.pid: p.heading[0] for p in seq.people}
     for f in seq:
         counts.append(f.in_view)
+        dirs = np.cos([heading[k] for k in f.ids.tolist()])
+        passing += int(dirs.size > 0 and dirs.max() > 0.5 and dirs.min() < -0.5)  # walking opposite ways
         for k in f.ids.tolist():
             first.setdefault(k, f.index)
             last[k] = f.index
@@ -232,7 +237,7 @@ def test_long_sequence_statistics():
     assert (counts <= seq.in_view_counts).all()
     assert len(first) == 32  # everyone is labelled in some frame
     assert sum(0 < first[k] and last[k] < 850 for k in first) >= 28  # they enter and leave the view
-    assert occluded > 40
+    assert occluded > 40 and passing > 20
     heights = np.array([p.height for p in seq.people])
     assert ((heights >= 1000) & (heights <= 1400)).any() and (heights >= 1550).any()
     assert {p.bag for p in seq.people} >= {"none", "hand"} or {p.bag for p in seq.people} >= {"none", "back"}

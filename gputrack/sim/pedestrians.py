@@ -315,13 +315,18 @@ def _frame_axes(heading):
 
 
 def body_ellipsoids(x: float, z: float, height: float, heading: float, phase: float, *, moving: bool = True,
-                    bag: str = "none", camera_height: float = 1000.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+                    bag: str = "none", camera_height: float = 1000.0) -> tuple:  # fmt: skip
     """The body's ellipsoids in camera coordinates (mm) for a person standing at floor point (x, z).
 
-    Returns (centres (P, 3), axes (P, 3, 3) columns = unit axes, semi (P, 3) semi-axis lengths).
+    Returns (centres (P, 3), axes (P, 3, 3) columns = unit axes, semi (P, 3) semi-axis lengths),
+    float64 arrays.
     Head, torso, pelvis, legs (swinging +-25 deg with the gait), arms (+-18 deg, opposite), and a
     hand bag or a backpack. Sizes scale with height / 1700 mm.
     """
+    if bag not in ("none", "hand", "back"):
+        raise ValueError(f"bag: expected 'none', 'hand' or 'back', got {bag!r}")
+    if not (math.isfinite(height) and height > 0):
+        raise ValueError(f"height: expected a finite number > 0 (mm), got {height!r}")
     s = height / 1700.0
     lat, up, fwd = _frame_axes(heading)
     base = np.array([x, camera_height, z])
@@ -596,7 +601,7 @@ def _in_view_xz(xz, sensor: DepthSensor, margin: float = 600.0) -> bool:
                 and abs(x) < z * math.tan(math.radians(sensor.hfov_deg) / 2) + margin)  # fmt: skip
 
 
-def _walk(rng, frames, fps, sensor, z_range, speed, stop_prob):
+def _walk(rng, sensor, z_range, speed, stop_prob):
     """One group's path: (start xz, end xz, speed mm/s, stop (path share, seconds) or None)."""
     tx = math.tan(math.radians(sensor.hfov_deg) / 2)
     direction = 1.0 if rng.random() < 0.5 else -1.0
@@ -612,8 +617,9 @@ def _walk(rng, frames, fps, sensor, z_range, speed, stop_prob):
 
 
 def _trajectory(a, b, v, stop, t0, frames, fps, offset, height):
-    """Per-frame floor positions along a -> b (shifted by ``offset`` mm to the walker's left (+)
-    / right, and ``offset_along`` ahead) starting at frame t0 (may be negative)."""
+    """Per-frame (floor positions (F, 2), heading (F,), gait phase (F,), moving (F,)) of a walk from a
+    to b at ``v`` mm/s starting at frame t0 (may be negative), with the optional stop, shifted by
+    ``offset`` = (mm to the walker's left, mm ahead); nan outside the walk."""
     t = (np.arange(frames) - t0) / fps  # seconds since the start
     seg = b - a
     length = float(np.linalg.norm(seg))
@@ -693,7 +699,7 @@ def pedestrian_sequence(
         if rng.random() < group_share:
             size = 2 if rng.random() < 0.8 else 3
         size = min(size, people - pid)
-        a, b, v, stop = _walk(rng, frames, FPS, sensor, (lo, hi), (900.0, 1400.0), stop_prob)
+        a, b, v, stop = _walk(rng, sensor, (lo, hi), (900.0, 1400.0), stop_prob)
         members = []
         for k in range(size):
             child = rng.random() < child_share

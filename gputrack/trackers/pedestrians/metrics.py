@@ -97,7 +97,9 @@ def _ids_positions(ids, pos, f, what):
     i = _array(ids, f"{what}_ids[{f}]", None, "i")
     p = _array(pos, f"{what}_positions[{f}]", 3)
     if len(i) != len(p):
-        raise ValueError(f"{what}_ids[{f}] and {what}_positions[{f}]: expected the same length, got {len(i)} and {len(p)}")
+        raise ValueError(
+            f"{what}_ids[{f}] and {what}_positions[{f}]: expected the same length, got {len(i)} and {len(p)}"
+        )
     if len(np.unique(i)) != len(i):
         raise ValueError(f"{what}_ids[{f}]: expected unique ids within a frame, got {i.tolist()}")
     return i, p
