@@ -28,3 +28,8 @@ __all__ = [
     "sequence_params",
     "shoulders_off",
 ]
+
+# paper 002's pedestrian depth sequences (gputrack.sim.pedestrians)
+from .pedestrians import DepthSensor, Hall, PedestrianFrame, PedestrianSequence, pedestrian_sequence  # noqa: E402
+
+__all__ += ["DepthSensor", "Hall", "PedestrianFrame", "PedestrianSequence", "pedestrian_sequence"]
