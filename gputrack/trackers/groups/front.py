@@ -8,7 +8,7 @@ Per frame (:meth:`StereoFrontEnd.points`):
    average of rate ``background_rate`` where the pixel is background; the foreground is where
    the frame differs from it by ``foreground_threshold`` grey levels or more.
 2. **Subtraction stereo** on the device (:func:`gputrack.ops.stereo_match`): block matching of
-   the rectified pair restricted to the (dilated) left foreground: the work scales with the
+   the rectified pair restricted to the left foreground: the work scales with the
    moving people, not with the image. Disparity NaN where invalid.
 3. **KLT** on the host (OpenCV: ``goodFeaturesToTrack`` in the foreground, pyramidal
    ``calcOpticalFlowPyrLK`` with a forward-backward check of ``fb_error`` px). As in the paper's
@@ -30,6 +30,7 @@ from ...device import Device
 from ...models.camera import StereoCamera
 from ...ops.background import background_median, foreground_mask, update_background
 from ...ops.stereo import stereo_match
+from ...scheduler import Scheduler, Stage
 
 __all__ = ["FrontEndConfig", "StereoFrontEnd", "StereoPoints"]
 
@@ -43,7 +44,6 @@ class FrontEndConfig:
     background_frames: int = 24
     background_rate: float = 0.02
     foreground_threshold: float = 20.0
-    dilate: int = 4
     window: int = 5
     max_features: int = 800
     min_distance: int = 5
@@ -56,8 +56,6 @@ class FrontEndConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"FrontEndConfig.{name}: expected a positive integer, got {v!r}")
-        if isinstance(self.dilate, bool) or not isinstance(self.dilate, int) or self.dilate < 0:
-            raise ValueError(f"FrontEndConfig.dilate: expected an integer >= 0, got {self.dilate!r}")
         if not 0.0 <= float(self.background_rate) <= 1.0:
             raise ValueError(f"FrontEndConfig.background_rate: expected a rate in [0, 1], got {self.background_rate!r}")
         for name in ("foreground_threshold", "fb_error"):
@@ -92,13 +90,17 @@ def _gray(a, name: str, shape=None) -> np.ndarray:
 
 
 class StereoFrontEnd:
-    """Subtraction stereo + KLT on one device (see the module)."""
+    """Subtraction stereo + KLT on one device (see the module). Its frame is four stages of a
+    :class:`gputrack.Scheduler` (``self.scheduler``): foreground and stereo on the device, KLT and
+    triangulation on the host (which reads the foreground mask and the disparity map)."""
 
-    def __init__(self, device: Device, camera: StereoCamera, config: FrontEndConfig | None = None):
+    def __init__(self, device: Device, camera: StereoCamera, config: FrontEndConfig | None = None, *,
+                 profile: bool = False):  # fmt: skip
         self.device, self.camera = device, camera
         self.config = FrontEndConfig() if config is None else config
+        if not isinstance(self.config, FrontEndConfig):
+            raise TypeError(f"config: expected a FrontEndConfig, got {type(self.config).__name__}")
         self.shape = None
-        self.background = None
         self._learning: list = []
         self._prev = None
         self._pts = np.zeros((0, 2), np.float32)
@@ -106,7 +108,18 @@ class StereoFrontEnd:
         self._age = np.zeros(0, np.int64)
         self._hist = np.zeros((0, self.config.window, 3))  # the last `window` 3D positions of each track
         self._next = 0
-        self._mask = None
+        self._gray = None
+        self.scheduler = Scheduler(device, [
+            Stage("foreground", self._foreground, reads=("left", "background"), writes=("fg", "background")),
+            Stage("stereo", self._stereo, reads=("left", "right", "fg"), writes=("disparity",)),
+            Stage("klt", self._track, host_reads=("fg",), writes=("tracks",)),
+            Stage("points", self._triangulate, host_reads=("disparity",), reads=("tracks",), writes=("points",)),
+        ], inputs=("left", "right"), state=("background",), profile=profile)  # fmt: skip
+
+    @property
+    def ready(self) -> bool:
+        """Whether the background is learnt (until then frames give no points)."""
+        return "background" in self.scheduler.buffers
 
     def learn_background(self, lefts) -> None:
         """The left camera's background from empty frames (F, H, W) uint8 (per-pixel median)."""
@@ -114,9 +127,9 @@ class StereoFrontEnd:
         if frames.ndim != 3 or len(frames) == 0:
             raise ValueError(f"lefts: expected empty frames (F, H, W) with F >= 1, got shape {frames.shape}")
         for k, f in enumerate(frames):
-            _gray(f, f"lefts[{k}]", self.shape)
+            _gray(f, f"lefts[{k}]", self.shape if self.shape is not None else frames.shape[1:])
         self.shape = frames.shape[1:]
-        self.background = background_median(self.device, frames)
+        self.scheduler.set("background", background_median(self.device, frames))
         self._learning = []
 
     def points(self, left, right) -> StereoPoints:
@@ -124,40 +137,47 @@ class StereoFrontEnd:
         left = _gray(left, "left", self.shape)
         self.shape = left.shape
         right = _gray(right, "right", self.shape)
-        cfg, dev = self.config, self.device
-        if self.background is None:
+        if not self.ready:
             self._learning.append(left)
-            if len(self._learning) >= cfg.background_frames:
+            if len(self._learning) >= self.config.background_frames:
                 self.learn_background(np.stack(self._learning))
-            return self._empty()
-        L = dev.asarray(left.astype(np.float32))
-        fg = foreground_mask(dev, L, self.background, cfg.foreground_threshold)
-        fg_host = np.asarray(fg if dev.backend == "numpy" else fg.numpy()).astype(np.uint8)
+            z = np.zeros((0, 3), np.float32)
+            return StereoPoints(z, z.copy(), np.zeros((0, 2), np.float32), np.zeros(0, np.int64), 0.0, None)
+        self._gray = left
+        try:
+            self.scheduler.run(left=left, right=right)
+        finally:
+            self._gray = None
+        return self._result
+
+    # -- the stages ----------------------------------------------------------------------------
+    def _foreground(self, b) -> None:
+        cfg, dev = self.config, self.device
+        b["fg"] = foreground_mask(dev, b["left"], b["background"], cfg.foreground_threshold, out=b.get("fg"))
         if cfg.background_rate > 0:
-            self.background = update_background(dev, self.background, L, rate=cfg.background_rate, mask=fg,
-                                                out=self.background)  # fmt: skip
-        mask = self._dilate(fg_host)
-        disp = stereo_match(dev, left, right, mask=mask, max_disparity=cfg.max_disparity, block=cfg.block)
-        d = np.asarray(disp if dev.backend == "numpy" else disp.numpy())
-        self._klt(left, fg_host)
-        xyz = self._triangulate(d)
+            b["background"] = update_background(dev, b["background"], b["left"], rate=cfg.background_rate,
+                                                mask=b["fg"], out=b["background"])  # fmt: skip
+
+    def _stereo(self, b) -> None:
+        cfg = self.config
+        b["disparity"] = stereo_match(self.device, b["left"], b["right"], mask=b["fg"],
+                                      max_disparity=cfg.max_disparity, block=cfg.block, out=b.get("disparity"))  # fmt: skip
+
+    def _track(self, b) -> None:
+        fg = np.asarray(b["fg"])
+        self._klt(self._gray, fg)
+        self._fg_share = float(np.count_nonzero(fg)) / fg.size
+        b["tracks"] = None  # the tracks live on the host (self._pts, self._hist)
+
+    def _triangulate(self, b) -> None:
+        cfg = self.config
+        xyz = self._xyz(np.asarray(b["disparity"]))
         self._hist = np.concatenate([self._hist[:, 1:], xyz[:, None]], axis=1)
         ok = (self._age >= cfg.window) & np.isfinite(self._hist[:, [0, -1]]).all((1, 2))
         vel = (self._hist[ok, -1] - self._hist[ok, 0]) / (cfg.window - 1)
-        return StereoPoints(xyz[ok].astype(np.float32), vel.astype(np.float32), self._pts[ok].copy(),
-                            self._ids[ok].copy(), float(fg_host.mean()), disp)  # fmt: skip
-
-    def _empty(self) -> StereoPoints:
-        z = np.zeros((0, 3), np.float32)
-        return StereoPoints(z, z.copy(), np.zeros((0, 2), np.float32), np.zeros(0, np.int64), 0.0, None)
-
-    def _dilate(self, fg):
-        import cv2
-
-        k = self.config.dilate
-        if k == 0:
-            return fg
-        return cv2.dilate(fg, np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+        b["points"] = None
+        self._result = StereoPoints(xyz[ok].astype(np.float32), vel.astype(np.float32), self._pts[ok].copy(),
+                                    self._ids[ok].copy(), self._fg_share, self.scheduler.buffers["disparity"])  # fmt: skip
 
     def _klt(self, gray, fg) -> None:
         """Track the KLT points into ``gray`` (forward-backward checked, in the foreground), then
@@ -175,13 +195,12 @@ class StereoFrontEnd:
             p1, pb = p1.reshape(-1, 2), pb.reshape(-1, 2)
             ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - self._pts, axis=1) < cfg.fb_error)
             ui, vi = np.round(p1[:, 0]).astype(int), np.round(p1[:, 1]).astype(int)
-            inside = (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
-            ok &= inside
+            ok &= (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
             ok[ok] &= fg[vi[ok], ui[ok]] > 0  # a track that leaves the foreground ends
             self._pts, self._ids, self._age, self._hist = p1[ok], self._ids[ok], self._age[ok] + 1, self._hist[ok]
         room = cfg.max_features - len(self._pts)
         if room > 0 and fg.any():
-            m = fg.copy()
+            m = (fg > 0).astype(np.uint8) * 255
             for u, v in np.round(self._pts).astype(int):
                 cv2.circle(m, (int(u), int(v)), cfg.min_distance, 0, -1)
             new = cv2.goodFeaturesToTrack(gray, maxCorners=room, qualityLevel=0.01, minDistance=cfg.min_distance,
@@ -196,7 +215,7 @@ class StereoFrontEnd:
                 self._hist = np.concatenate([self._hist, np.full((k, cfg.window, 3), np.nan)])
         self._prev = gray
 
-    def _triangulate(self, disp) -> np.ndarray:
+    def _xyz(self, disp) -> np.ndarray:
         """(n, 3) mm of the KLT points: the median valid disparity in a 5 x 5 window (NaN if none)."""
         n = len(self._pts)
         if n == 0:
@@ -206,14 +225,11 @@ class StereoFrontEnd:
         v = np.clip(np.round(self._pts[:, 1]).astype(int), 2, H - 3)
         off = np.arange(-2, 3)
         win = disp[v[:, None, None] + off[None, :, None], u[:, None, None] + off[None, None, :]].reshape(n, -1)
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                d = np.nanmedian(win, axis=1)
+        win = np.where(win > 0, win, np.nan)
+        d = np.full(n, np.nan)
+        some = np.isfinite(win).any(1)
+        d[some] = np.nanmedian(win[some], axis=1)
         out = np.full((n, 3), np.nan)
-        good = np.isfinite(d) & (d > 0)
-        if good.any():
-            out[good] = self.camera.unproject(np.column_stack([self._pts[good], d[good]]))
+        if some.any():
+            out[some] = self.camera.unproject(np.column_stack([self._pts[some], d[some]]))
         return out

@@ -47,6 +47,10 @@ Rules beyond the paper, written down:
 - **End**: a group with fewer than ``min_points`` points for more than ``max_missed`` frames in a
   row is deleted. Ids are never reused.
 
+- **Surface to axis**: KLT points lie on the surfaces facing the camera, in front of the people's
+  axes; each point is moved ``surface_offset`` mm further along its viewing ray first, so that a
+  group's state is the mean of its members' axes rather than of their visible fronts.
+
 Units: millimetres and frames (velocities in mm per frame), camera coordinates x right, y down,
 z forward.
 """
@@ -65,6 +69,7 @@ from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from ...tracking._staging import Staging
 from . import rules
+from .front import FrontEndConfig, StereoFrontEnd
 from .rules import POS, VEL
 
 __all__ = ["Group", "GroupConfig", "GroupFrame", "GroupTracker"]
@@ -89,7 +94,10 @@ class GroupConfig:
     - ``p0``: (2,) initial standard deviations of a new group's position (mm) and velocity (mm/frame);
     - ``min_spread``: (2,) standard deviations added to the spread for gating and merging, position
       (mm) and velocity (mm/frame);
-    - ``capacity``: initial slots of the group table (it grows).
+    - ``capacity``: initial slots of the group table (it grows);
+    - ``surface_offset``: mm each point is moved away from the camera along its viewing ray, from
+      the visible surface of a person to the body's axis (about a body's half depth; 0: off);
+    - ``front``: the stereo front end's constants (:class:`FrontEndConfig`) for :meth:`GroupTracker.track`.
     """
 
     gamma: float = 11.34
@@ -97,7 +105,7 @@ class GroupConfig:
     min_points: int = 2
     link_radius: float = 1000.0
     min_new: int = 8
-    merge_gamma: float = 4.0
+    merge_gamma: float = 11.34
     split_frames: int = 12
     max_missed: int = 24
     q: float = 1.0
@@ -105,8 +113,14 @@ class GroupConfig:
     p0: tuple = (150.0, 8.0)
     min_spread: tuple = (150.0, 3.0)
     capacity: int = 16
+    surface_offset: float = 120.0
+    front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)
 
     def __post_init__(self):
+        if not (isinstance(self.surface_offset, (int, float)) and 0 <= self.surface_offset < 1e4):
+            raise ValueError(f"GroupConfig.surface_offset: expected a distance in [0, 1e4) mm, got {self.surface_offset!r}")
+        if not isinstance(self.front, FrontEndConfig):
+            raise TypeError(f"GroupConfig.front: expected a FrontEndConfig, got {type(self.front).__name__}")
         for name in ("gamma", "link_radius", "merge_gamma", "q"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
@@ -142,7 +156,9 @@ class Group:
 class GroupFrame:
     """One frame's result: ``labels`` (N,) int64 the group id of each point (-1: none);
     ``groups`` the live groups (ascending id); ``started``, ``merged`` ((absorbed id, into id)
-    pairs), ``split`` ((new id, from id) pairs), ``ended``: what changed."""
+    pairs), ``split`` ((new id, from id) pairs), ``ended``: what changed. From :meth:`GroupTracker.track`
+    also ``uv`` (N, 2) the points' pixels in the left image and ``foreground`` the share of
+    foreground pixels (None from :meth:`GroupTracker.update_points`)."""
 
     labels: np.ndarray
     groups: list
@@ -150,6 +166,8 @@ class GroupFrame:
     merged: list
     split: list
     ended: list
+    uv: np.ndarray | None = None
+    foreground: float | None = None
 
 
 def _points(a, name: str, N=None) -> np.ndarray:
@@ -213,6 +231,7 @@ class GroupTracker:
         self._staging = Staging(self.device)
         self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))  # host copies, set each frame
         self._relabel: dict = {}
+        self.front = StereoFrontEnd(self.device, camera, config.front, profile=profile)
         self.scheduler = Scheduler(self.device, [
             Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
             Stage("assign", self._assign, reads=("x", "Sigma", "active"), writes=MOMENTS),
@@ -253,12 +272,29 @@ class GroupTracker:
         (N, 3) mm per frame (host arrays; a NaN row is no point). Returns a :class:`GroupFrame`."""
         y = _points(xyz, "xyz")
         lam = _points(velocity, "velocity", len(y))
+        if self.config.surface_offset and len(y):
+            r = np.linalg.norm(y, axis=1, keepdims=True)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                y = (y * (1.0 + self.config.surface_offset / np.where(r > 0, r, np.nan))).astype(np.float32)
         self._frame = {"y": y, "lam": lam}
         try:
             self.scheduler.run()
             return self._result
         finally:
             self._frame = None
+
+    def track(self, left, right) -> GroupFrame:
+        """The whole pipeline on one rectified pair (H, W) uint8 grey each: subtraction stereo and
+        KLT (:class:`StereoFrontEnd`, ``self.front``), then :meth:`update_points`. Until the
+        background is learnt (``config.front.background_frames`` frames, or
+        :meth:`learn_background`) a frame has no points and the groups are only predicted."""
+        pts = self.front.points(left, right)
+        fr = self.update_points(pts.xyz, pts.velocity)
+        return dataclasses.replace(fr, uv=pts.uv, foreground=pts.foreground)
+
+    def learn_background(self, lefts) -> None:
+        """The left camera's background from empty frames (F, H, W) uint8 (per-pixel median)."""
+        self.front.learn_background(lefts)
 
     def _predict(self, b) -> None:
         b["x"], b["P"] = kf_predict(self.device, b["x"], b["P"], self.F, self.Q, out=(b["x"], b["P"]))
