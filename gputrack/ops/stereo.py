@@ -38,8 +38,9 @@ The method, exactly (every backend gives the same integer costs and the same cho
 
 Masked matching (``mask``: (H, W) bool or uint8, nonzero = foreground): the result at a mask
 pixel is exactly the unmasked result there; every other pixel is NaN. The work scales with the
-foreground: costs are computed only on per-row runs of the mask widened by max_disparity - 1
-pixels on each side (what the left-right check reads), with running box sums along each run.
+foreground: the left costs are computed only along per-row runs of the mask, the right image's
+costs only at the positions x - d that the run's winners point to, each with running box sums
+along the row (about twice the mask's pixels, times max_disparity, times block + 2 operations).
 A mask given as a device array is downloaded (its runs are found on the host).
 
 An unrectified pair (rows shifted vertically) mostly fails the uniqueness and left-right checks:
@@ -98,32 +99,30 @@ def _image(device, x, name, dims):
 
 
 def mask_runs(mask: np.ndarray | None, H: int, W: int, max_disparity: int, block: int) -> np.ndarray:
-    """The runs of pixels whose costs a (masked) match computes: (S, 4) int32 rows
-    (y, x0, x1 inclusive, offset = pixels in the runs before). A run is a row's mask pixels that
-    can have a value, widened by max_disparity - 1 on each side and clipped to [r, W - r);
-    ``mask=None``: every row r <= y < H - r whole."""
+    """The work list of a match: the per-row runs of mask pixels that can have a value,
+    (S, 5) int32 rows (y, x0, x1 inclusive, offset, right offset). ``offset``: pixels in the runs
+    before (the left winners' slots); ``right offset``: the same for the run's right-image
+    positions x - d, [x0 - max_disparity + 1, x1] (x1 - x0 + max_disparity slots a run).
+    ``mask=None``: every row r <= y < H - r from r + max_disparity - 1 to W - 1 - r."""
     r = block // 2
     D = max_disparity
     lo, hi = r + D - 1, W - 1 - r  # the columns that can have a value
     if H - 2 * r <= 0 or hi < lo:
-        return np.zeros((0, 4), np.int32)
+        return np.zeros((0, 5), np.int32)
     if mask is None:
         ys = np.arange(r, H - r, dtype=np.int64)
-        runs = np.stack([ys, np.full_like(ys, r), np.full_like(ys, hi)], axis=1)
+        runs = np.stack([ys, np.full_like(ys, lo), np.full_like(ys, hi)], axis=1)
     else:
-        m = np.zeros((H - 2 * r, W + 2 * D), np.int32)  # padded by D on each side
-        m[:, D + lo:D + hi + 1] = mask[r:H - r, lo:hi + 1] != 0
-        c = np.cumsum(m, axis=1)
-        wide = (c[:, 2 * D - 1: 2 * D - 1 + W] - c[:, :W]) > 0  # a mask pixel in [x - D + 1, x + D - 1]
-        wide[:, :r] = False
-        wide[:, hi + 1:] = False
-        edges = np.diff(np.pad(wide.astype(np.int8), ((0, 0), (1, 1))), axis=1)
+        m = np.zeros((H - 2 * r, hi - lo + 3), np.int8)  # one column of padding on each side
+        m[:, 1:-1] = mask[r:H - r, lo:hi + 1] != 0
+        edges = np.diff(m, axis=1)
         ys, starts = np.nonzero(edges == 1)
-        _, ends = np.nonzero(edges == -1)
-        runs = np.stack([ys + r, starts, ends - 1], axis=1).astype(np.int64)
+        _, ends = np.nonzero(edges == -1)  # row-major order: the k-th start and end are one run
+        runs = np.stack([ys + r, starts + lo, ends + lo - 1], axis=1).astype(np.int64)
     lengths = runs[:, 2] - runs[:, 1] + 1
-    offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    return np.concatenate([runs, offsets[:, None]], axis=1).astype(np.int32)
+    offsets = np.cumsum(lengths) - lengths
+    right = np.cumsum(lengths + D - 1) - (lengths + D - 1)
+    return np.concatenate([runs, offsets[:, None], right[:, None]], axis=1).astype(np.int32)
 
 
 def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, uniqueness=15, out=None):

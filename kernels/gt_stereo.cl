@@ -1,0 +1,188 @@
+// Block matching of a rectified stereo pair on the runs of a mask (gputrack/ops/stereo.py; the
+// same steps as gputrack/backends/taichi/stereo.py, launched as five kernels):
+//   gt_stereo_prefilter_{u8,f32}  x-Sobel clipped to [-cap, cap] plus cap, into padded int
+//                                 images (GT_STEREO_LANES columns on the left, Dp + LANES on
+//                                 the right); NaN into the output. NDRange (Wp, H).
+//   gt_stereo_left_costs          one work-item per (disparity group of 8, run): running box
+//                                 sums of SAD along the run, 8 disparities in an int8.
+//   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d.
+//   gt_stereo_right_costs         one per (group, run): C_R(xr, d) at the marked positions.
+//   gt_stereo_right_check         one per run: the right winners and the left-right check.
+// Runs: int rows (y, x0, x1, offset, right offset). Cost buffers: Dp ints per pixel (d fastest).
+
+#ifndef GT_STEREO_LANES
+#define GT_STEREO_LANES 8  // the int8 below: keep equal to LANES in gputrack/backends/opencl/stereo.py
+#endif
+
+#pragma OPENCL FP_CONTRACT OFF
+
+inline int gt_q_u8(const __global uchar *img, int i) { return (int)img[i]; }
+// floor(4096 I), I clamped to [0, 1]: exact (a product by a power of two)
+inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(fmax(img[i], 0.0f), 1.0f) * 4096.0f); }
+
+#define GT_STEREO_PREFILTER(NAME, T, Q)                                                                  \
+    __kernel void NAME(__global const T *left, __global const T *right, __global int *pl, __global int *pr, \
+                       __global float *out, const int H, const int W, const int Wp, const int cap)        \
+    {                                                                                                     \
+        const int xp = get_global_id(0), y = get_global_id(1);                                           \
+        if (xp >= Wp || y >= H)                                                                          \
+            return;                                                                                       \
+        const int x = xp - GT_STEREO_LANES;                                                              \
+        int a = cap, b = cap;                                                                             \
+        if (x >= 0 && x < W) {                                                                            \
+            if (y >= 1 && y < H - 1 && x >= 1 && x < W - 1) {                                             \
+                const int u = (y - 1) * W + x, c = y * W + x, d = (y + 1) * W + x;                        \
+                int s = (Q(left, u + 1) + 2 * Q(left, c + 1) + Q(left, d + 1))                            \
+                        - (Q(left, u - 1) + 2 * Q(left, c - 1) + Q(left, d - 1));                         \
+                a = min(max(s, -cap), cap) + cap;                                                         \
+                s = (Q(right, u + 1) + 2 * Q(right, c + 1) + Q(right, d + 1))                             \
+                    - (Q(right, u - 1) + 2 * Q(right, c - 1) + Q(right, d - 1));                          \
+                b = min(max(s, -cap), cap) + cap;                                                         \
+            }                                                                                             \
+            out[y * W + x] = NAN;                                                                         \
+        }                                                                                                 \
+        pl[y * Wp + xp] = a;                                                                              \
+        pr[y * Wp + xp] = b;                                                                              \
+    }
+
+GT_STEREO_PREFILTER(gt_stereo_prefilter_u8, uchar, gt_q_u8)
+GT_STEREO_PREFILTER(gt_stereo_prefilter_f32, float, gt_q_f32)
+
+// left costs C(x, d) = sum over the window of |P_L(x') - P_R(x' - d)|
+__kernel void gt_stereo_left_costs(__global const int *pl, __global const int *pr, __global const int *runs,
+                                   __global int *ring, __global int *cost, const int S, const int D, const int B,
+                                   const int Wp)
+{
+    const int g = get_global_id(0), s = get_global_id(1);
+    const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
+    if (g >= G || s >= S)
+        return;
+    const int r = B / 2, d0 = g * GT_STEREO_LANES;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3];
+    int8 c = (int8)(0);
+    for (int x = x0 - r; x <= x1 + r; ++x) {
+        int8 v = (int8)(0);
+        for (int i = 0; i < B; ++i) {
+            const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;
+            const int8 rv = vload8(0, pr + at - d0 - 7).s76543210;  // lane j: P_R(x - d0 - j)
+            const int8 t = (int8)(pl[at]) - rv;
+            v += max(t, -t);
+        }
+        __global int *slot = ring + (size_t)(s * B + x % B) * Dp + d0;
+        if (x >= x0 + r + 1)
+            c -= vload8(0, slot);  // column x - B, in the same ring slot, leaves the window
+        c += v;
+        vstore8(v, 0, slot);
+        if (x >= x0 + r)
+            vstore8(c, 0, cost + (size_t)(off + x - r - x0) * Dp + d0);
+    }
+}
+
+__kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const int *cost,
+                                 __global int *ldisp, __global int *rmark, __global float *out, const int S,
+                                 const int D, const int U, const int W)
+{
+    const int s = get_global_id(0);
+    if (s >= S)
+        return;
+    const int Dp = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES * GT_STEREO_LANES;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3],
+              roff = runs[5 * s + 4];
+    const int rlo = x0 - D + 1;  // the run's first right-image position
+    for (int k = 0; k < x1 - x0 + D; ++k)
+        rmark[roff + k] = 0;
+    for (int x = x0; x <= x1; ++x) {
+        const __global int *c = cost + (size_t)(off + x - x0) * Dp;
+        int ld = -1;
+        if (mask[y * W + x] != 0) {
+            int best = 0, cb = c[0];
+            for (int d = 1; d < D; ++d)  // winner-take-all, the smallest d of equal costs
+                if (c[d] < cb) {
+                    cb = c[d];
+                    best = d;
+                }
+            bool unique = true;
+            for (int d = 0; d < D; ++d)  // uniqueness
+                if (abs(d - best) > 1 && 100 * c[d] < (100 + U) * cb)
+                    unique = false;
+            if (unique) {
+                float val = (float)best;
+                if (best > 0 && best < D - 1) {  // the parabola's vertex
+                    const int cm = c[best - 1], cp = c[best + 1];
+                    val += (float)(cm - cp) / (float)(2 * (cm - 2 * cb + cp));
+                }
+                out[y * W + x] = val;
+                ld = best;
+                rmark[roff + x - best - rlo] = 1;
+            }
+        }
+        ldisp[off + x - x0] = ld;
+    }
+}
+
+// right costs at the marked positions: C_R(xr, d) = sum |P_L(x' + d) - P_R(x')| (garbage but in
+// bounds where x' + d >= W: such d are not candidates)
+__kernel void gt_stereo_right_costs(__global const int *pl, __global const int *pr, __global const int *runs,
+                                    __global const int *rmark, __global int *ring, __global int *rcost, const int S,
+                                    const int D, const int B, const int Wp)
+{
+    const int g = get_global_id(0), s = get_global_id(1);
+    const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
+    if (g >= G || s >= S)
+        return;
+    const int r = B / 2, d0 = g * GT_STEREO_LANES;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], roff = runs[5 * s + 4];
+    const int rlo = x0 - D + 1;
+    int8 c = (int8)(0);
+    int last = -(1 << 30);
+    for (int k = 0; k < x1 - x0 + D; ++k) {
+        if (rmark[roff + k] == 0)
+            continue;
+        const int xr = rlo + k;
+        const bool running = xr == last + 1;
+        if (!running)
+            c = (int8)(0);
+        for (int x = running ? xr + r : xr - r; x <= xr + r; ++x) {  // one new column, or the window after a gap
+            int8 v = (int8)(0);
+            for (int i = 0; i < B; ++i) {
+                const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;
+                const int8 t = vload8(0, pl + at + d0) - (int8)(pr[at]);  // lane j: P_L(x + d0 + j)
+                v += max(t, -t);
+            }
+            __global int *slot = ring + (size_t)(s * B + x % B) * Dp + d0;
+            if (running)
+                c -= vload8(0, slot);
+            c += v;
+            vstore8(v, 0, slot);
+        }
+        vstore8(c, 0, rcost + (size_t)(roff + k) * Dp + d0);
+        last = xr;
+    }
+}
+
+__kernel void gt_stereo_right_check(__global const int *runs, __global const int *ldisp, __global const int *rcost,
+                                    __global float *out, const int S, const int D, const int B, const int W)
+{
+    const int s = get_global_id(0);
+    if (s >= S)
+        return;
+    const int Dp = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES * GT_STEREO_LANES, r = B / 2;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3],
+              roff = runs[5 * s + 4];
+    const int rlo = x0 - D + 1;
+    for (int x = x0; x <= x1; ++x) {
+        const int ld = ldisp[off + x - x0];
+        if (ld < 0)
+            continue;
+        const int xr = x - ld;
+        const __global int *c = rcost + (size_t)(roff + xr - rlo) * Dp;
+        int best = 0, cb = c[0];
+        for (int d = 1; d < min(D, W - r - xr); ++d)  // d' whose left window is inside the image
+            if (c[d] < cb) {
+                cb = c[d];
+                best = d;
+            }
+        if (abs(best - ld) > 1)
+            out[y * W + x] = NAN;
+    }
+}
