@@ -103,7 +103,7 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
                 }
             bool unique = true;
             for (int d = 0; d < D; ++d)  // uniqueness
-                if (abs(d - best) > 1 && 100 * c[d] < (100 + U) * cb)
+                if (abs(d - best) > 1 && 100 * c[d] <= (100 + U) * cb)
                     unique = false;
             if (unique) {
                 float val = (float)best;

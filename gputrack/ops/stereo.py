@@ -25,11 +25,12 @@ The method, exactly (every backend gives the same integer costs and the same cho
 - A pixel has a value only where every candidate's window lies inside both images:
   r <= y < H - r and r + max_disparity - 1 <= x < W - r (r = block // 2).
 - Winner-take-all: the d of the smallest cost; the smallest d of equal costs.
-- Uniqueness: rejected (NaN) when a d more than 1 px away from the winner costs less than
-  (100 + uniqueness) % of the winner's cost (``uniqueness=0`` turns the check off).
+- Uniqueness: rejected (NaN) when a d more than 1 px away from the winner costs at most
+  (100 + uniqueness) % of the winner's cost (``uniqueness=0``: only exact ties are rejected, e.g.
+  a flat window, whose costs are all equal).
 - No separate texture check: measured on the motorcycle pair (without the prefilter), a mean
   gradient threshold of 2 gray levels cut the density from 67 % to 54 % for 4 points fewer bad
-  pixels, while the uniqueness check already rejects most flat windows (their costs are flat).
+  pixels, while the uniqueness check already rejects flat windows (their costs tie).
 - Subpixel: d + (C(d-1) - C(d+1)) / (2 (C(d-1) - 2 C(d) + C(d+1))), the vertex of the parabola
   through the three costs; a winner at 0 or max_disparity - 1 stays an integer.
 - Left-right check: the right image's own winner at x_r = x - d over d' in [0, max_disparity)

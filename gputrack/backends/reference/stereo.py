@@ -97,7 +97,7 @@ def stereo_match(device, left, right, mask, runs, D, block, uniqueness, cap, out
     # uniqueness: no disparity more than 1 px away within (100 + U) % of the best cost
     far = np.abs(np.arange(D)[:, None, None] - dbest[None]) > 1
     rival = np.where(far, C, BIG).min(axis=0).astype(np.int64)
-    unique = ~(100 * rival < (100 + uniqueness) * cbest.astype(np.int64))
+    unique = ~(100 * rival <= (100 + uniqueness) * cbest.astype(np.int64))
 
     # subpixel: the vertex of the parabola through (d-1, d, d+1); the ends of the range stay integer
     inner = (dbest > 0) & (dbest < D - 1)

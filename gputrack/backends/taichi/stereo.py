@@ -124,7 +124,7 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
                         best = d
                 unique = True
                 for d in range(D):  # uniqueness
-                    if ti.abs(d - best) > 1 and 100 * cost[p + d] < (100 + U) * cb:
+                    if ti.abs(d - best) > 1 and 100 * cost[p + d] <= (100 + U) * cb:
                         unique = False
                 if unique:
                     val = ti.cast(best, ti.f32)
