@@ -2,7 +2,7 @@
 // same steps as gputrack/backends/taichi/stereo.py, launched as five kernels):
 //   gt_stereo_prefilter_{u8,f32}  x-Sobel clipped to [-cap, cap] plus cap, into padded int
 //                                 images (GT_STEREO_LANES columns on the left, Dp + LANES on
-//                                 the right); NaN into the output. NDRange (Wp, H).
+//                                 the right); NaN into the output. NDRange (H).
 //   gt_stereo_left_costs          one work-item per (disparity group of 8, run): running box
 //                                 sums of SAD along the run, 8 disparities in an int8.
 //   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d.
@@ -20,16 +20,17 @@ inline int gt_q_u8(const __global uchar *img, int i) { return (int)img[i]; }
 // floor(4096 I), I clamped to [0, 1]: exact (a product by a power of two)
 inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(fmax(img[i], 0.0f), 1.0f) * 4096.0f); }
 
+// one work-item per row (a CPU device streams along it)
 #define GT_STEREO_PREFILTER(NAME, T, Q)                                                                  \
     __kernel void NAME(__global const T *left, __global const T *right, __global int *pl, __global int *pr, \
                        __global float *out, const int H, const int W, const int Wp, const int cap)        \
     {                                                                                                     \
-        const int xp = get_global_id(0), y = get_global_id(1);                                           \
-        if (xp >= Wp || y >= H)                                                                          \
+        const int y = get_global_id(0);                                                                  \
+        if (y >= H)                                                                                       \
             return;                                                                                       \
-        const int x = xp - GT_STEREO_LANES;                                                              \
-        int a = cap, b = cap;                                                                             \
-        if (x >= 0 && x < W) {                                                                            \
+        for (int xp = 0; xp < Wp; ++xp) {                                                                 \
+            const int x = xp - GT_STEREO_LANES;                                                          \
+            int a = cap, b = cap;                                                                         \
             if (y >= 1 && y < H - 1 && x >= 1 && x < W - 1) {                                             \
                 const int u = (y - 1) * W + x, c = y * W + x, d = (y + 1) * W + x;                        \
                 int s = (Q(left, u + 1) + 2 * Q(left, c + 1) + Q(left, d + 1))                            \
@@ -39,10 +40,11 @@ inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(f
                     - (Q(right, u - 1) + 2 * Q(right, c - 1) + Q(right, d - 1));                          \
                 b = min(max(s, -cap), cap) + cap;                                                         \
             }                                                                                             \
-            out[y * W + x] = NAN;                                                                         \
+            if (x >= 0 && x < W)                                                                          \
+                out[y * W + x] = NAN;                                                                     \
+            pl[y * Wp + xp] = a;                                                                          \
+            pr[y * Wp + xp] = b;                                                                          \
         }                                                                                                 \
-        pl[y * Wp + xp] = a;                                                                              \
-        pr[y * Wp + xp] = b;                                                                              \
     }
 
 GT_STEREO_PREFILTER(gt_stereo_prefilter_u8, uchar, gt_q_u8)
@@ -78,6 +80,30 @@ __kernel void gt_stereo_left_costs(__global const int *pl, __global const int *p
     }
 }
 
+// the smallest cost among c[0 .. n) (Dp slots, n <= Dp) and the smallest d that has it, 8 lanes at a time
+inline int gt_stereo_argmin(const __global int *c, const int n, const int Dp, int *cost)
+{
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    int8 best = (int8)(INT_MAX), at = (int8)(0);
+    for (int d0 = 0; d0 < Dp; d0 += 8) {
+        const int8 d = lane + d0;
+        const int8 v = vload8(0, c + d0);
+        const int8 take = (v < best) & (d < n);  // strict: each lane keeps its smallest d
+        best = select(best, v, take);
+        at = select(at, d, take);
+    }
+    int cb = best.s0, db = at.s0;  // across the lanes: the smallest cost, then the smallest d
+    const int bs[8] = {best.s0, best.s1, best.s2, best.s3, best.s4, best.s5, best.s6, best.s7};
+    const int as[8] = {at.s0, at.s1, at.s2, at.s3, at.s4, at.s5, at.s6, at.s7};
+    for (int j = 1; j < 8; ++j)
+        if (bs[j] < cb || (bs[j] == cb && as[j] < db)) {
+            cb = bs[j];
+            db = as[j];
+        }
+    *cost = cb;
+    return db;
+}
+
 __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const int *cost,
                                  __global int *ldisp, __global int *rmark, __global float *out, const int S,
                                  const int D, const int U, const int W)
@@ -91,21 +117,19 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
     const int rlo = x0 - D + 1;  // the run's first right-image position
     for (int k = 0; k < x1 - x0 + D; ++k)
         rmark[roff + k] = 0;
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
     for (int x = x0; x <= x1; ++x) {
         const __global int *c = cost + (size_t)(off + x - x0) * Dp;
         int ld = -1;
         if (mask[y * W + x] != 0) {
-            int best = 0, cb = c[0];
-            for (int d = 1; d < D; ++d)  // winner-take-all, the smallest d of equal costs
-                if (c[d] < cb) {
-                    cb = c[d];
-                    best = d;
-                }
-            bool unique = true;
-            for (int d = 0; d < D; ++d)  // uniqueness
-                if (abs(d - best) > 1 && 100 * c[d] <= (100 + U) * cb)
-                    unique = false;
-            if (unique) {
+            int cb;
+            const int best = gt_stereo_argmin(c, D, Dp, &cb);  // winner-take-all, the smallest d of equal costs
+            int8 rival = (int8)(0);  // uniqueness: a d more than 1 px away within (100 + U) % of the best
+            for (int d0 = 0; d0 < Dp; d0 += 8) {
+                const int8 d = lane + d0;
+                rival |= (abs(d - best) > 1) & (d < D) & (100 * vload8(0, c + d0) <= (100 + U) * cb);
+            }
+            if (!any(rival)) {
                 float val = (float)best;
                 if (best > 0 && best < D - 1) {  // the parabola's vertex
                     const int cm = c[best - 1], cp = c[best + 1];
@@ -175,13 +199,8 @@ __kernel void gt_stereo_right_check(__global const int *runs, __global const int
         if (ld < 0)
             continue;
         const int xr = x - ld;
-        const __global int *c = rcost + (size_t)(roff + xr - rlo) * Dp;
-        int best = 0, cb = c[0];
-        for (int d = 1; d < min(D, W - r - xr); ++d)  // d' whose left window is inside the image
-            if (c[d] < cb) {
-                cb = c[d];
-                best = d;
-            }
+        int cb;  // d' whose left window is inside the image, the smallest of equal costs
+        const int best = gt_stereo_argmin(rcost + (size_t)(roff + xr - rlo) * Dp, min(D, W - r - xr), Dp, &cb);
         if (abs(best - ld) > 1)
             out[y * W + x] = NAN;
     }

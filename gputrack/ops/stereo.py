@@ -100,7 +100,8 @@ def _image(device, x, name, dims):
 
 
 def mask_runs(mask: np.ndarray | None, H: int, W: int, max_disparity: int, block: int) -> np.ndarray:
-    """The work list of a match: the per-row runs of mask pixels that can have a value,
+    """The work list of a match (``mask``: bool, or uint8 of 0 and 1): the per-row runs of mask
+    pixels that can have a value,
     (S, 5) int32 rows (y, x0, x1 inclusive, offset, right offset). ``offset``: pixels in the runs
     before (the left winners' slots); ``right offset``: the same for the run's right-image
     positions x - d, [x0 - max_disparity + 1, x1] (x1 - x0 + max_disparity slots a run).
@@ -114,12 +115,14 @@ def mask_runs(mask: np.ndarray | None, H: int, W: int, max_disparity: int, block
         ys = np.arange(r, H - r, dtype=np.int64)
         runs = np.stack([ys, np.full_like(ys, lo), np.full_like(ys, hi)], axis=1)
     else:
-        m = np.zeros((H - 2 * r, hi - lo + 3), np.int8)  # one column of padding on each side
-        m[:, 1:-1] = mask[r:H - r, lo:hi + 1] != 0
-        edges = np.diff(m, axis=1)
-        ys, starts = np.nonzero(edges == 1)
-        _, ends = np.nonzero(edges == -1)  # row-major order: the k-th start and end are one run
-        runs = np.stack([ys + r, starts + lo, ends + lo - 1], axis=1).astype(np.int64)
+        n = hi - lo + 3  # a row with one column of padding on each side: runs end inside their row
+        m = np.zeros((H - 2 * r, n), np.int8)
+        m[:, 1:-1] = mask[r:H - r, lo:hi + 1].view(np.int8)  # 0/1 (the op passes a 0/1 mask)
+        edges = np.diff(m.ravel())
+        at = np.flatnonzero(edges)  # (flat positions are ~3x faster than np.nonzero's 2-D ones)
+        rising = edges[at] == 1
+        starts, ends = at[rising] + 1, at[~rising]  # first and last mask pixel of each run, in order
+        runs = np.stack([starts // n + r, starts % n - 1 + lo, ends % n - 1 + lo], axis=1).astype(np.int64)
     lengths = runs[:, 2] - runs[:, 1] + 1
     offsets = np.cumsum(lengths) - lengths
     right = np.cumsum(lengths + D - 1) - (lengths + D - 1)
@@ -154,7 +157,7 @@ def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, u
             raise TypeError(f"mask: expected a bool or uint8 array, got dtype {m.dtype.name}")
         if m.shape != (H, W):
             raise ValueError(f"mask: expected shape (H={H}, W={W}), got {m.shape}")
-        host_mask = m.view(np.uint8) if m.dtype == np.bool_ else m
+        host_mask = m.view(np.uint8) if m.dtype == np.bool_ else (m != 0).view(np.uint8)
     out = out_array(device, out, "out", (H, W))
     runs = mask_runs(host_mask, H, W, D, block)
     return backend_module(device, "stereo").stereo_match(device, L, R, host_mask, runs, D, block, U, cap, out)

@@ -44,7 +44,7 @@ def stereo_match(device, L, R, mask, runs, D, block, U, cap, out):
     q = device.queue
     pl, pr = device.empty((H * Wp,), np.int32), device.empty((H * Wp,), np.int32)
     name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
-    _kernel(device, name)(q, (Wp, H), None, L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
+    _kernel(device, name)(q, (H,), None, L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
                           out.buffer.data, H, W, Wp, cap)  # fmt: skip
     if S == 0:
         return out
