@@ -82,3 +82,7 @@ __all__ = [
     "scatter_rows",
     "shared_matrix",
 ]
+
+from .stereo import stereo_match  # noqa: E402
+
+__all__ += ["stereo_match"]

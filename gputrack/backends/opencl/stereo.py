@@ -1,0 +1,70 @@
+"""OpenCL launchers of :mod:`gputrack.ops.stereo` (kernels/gt_stereo.cl; conventions in the op):
+five launches, the steps of gputrack/backends/taichi/stereo.py (8 disparities a work-item in an
+int8)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...device import per_device
+
+#: disparities a work-item (the int8 of gt_stereo.cl)
+LANES = 8
+
+_I = np.int32
+ARG_TYPES = {
+    "gt_stereo_prefilter_u8": [None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_prefilter_f32": [None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_left_costs": [None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_left_wta": [None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_right_costs": [None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_right_check": [None, None, None, None, _I, _I, _I, _I],
+}
+
+
+@per_device
+def _kernel(device, name):
+    import pyopencl as cl
+
+    found = cl.Kernel(device.program("gt_stereo.cl"), name)
+    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    return found
+
+
+def _capacity(n: int) -> int:
+    return 1 << max(int(n) - 1, 0).bit_length()  # the next power of two: few buffer shapes for the pool
+
+
+def stereo_match(device, L, R, mask, runs, D, block, U, cap, out):
+    H, W = L.shape
+    S = len(runs)
+    G = -(-D // LANES)
+    Dp = G * LANES
+    Wp = W + Dp + 2 * LANES
+    q = device.queue
+    pl, pr = device.empty((H * Wp,), np.int32), device.empty((H * Wp,), np.int32)
+    name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
+    _kernel(device, name)(q, (H,), None, L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
+                          out.buffer.data, H, W, Wp, cap)  # fmt: skip
+    if S == 0:
+        return out
+    P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3])
+    Sc, Pc, P2c = _capacity(S), _capacity(P), _capacity(P + S * (D - 1))
+    runs_host = np.zeros((Sc, 5), np.int32)
+    runs_host[:S] = runs
+    runs_d = device.asarray(runs_host)
+    mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
+    ring = device.empty((Sc * block * Dp,), np.int32)
+    cost = device.empty((Pc * Dp,), np.int32)
+    rcost = device.empty((P2c * Dp,), np.int32)
+    ldisp = device.empty((Pc,), np.int32)
+    rmark = device.empty((P2c,), np.int32)
+    b = lambda a: a.buffer.data  # noqa: E731
+    _kernel(device, "gt_stereo_left_costs")(q, (G, S), None, b(pl), b(pr), b(runs_d), b(ring), b(cost), S, D, block,
+                                            Wp)  # fmt: skip
+    _kernel(device, "gt_stereo_left_wta")(q, (S,), None, b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark), b(out), S,
+                                          D, U, W)  # fmt: skip
+    _kernel(device, "gt_stereo_right_costs")(q, (G, S), None, b(pl), b(pr), b(runs_d), b(rmark), b(ring), b(rcost), S,
+                                             D, block, Wp)  # fmt: skip
+    _kernel(device, "gt_stereo_right_check")(q, (S,), None, b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
+    return out

@@ -1,0 +1,207 @@
+// Block matching of a rectified stereo pair on the runs of a mask (gputrack/ops/stereo.py; the
+// same steps as gputrack/backends/taichi/stereo.py, launched as five kernels):
+//   gt_stereo_prefilter_{u8,f32}  x-Sobel clipped to [-cap, cap] plus cap, into padded int
+//                                 images (GT_STEREO_LANES columns on the left, Dp + LANES on
+//                                 the right); NaN into the output. NDRange (H).
+//   gt_stereo_left_costs          one work-item per (disparity group of 8, run): running box
+//                                 sums of SAD along the run, 8 disparities in an int8.
+//   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d.
+//   gt_stereo_right_costs         one per (group, run): C_R(xr, d) at the marked positions.
+//   gt_stereo_right_check         one per run: the right winners and the left-right check.
+// Runs: int rows (y, x0, x1, offset, right offset). Cost buffers: Dp ints per pixel (d fastest).
+
+#ifndef GT_STEREO_LANES
+#define GT_STEREO_LANES 8  // the int8 below: keep equal to LANES in gputrack/backends/opencl/stereo.py
+#endif
+
+#pragma OPENCL FP_CONTRACT OFF
+
+inline int gt_q_u8(const __global uchar *img, int i) { return (int)img[i]; }
+// floor(4096 I), I clamped to [0, 1]: exact (a product by a power of two)
+inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(fmax(img[i], 0.0f), 1.0f) * 4096.0f); }
+
+// one work-item per row (a CPU device streams along it)
+#define GT_STEREO_PREFILTER(NAME, T, Q)                                                                  \
+    __kernel void NAME(__global const T *left, __global const T *right, __global int *pl, __global int *pr, \
+                       __global float *out, const int H, const int W, const int Wp, const int cap)        \
+    {                                                                                                     \
+        const int y = get_global_id(0);                                                                  \
+        if (y >= H)                                                                                       \
+            return;                                                                                       \
+        for (int xp = 0; xp < Wp; ++xp) {                                                                 \
+            const int x = xp - GT_STEREO_LANES;                                                          \
+            int a = cap, b = cap;                                                                         \
+            if (y >= 1 && y < H - 1 && x >= 1 && x < W - 1) {                                             \
+                const int u = (y - 1) * W + x, c = y * W + x, d = (y + 1) * W + x;                        \
+                int s = (Q(left, u + 1) + 2 * Q(left, c + 1) + Q(left, d + 1))                            \
+                        - (Q(left, u - 1) + 2 * Q(left, c - 1) + Q(left, d - 1));                         \
+                a = min(max(s, -cap), cap) + cap;                                                         \
+                s = (Q(right, u + 1) + 2 * Q(right, c + 1) + Q(right, d + 1))                             \
+                    - (Q(right, u - 1) + 2 * Q(right, c - 1) + Q(right, d - 1));                          \
+                b = min(max(s, -cap), cap) + cap;                                                         \
+            }                                                                                             \
+            if (x >= 0 && x < W)                                                                          \
+                out[y * W + x] = NAN;                                                                     \
+            pl[y * Wp + xp] = a;                                                                          \
+            pr[y * Wp + xp] = b;                                                                          \
+        }                                                                                                 \
+    }
+
+GT_STEREO_PREFILTER(gt_stereo_prefilter_u8, uchar, gt_q_u8)
+GT_STEREO_PREFILTER(gt_stereo_prefilter_f32, float, gt_q_f32)
+
+// left costs C(x, d) = sum over the window of |P_L(x') - P_R(x' - d)|
+__kernel void gt_stereo_left_costs(__global const int *pl, __global const int *pr, __global const int *runs,
+                                   __global int *ring, __global int *cost, const int S, const int D, const int B,
+                                   const int Wp)
+{
+    const int g = get_global_id(0), s = get_global_id(1);
+    const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
+    if (g >= G || s >= S)
+        return;
+    const int r = B / 2, d0 = g * GT_STEREO_LANES;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3];
+    int8 c = (int8)(0);
+    for (int x = x0 - r; x <= x1 + r; ++x) {
+        int8 v = (int8)(0);
+        for (int i = 0; i < B; ++i) {
+            const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;
+            const int8 rv = vload8(0, pr + at - d0 - 7).s76543210;  // lane j: P_R(x - d0 - j)
+            const int8 t = (int8)(pl[at]) - rv;
+            v += max(t, -t);
+        }
+        __global int *slot = ring + (size_t)(s * B + x % B) * Dp + d0;
+        if (x >= x0 + r + 1)
+            c -= vload8(0, slot);  // column x - B, in the same ring slot, leaves the window
+        c += v;
+        vstore8(v, 0, slot);
+        if (x >= x0 + r)
+            vstore8(c, 0, cost + (size_t)(off + x - r - x0) * Dp + d0);
+    }
+}
+
+// the smallest cost among c[0 .. n) (Dp slots, n <= Dp) and the smallest d that has it, 8 lanes at a time
+inline int gt_stereo_argmin(const __global int *c, const int n, const int Dp, int *cost)
+{
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    int8 best = (int8)(INT_MAX), at = (int8)(0);
+    for (int d0 = 0; d0 < Dp; d0 += 8) {
+        const int8 d = lane + d0;
+        const int8 v = vload8(0, c + d0);
+        const int8 take = (v < best) & (d < n);  // strict: each lane keeps its smallest d
+        best = select(best, v, take);
+        at = select(at, d, take);
+    }
+    int cb = best.s0, db = at.s0;  // across the lanes: the smallest cost, then the smallest d
+    const int bs[8] = {best.s0, best.s1, best.s2, best.s3, best.s4, best.s5, best.s6, best.s7};
+    const int as[8] = {at.s0, at.s1, at.s2, at.s3, at.s4, at.s5, at.s6, at.s7};
+    for (int j = 1; j < 8; ++j)
+        if (bs[j] < cb || (bs[j] == cb && as[j] < db)) {
+            cb = bs[j];
+            db = as[j];
+        }
+    *cost = cb;
+    return db;
+}
+
+__kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const int *cost,
+                                 __global int *ldisp, __global int *rmark, __global float *out, const int S,
+                                 const int D, const int U, const int W)
+{
+    const int s = get_global_id(0);
+    if (s >= S)
+        return;
+    const int Dp = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES * GT_STEREO_LANES;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3],
+              roff = runs[5 * s + 4];
+    const int rlo = x0 - D + 1;  // the run's first right-image position
+    for (int k = 0; k < x1 - x0 + D; ++k)
+        rmark[roff + k] = 0;
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    for (int x = x0; x <= x1; ++x) {
+        const __global int *c = cost + (size_t)(off + x - x0) * Dp;
+        int ld = -1;
+        if (mask[y * W + x] != 0) {
+            int cb;
+            const int best = gt_stereo_argmin(c, D, Dp, &cb);  // winner-take-all, the smallest d of equal costs
+            int8 rival = (int8)(0);  // uniqueness: a d more than 1 px away within (100 + U) % of the best
+            for (int d0 = 0; d0 < Dp; d0 += 8) {
+                const int8 d = lane + d0;
+                rival |= (abs(d - best) > 1) & (d < D) & (100 * vload8(0, c + d0) <= (100 + U) * cb);
+            }
+            if (!any(rival)) {
+                float val = (float)best;
+                if (best > 0 && best < D - 1) {  // the parabola's vertex
+                    const int cm = c[best - 1], cp = c[best + 1];
+                    val += (float)(cm - cp) / (float)(2 * (cm - 2 * cb + cp));
+                }
+                out[y * W + x] = val;
+                ld = best;
+                rmark[roff + x - best - rlo] = 1;
+            }
+        }
+        ldisp[off + x - x0] = ld;
+    }
+}
+
+// right costs at the marked positions: C_R(xr, d) = sum |P_L(x' + d) - P_R(x')| (garbage but in
+// bounds where x' + d >= W: such d are not candidates)
+__kernel void gt_stereo_right_costs(__global const int *pl, __global const int *pr, __global const int *runs,
+                                    __global const int *rmark, __global int *ring, __global int *rcost, const int S,
+                                    const int D, const int B, const int Wp)
+{
+    const int g = get_global_id(0), s = get_global_id(1);
+    const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
+    if (g >= G || s >= S)
+        return;
+    const int r = B / 2, d0 = g * GT_STEREO_LANES;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], roff = runs[5 * s + 4];
+    const int rlo = x0 - D + 1;
+    int8 c = (int8)(0);
+    int last = -(1 << 30);
+    for (int k = 0; k < x1 - x0 + D; ++k) {
+        if (rmark[roff + k] == 0)
+            continue;
+        const int xr = rlo + k;
+        const bool running = xr == last + 1;
+        if (!running)
+            c = (int8)(0);
+        for (int x = running ? xr + r : xr - r; x <= xr + r; ++x) {  // one new column, or the window after a gap
+            int8 v = (int8)(0);
+            for (int i = 0; i < B; ++i) {
+                const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;
+                const int8 t = vload8(0, pl + at + d0) - (int8)(pr[at]);  // lane j: P_L(x + d0 + j)
+                v += max(t, -t);
+            }
+            __global int *slot = ring + (size_t)(s * B + x % B) * Dp + d0;
+            if (running)
+                c -= vload8(0, slot);
+            c += v;
+            vstore8(v, 0, slot);
+        }
+        vstore8(c, 0, rcost + (size_t)(roff + k) * Dp + d0);
+        last = xr;
+    }
+}
+
+__kernel void gt_stereo_right_check(__global const int *runs, __global const int *ldisp, __global const int *rcost,
+                                    __global float *out, const int S, const int D, const int B, const int W)
+{
+    const int s = get_global_id(0);
+    if (s >= S)
+        return;
+    const int Dp = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES * GT_STEREO_LANES, r = B / 2;
+    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3],
+              roff = runs[5 * s + 4];
+    const int rlo = x0 - D + 1;
+    for (int x = x0; x <= x1; ++x) {
+        const int ld = ldisp[off + x - x0];
+        if (ld < 0)
+            continue;
+        const int xr = x - ld;
+        int cb;  // d' whose left window is inside the image, the smallest of equal costs
+        const int best = gt_stereo_argmin(rcost + (size_t)(roff + xr - rlo) * Dp, min(D, W - r - xr), Dp, &cb);
+        if (abs(best - ld) > 1)
+            out[y * W + x] = NAN;
+    }
+}
