@@ -49,7 +49,7 @@ __kernel void gt_background_median(__global const GT_PIXEL *frames, const int F,
 }
 
 // bg = (1 - rate) bg + rate frame where mask (if has_mask) is 0 and the frame valid; an invalid
-// background takes the frame's value. out may be bg.
+// or infinite background takes the frame's value. out may be bg.
 __kernel void gt_update_background(__global const float *bg, __global const GT_PIXEL *frame,
                                    __global const uchar *mask, const int has_mask, const int H, const int W,
                                    const float rate, const int use_missing, const float missing, __global float *out)
@@ -61,7 +61,9 @@ __kernel void gt_update_background(__global const float *bg, __global const GT_P
     float b = bg[at];
     const float x = (float)frame[at];
     if (gt_bg_valid(x, use_missing, missing) && !(has_mask && mask[at]))
-        b = gt_bg_valid(b, use_missing, missing) ? (1.0f - rate) * b + rate * x : x;  // running average
+        b = gt_bg_valid(b, use_missing, missing) && (as_uint(b) & 0x7f800000u) != 0x7f800000u
+                ? (1.0f - rate) * b + rate * x  // running average
+                : x;                            // no (finite) background yet
     out[at] = b;
 }
 

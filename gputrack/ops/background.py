@@ -12,8 +12,10 @@ the background of each gray camera) and of pedestrians from depth (paper 002 sec
   (bg - frame >= threshold) count: a person stands in front of the background.
 
 Images: frames (F, H, W) and a frame (H, W) of dtype uint8 (gray cameras), uint16 (depth in mm)
-or float32; the background is (H, W) float32 with NaN where it has no value. A pixel is valid
-when it is not NaN and, if ``missing`` is given, not equal to ``missing``. Host (NumPy) inputs are
+or float32; the background is (H, W) float32 with NaN where it has no value (never foreground)
+and +inf where nothing is in range (e.g. above the horizon of
+:func:`gputrack.ops.depth_points.floor_background`: every valid frame pixel there is foreground).
+A pixel is valid when it is not NaN and, if ``missing`` is given, not equal to ``missing``. Host (NumPy) inputs are
 checked (no inf; NaN is a missing sample); device inputs are trusted. A uint16 image is uploaded
 as its bytes (a uint8 array of twice the width: devices hold no uint16) and read as uint16 by the
 kernels; a device array must be float32 or uint8.
@@ -92,12 +94,13 @@ def width(a, pixel: str) -> int:
 
 
 def background_arg(device, bg, name: str, dims: dict):
-    """A background (H, W) float32 argument (NaN = no background; inf rejected)."""
+    """A background (H, W) float32 argument (NaN = no background, +inf = nothing in range;
+    -inf rejected)."""
     if not isinstance(bg, DeviceArray):
         host = np.asarray(bg)
-        if host.dtype == np.float32 and np.isinf(host).any():
-            bad = tuple(int(i) for i in np.argwhere(np.isinf(host))[0])
-            raise ValueError(f"{name}: expected finite values or NaN (no background), got {host[bad]} at index {bad}")
+        if host.dtype == np.float32 and np.isneginf(host).any():
+            bad = tuple(int(i) for i in np.argwhere(np.isneginf(host))[0])
+            raise ValueError(f"{name}: expected finite values, NaN or +inf, got {host[bad]} at index {bad}")
     return arg(device, bg, name, ("H", "W"), dims, finite=False)
 
 
@@ -140,7 +143,7 @@ def update_background(device, background, frame, *, rate, mask=None, missing=Non
 
     Where ``mask`` (H, W) uint8 (or bool; nonzero = foreground) is 0 and the frame is valid:
     bg = (1 - rate) bg + rate frame, ``rate`` in [0, 1]; a pixel whose background is invalid (NaN,
-    or ``missing``) takes the frame's value. Every other pixel keeps its background.
+    ``missing``) or +inf takes the frame's value. Every other pixel keeps its background.
     background: (H, W) float32 (NaN = none); frame: (H, W) uint8, uint16 or float32.
     """
     device = check_device(device)

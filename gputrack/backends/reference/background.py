@@ -32,13 +32,13 @@ def background_median(device, frames, pixel, missing, out):
 
 def update_background(device, bg, frame, pixel, rate, mask, missing, out):
     """bg = (1 - rate) bg + rate frame where the pixel is background (mask 0) and the frame valid;
-    an invalid background takes the frame's value there."""
+    an invalid or infinite background takes the frame's value there."""
     f = frame.astype(F32)
     r = F32(rate)
     upd = valid(f, missing)
     if mask is not None:
         upd &= mask == 0
-    have = valid(bg, missing)
+    have = valid(bg, missing) & np.isfinite(bg)
     new = np.where(have, (F32(1) - r) * bg + r * f, f).astype(F32)  # running average
     out[...] = np.where(upd, new, bg)
     return out

@@ -34,6 +34,12 @@ def is_nan(x):
 
 
 @ti.func
+def is_finite(x):
+    """Neither inf nor NaN, by its bits."""
+    return (ti.bit_cast(x, ti.u32) & ti.u32(0x7F800000)) != ti.u32(0x7F800000)
+
+
+@ti.func
 def valid(x, use_missing, missing):
     """Not NaN and, when ``use_missing`` is nonzero, not the missing value."""
     return not is_nan(x) and (use_missing == 0 or x != missing)
