@@ -11,6 +11,8 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.kinematics` forward kinematics of kinematic chains
 - :mod:`.lm`         batched Levenberg-Marquardt
 - :mod:`.kalman`     batched Kalman filters and gating
+- :mod:`.background` per-pixel background median, running average and foreground mask (papers 001, 002)
+- :mod:`.depth_points` foreground points of a depth frame, randomly downsampled (paper 002)
 """
 
 from ..device import Device
@@ -44,6 +46,8 @@ from .pose_residuals import pose_residuals  # noqa: E402
 from .rows import scatter_rows  # noqa: E402
 from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
 from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
+from .background import background_median, foreground_mask, update_background  # noqa: E402
+from .depth_points import depth_points, floor_background  # noqa: E402
 
 __all__ = [
     "BestK",
@@ -77,4 +81,9 @@ __all__ = [
     "sample_around",
     "scatter_rows",
     "shared_matrix",
+    "background_median",
+    "foreground_mask",
+    "update_background",
+    "depth_points",
+    "floor_background",
 ]
