@@ -7,8 +7,9 @@
    candidates) and each row's offset among the candidates;
 3. one thread per row with candidates: the keys again, and (key, pixel) of each candidate at its
    offset (row order);
-4. one task: a stable LSD radix sort of the C candidates by key, then the first min(n, C) points
-   back-projected and NaN rows after them.
+4. a stable LSD radix sort of the C candidates by key (8 bits a pass; per pass: digit counts per
+   block of 256 candidates, per-digit block offsets, digit starts, a stable scatter per block);
+5. the first min(n, C) points back-projected, NaN rows after them.
 
 Scratch arrays are kept per device and image size (gputrack/backends/taichi/runtime.py scratch).
 """
@@ -28,27 +29,12 @@ LEVELS = 8
 STEP = 2
 BOUNDS = [1 << (31 - STEP * q) for q in range(LEVELS)]
 RADIX = 256
+BLOCK = 256  # candidates per block of the radix sort
 
 
 @ti.func
-def radix_pass(sk: ti.template(), si: ti.template(), dk: ti.template(), di: ti.template(), cnt: ti.template(), C, shift):
-    """Stable counting sort of C (key, index) pairs by the 8 bits of key at ``shift``."""
-    for q in range(RADIX):
-        cnt[q] = 0
-    for j in range(C):
-        q = ti.cast((sk[j] >> ti.cast(shift, ti.u32)) & ti.u32(RADIX - 1), ti.i32)
-        cnt[q] = cnt[q] + 1
-    run = 0
-    for q in range(RADIX):
-        t = cnt[q]
-        cnt[q] = run
-        run += t
-    for j in range(C):
-        q = ti.cast((sk[j] >> ti.cast(shift, ti.u32)) & ti.u32(RADIX - 1), ti.i32)
-        p = cnt[q]
-        cnt[q] = p + 1
-        dk[p] = sk[j]
-        di[p] = si[j]
+def _digit(key, shift):
+    return ti.cast((key >> ti.cast(shift, ti.u32)) & ti.u32(RADIX - 1), ti.i32)
 
 
 @ti.func
@@ -69,7 +55,7 @@ def _key(depth: ti.template(), bg: ti.template(), r, c, W, a, b, threshold, max_
 
 @ti.kernel
 def _depth_points(depth: nd2, bg: nd2, out: nd2, hist: nd2, offs: nd1, info: nd1, k0: nd1, i0: nd1, k1: nd1,
-                  i1: nd1, cnt: nd1, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, threshold: ti.f32,
+                  i1: nd1, blk: nd2, starts: nd1, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, threshold: ti.f32,
                   max_range: ti.f32, wa: ti.i32, wb: ti.i32, u16: ti.template(), nearer: ti.template()):  # fmt: skip
     H = bg.shape[0]
     W = bg.shape[1]
@@ -124,34 +110,64 @@ def _depth_points(depth: nd2, bg: nd2, out: nd2, hist: nd2, offs: nd1, info: nd1
                     k0[j] = _key(depth, bg, r, c0 + e, W, a, b, threshold, max_range, u16, nearer)
                     i0[j] = r * W + c0 + e
                     j += 1
-    ti.loop_config(serialize=True)
-    for _ in range(1):  # 4. sort the candidates, back-project the first n
+    # 4. stable LSD radix sort of the C candidates by key, 8 bits a pass, in blocks of BLOCK: every
+    # thread's serial work is bounded (a single long serial task was seen to return garbage on
+    # lavapipe Vulkan past ~10^4 iterations)
+    for p in ti.static(range(4)):
+        src_k, src_i, dst_k, dst_i = ti.static((k0, i0, k1, i1) if p % 2 == 0 else (k1, i1, k0, i0))
+        for blo in range(blk.shape[0]):  # a. each block's digit counts
+            C = info[1]
+            if p < (31 - STEP * info[2] + 7) // 8 and blo * BLOCK < C:
+                for q in range(RADIX):
+                    blk[blo, q] = 0
+                for j in range(blo * BLOCK, ti.min(C, (blo + 1) * BLOCK)):
+                    q = _digit(src_k[j], 8 * p)
+                    blk[blo, q] = blk[blo, q] + 1
+        for q in range(RADIX):  # b. per digit: offsets of the blocks, the digit's total
+            C = info[1]
+            if p < (31 - STEP * info[2] + 7) // 8:
+                run = 0
+                for blo in range((C + BLOCK - 1) // BLOCK):
+                    t = blk[blo, q]
+                    blk[blo, q] = run
+                    run += t
+                starts[q] = run
+        ti.loop_config(serialize=True)
+        for _ in range(1):  # c. the digits' starts
+            if p < (31 - STEP * info[2] + 7) // 8:
+                run = 0
+                for q in range(RADIX):
+                    t = starts[q]
+                    starts[q] = run
+                    run += t
+        for blo in range(blk.shape[0]):  # d. stable scatter, each block in order
+            C = info[1]
+            if p < (31 - STEP * info[2] + 7) // 8 and blo * BLOCK < C:
+                for j in range(blo * BLOCK, ti.min(C, (blo + 1) * BLOCK)):
+                    q = _digit(src_k[j], 8 * p)
+                    at = starts[q] + blk[blo, q]
+                    blk[blo, q] = blk[blo, q] + 1
+                    dst_k[at] = src_k[j]
+                    dst_i[at] = src_i[j]
+    nan = ti.bit_cast(ti.u32(0x7FC00000), ti.f32)
+    for j in range(out.shape[0]):  # 5. the first min(n, C) points, back-projected; NaN rows after
         C = info[1]
-        bits = 31 - STEP * info[2]
-        passes = (bits + 7) // 8
-        for p in range(passes):
-            if p % 2 == 0:
-                radix_pass(k0, i0, k1, i1, cnt, C, 8 * p)
-            else:
-                radix_pass(k1, i1, k0, i0, cnt, C, 8 * p)
-        nan = ti.bit_cast(ti.u32(0x7FC00000), ti.f32)
-        m = ti.min(out.shape[0], C)
-        for j in range(out.shape[0]):
-            x = nan
-            y = nan
-            zz = nan
-            if j < m:
-                i = i0[j]
-                if passes % 2 == 1:
-                    i = i1[j]
-                r = i // W
-                c = i - r * W
-                zz = pixel2(depth, r, c, u16)
-                x = (ti.cast(c, ti.f32) - cx) * zz / fx  # pinhole back-projection
-                y = (ti.cast(r, ti.f32) - cy) * zz / fy
-            out[j, 0] = x
-            out[j, 1] = y
-            out[j, 2] = zz
+        passes = (31 - STEP * info[2] + 7) // 8
+        x = nan
+        y = nan
+        zz = nan
+        if j < C:
+            i = i0[j]
+            if passes % 2 == 1:
+                i = i1[j]
+            r = i // W
+            c = i - r * W
+            zz = pixel2(depth, r, c, u16)
+            x = (ti.cast(c, ti.f32) - cx) * zz / fx  # pinhole back-projection
+            y = (ti.cast(r, ti.f32) - cy) * zz / fy
+        out[j, 0] = x
+        out[j, 1] = y
+        out[j, 2] = zz
 
 
 def _i32(word: int) -> int:
@@ -167,10 +183,11 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     info = scratch(device, "dp info", (4,), ti.i32)
     k0, k1 = scratch(device, "dp k0", (size,), ti.u32), scratch(device, "dp k1", (size,), ti.u32)
     i0, i1 = scratch(device, "dp i0", (size,), ti.i32), scratch(device, "dp i1", (size,), ti.i32)
-    cnt = scratch(device, "dp cnt", (RADIX,), ti.i32)
+    blk = scratch(device, "dp blocks", ((size + BLOCK - 1) // BLOCK, RADIX), ti.i32)
+    starts = scratch(device, "dp starts", (RADIX,), ti.i32)
     launch(
         _depth_points,
-        (depth.buffer, bg.buffer, out.buffer, hist, offs, info, k0, i0, k1, i1, cnt),
+        (depth.buffer, bg.buffer, out.buffer, hist, offs, info, k0, i0, k1, i1, blk, starts),
         (pixel == "uint16", bool(nearer)),
         scalars=(float(fx), float(fy), float(cx), float(cy), float(threshold), float(max_range), _i32(a), _i32(b)),
     )
