@@ -12,6 +12,8 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.lm`         batched Levenberg-Marquardt
 - :mod:`.kalman`     batched Kalman filters and gating
 - :mod:`.point_groups` observation points to groups (gate, tie-break) and each group's moments
+- :mod:`.background` per-pixel background median, running average and foreground mask (papers 001, 002)
+- :mod:`.depth_points` foreground points of a depth frame, randomly downsampled (paper 002)
 """
 
 from ..device import Device
@@ -46,6 +48,8 @@ from .rows import scatter_rows  # noqa: E402
 from .point_groups import PointGroups, assign_points  # noqa: E402
 from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
 from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
+from .background import background_median, foreground_mask, update_background  # noqa: E402
+from .depth_points import depth_points, floor_background  # noqa: E402
 
 __all__ = [
     "BestK",
@@ -81,6 +85,11 @@ __all__ = [
     "sample_around",
     "scatter_rows",
     "shared_matrix",
+    "background_median",
+    "foreground_mask",
+    "update_background",
+    "depth_points",
+    "floor_background",
 ]
 
 from .stereo import stereo_match  # noqa: E402

@@ -1,0 +1,161 @@
+// Foreground points of a depth image, randomly downsampled (gputrack/ops/depth_points.py; paper 002
+// sec. 4.1). Four kernels, launched in order on one queue:
+//   gt_dp_count   NDRange (H): per row, the count of foreground keys below each of GT_LEVELS bounds
+//                 2^(31 - GT_STEP q) (q = 0: every foreground key);
+//   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, row offsets;
+//   gt_dp_compact NDRange (H): (key, pixel) of each candidate at its row's offset (row order);
+//   gt_dp_select  one work-item: stable LSD radix sort of the candidates by key, the first
+//                 min(n, C) points back-projected, NaN rows after them.
+// A pixel's key: pcg(pcg(i ^ a) + b) >> 1 (i = r W + c) if it is foreground, else >= 2^31.
+// GT_PIXEL: the depth image's type (float, uchar or ushort; the launcher defines it).
+
+#ifndef GT_PIXEL
+#define GT_PIXEL float
+#endif
+#define GT_LEVELS 8
+#define GT_STEP 2
+#define GT_RADIX 256
+
+inline uint gt_dp_pcg(const uint x)
+{
+    const uint state = x * 747796405u + 2891336453u;
+    const uint word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+// the key of pixel (r, c); foreground: a reading within range, >= threshold off a background value
+inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, const int r, const int c, const int W,
+                      const uint a, const uint b, const float threshold, const float max_range, const int nearer)
+{
+    const int i = r * W + c;
+    const float z = (float)depth[i], g = bg[i];
+    const float d = nearer ? g - z : fabs(z - g);
+    const int g_nan = (as_uint(g) & 0x7fffffffu) > 0x7f800000u;
+    const int fg = z > 0.0f && z <= max_range && !g_nan && g != 0.0f && d >= threshold;
+    const uint key = gt_dp_pcg(gt_dp_pcg((uint)i ^ a) + b) >> 1u;
+    return fg ? key : (key | 0x80000000u);
+}
+
+__kernel void gt_dp_count(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
+                          const uint a, const uint b, const float threshold, const float max_range, const int nearer,
+                          __global int *hist)
+{
+    const int r = get_global_id(0);
+    if (r >= H)
+        return;
+    int h[GT_LEVELS];
+    for (int q = 0; q < GT_LEVELS; ++q)
+        h[q] = 0;
+    for (int c = 0; c < W; ++c) {
+        const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
+        if (key < 0x80000000u)  // foreground: its bucket, the last level whose bound it is below
+            ++h[min(((int)clz(key) - 1) / GT_STEP, GT_LEVELS - 1)];
+    }
+    int below = 0;  // keys below level q's bound: the buckets q .. GT_LEVELS - 1
+    for (int q = GT_LEVELS - 1; q >= 0; --q) {
+        below += h[q];
+        hist[r * GT_LEVELS + q] = below;
+    }
+}
+
+// info: [N, C, level]
+__kernel void gt_dp_plan(__global const int *hist, const int H, const int n, __global int *offs, __global int *info)
+{
+    if (get_global_id(0) != 0)
+        return;
+    int N = 0;
+    for (int r = 0; r < H; ++r)
+        N += hist[r * GT_LEVELS];
+    const int need = min(n, N);
+    int k = 0;
+    for (int q = 1; q < GT_LEVELS; ++q) {  // the tightest bound with at least `need` keys below it
+        int tot = 0;
+        for (int r = 0; r < H; ++r)
+            tot += hist[r * GT_LEVELS + q];
+        if (tot >= need)
+            k = q;
+    }
+    int run = 0;
+    for (int r = 0; r < H; ++r) {
+        offs[r] = run;
+        run += hist[r * GT_LEVELS + k];
+    }
+    offs[H] = run;
+    info[0] = N;
+    info[1] = run;
+    info[2] = k;
+}
+
+__kernel void gt_dp_compact(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
+                            const uint a, const uint b, const float threshold, const float max_range, const int nearer,
+                            __global const int *offs, __global const int *info, __global uint *ck,
+                            __global int *ci)
+{
+    const int r = get_global_id(0);
+    if (r >= H)
+        return;
+    int j = offs[r];
+    if (offs[r + 1] == j)
+        return;
+    const uint t = 1u << (31 - GT_STEP * info[2]);
+    for (int c = 0; c < W; ++c) {
+        const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
+        if (key < t) {
+            ck[j] = key;
+            ci[j] = r * W + c;
+            ++j;
+        }
+    }
+}
+
+// stable counting sort of C (key, index) pairs by the 8 bits of key at `shift`
+inline void gt_dp_radix(__global const uint *sk, __global const int *si, __global uint *dk, __global int *di,
+                        __global int *cnt, const int C, const int shift)
+{
+    for (int q = 0; q < GT_RADIX; ++q)
+        cnt[q] = 0;
+    for (int j = 0; j < C; ++j)
+        ++cnt[(sk[j] >> shift) & (GT_RADIX - 1)];
+    int run = 0;
+    for (int q = 0; q < GT_RADIX; ++q) {
+        const int t = cnt[q];
+        cnt[q] = run;
+        run += t;
+    }
+    for (int j = 0; j < C; ++j) {
+        const int p = cnt[(sk[j] >> shift) & (GT_RADIX - 1)]++;
+        dk[p] = sk[j];
+        di[p] = si[j];
+    }
+}
+
+__kernel void gt_dp_select(__global const GT_PIXEL *depth, const int W, __global const int *info, __global uint *k0,
+                           __global int *i0, __global uint *k1, __global int *i1, __global int *cnt, const int n,
+                           const float fx, const float fy, const float cx, const float cy, __global float *out)
+{
+    if (get_global_id(0) != 0)
+        return;
+    const int C = info[1];
+    const int passes = (31 - GT_STEP * info[2] + 7) / 8;
+    for (int p = 0; p < passes; ++p) {
+        if (p % 2 == 0)
+            gt_dp_radix(k0, i0, k1, i1, cnt, C, 8 * p);
+        else
+            gt_dp_radix(k1, i1, k0, i0, cnt, C, 8 * p);
+    }
+    __global const int *idx = passes % 2 ? i1 : i0;
+    const int m = min(n, C);
+    const float nan = as_float(0x7fc00000u);
+    for (int j = 0; j < n; ++j) {
+        float x = nan, y = nan, z = nan;
+        if (j < m) {
+            const int i = idx[j], r = i / W, c = i - r * W;
+            z = (float)depth[i];
+            x = ((float)c - cx) * z / fx;  // pinhole back-projection
+            y = ((float)r - cy) * z / fy;
+        }
+        out[3 * j] = x;
+        out[3 * j + 1] = y;
+        out[3 * j + 2] = z;
+    }
+}
