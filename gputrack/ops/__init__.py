@@ -11,6 +11,7 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.kinematics` forward kinematics of kinematic chains
 - :mod:`.lm`         batched Levenberg-Marquardt
 - :mod:`.kalman`     batched Kalman filters and gating
+- :mod:`.clusters`   radius-graph connected components and DBSCAN (papers 001, 002)
 """
 
 from ..device import Device
@@ -44,6 +45,7 @@ from .pose_residuals import pose_residuals  # noqa: E402
 from .rows import scatter_rows  # noqa: E402
 from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
 from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
+from .clusters import compact_labels, dbscan, radius_components  # noqa: E402
 
 __all__ = [
     "BestK",
@@ -77,4 +79,7 @@ __all__ = [
     "sample_around",
     "scatter_rows",
     "shared_matrix",
+    "compact_labels",
+    "dbscan",
+    "radius_components",
 ]
