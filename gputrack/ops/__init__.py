@@ -14,6 +14,7 @@ returns DeviceArrays on that device (NumPy arrays for the ``numpy`` device). The
 - :mod:`.point_groups` observation points to groups (gate, tie-break) and each group's moments
 - :mod:`.background` per-pixel background median, running average and foreground mask (papers 001, 002)
 - :mod:`.depth_points` foreground points of a depth frame, randomly downsampled (paper 002)
+- :mod:`.clusters`   radius-graph connected components and DBSCAN (papers 001, 002)
 """
 
 from ..device import Device
@@ -50,6 +51,7 @@ from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
 from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
 from .background import background_median, foreground_mask, update_background  # noqa: E402
 from .depth_points import depth_points, floor_background  # noqa: E402
+from .clusters import compact_labels, dbscan, radius_components  # noqa: E402
 
 __all__ = [
     "BestK",
@@ -90,6 +92,9 @@ __all__ = [
     "update_background",
     "depth_points",
     "floor_background",
+    "compact_labels",
+    "dbscan",
+    "radius_components",
 ]
 
 from .stereo import stereo_match  # noqa: E402

@@ -1,0 +1,100 @@
+"""OpenCL launchers of :mod:`gputrack.ops.clusters` (kernels/gt_clusters.cl): one fixed sequence
+of launches per call (bin, scan, place, [count], union, label, [border]), no host read-back; one
+program per point dimension, scratch buffers kept per device and number of rows."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...device import per_device
+
+#: as gputrack/backends/taichi/clusters.py: the grid cell is r (1 + CELL_SLACK); buckets are a
+#: power of two >= 2N, scanned in chunks of CHUNK
+CELL_SLACK = 1e-3
+CHUNK = 256
+
+_I, _F = np.int32, np.float32
+
+
+def buckets(N: int) -> int:
+    return max(CHUNK, 1 << max(0, (2 * N - 1).bit_length()))
+
+
+_SCALARS = {
+    "gt_clu_bin": [None] * 6 + [_I, _I, _F],
+    "gt_clu_chunk_sums": [None, None],
+    "gt_clu_scan_chunks": [None, None, _I, _I],
+    "gt_clu_chunk_scan": [None, None, None],
+    "gt_clu_place": [None] * 6 + [_I],
+    "gt_clu_count": [None] * 4 + [_I, _F, _F, _F, _I, _I],
+    "gt_clu_union": [None] * 5 + [_I, _F, _F, _F, _I],
+    "gt_clu_label": [None] * 3 + [_I, _I],
+    "gt_clu_border": [None] * 5 + [_I, _F, _F, _F, _I],
+}
+
+
+@per_device
+def _kernels(device, dim):
+    import pyopencl as cl
+
+    prog = device.program("gt_clusters.cl", {"DIM": dim, "CHUNK": CHUNK})
+    found = {}
+    for name, types in _SCALARS.items():
+        k = cl.Kernel(prog, name)
+        k.set_scalar_arg_dtypes(types)
+        found[name] = k
+    return found
+
+
+@per_device(maxsize=8)
+def _scratch(device, N, dim):
+    import pyopencl as cl
+
+    H = buckets(N)
+    mf = cl.mem_flags.READ_WRITE
+
+    def buf(count, itemsize=4):
+        return cl.Buffer(device.context, mf, max(1, count) * itemsize)
+
+    return {
+        "cnt": buf(H), "start": buf(H + 1), "csum": buf(H // CHUNK), "key": buf(N), "rank": buf(N),
+        "order": buf(N), "spts": buf(N * dim), "parent": buf(N), "core": buf(N),
+    }  # fmt: skip
+
+
+def _run(device, points, n, r2, ms, out, is_dbscan):
+    import pyopencl as cl
+
+    N, dim = points.shape
+    H = buckets(N)
+    chunks = H // CHUNK
+    mask = H - 1
+    w = np.float32(np.sqrt(np.float64(r2)) * (1.0 + CELL_SLACK))
+    inv = np.float32(1.0) / w
+    r2 = np.float32(r2)
+    k = _kernels(device, dim)
+    b = _scratch(device, N, dim)
+    q = device.queue
+    pts = points.buffer.data
+    cl.enqueue_fill_buffer(q, b["cnt"], np.int32(0), 0, 4 * H)
+    k["gt_clu_bin"](q, (n,), None, pts, b["cnt"], b["key"], b["rank"], b["parent"], b["core"], n, mask, inv)
+    k["gt_clu_chunk_sums"](q, (chunks,), None, b["cnt"], b["csum"])
+    k["gt_clu_scan_chunks"](q, (1,), None, b["csum"], b["start"], chunks, H)
+    k["gt_clu_chunk_scan"](q, (chunks,), None, b["cnt"], b["csum"], b["start"])
+    k["gt_clu_place"](q, (n,), None, pts, b["key"], b["rank"], b["start"], b["order"], b["spts"], n)
+    grid = (b["spts"], b["order"], b["start"])
+    if is_dbscan:
+        k["gt_clu_count"](q, (n,), None, *grid, b["core"], mask, r2, w, inv, int(ms), H)
+    k["gt_clu_union"](q, (n,), None, *grid, b["core"], b["parent"], mask, r2, w, inv, H)
+    k["gt_clu_label"](q, (N,), None, b["parent"], b["core"], out.buffer.data, n, N)
+    if is_dbscan:
+        k["gt_clu_border"](q, (n,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
+    return out
+
+
+def radius_components(device, points, n, r2, out):
+    return _run(device, points, n, r2, 1, out, False)
+
+
+def dbscan(device, points, n, r2, min_samples, out):
+    return _run(device, points, n, r2, min_samples, out, True)
