@@ -41,7 +41,7 @@ class Staging:
         prev = self._arrays.get(name)
         same = prev is not None and prev.shape[1:] == host.shape[1:] and prev.dtype == host.dtype
         rows = prev.shape[0] if same else 0
-        if rows < k or rows > 4 * max(k, 16):
+        if not same or rows < k or rows > 4 * max(k, 16):  # (a first call with k = 0 too)
             rows = max(16, 1 << (max(k, 1) - 1).bit_length())
             prev = None
         padded = np.zeros((rows, *host.shape[1:]), host.dtype)

@@ -199,14 +199,19 @@ class StereoFrontEnd:
             ok[ok] &= fg[vi[ok], ui[ok]] > 0  # a track that leaves the foreground ends
             self._pts, self._ids, self._age, self._hist = p1[ok], self._ids[ok], self._age[ok] + 1, self._hist[ok]
         room = cfg.max_features - len(self._pts)
-        if room > 0 and fg.any():
-            m = (fg > 0).astype(np.uint8) * 255
+        rows, cols = np.flatnonzero(fg.any(1)), np.flatnonzero(fg.any(0))
+        if room > 0 and len(rows):
+            # new corners only inside the foreground's bounding box (the work follows the people)
+            r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+            m = (fg[r0:r1, c0:c1] > 0).astype(np.uint8) * 255
             for u, v in np.round(self._pts).astype(int):
-                cv2.circle(m, (int(u), int(v)), cfg.min_distance, 0, -1)
-            new = cv2.goodFeaturesToTrack(gray, maxCorners=room, qualityLevel=0.01, minDistance=cfg.min_distance,
-                                          mask=m, blockSize=5)  # fmt: skip
+                cv2.circle(m, (int(u) - c0, int(v) - r0), cfg.min_distance, 0, -1)
+            new = None
+            if min(m.shape) >= 8:
+                new = cv2.goodFeaturesToTrack(np.ascontiguousarray(gray[r0:r1, c0:c1]), maxCorners=room,
+                                              qualityLevel=0.01, minDistance=cfg.min_distance, mask=m, blockSize=5)  # fmt: skip
             if new is not None:
-                new = new.reshape(-1, 2).astype(np.float32)
+                new = new.reshape(-1, 2).astype(np.float32) + np.array([c0, r0], np.float32)
                 k = len(new)
                 self._pts = np.concatenate([self._pts, new])
                 self._ids = np.concatenate([self._ids, np.arange(self._next, self._next + k)])

@@ -32,8 +32,11 @@ Rules beyond the paper, written down:
   connected groups at once. The velocity region is centred on the mean velocity of the group's
   points this frame (the state's velocity, observed only through positions, lags a change of
   pace by the filter's time constant; the KLT tracks measure it directly), or on the state's
-  where the group has fewer than ``min_points`` points; the merged group keeps the id of the member with the most points
-  (ties: the oldest), its state and spread by eq. 14-15, its Kalman covariance by the same rule.
+  where the group has fewer than ``min_points`` points. The merged group keeps the id of the
+  oldest member (ties: the lowest id), its state and spread by eq. 14-15 (weights: the members'
+  points this frame), its Kalman covariance by the same rule. Merging runs after splits and
+  starts, so a group started beside an existing one from the points that one lost for a frame
+  (an occlusion) is merged back into it at once.
 - **Split**: a group whose points fall into two or more sets, each with at least ``min_new``
   points, for ``split_frames`` frames in a row, splits: the largest set keeps the id, each
   other becomes a new group (with its points' mean, spread and velocity). The sets are cut
@@ -64,7 +67,7 @@ import numpy as np
 
 from ...device import Device, DeviceArray
 from ...models.camera import StereoCamera
-from ...ops import assign_points, constant_velocity, ekf_update_stereo, kf_predict
+from ...ops import assign_points, constant_velocity, ekf_update_stereo, kf_predict, radius_components
 from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from ...tracking._staging import Staging
@@ -187,18 +190,13 @@ def _points(a, name: str, N=None) -> np.ndarray:
     return h.astype(np.float32, copy=False)
 
 
-def _components(points: np.ndarray, radius: float) -> np.ndarray:
-    """Connected components of the graph linking points within ``radius`` (eq. 12): (k,) labels."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    k = len(points)
-    if k == 0:
+def _components(device, points: np.ndarray, radius: float) -> np.ndarray:
+    """Connected components of the graph linking points within ``radius`` (eq. 12), on the
+    device (:func:`gputrack.ops.radius_components`): (k,) labels."""
+    if len(points) == 0:
         return np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
-    return connected_components(g, directed=False)[1]
+    labels = radius_components(device, np.ascontiguousarray(points, np.float32), float(radius))
+    return np.asarray(labels if device.backend == "numpy" else labels.numpy()).astype(np.int64)
 
 
 class GroupTracker:
@@ -230,7 +228,6 @@ class GroupTracker:
         self.next_id = 0
         self._staging = Staging(self.device)
         self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))  # host copies, set each frame
-        self._relabel: dict = {}
         self.front = StereoFrontEnd(self.device, camera, config.front, profile=profile)
         self.scheduler = Scheduler(self.device, [
             Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
@@ -335,7 +332,6 @@ class GroupTracker:
         cfg = self.config
         labels, counts, cov, mean, seen = b["obs"]
         self._x, self._P = np.array(b["x"], np.float64), np.array(b["P"], np.float64)  # host working copies
-        self._relabel = {}
         y, lam = self._frame["y"], self._frame["lam"]
         live = self.ids >= 0
         a = cfg.alpha_s
@@ -343,9 +339,10 @@ class GroupTracker:
         self.age[live] += 1
         self.missed = np.where(live & ~seen, self.missed + 1, 0)
         valid = np.isfinite(y).all(1) & np.isfinite(lam).all(1)
-        merged = self._merge(counts, labels, np.where(seen[:, None], mean[:, VEL], self._x[:, VEL]))
-        split = self._split(labels, valid, y, lam)
-        started = self._start(labels, valid, y, lam)
+        owner = np.where(valid, labels, -1)  # each point's slot, changed by the rules below
+        split = self._split(owner, y, lam)
+        started = self._start(owner, y, lam)
+        merged = self._merge(owner, lam, seen)
         gone = np.flatnonzero((self.ids >= 0) & (self.missed > cfg.max_missed))
         ended = [int(i) for i in self.ids[gone]]
         self.ids[gone] = -1
@@ -355,12 +352,8 @@ class GroupTracker:
             b["x"] = self._put("x", self._x.astype(np.float32))
             b["P"] = self._put("P", self._P.astype(np.float32))
         b["active"] = self._put("active", (self.ids >= 0).astype(np.uint8))
-        out = np.where(labels >= 0, self.ids[np.maximum(labels, 0)], -1)
-        for slot, pts in self._relabel.items():
-            out[pts] = self.ids[slot]
-        counts = np.concatenate([counts, np.zeros(self.capacity - len(counts), np.int64)])
-        for slot, pts in self._relabel.items():
-            counts[slot] = np.count_nonzero(out == self.ids[slot])
+        out = np.where(owner >= 0, self.ids[np.maximum(owner, 0)], -1)
+        counts = np.bincount(owner[out >= 0], minlength=self.capacity)
         self._result = GroupFrame(out, self._list(self._x, self._P, counts), started, merged, split, ended)
 
     def _put(self, name, host):
@@ -374,13 +367,16 @@ class GroupTracker:
         return self.device.asarray(host)
 
     # the rules, on the host copies of the table --------------------------------------------------
-    def _merge(self, counts, labels, velocity) -> list:
+    def _merge(self, owner, lam, seen) -> list:
         """Eq. 13-15: groups whose regions intersect in position and velocity become one."""
         live = np.flatnonzero(self.ids >= 0)
         if len(live) < 2:
             return []
+        counts = np.bincount(owner[owner >= 0], minlength=self.capacity).astype(np.float64)
+        vsum = np.stack([np.bincount(owner[owner >= 0], lam[owner >= 0, a], minlength=self.capacity) for a in range(3)], 1)
         centre = self._x[live].copy()
-        centre[:, VEL] = velocity[live]
+        has = counts[live] >= self.config.min_points
+        centre[np.ix_(np.flatnonzero(has), VEL)] = vsum[live[has]] / counts[live[has], None]
         pairs = rules.overlapping_pairs(centre, self._gate_spreads()[live].astype(np.float64), self.config.merge_gamma)
         if not len(pairs):
             return []
@@ -390,24 +386,20 @@ class GroupTracker:
             members = live[comp == c]
             if len(members) < 2:
                 continue
-            order = sorted(members, key=lambda s: (-counts[s], self.ids[s]))
-            keep = order[0]
-            w = counts[members].astype(np.float64)
+            order = sorted(members, key=lambda s: (-self.age[s], self.ids[s]))
+            keep = order[0]  # the oldest group keeps its id
+            w = counts[members]
             xs = self._x[members]
             self._x[keep], self.Sigma[keep] = rules.merge_states(w, xs, self.Sigma[members].astype(np.float64))
             _, self._P[keep] = rules.merge_states(w, xs, self._P[members])
-            counts[keep] = counts[members].sum()
-            self.age[keep] = self.age[members].max()
             self.missed[keep] = self.missed[members].min()
-            pts = [self._relabel.get(keep, np.flatnonzero(labels == keep))]
             for s in order[1:]:
                 out.append((int(self.ids[s]), int(self.ids[keep])))
-                pts.append(np.flatnonzero(labels == s))
+                owner[owner == s] = keep
                 self.ids[s] = -1
-            self._relabel[keep] = np.concatenate(pts)
         return out
 
-    def _split(self, labels, valid, y, lam) -> list:
+    def _split(self, owner, y, lam) -> list:
         """A group whose points stay in two or more sets for ``split_frames`` frames splits (see
         the module): the sets are cut where the points' projections on the group's principal
         axis leave a gap wider than ``link_radius`` (then no point of one set is within
@@ -415,18 +407,16 @@ class GroupTracker:
         a person along that axis (standard deviation above link_radius / 2) are examined."""
         cfg = self.config
         live = np.flatnonzero(self.ids >= 0)
-        owner = labels.copy()
-        for slot, pts in self._relabel.items():
-            owner[pts] = slot
-        owner[~valid] = -1
         B = self.Sigma[live][:, POS][:, :, POS].astype(np.float64)
         wide = np.trace(B, axis1=1, axis2=2) > (cfg.link_radius / 2) ** 2  # trace >= largest eigenvalue
+        axes = np.zeros((len(live), 3))
         if wide.any():
             w, V = np.linalg.eigh(B[wide])
+            axes[wide] = V[:, :, -1]
             wide[wide] = w[:, -1] > (cfg.link_radius / 2) ** 2
         self.apart[live[~wide]] = 0
         out = []
-        for s, axis in zip(live[wide], np.linalg.eigh(B[wide])[1][:, :, -1] if wide.any() else []):
+        for s, axis in zip(live[wide], axes[wide]):
             mine = np.flatnonzero(owner == s)
             proj = y[mine] @ axis
             order = np.argsort(proj, kind="stable")
@@ -444,21 +434,20 @@ class GroupTracker:
                 m, S = rules.moments(y[pts], lam[pts])
                 if i == 0:  # the largest part keeps the group
                     self._x[s, POS], self.Sigma[s] = m[POS], S
-                    self._relabel[s] = pts
                     continue
                 new = self._add(m, S, self._P[s])
+                owner[pts] = new
                 out.append((int(self.ids[new]), int(self.ids[s])))
-                self._relabel[new] = pts
         return out
 
-    def _start(self, labels, valid, y, lam) -> list:
+    def _start(self, owner, y, lam) -> list:
         """Eq. 12: unassigned points whose search regions overlap, linked; big sets start groups."""
         cfg = self.config
-        free = np.flatnonzero(valid & (labels < 0))
+        free = np.flatnonzero((owner < 0) & np.isfinite(y).all(1) & np.isfinite(lam).all(1))
         if len(free) < cfg.min_new:
             return []
-        comp = _components(y[free], cfg.link_radius)
-        ids, n = np.unique(comp, return_counts=True)
+        comp = _components(self.device, y[free], cfg.link_radius)
+        ids, n = np.unique(comp[comp >= 0], return_counts=True)
         p0 = np.zeros(6)
         p0[POS], p0[VEL] = cfg.p0[0] ** 2, cfg.p0[1] ** 2
         out = []
@@ -466,8 +455,8 @@ class GroupTracker:
             pts = free[comp == c]
             m, S = rules.moments(y[pts], lam[pts])
             slot = self._add(m, S, np.diag(p0))
+            owner[pts] = slot
             out.append(int(self.ids[slot]))
-            self._relabel[slot] = pts
         return out
 
     def _add(self, m, S, P0) -> int:
