@@ -1,4 +1,5 @@
-"""The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack bench``, ``gputrack tune``, ``gputrack demo``."""
+"""The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack bench``, ``gputrack tune``,
+``gputrack demo body|groups``, ``gputrack track groups``."""
 
 from __future__ import annotations
 
@@ -55,15 +56,57 @@ def cmd_bench(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .demos import body
     from .registry import device
 
     dev = device(args.device)
+    if args.what == "groups":
+        from .demos import groups
+
+        report = groups.run(dev, scene_name=args.scene, seconds=args.seconds, seed=args.seed, points=args.points,
+                            save=args.save)  # fmt: skip
+        if args.json:
+            groups.write_json(report, args.json)
+        return 0
+    from .demos import body
+
     report = body.run(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
                        shoulders=args.shoulders, seed=args.seed, template_every=args.template_every,
                        depth_tol=args.depth_tol, n_depth=args.depth_points)  # fmt: skip
     if args.json:
         body.write_json(report, args.json)
+    return 0
+
+
+def cmd_track(args) -> int:
+    from .models import StereoCamera
+    from .registry import device
+    from .trackers.groups.recording import read_camera, track_recording
+
+    if args.camera:
+        cam = read_camera(args.camera)
+    elif None in (args.f, args.b, args.cx, args.cy):
+        print("gputrack track groups: expected --camera FILE or all of --f --b --cx --cy", file=sys.stderr)
+        return 2
+    else:
+        cam = StereoCamera(f=args.f, b=args.b, cx=args.cx, cy=args.cy)
+    dev = device(args.device)
+    out = open(args.out, "w") if args.out else sys.stdout
+
+    def progress(k, fr):
+        if args.out:
+            print(f"  frame {k:5d}  {len(fr.labels):4d} points  groups " + " ".join(f"{g.id}:{g.n_points}" for g in fr.groups),
+                  file=sys.stderr, flush=True)  # fmt: skip
+
+    try:
+        n = track_recording(dev, args.left, args.right, cam, out, background=args.background,
+                            background_left=args.background_left, progress=progress)  # fmt: skip
+    except (FileNotFoundError, ValueError) as e:
+        print(f"gputrack track groups: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if args.out:
+            out.close()
+    print(f"gputrack track groups: {n} frames", file=sys.stderr)
     return 0
 
 
@@ -136,8 +179,9 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print the table as JSON")
     p.set_defaults(func=cmd_devices)
 
-    p = sub.add_parser("demo", help="simulate a sequence and track it (paper 000's upper body)")
-    p.add_argument("what", choices=["body"], help="which tracker")
+    demo = sub.add_parser("demo", help="simulate a scene and track it (papers 000, 001)")
+    which = demo.add_subparsers(dest="what", required=True)
+    p = which.add_parser("body", help="paper 000: upper-body PF + LM on simulated RGB-D")
     p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
     p.add_argument("--frames", type=int, default=30, help="frames to simulate (default 30)")
     p.add_argument("--sequence", type=int, default=0, help="simulated motion sequence 0-8 (default 0)")
@@ -156,6 +200,30 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.set_defaults(func=cmd_demo)
+    p = which.add_parser("groups", help="paper 001: groups of people from a simulated stereo camera")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--scene", choices=["crossing", "merging", "stairs"], default="crossing",
+                   help="simulated scene (default crossing)")  # fmt: skip
+    p.add_argument("--seconds", type=float, help="seconds of people in view (default: the scene's, 5-6 s)")
+    p.add_argument("--points", action="store_true", help="feed the simulator's observation points, not images")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--save", metavar="DIR", help="write pictures (frames with groups, top view of trajectories)")
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON")
+    p.set_defaults(func=cmd_demo)
+
+    track = sub.add_parser("track", help="track a real recording (paper 001 groups)")
+    which = track.add_subparsers(dest="what", required=True)
+    p = which.add_parser("groups", help="a rectified stereo recording -> groups per frame as JSON lines")
+    p.add_argument("--left", required=True, help="left video, image directory or glob pattern")
+    p.add_argument("--right", required=True, help="right video, image directory or glob pattern")
+    p.add_argument("--camera", metavar="FILE", help='JSON {"f": px, "b": mm, "cx": px, "cy": px}')
+    for name, unit in (("f", "focal length, px"), ("b", "baseline, mm"), ("cx", "px"), ("cy", "px")):
+        p.add_argument(f"--{name}", type=float, help=f"rectified camera {name} ({unit}) instead of --camera")
+    p.add_argument("--background", type=int, default=24, help="first frames that teach the background (default 24)")
+    p.add_argument("--background-left", metavar="PATH", help="empty left frames for the background instead")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--out", metavar="FILE", help="write the JSON lines to FILE (default: stdout)")
+    p.set_defaults(func=cmd_track)
 
     p = sub.add_parser("bench", help="time the ops on every device, with ratios against NumPy")
     p.add_argument("--device", action="append", help="spec, or 'all' (default; repeatable)")
