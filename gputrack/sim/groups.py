@@ -512,7 +512,8 @@ class GroupScene:
     Arrays over frames F and people P: ``present`` (F, P), ``positions`` / ``positions_world`` /
     ``velocities`` (F, P, 3) (camera coords mm, world mm, camera mm/frame; NaN when absent),
     ``groups`` (F, P) int64 (-1 when absent). ``merge_frame``: the first frame of the merged group
-    (``"merging"``), else None; ``merged_group``: its id. ``persons``: each person's shape
+    (``"merging"``), else None (also when the merge falls after the last frame); ``merged_group``:
+    its id. ``persons``: each person's shape
     (``height``, ``half_width``, ``half_depth``, ``head`` radius, mm; ``body_top`` = height - 2 head);
     ``rig``, ``camera`` (the :class:`StereoCamera`), ``size`` (width, height); ``stairs``: the
     staircase (``start`` Y, ``rise``, ``tread``, ``steps``) or None.
@@ -578,10 +579,10 @@ class GroupScene:
         self.positions = np.where(np.isnan(centre), np.nan, self.rig.to_camera(np.nan_to_num(centre)))
         self.velocities = vel_w @ self.rig.rotation.T
         self.groups = groups
-        if t_merge is not None:
+        if t_merge is not None and (groups == 2).any():
             self.merged_group = 2
             self.merge_frame = int(np.argmax((groups == 2).any(axis=1)))
-        else:
+        else:  # no merge, or not within the frames simulated
             self.merged_group = self.merge_frame = None
 
     def truth(self, k: int) -> FrameTruth:
