@@ -58,6 +58,9 @@ class Case:
     end_to_end: Callable[[], object] | None = None
     peers: dict = dataclasses.field(default_factory=dict)
     params: dict = dataclasses.field(default_factory=dict)
+    #: called after the timing: ``(text, data)`` to print under the table and store in the JSON
+    #: (e.g. a tracker's per-stage table: the stages of the timed device calls)
+    details: Callable[[], tuple] | None = None
 
 
 def repeat_count(elapsed_s: float, done: int, min_time: float, min_reps: int, max_reps: int) -> int:
@@ -153,6 +156,8 @@ def run_cases(device, cases: list[Case], *, min_time: float = 0.2, progress=None
         row = {"case": case.name, "params": case.params, "spec": device.spec}
         t = time_call(case.run, device.synchronize, min_time=min_time)
         row["device"] = t.as_dict()
+        if case.details is not None:
+            row["details_text"], row["details"] = case.details()
         if case.end_to_end is not None:
             row["end_to_end"] = time_call(case.end_to_end, device.synchronize, min_time=min_time).as_dict()
         if case.reference is not None:
@@ -234,6 +239,9 @@ def bench_main(module, argv=None) -> int:
     rows = [r for d in docs for r in d["results"]]
     if rows:
         print(format_table(rows))
+        for r in rows:
+            if r.get("details_text"):
+                print(f"\n{r['case']} on {r['spec']}:\n{r['details_text']}")
     if args.json:
         out = {"schema": SCHEMA, "bench": name, **environment(), "runs": docs}
         text = json.dumps(out, indent=2)

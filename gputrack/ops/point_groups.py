@@ -24,9 +24,12 @@ are rejected. ``n_points``: only the first n rows are points (a caller uploads e
 one buffer of fixed size); the labels after them are -1. ``out`` = an earlier result
 (labels, counts, mean, cov) to write into.
 
-Work: N x T gating and scoring in one pass over the points (a group's 3x3 Cholesky factors are
-computed once per call), then two passes per group over the labels (mean, then covariance about it); one launch on Taichi, three on
-OpenCL, no atomics (every backend sums a group's points in point order).
+Work: each point tests only the groups that can gate it (the groups sorted by x once; a point
+visits the strip of groups within the largest gate radius in x, and skips a group farther than
+sqrt(gamma trace Sigma_p), where d2 >= |d|^2 / trace >= gamma), then each group's points are
+listed in point order (O(N)) and summed twice (mean, then covariance about it). One launch on
+Taichi, five on OpenCL; no atomics: every backend sums a group's points in point order, so the
+results are the same from run to run.
 """
 
 from __future__ import annotations

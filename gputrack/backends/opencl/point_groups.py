@@ -1,6 +1,7 @@
 """OpenCL launchers of :mod:`gputrack.ops.point_groups` (kernels/gt_point_groups.cl): the group
-factors (one work-item per group), the assignment (one per point) and the moments (one per
-group), three launches in order on the device's queue."""
+factors (one work-item per group), their x order (one work-item), the assignment (one per
+point), each group's points in order (one work-item) and the moments (one per group): five
+launches in order on the device's queue."""
 
 from __future__ import annotations
 
@@ -10,11 +11,13 @@ from ...device import per_device
 
 _I = np.int32
 _ARGS = {
-    "gt_pg_factors": [None, None, _I],
-    "gt_pg_assign": [None] * 6 + [_I, _I, _I, _I, np.float32],
+    "gt_pg_factors": [None] * 4 + [_I, _I, np.float32],
+    "gt_pg_sort": [None, _I],
+    "gt_pg_assign": [None] * 5 + [_I, _I, _I, np.float32],
+    "gt_pg_order": [None, None, _I, _I, _I],
     "gt_pg_moments": [None] * 7 + [_I, _I],
 }
-G = 16
+G = 23
 
 
 @per_device
@@ -31,14 +34,17 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
     T = means.shape[0]
     rows = labels.shape[0]
     g = device.empty((T, G), np.float32)
+    idx = device.empty((rows + 2 * T,), np.int32)
     act = active.buffer.data if active is not None else counts.buffer.data
     q = device.queue
-    _kernel(device, "gt_pg_factors")(q, (T,), None, spreads.buffer.data, g.buffer.data, T)
+    _kernel(device, "gt_pg_factors")(q, (T,), None, spreads.buffer.data, means.buffer.data, act, g.buffer.data, T,
+                                     int(active is not None), np.float32(gamma))  # fmt: skip
+    _kernel(device, "gt_pg_sort")(q, (1,), None, g.buffer.data, T)
     if rows:
         _kernel(device, "gt_pg_assign")(q, (rows,), None, points.buffer.data, velocities.buffer.data,
-                                        means.buffer.data, act, g.buffer.data, labels.buffer.data, rows, int(N), T,
-                                        int(active is not None), np.float32(gamma))  # fmt: skip
+                                        means.buffer.data, g.buffer.data, labels.buffer.data, rows, int(N), T,
+                                        np.float32(gamma))  # fmt: skip
+    _kernel(device, "gt_pg_order")(q, (1,), None, labels.buffer.data, idx.buffer.data, rows, int(N), T)
     _kernel(device, "gt_pg_moments")(q, (T,), None, points.buffer.data, velocities.buffer.data, means.buffer.data,
-                                     labels.buffer.data, counts.buffer.data, mean.buffer.data, cov.buffer.data,
-                                     int(N), T)  # fmt: skip
+                                     idx.buffer.data, counts.buffer.data, mean.buffer.data, cov.buffer.data, rows, T)  # fmt: skip
     return out
