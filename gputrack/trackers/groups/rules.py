@@ -49,7 +49,7 @@ def overlapping_pairs(x, Sigma, gamma: float) -> np.ndarray:
     for idx in (POS, VEL):
         c = x[:, idx]
         S = Sigma[:, idx][:, :, idx]
-        r = np.sqrt(gamma * np.trace(S, axis1=1, axis2=2))  # bounding spheres (trace >= largest eigenvalue) first
+        r = np.sqrt(gamma * np.linalg.eigvalsh(S)[:, -1])  # bounding spheres first: most pairs end here
         near = keep & (np.linalg.norm(c[i] - c[j], axis=1) <= r[i] + r[j])
         keep[:] = False
         keep[near] = ellipsoids_overlap(c[i[near]], S[i[near]], c[j[near]], S[j[near]], gamma)

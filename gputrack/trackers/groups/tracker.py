@@ -67,7 +67,14 @@ import numpy as np
 
 from ...device import Device, DeviceArray
 from ...models.camera import StereoCamera
-from ...ops import assign_points, constant_velocity, ekf_update_stereo, kf_predict, radius_components
+from ...ops import (
+    assign_points,
+    constant_velocity,
+    ekf_update_stereo,
+    kf_predict,
+    radius_components,
+    shared_matrix,
+)
 from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from ...tracking._staging import Staging
@@ -215,10 +222,12 @@ class GroupTracker:
         if not isinstance(config, GroupConfig):
             raise TypeError(f"config: expected a GroupConfig, got {type(config).__name__}")
         self.camera, self.config = camera, config
-        self.F, self.Q = constant_velocity(3, 1.0, config.q)
+        F, Q = constant_velocity(3, 1.0, config.q)
+        R = np.diag(np.asarray(config.R, np.float32))
+        # the model's matrices uploaded once, with their zero patterns (the kernels skip the zeros)
+        self.F, self.Q, self.R = (shared_matrix(self.device, A) for A in (F, Q, R))
         self._floor = np.zeros((6, 6), np.float32)
         self._floor[POS, POS], self._floor[VEL, VEL] = config.min_spread[0] ** 2, config.min_spread[1] ** 2
-        self.R = np.diag(np.asarray(config.R, np.float32))
         C = config.capacity
         self.ids = np.full(C, -1, np.int64)  # host mirror of the table: -1 = free slot
         self.age = np.zeros(C, np.int64)
@@ -246,6 +255,7 @@ class GroupTracker:
 
     def _upload_table(self) -> None:
         s = self.scheduler
+        self._active = (self.ids >= 0).astype(np.uint8)
         s.set("x", self._x.astype(np.float32))
         s.set("P", self._P.astype(np.float32))
         s.set("Sigma", self._gate_spreads())
@@ -351,7 +361,10 @@ class GroupTracker:
         if merged or split or started or ended or len(self._x) != b["x"].shape[0]:
             b["x"] = self._put("x", self._x.astype(np.float32))
             b["P"] = self._put("P", self._P.astype(np.float32))
-        b["active"] = self._put("active", (self.ids >= 0).astype(np.uint8))
+        act = (self.ids >= 0).astype(np.uint8)
+        if not np.array_equal(act, self._active):  # uploaded only when a group started or ended
+            b["active"] = self._put("active", act)
+            self._active = act
         out = np.where(owner >= 0, self.ids[np.maximum(owner, 0)], -1)
         counts = np.bincount(owner[out >= 0], minlength=self.capacity)
         self._result = GroupFrame(out, self._list(self._x, self._P, counts), started, merged, split, ended)
