@@ -1,7 +1,7 @@
 """Paper 001's simulated input: groups of people seen by a rectified stereo rig, with ground truth.
 
 ``scene(name, rng, ...)`` (``name`` in :data:`SCENES`) returns a :class:`GroupScene`; frames are
-rendered on demand (``scene[k]`` or iteration, a :class:`GroupFrame`: left and right uint8 images,
+rendered on demand (``scene[k]`` or iteration, a :class:`StereoFrame`: left and right uint8 images,
 the left camera's person-id image and depth, the background pair, the ground truth), and
 ``scene.observations(k, rng)`` gives the points a stereo + KLT front end would measure, without
 rendering::
@@ -61,7 +61,7 @@ __all__ = [
     "SCENES",
     "SIZE",
     "FrameTruth",
-    "GroupFrame",
+    "StereoFrame",
     "GroupScene",
     "Rig",
     "rig",
@@ -485,7 +485,7 @@ class FrameTruth:
 
 
 @dataclasses.dataclass(frozen=True)
-class GroupFrame:
+class StereoFrame:
     """One rendered frame: ``left``, ``right`` (H, W) uint8; ``person_id`` (H, W) int32 (the left
     image's person at each pixel, -1 = background); ``depth`` (H, W) float32 left camera depth z
     (mm, inf where nothing is hit); ``background_left``/``background_right`` (H, W) uint8 (the scene
@@ -645,7 +645,7 @@ class GroupScene:
                 pid[v0:v1, u0:u1][near] = p
         return rad, depth, pid
 
-    def __getitem__(self, k) -> GroupFrame:
+    def __getitem__(self, k) -> StereoFrame:
         k = self._index(k)
         rng = np.random.default_rng([self._seed, k])
         gain = float(np.exp(rng.normal(0.0, self.exposure)))
@@ -666,7 +666,7 @@ class GroupScene:
             out[side] = (expose(rad, self.noise > 0), expose(self._bg[side][0].copy(), False))
             if side == "left":
                 out["pid"], out["depth"] = pid, depth.astype(np.float32)
-        return GroupFrame(k, (k - self.empty_frames) / FPS, out["left"][0], out["right"][0], out["pid"], out["depth"],
+        return StereoFrame(k, (k - self.empty_frames) / FPS, out["left"][0], out["right"][0], out["pid"], out["depth"],
                           out["left"][1], out["right"][1], gain, offset, self.truth(k))  # fmt: skip
 
     def __iter__(self):
