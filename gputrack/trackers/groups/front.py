@@ -48,7 +48,7 @@ class FrontEndConfig:
     max_features: int = 800
     min_distance: int = 5
     fb_error: float = 1.0
-    klt_window: int = 15
+    klt_window: int = 11
 
     def __post_init__(self):
         for name in ("max_disparity", "block", "background_frames", "window", "max_features", "min_distance",
