@@ -158,6 +158,29 @@ def check_gating(device: Device) -> None:
         assert np.array_equal(got, want_rows), f"scatter_rows differs from the reference for rows of shape {shape}"
 
 
+def check_point_groups(device: Device) -> None:
+    """assign_points: points to groups (gate, tie-break) and each group's moments (paper 001 eq. 7-11)."""
+    from .ops.point_groups import assign_points
+
+    rng = np.random.default_rng(3)
+    T, N = 7, 301
+    means = np.zeros((T, 6), np.float32)
+    means[:, [0, 2, 4]] = rng.uniform(-3000, 3000, (T, 3)) + [0, 0, 8000]
+    means[:, [1, 3, 5]] = rng.normal(0, 10, (T, 3))
+    S = np.tile(np.diag([2e5, 16, 2e5, 16, 2e5, 16]).astype(np.float32), (T, 1, 1))
+    owner = rng.integers(0, T, N)
+    y = (means[owner][:, [0, 2, 4]] + rng.normal(0, 400, (N, 3))).astype(np.float32)
+    lam = (means[owner][:, [1, 3, 5]] + rng.normal(0, 3, (N, 3))).astype(np.float32)
+    active = (np.arange(T) != 4).astype(np.uint8)
+    want = assign_points(get_device("numpy"), y, lam, means, S, 11.34, active=active)
+    got = [to_numpy(a) for a in assign_points(device, y, lam, means, S, 11.34, active=active)]
+    assert np.array_equal(got[0], want[0]), "assign_points labels differ from the reference"
+    assert np.array_equal(got[1], want[1]), "assign_points counts differ from the reference"
+    for g, w, name in ((got[2], want[2], "means"), (got[3], want[3], "covariances")):
+        err = float(np.max(np.abs(g - w) / (1.0 + np.abs(w)), initial=0.0))
+        assert err <= 1e-3, f"assign_points {name} differ from the reference by {err:.3g}"
+
+
 CHECKS = [
     ("arrays", check_arrays),
     ("kinematics", check_kinematics),
@@ -165,6 +188,7 @@ CHECKS = [
     ("lm", check_lm),
     ("kalman", check_kalman),
     ("gating", check_gating),
+    ("point_groups", check_point_groups),
 ]
 
 
