@@ -20,13 +20,19 @@ inline int gt_q_u8(const __global uchar *img, int i) { return (int)img[i]; }
 // floor(4096 I), I clamped to [0, 1]: exact (a product by a power of two)
 inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(fmax(img[i], 0.0f), 1.0f) * 4096.0f); }
 
-// one work-item per row (a CPU device streams along it)
+// one work-item per row (a CPU device streams along it): NaN into the output; the prefilter on
+// the rows [y0, y1) that the runs' windows read
 #define GT_STEREO_PREFILTER(NAME, T, Q)                                                                  \
     __kernel void NAME(__global const T *left, __global const T *right, __global int *pl, __global int *pr, \
-                       __global float *out, const int H, const int W, const int Wp, const int cap)        \
+                       __global float *out, const int H, const int W, const int Wp, const int cap,        \
+                       const int y0, const int y1)                                                        \
     {                                                                                                     \
         const int y = get_global_id(0);                                                                  \
         if (y >= H)                                                                                       \
+            return;                                                                                       \
+        for (int x = 0; x < W; ++x)                                                                       \
+            out[y * W + x] = NAN;                                                                         \
+        if (y < y0 || y >= y1)                                                                            \
             return;                                                                                       \
         for (int xp = 0; xp < Wp; ++xp) {                                                                 \
             const int x = xp - GT_STEREO_LANES;                                                          \
@@ -40,8 +46,6 @@ inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(f
                     - (Q(right, u - 1) + 2 * Q(right, c - 1) + Q(right, d - 1));                          \
                 b = min(max(s, -cap), cap) + cap;                                                         \
             }                                                                                             \
-            if (x >= 0 && x < W)                                                                          \
-                out[y * W + x] = NAN;                                                                     \
             pl[y * Wp + xp] = a;                                                                          \
             pr[y * Wp + xp] = b;                                                                          \
         }                                                                                                 \

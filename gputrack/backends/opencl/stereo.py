@@ -13,8 +13,8 @@ LANES = 8
 
 _I = np.int32
 ARG_TYPES = {
-    "gt_stereo_prefilter_u8": [None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_prefilter_f32": [None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_prefilter_u8": [None, None, None, None, None, _I, _I, _I, _I, _I, _I],
+    "gt_stereo_prefilter_f32": [None, None, None, None, None, _I, _I, _I, _I, _I, _I],
     "gt_stereo_left_costs": [None, None, None, None, None, _I, _I, _I, _I],
     "gt_stereo_left_wta": [None, None, None, None, None, None, _I, _I, _I, _I],
     "gt_stereo_right_costs": [None, None, None, None, None, None, _I, _I, _I, _I],
@@ -42,10 +42,11 @@ def stereo_match(device, L, R, mask, runs, D, block, U, cap, out):
     Dp = G * LANES
     Wp = W + Dp + 2 * LANES
     q = device.queue
+    y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
     pl, pr = device.empty((H * Wp,), np.int32), device.empty((H * Wp,), np.int32)
     name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
     _kernel(device, name)(q, (H,), None, L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
-                          out.buffer.data, H, W, Wp, cap)  # fmt: skip
+                          out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
     P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3])
