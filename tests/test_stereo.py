@@ -201,3 +201,9 @@ def test_mask_runs_cover_exactly_the_pixels_that_can_have_a_value():
     np.testing.assert_array_equal(runs[:, 4], np.cumsum(lengths + D - 1) - (lengths + D - 1))
     assert mask_runs(np.zeros((H, W), bool), H, W, D, block).shape == (0, 5)
     assert len(mask_runs(None, H, W, D, block)) == H - 2 * r
+
+
+def test_selftest(device):
+    from gputrack.selftest import check_stereo
+
+    check_stereo(device)
