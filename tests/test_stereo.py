@@ -207,3 +207,41 @@ def test_selftest(device):
     from gputrack.selftest import check_stereo
 
     check_stereo(device)
+
+
+def test_scores_count_bad_pixels_and_density():
+    from gputrack.benchmarks.stereo import scores
+
+    truth = np.array([[10.0, 20.0, np.inf, 30.0], [5.0, 6.0, 7.0, 8.0]], np.float32)
+    disp = np.array([[10.5, 21.5, 3.0, np.nan], [8.0, 6.0, np.nan, 8.9]], np.float32)
+    s = scores(disp, truth)  # 5 of the 7 known pixels have a value; errors 0.5, 1.5, 3, 0, 0.9
+    assert s["density"] == pytest.approx(5 / 7)
+    assert s["bad1"] == pytest.approx(2 / 5) and s["bad2"] == pytest.approx(1 / 5)
+
+
+def test_bench_script_smoke(tmp_path):
+    """perf/bench_stereo.py as users run it, on numpy at a small size (no accuracy table: the
+    full motorcycle pair takes seconds): the harness's JSON with both cases and the peer."""
+    pytest.importorskip("skimage")
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    # the script imports this checkout's gputrack (not whichever one the environment installed)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    out = tmp_path / "stereo.json"
+    cmd = [sys.executable, str(root / "perf" / "bench_stereo.py"), "--device", "numpy", "--size", "160x48",
+           "--min-time", "0.001", "--no-accuracy", "--json", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path, check=False, env=env)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc["schema"] == "gputrack-bench/1" and doc["bench"] == "stereo" and "commit" in doc
+    (run,) = doc["runs"]
+    assert run["device"]["spec"] == "numpy"
+    cases = [r["case"] for r in run["results"]]
+    assert cases == ["stereo_match 160x48 mask 15.0 %", "stereo_match 160x48 full"]
+    for r in run["results"]:
+        assert r["params"]["max_disparity"] == 64 and "cv2.StereoBM full" in r["peers"]
