@@ -167,10 +167,12 @@ __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *
         if (rmark[roff + k] == 0)
             continue;
         const int xr = rlo + k;
-        const bool running = xr == last + 1;
+        // the columns to add: those after the last window's if it is at most B back (the running
+        // sums carried through the gap), else the whole window afresh
+        const bool running = xr - last <= B;
         if (!running)
             c = (int8)(0);
-        for (int x = running ? xr + r : xr - r; x <= xr + r; ++x) {  // one new column, or the window after a gap
+        for (int x = running ? last + r + 1 : xr - r; x <= xr + r; ++x) {
             int8 v = (int8)(0);
             for (int i = 0; i < B; ++i) {
                 const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;

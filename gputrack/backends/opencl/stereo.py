@@ -32,7 +32,9 @@ def _kernel(device, name):
 
 
 def _capacity(n: int) -> int:
-    return 1 << max(int(n) - 1, 0).bit_length()  # the next power of two: few buffer shapes for the pool
+    """``n`` rounded up to 4 significant bits (at most 1/8 more): few buffer shapes for the pool."""
+    step = 1 << max(int(n).bit_length() - 4, 0)
+    return -(-int(n) // step) * step
 
 
 def stereo_match(device, L, R, mask, runs, D, block, U, cap, out):
