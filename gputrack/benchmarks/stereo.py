@@ -109,12 +109,13 @@ def scores(disparity: np.ndarray, truth: np.ndarray) -> dict:
 def accuracy(device=None) -> dict:
     """stereo_match (on ``device``, default numpy), cv2.StereoBM and cv2.StereoSGBM on the whole
     motorcycle pair at max_disparity 64: {method: scores}."""
-    import gputrack
+    from ..device import to_numpy
     from ..ops import stereo_match
+    from ..registry import device as get_device
 
-    device = device or gputrack.device("numpy")
+    device = device or get_device("numpy")
     left, right, truth = motorcycle_gray()
-    ours = gputrack.to_numpy(stereo_match(device, left, right, max_disparity=MAX_DISPARITY, block=BLOCK))
+    ours = to_numpy(stereo_match(device, left, right, max_disparity=MAX_DISPARITY, block=BLOCK))
     return {
         f"stereo_match (block {BLOCK})": scores(ours, truth),
         f"cv2.StereoBM (block {BLOCK})": scores(stereo_bm()(left, right), truth),
@@ -131,10 +132,10 @@ def format_accuracy(rows: dict) -> str:
 
 
 def cases(device, args):
-    import gputrack
     from ..ops import stereo_match
+    from ..registry import device as get_device
 
-    ref = gputrack.device("numpy")
+    ref = get_device("numpy")
     left, right = _pair(args.size)
     H, W = left.shape
     mask = foreground_mask(H, W, args.foreground)
