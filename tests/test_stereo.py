@@ -245,3 +245,28 @@ def test_bench_script_smoke(tmp_path):
     assert cases == ["stereo_match 160x48 mask 15.0 %", "stereo_match 160x48 full"]
     for r in run["results"]:
         assert r["params"]["max_disparity"] == 64 and "cv2.StereoBM full" in r["peers"]
+
+
+def test_run_tiles_partition_the_runs():
+    from gputrack.ops.stereo import run_tiles
+
+    rng = np.random.default_rng(6)
+    H, W, D, block = 70, 150, 10, 5
+    mask = blob_mask(H, W, rng, n=5) | (rng.random((H, W)) < 0.02)
+    runs = mask_runs(mask, H, W, D, block)
+    tiles, order = run_tiles(runs, D, block, rows=16)
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(runs)))  # every run in one tile
+    r = block // 2
+    for y0, y1, xa, xb, i0, i1, off, w in tiles:
+        mine = runs[order[i0:i1]]
+        assert (np.diff(mine[:, 0]) >= 0).all() and y0 == mine[0, 0] and y1 == mine[-1, 0]  # by row
+        assert len(set((mine[:, 0] - r) // 16)) == 1  # one band
+        assert xa == mine[:, 1].min() and xb == mine[:, 2].max() and w == xb - xa + D + 2 * r
+    np.testing.assert_array_equal(tiles[:, 6], np.cumsum(tiles[:, 7]) - tiles[:, 7])
+    # tiles of one band do not touch: their ranges [xa - D + 1 - r, xb + r] are disjoint
+    band = (tiles[:, 0] - r) // 16
+    for b in np.unique(band):
+        t = tiles[band == b]
+        lo, hi = np.sort(t[:, 2] - D + 1 - r), np.sort(t[:, 3] + r)
+        assert (lo[1:] > hi[:-1]).all()
+    assert len(tiles) > len(np.unique(band))  # the blobs give several tiles in some band

@@ -6,21 +6,24 @@
    lane of a disparity group past max_disparity reads inside the array);
    then each image's LANES-pixel neighbourhoods as vectors (right: P_R(x), P_R(x-1), ...;
    left: P_L(x), P_L(x+1), ...), so that a group's window column is one vector load.
-2. One thread per (run of the mask, group of LANES disparities): the left costs C(x, d) along
-   the run as running box sums (the column sum entering the window replaces the one leaving,
-   kept in a ring of the window's block column sums: (block + 2) operations per pixel and
-   disparity, not block^2), LANES disparities at once in an integer vector (SIMD on the CPU:
+2. One thread per (tile of runs, group of LANES disparities) (gputrack/ops/stereo.py
+   ``run_tiles``: the runs of a band of 16 rows whose column ranges touch): the window column
+   sums V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| over the tile's columns,
+   carried down its rows (the row entering added, the one leaving subtracted: 2 absolute
+   differences per column and row, not block), then running box sums along each run of the row
+   (2 additions per pixel), LANES disparities at once in an integer vector (SIMD on the CPU:
    compiled with ``scalarize=False``), into a cost buffer (pixel, d).
 3. One thread per run: winner, uniqueness, parabola vertex; the right-image position x - d of
    each winner is marked.
-4. One thread per (run, group): the right image's costs C_R(x_r, d') = C(x_r + d', d') at the
-   marked positions only, the same way (carried along the marked positions through gaps of up
-   to block columns, restarted after longer ones).
+4. One thread per (tile, group): the right image's costs C_R(x_r, d') = C(x_r + d', d') the same
+   way over the tile's right-image columns, stored at the marked positions only.
 5. One thread per run: the right winners and the left-right check.
 
-Measured on the 2-core VM (taichi:cpu, VGA, 100 runs of 100 pixels, left costs only): 40 ms with
-one scalar thread per (run, d) and 2-D indexing, 17 ms with flat indexing, 5.1 ms with 8-lane
-vectors gathered by 8 scalar loads (16 lanes: 9.7 ms), 1.7 ms with the neighbourhood vectors.
+Measured on the 2-core VM (taichi:cpu, VGA, 100 runs of 100 pixels, left costs only, each column
+sum over the window's 9 rows): 40 ms with one scalar thread per (run, d) and 2-D indexing, 17 ms
+with flat indexing, 5.1 ms with 8-lane vectors gathered by 8 scalar loads (16 lanes: 9.7 ms),
+1.7 ms with the neighbourhood vectors. Carrying the column sums down the tiles' rows then took
+the left costs of the benchmark's masked VGA pair from ~17-21 to ~12 ms (mean of 5, loaded VM).
 """
 
 import math
@@ -85,10 +88,12 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
             pl: ti.types.ndarray(dtype=ti.i32, ndim=1), pr: ti.types.ndarray(dtype=ti.i32, ndim=1),
             plv: ti.types.ndarray(dtype=V, ndim=1), prv: ti.types.ndarray(dtype=V, ndim=1),
             mask: ti.types.ndarray(dtype=ti.u8, ndim=2), runs: ti.types.ndarray(dtype=ti.i32, ndim=2),
-            ring: ti.types.ndarray(dtype=V, ndim=1), cost: ti.types.ndarray(dtype=V, ndim=1),
+            tiles: ti.types.ndarray(dtype=ti.i32, ndim=2), order: ti.types.ndarray(dtype=ti.i32, ndim=1),
+            vsum: ti.types.ndarray(dtype=V, ndim=1),
+            cost: ti.types.ndarray(dtype=V, ndim=1),
             rcost: ti.types.ndarray(dtype=V, ndim=1), ldisp: ti.types.ndarray(dtype=ti.i32, ndim=1),
             rmark: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=2),
-            S: ti.i32, D: ti.i32, B: ti.i32, U: ti.i32, cap: ti.i32, Wp: ti.i32, y0: ti.i32, y1: ti.i32,
+            S: ti.i32, NB: ti.i32, D: ti.i32, B: ti.i32, U: ti.i32, cap: ti.i32, Wp: ti.i32, y0: ti.i32, y1: ti.i32,
             nan: ti.f32, is_float: ti.template()):  # fmt: skip
     r = B // 2
     W = out.shape[1]
@@ -118,24 +123,42 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
                     rv[j] = pr[at - j]
             plv[at] = lv
             prv[at] = rv
-    # 2. left costs: C(x, d) = sum over the window of |P_L(x') - P_R(x' - d)|
-    for s, g in ti.ndrange(S, G):
-        y, x0, x1, off = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3]
+    # 2. left costs, one thread per (tile, group): the window column sums
+    #    V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried
+    #    down its rows (the row entering added, the one leaving subtracted), then running box sums
+    #    along each run of the row: C(x, d) = C(x - 1, d) + V(x + r) - V(x - r - 1)
+    for b, g in ti.ndrange(NB, G):
+        by0, by1, xa, xb, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 3], tiles[b, 4],
+                                           tiles[b, 5], tiles[b, 6], tiles[b, 7])  # fmt: skip
         d0 = g * LANES
-        c = V(0)
-        for x in range(x0 - r, x1 + r + 1):
-            v = V(0)
-            for i in range(B):
-                at = (y - r + i) * Wp + LANES + x
-                t = pl[at] - prv[at - d0]  # lane j: P_L(x) - P_R(x - d0 - j)
-                v += ti.max(t, -t)
-            ring_at = (s * B + x % B) * G + g
-            if x >= x0 + r + 1:  # column x - B, in the same ring slot, leaves the window
-                c -= ring[ring_at]
-            c += v
-            ring[ring_at] = v
-            if x >= x0 + r:
-                cost[(off + x - r - x0) * G + g] = c
+        vb = voff * G + g * w  # this thread's column sums
+        first = xa - r
+        i = i0
+        for y in range(by0, by1 + 1):
+            for j in range(xb - xa + 2 * r + 1):
+                at = (y - r) * Wp + LANES + first + j  # the window's top row
+                v = V(0)
+                if y == by0:
+                    for k in range(B):
+                        t = pl[at + k * Wp] - prv[at + k * Wp - d0]  # lane l: P_L(x) - P_R(x - d0 - l)
+                        v += ti.max(t, -t)
+                else:
+                    add, sub = at + (B - 1) * Wp, at - Wp
+                    t1 = pl[add] - prv[add - d0]
+                    t2 = pl[sub] - prv[sub - d0]
+                    v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
+                vsum[vb + j] = v
+            while i < i1 and runs[order[i], 0] == y:
+                q = order[i]
+                x0, x1, off = runs[q, 1], runs[q, 2], runs[q, 3]
+                c = V(0)
+                for k in range(B):
+                    c += vsum[vb + x0 - r - first + k]
+                cost[off * G + g] = c
+                for x in range(x0 + 1, x1 + 1):
+                    c += vsum[vb + x + r - first] - vsum[vb + x - r - 1 - first]
+                    cost[(off + x - x0) * G + g] = c
+                i += 1
     # 3. left winners
     for s in range(S):
         y, x0, x1, off, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3], runs[s, 4]
@@ -166,38 +189,44 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
                     ld = best
                     rmark[roff + x - best - rlo] = 1
             ldisp[off + x - x0] = ld
-    # 4. right costs at the marked positions: C_R(xr, d) = sum |P_L(x' + d) - P_R(x')|
-    #    (garbage but in bounds where x' + d >= W: such d are not candidates)
-    for s, g in ti.ndrange(S, G):
-        y, x0, x1, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 4]
-        rlo = x0 - D + 1
+    # 4. right costs at the marked positions, the same way: V(x) = sum over the window's rows of
+    #    |P_L(x + d) - P_R(x)| over the tile's right-image columns (garbage but in bounds where
+    #    x + d >= W: such d are not candidates), C_R(xr, d) running along each run's positions
+    for b, g in ti.ndrange(NB, G):
+        by0, by1, xa, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 4], tiles[b, 5],
+                                       tiles[b, 6], tiles[b, 7])  # fmt: skip
         d0 = g * LANES
-        c = V(0)
-        last = -(1 << 30)
-        for k in range(x1 - x0 + D):
-            if rmark[roff + k] != 0:
-                xr = rlo + k
-                # the columns to add: those after the last window's if it is at most B back (the
-                # running sums carried through the gap), else the whole window afresh
-                running = xr - last <= B
-                first = xr - r
-                if running:
-                    first = last + r + 1
-                else:
-                    c = V(0)
-                for x in range(first, xr + r + 1):
-                    v = V(0)
-                    for i in range(B):
-                        at = (y - r + i) * Wp + LANES + x
-                        t = plv[at + d0] - pr[at]  # lane j: P_L(x + d0 + j) - P_R(x)
+        vb = voff * G + g * w
+        first = xa - D + 1 - r
+        i = i0
+        for y in range(by0, by1 + 1):
+            for j in range(w):
+                at = (y - r) * Wp + LANES + first + j
+                v = V(0)
+                if y == by0:
+                    for k in range(B):
+                        t = plv[at + k * Wp + d0] - pr[at + k * Wp]  # lane l: P_L(x + d0 + l) - P_R(x)
                         v += ti.max(t, -t)
-                    ring_at = (s * B + x % B) * G + g
-                    if running:
-                        c -= ring[ring_at]
-                    c += v
-                    ring[ring_at] = v
-                rcost[(roff + k) * G + g] = c
-                last = xr
+                else:
+                    add, sub = at + (B - 1) * Wp, at - Wp
+                    t1 = plv[add + d0] - pr[add]
+                    t2 = plv[sub + d0] - pr[sub]
+                    v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
+                vsum[vb + j] = v
+            while i < i1 and runs[order[i], 0] == y:
+                q = order[i]
+                x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
+                rlo = x0 - D + 1
+                c = V(0)
+                for k in range(B):
+                    c += vsum[vb + rlo - r - first + k]
+                for k in range(x1 - x0 + D):
+                    xr = rlo + k
+                    if k > 0:
+                        c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
+                    if rmark[roff + k] != 0:
+                        rcost[(roff + k) * G + g] = c
+                i += 1
     # 5. right winners (d' whose left window is inside the image, the smallest of equal costs)
     #    and the left-right check
     for s in range(S):
@@ -218,26 +247,33 @@ def _capacity(n: int) -> int:
     return -(-int(n) // step) * step
 
 
-def stereo_match(device, L, R, mask, runs, D, block, U, cap, out):
+def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     H, W = L.shape
-    S = len(runs)
+    tiles, order = tiles
+    S, NB = len(runs), len(tiles)
     Dp = -(-D // LANES) * LANES
+    G = Dp // LANES
     Wp = W + Dp + 2 * LANES
     P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3]) if S else 0
-    Sc, Pc, P2c = _capacity(max(S, 1)), _capacity(max(P, 1)), _capacity(max(P + S * (D - 1), 1))
+    Vn = int(tiles[-1, 6] + tiles[-1, 7]) if NB else 0  # column sums of every tile
+    Sc, NBc, Pc, P2c, Vc = (_capacity(max(n, 1)) for n in (S, NB, P, P + S * (D - 1), Vn))
     runs_host = np.zeros((Sc, 5), np.int32)
     runs_host[:S] = runs
-    runs_d = device.asarray(runs_host)  # pooled: one shape per capacity
+    tiles_host = np.zeros((NBc, 8), np.int32)
+    tiles_host[:NB] = tiles
+    order_host = np.zeros(Sc, np.int32)
+    order_host[:S] = order
+    runs_d, tiles_d, order_d = (device.asarray(a) for a in (runs_host, tiles_host, order_host))  # pooled shapes
     mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
     i32 = ti.i32
-    G = Dp // LANES
     arrays = (L.buffer, R.buffer, scratch(device, "stereo pl", (H * Wp,), i32),
               scratch(device, "stereo pr", (H * Wp,), i32), scratch(device, "stereo plv", (H * Wp,), V),
-              scratch(device, "stereo prv", (H * Wp,), V), mask_d.buffer, runs_d.buffer,
-              scratch(device, "stereo ring", (Sc * block * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
+              scratch(device, "stereo prv", (H * Wp,), V), mask_d.buffer, runs_d.buffer, tiles_d.buffer,
+              order_d.buffer,
+              scratch(device, "stereo vsum", (Vc * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
               scratch(device, "stereo rcost", (P2c * G,), V), scratch(device, "stereo ldisp", (Pc,), i32),
               scratch(device, "stereo rmark", (P2c,), i32), out.buffer)  # fmt: skip
     y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
-    scalars = (S, int(D), int(block), int(U), int(cap), Wp, y0, y1, math.nan)
+    scalars = (S, NB, int(D), int(block), int(U), int(cap), Wp, y0, y1, math.nan)
     launch(_stereo, arrays, (L.dtype == np.float32,), scalars=scalars, scalarize=False)
     return out
