@@ -1,6 +1,8 @@
 """OpenCL launchers of :mod:`gputrack.ops.stereo` (kernels/gt_stereo.cl; conventions in the op):
 five launches, the steps of gputrack/backends/taichi/stereo.py (8 disparities a work-item in an
-int8; the costs one work-item per (group, tile of runs))."""
+int8; the costs one work-item per (group, tile of runs)). Work-groups of one work-item: the
+kernels vectorise explicitly, and PoCL then builds each kernel once instead of once per
+work-group size it picks for a new NDRange (3-4 s of the tests' time)."""
 
 from __future__ import annotations
 
@@ -47,7 +49,7 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
     pl, pr = device.empty((H * Wp,), np.int32), device.empty((H * Wp,), np.int32)
     name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
-    _kernel(device, name)(q, (H,), None, L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
+    _kernel(device, name)(q, (H,), (1,), L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
                           out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
@@ -70,11 +72,11 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     ldisp = device.empty((Pc,), np.int32)
     rmark = device.empty((P2c,), np.int32)
     b = lambda a: a.buffer.data  # noqa: E731
-    _kernel(device, "gt_stereo_left_costs")(q, (G, T), None, b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d), b(vsum),
+    _kernel(device, "gt_stereo_left_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d), b(vsum),
                                             b(cost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_left_wta")(q, (S,), None, b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark), b(out), S,
+    _kernel(device, "gt_stereo_left_wta")(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark), b(out), S,
                                           D, U, W)  # fmt: skip
-    _kernel(device, "gt_stereo_right_costs")(q, (G, T), None, b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
+    _kernel(device, "gt_stereo_right_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
                                              b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_right_check")(q, (S,), None, b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
+    _kernel(device, "gt_stereo_right_check")(q, (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
     return out
