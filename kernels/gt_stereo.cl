@@ -6,7 +6,8 @@
 //   gt_stereo_left_costs          one work-item per (disparity group of 8, tile of runs): window
 //                                 column sums carried down the tile's rows, running box sums
 //                                 along each run, 8 disparities in an int8.
-//   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d.
+//   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d
+//                                 (and its tile's marked span, by atomic min / max).
 //   gt_stereo_right_costs         one per (group, tile): C_R(xr, d) at the marked positions.
 //   gt_stereo_right_check         one per run: the right winners and the left-right check.
 // Runs: int rows (y, x0, x1, offset, right offset); tiles: int rows (y0, y1, xa, xb, i0, i1, off, w),
@@ -131,8 +132,9 @@ inline int gt_stereo_argmin(const __global int *c, const int n, const int Dp, in
 }
 
 __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const int *cost,
-                                 __global int *ldisp, __global int *rmark, __global float *out, const int S,
-                                 const int D, const int U, const int W)
+                                 __global int *ldisp, __global int *rmark, __global const int *run_tile,
+                                 __global int *marked, __global float *out, const int S, const int D, const int U,
+                                 const int W)
 {
     const int s = get_global_id(0);
     if (s >= S)
@@ -144,6 +146,7 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
     for (int k = 0; k < x1 - x0 + D; ++k)
         rmark[roff + k] = 0;
     const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    int mlo = W, mhi = -1;  // the run's marked right-image positions
     for (int x = x0; x <= x1; ++x) {
         const __global int *c = cost + (size_t)(off + x - x0) * Dp;
         int ld = -1;
@@ -164,19 +167,25 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
                 out[y * W + x] = val;
                 ld = best;
                 rmark[roff + x - best - rlo] = 1;
+                mlo = min(mlo, x - best);
+                mhi = max(mhi, x - best);
             }
         }
         ldisp[off + x - x0] = ld;
     }
+    if (mlo <= mhi) {  // the tile's marked span, for the right costs
+        atomic_min(marked + 2 * run_tile[s], mlo);
+        atomic_max(marked + 2 * run_tile[s] + 1, mhi);
+    }
 }
 
 // right costs at the marked positions, the same way: V(x) = sum over the window's rows of
-// |P_L(x + d) - P_R(x)| over the tile's right-image columns (garbage but in bounds where x + d >= W:
-// such d are not candidates), C_R(xr, d) running along each run's positions [x0 - D + 1, x1]
+// |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds where
+// x + d >= W: such d are not candidates), C_R(xr, d) running along each run's positions in that span
 __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *pr, __global const int *runs,
-                                    __global const int *tiles, __global const int *order, __global const int *rmark,
-                                    __global int *vsum, __global int *rcost, const int T, const int D, const int B,
-                                    const int Wp)
+                                    __global const int *tiles, __global const int *order, __global const int *marked,
+                                    __global const int *rmark, __global int *vsum, __global int *rcost, const int T,
+                                    const int D, const int B, const int Wp)
 {
     const int g = get_global_id(0), b = get_global_id(1);
     const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
@@ -185,11 +194,14 @@ __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *
     const __global int *tile = tiles + 8 * b;
     const int r = B / 2, d0 = g * GT_STEREO_LANES;
     const int y0 = tile[0], y1 = tile[1], xa = tile[2], i1 = tile[5], w = tile[7];
+    const int mlo = marked[2 * b], mhi = marked[2 * b + 1];
+    if (mlo > mhi)
+        return;  // nothing marked in this tile
     __global int *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;
-    const int first = xa - D + 1 - r;
+    const int first = xa - D + 1 - r;  // column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
     int i = tile[4];
     for (int y = y0; y <= y1; ++y) {
-        for (int j = 0; j < w; ++j) {
+        for (int j = mlo - r - first; j <= mhi + r - first; ++j) {
             const int at = (y - r) * Wp + GT_STEREO_LANES + first + j;
             int8 v;
             if (y == y0) {
@@ -209,12 +221,15 @@ __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *
         for (; i < i1 && runs[5 * order[i]] == y; ++i) {
             const int q = 5 * order[i], x0 = runs[q + 1], x1 = runs[q + 2], roff = runs[q + 4];
             const int rlo = x0 - D + 1;
+            const int k0 = max(0, mlo - rlo), k1 = min(x1 - x0 + D - 1, mhi - rlo);
+            if (k0 > k1)
+                continue;
             int8 c = (int8)(0);
             for (int k = 0; k < B; ++k)
-                c += vload8(rlo - r - first + k, vs);
-            for (int k = 0; k < x1 - x0 + D; ++k) {
+                c += vload8(rlo + k0 - r - first + k, vs);
+            for (int k = k0; k <= k1; ++k) {
                 const int xr = rlo + k;
-                if (k > 0)
+                if (k > k0)
                     c += vload8(xr + r - first, vs) - vload8(xr - r - 1 - first, vs);
                 if (rmark[roff + k] != 0)
                     vstore8(c, 0, rcost + (size_t)(roff + k) * Dp + d0);

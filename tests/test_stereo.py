@@ -254,10 +254,11 @@ def test_run_tiles_partition_the_runs():
     H, W, D, block = 70, 150, 10, 5
     mask = blob_mask(H, W, rng, n=5) | (rng.random((H, W)) < 0.02)
     runs = mask_runs(mask, H, W, D, block)
-    tiles, order = run_tiles(runs, D, block, rows=16)
+    tiles, order, run_tile = run_tiles(runs, D, block, rows=16)
     np.testing.assert_array_equal(np.sort(order), np.arange(len(runs)))  # every run in one tile
     r = block // 2
-    for y0, y1, xa, xb, i0, i1, off, w in tiles:
+    for t, (y0, y1, xa, xb, i0, i1, off, w) in enumerate(tiles):
+        assert (run_tile[order[i0:i1]] == t).all()
         mine = runs[order[i0:i1]]
         assert (np.diff(mine[:, 0]) >= 0).all() and y0 == mine[0, 0] and y1 == mine[-1, 0]  # by row
         assert len(set((mine[:, 0] - r) // 16)) == 1  # one band

@@ -134,16 +134,17 @@ def mask_runs(mask: np.ndarray | None, H: int, W: int, max_disparity: int, block
 BAND = 16
 
 
-def run_tiles(runs: np.ndarray, max_disparity: int, block: int, rows: int = BAND) -> tuple[np.ndarray, np.ndarray]:
+def run_tiles(runs: np.ndarray, max_disparity: int, block: int, rows: int = BAND) -> tuple:
     """Tiles over the runs of :func:`mask_runs`: the runs of a band of ``rows`` rows whose column
     ranges [x0 - max_disparity + 1 - r, x1 + r] (the left and right windows a run reads) overlap,
-    directly or through other runs of the band. Returns (tiles, order): ``order`` (S,) int32, the run
-    indices tile by tile, by row within a tile; ``tiles`` (T, 8) int32 rows (y0, y1: its first and
+    directly or through other runs of the band. Returns (tiles, order, run_tile): ``order`` (S,)
+    int32, the run indices tile by tile, by row within a tile; ``run_tile`` (S,) int32, each run's
+    tile; ``tiles`` (T, 8) int32 rows (y0, y1: its first and
     last row; xa, xb: the smallest x0 and largest x1 of its runs; i0, i1: its runs are
     runs[order[i0:i1]]; off, w: its window column sums take w = xb - xa + max_disparity + block - 1
     columns, off = the columns of the tiles before)."""
     if len(runs) == 0:
-        return np.zeros((0, 8), np.int32), np.zeros(0, np.int32)
+        return np.zeros((0, 8), np.int32), np.zeros(0, np.int32), np.zeros(0, np.int32)
     r = block // 2
     y, x0, x1 = (runs[:, k].astype(np.int64) for k in range(3))
     band = (y - r) // rows
@@ -162,7 +163,7 @@ def run_tiles(runs: np.ndarray, max_disparity: int, block: int, rows: int = BAND
     w = xb - xa + max_disparity + 2 * r
     off = np.cumsum(w) - w
     tiles = np.stack([y[order][i0], y[order][i1 - 1], xa, xb, i0, i1, off, w], axis=1).astype(np.int32)
-    return tiles, order.astype(np.int32)
+    return tiles, order.astype(np.int32), tile.astype(np.int32)
 
 
 def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, uniqueness=15, out=None):

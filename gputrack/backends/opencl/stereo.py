@@ -18,8 +18,8 @@ ARG_TYPES = {
     "gt_stereo_prefilter_u8": [None, None, None, None, None, _I, _I, _I, _I, _I, _I],
     "gt_stereo_prefilter_f32": [None, None, None, None, None, _I, _I, _I, _I, _I, _I],
     "gt_stereo_left_costs": [None, None, None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_left_wta": [None, None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_right_costs": [None, None, None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_left_wta": [None, None, None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_right_costs": [None, None, None, None, None, None, None, None, None, _I, _I, _I, _I],
     "gt_stereo_right_check": [None, None, None, None, _I, _I, _I, _I],
 }
 
@@ -53,7 +53,7 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
                           out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
-    tiles, order = tiles
+    tiles, order, run_tile = tiles
     T = len(tiles)
     P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3])
     Vn = int(tiles[-1, 6] + tiles[-1, 7])  # column sums of every tile
@@ -62,9 +62,12 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     runs_host[:S] = runs
     tiles_host = np.zeros((Tc, 8), np.int32)
     tiles_host[:T] = tiles
-    order_host = np.zeros(Sc, np.int32)
-    order_host[:S] = order
-    runs_d, tiles_d, order_d = (device.asarray(a) for a in (runs_host, tiles_host, order_host))
+    order_host, run_tile_host = np.zeros(Sc, np.int32), np.zeros(Sc, np.int32)
+    order_host[:S], run_tile_host[:S] = order, run_tile
+    marked = np.empty((Tc, 2), np.int32)
+    marked[:, 0], marked[:, 1] = W, -1  # no marked position yet
+    runs_d, tiles_d, order_d, run_tile_d, marked_d = (
+        device.asarray(a) for a in (runs_host, tiles_host, order_host, run_tile_host, marked))
     mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
     vsum = device.empty((Vc * Dp,), np.int32)
     cost = device.empty((Pc * Dp,), np.int32)
@@ -74,9 +77,9 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     b = lambda a: a.buffer.data  # noqa: E731
     _kernel(device, "gt_stereo_left_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d), b(vsum),
                                             b(cost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_left_wta")(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark), b(out), S,
-                                          D, U, W)  # fmt: skip
+    _kernel(device, "gt_stereo_left_wta")(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark),
+                                          b(run_tile_d), b(marked_d), b(out), S, D, U, W)  # fmt: skip
     _kernel(device, "gt_stereo_right_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
-                                             b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
+                                             b(marked_d), b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
     _kernel(device, "gt_stereo_right_check")(q, (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
     return out

@@ -16,7 +16,8 @@
 3. One thread per run: winner, uniqueness, parabola vertex; the right-image position x - d of
    each winner is marked.
 4. One thread per (tile, group): the right image's costs C_R(x_r, d') = C(x_r + d', d') the same
-   way over the tile's right-image columns, stored at the marked positions only.
+   way over the columns of the tile's marked span (its smallest and largest marked position,
+   gathered by atomic min / max in 3), stored at the marked positions only.
 5. One thread per run: the right winners and the left-right check.
 
 Measured on the 2-core VM (taichi:cpu, VGA, 100 runs of 100 pixels, left costs only, each column
@@ -89,6 +90,7 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
             plv: ti.types.ndarray(dtype=V, ndim=1), prv: ti.types.ndarray(dtype=V, ndim=1),
             mask: ti.types.ndarray(dtype=ti.u8, ndim=2), runs: ti.types.ndarray(dtype=ti.i32, ndim=2),
             tiles: ti.types.ndarray(dtype=ti.i32, ndim=2), order: ti.types.ndarray(dtype=ti.i32, ndim=1),
+            run_tile: ti.types.ndarray(dtype=ti.i32, ndim=1), marked: ti.types.ndarray(dtype=ti.i32, ndim=2),
             vsum: ti.types.ndarray(dtype=V, ndim=1),
             cost: ti.types.ndarray(dtype=V, ndim=1),
             rcost: ti.types.ndarray(dtype=V, ndim=1), ldisp: ti.types.ndarray(dtype=ti.i32, ndim=1),
@@ -165,6 +167,7 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
         rlo = x0 - D + 1  # the run's first right-image position
         for k in range(x1 - x0 + D):
             rmark[roff + k] = 0
+        mlo, mhi = W, -1  # the run's marked right-image positions
         for x in range(x0, x1 + 1):
             p = (off + x - x0) * G
             ld = -1
@@ -188,44 +191,54 @@ def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
                     out[y, x] = val
                     ld = best
                     rmark[roff + x - best - rlo] = 1
+                    mlo = ti.min(mlo, x - best)
+                    mhi = ti.max(mhi, x - best)
             ldisp[off + x - x0] = ld
+        if mlo <= mhi:  # the tile's marked span, for the right costs
+            ti.atomic_min(marked[run_tile[s], 0], mlo)
+            ti.atomic_max(marked[run_tile[s], 1], mhi)
     # 4. right costs at the marked positions, the same way: V(x) = sum over the window's rows of
-    #    |P_L(x + d) - P_R(x)| over the tile's right-image columns (garbage but in bounds where
-    #    x + d >= W: such d are not candidates), C_R(xr, d) running along each run's positions
+    #    |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds
+    #    where x + d >= W: such d are not candidates), C_R(xr, d) running along each run's
+    #    positions in that span
     for b, g in ti.ndrange(NB, G):
         by0, by1, xa, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 4], tiles[b, 5],
-                                       tiles[b, 6], tiles[b, 7])  # fmt: skip
+                                         tiles[b, 6], tiles[b, 7])  # fmt: skip
+        mlo, mhi = marked[b, 0], marked[b, 1]
         d0 = g * LANES
         vb = voff * G + g * w
-        first = xa - D + 1 - r
+        first = xa - D + 1 - r  # column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
         i = i0
         for y in range(by0, by1 + 1):
-            for j in range(w):
-                at = (y - r) * Wp + LANES + first + j
-                v = V(0)
-                if y == by0:
-                    for k in range(B):
-                        t = plv[at + k * Wp + d0] - pr[at + k * Wp]  # lane l: P_L(x + d0 + l) - P_R(x)
-                        v += ti.max(t, -t)
-                else:
-                    add, sub = at + (B - 1) * Wp, at - Wp
-                    t1 = plv[add + d0] - pr[add]
-                    t2 = plv[sub + d0] - pr[sub]
-                    v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
-                vsum[vb + j] = v
+            if mlo <= mhi:
+                for j in range(mlo - r - first, mhi + r - first + 1):
+                    at = (y - r) * Wp + LANES + first + j
+                    v = V(0)
+                    if y == by0:
+                        for k in range(B):
+                            t = plv[at + k * Wp + d0] - pr[at + k * Wp]  # lane l: P_L(x + d0 + l) - P_R(x)
+                            v += ti.max(t, -t)
+                    else:
+                        add, sub = at + (B - 1) * Wp, at - Wp
+                        t1 = plv[add + d0] - pr[add]
+                        t2 = plv[sub + d0] - pr[sub]
+                        v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
+                    vsum[vb + j] = v
             while i < i1 and runs[order[i], 0] == y:
                 q = order[i]
                 x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
                 rlo = x0 - D + 1
-                c = V(0)
-                for k in range(B):
-                    c += vsum[vb + rlo - r - first + k]
-                for k in range(x1 - x0 + D):
-                    xr = rlo + k
-                    if k > 0:
-                        c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
-                    if rmark[roff + k] != 0:
-                        rcost[(roff + k) * G + g] = c
+                k0, k1 = ti.max(0, mlo - rlo), ti.min(x1 - x0 + D - 1, mhi - rlo)
+                if k0 <= k1:
+                    c = V(0)
+                    for k in range(B):
+                        c += vsum[vb + rlo + k0 - r - first + k]
+                    for k in range(k0, k1 + 1):
+                        xr = rlo + k
+                        if k > k0:
+                            c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
+                        if rmark[roff + k] != 0:
+                            rcost[(roff + k) * G + g] = c
                 i += 1
     # 5. right winners (d' whose left window is inside the image, the smallest of equal costs)
     #    and the left-right check
@@ -249,7 +262,7 @@ def _capacity(n: int) -> int:
 
 def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     H, W = L.shape
-    tiles, order = tiles
+    tiles, order, run_tile = tiles
     S, NB = len(runs), len(tiles)
     Dp = -(-D // LANES) * LANES
     G = Dp // LANES
@@ -261,15 +274,18 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     runs_host[:S] = runs
     tiles_host = np.zeros((NBc, 8), np.int32)
     tiles_host[:NB] = tiles
-    order_host = np.zeros(Sc, np.int32)
-    order_host[:S] = order
-    runs_d, tiles_d, order_d = (device.asarray(a) for a in (runs_host, tiles_host, order_host))  # pooled shapes
+    order_host, run_tile_host = np.zeros(Sc, np.int32), np.zeros(Sc, np.int32)
+    order_host[:S], run_tile_host[:S] = order, run_tile
+    marked = np.empty((NBc, 2), np.int32)
+    marked[:, 0], marked[:, 1] = W, -1  # no marked position yet
+    runs_d, tiles_d, order_d, run_tile_d, marked_d = (
+        device.asarray(a) for a in (runs_host, tiles_host, order_host, run_tile_host, marked))  # pooled shapes
     mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
     i32 = ti.i32
     arrays = (L.buffer, R.buffer, scratch(device, "stereo pl", (H * Wp,), i32),
               scratch(device, "stereo pr", (H * Wp,), i32), scratch(device, "stereo plv", (H * Wp,), V),
               scratch(device, "stereo prv", (H * Wp,), V), mask_d.buffer, runs_d.buffer, tiles_d.buffer,
-              order_d.buffer,
+              order_d.buffer, run_tile_d.buffer, marked_d.buffer,
               scratch(device, "stereo vsum", (Vc * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
               scratch(device, "stereo rcost", (P2c * G,), V), scratch(device, "stereo ldisp", (Pc,), i32),
               scratch(device, "stereo rmark", (P2c,), i32), out.buffer)  # fmt: skip
