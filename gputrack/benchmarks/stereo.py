@@ -36,6 +36,8 @@ def add_arguments(parser):
     parser.add_argument("--no-reference", action="store_true", help="skip the NumPy reference on the full image")
     parser.add_argument("--no-accuracy", action="store_true", help="perf/bench_stereo.py: skip the accuracy table")
     parser.add_argument("--accuracy-only", action="store_true", help="perf/bench_stereo.py: only the accuracy table")
+    parser.add_argument("--cpu-time", action="store_true",
+                        help="perf/bench_stereo.py: also CPU time per call of every case and the peer (time.process_time)")
 
 
 def motorcycle_gray():
@@ -129,6 +131,26 @@ def format_accuracy(rows: dict) -> str:
     for name, s in rows.items():
         lines.append(f"{name:<28}{100 * s['bad1']:>9.1f}%{100 * s['bad2']:>9.1f}%{100 * s['density']:>9.1f}%")
     return "\n".join(lines)
+
+
+def cpu_times(device, args, reps: int = 10) -> dict:
+    """CPU time per call (``time.process_time``, every thread of the process) of each case of
+    :func:`cases` and of its peers, in ms, after 3 warm-up calls: on a shared machine, closer to
+    the work done than the wall time."""
+    import time
+
+    rows = {}
+    for case in cases(device, args):
+        for name, fn in [(case.name, case.run), *((f"{p} ({case.name})", f) for p, f in case.peers.items())]:
+            for _ in range(3):
+                fn()
+                device.synchronize()
+            t0 = time.process_time()
+            for _ in range(reps):
+                fn()
+                device.synchronize()
+            rows[name] = (time.process_time() - t0) / reps * 1e3
+    return rows
 
 
 def cases(device, args):
