@@ -204,3 +204,24 @@ def run(device: Device) -> list[dict]:
             ok, detail = False, f"{type(e).__name__}: {' '.join(str(e).split())[:300]}"
         rows.append({"check": name, "ok": ok, "detail": detail, "ms": (time.perf_counter() - t0) * 1e3})
     return rows
+
+
+def check_stereo(device: Device) -> None:
+    """stereo_match of a small random pair (uint8, masked and not): the same pixels with a value
+    and the same disparities as the reference."""
+    from .ops.stereo import stereo_match
+
+    rng = np.random.default_rng(4)
+    base = rng.integers(0, 256, (24, 60)).astype(np.uint8)
+    left, right = base[:, :52], base[:, 5:57]  # disparity 5
+    mask = rng.random(left.shape) < 0.5
+    ref = get_device("numpy")
+    for m in (None, mask):
+        want = stereo_match(ref, left, right, mask=m, max_disparity=12, block=5)
+        got = to_numpy(stereo_match(device, left, right, mask=m, max_disparity=12, block=5))
+        assert np.array_equal(np.isnan(got), np.isnan(want)), "stereo_match: other pixels have a value than in the reference"
+        err = float(np.nanmax(np.abs(got - want))) if np.isfinite(want).any() else 0.0
+        assert err <= 1e-5, f"stereo_match differs from the reference by {err:g}"
+
+
+CHECKS.append(("stereo", check_stereo))

@@ -3,12 +3,15 @@
 //   gt_stereo_prefilter_{u8,f32}  x-Sobel clipped to [-cap, cap] plus cap, into padded int
 //                                 images (GT_STEREO_LANES columns on the left, Dp + LANES on
 //                                 the right); NaN into the output. NDRange (H).
-//   gt_stereo_left_costs          one work-item per (disparity group of 8, run): running box
-//                                 sums of SAD along the run, 8 disparities in an int8.
-//   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d.
-//   gt_stereo_right_costs         one per (group, run): C_R(xr, d) at the marked positions.
+//   gt_stereo_left_costs          one work-item per (disparity group of 8, tile of runs): window
+//                                 column sums carried down the tile's rows, running box sums
+//                                 along each run, 8 disparities in an int8.
+//   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d
+//                                 (and its tile's marked span, by atomic min / max).
+//   gt_stereo_right_costs         one per (group, tile): C_R(xr, d) at the marked positions.
 //   gt_stereo_right_check         one per run: the right winners and the left-right check.
-// Runs: int rows (y, x0, x1, offset, right offset). Cost buffers: Dp ints per pixel (d fastest).
+// Runs: int rows (y, x0, x1, offset, right offset); tiles: int rows (y0, y1, xa, xb, i0, i1, off, w),
+// runs[order[i0 .. i1)] (gputrack/ops/stereo.py run_tiles). Cost buffers: Dp ints per pixel (d fastest).
 
 #ifndef GT_STEREO_LANES
 #define GT_STEREO_LANES 8  // the int8 below: keep equal to LANES in gputrack/backends/opencl/stereo.py
@@ -20,13 +23,19 @@ inline int gt_q_u8(const __global uchar *img, int i) { return (int)img[i]; }
 // floor(4096 I), I clamped to [0, 1]: exact (a product by a power of two)
 inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(fmax(img[i], 0.0f), 1.0f) * 4096.0f); }
 
-// one work-item per row (a CPU device streams along it)
+// one work-item per row (a CPU device streams along it): NaN into the output; the prefilter on
+// the rows [y0, y1) that the runs' windows read
 #define GT_STEREO_PREFILTER(NAME, T, Q)                                                                  \
     __kernel void NAME(__global const T *left, __global const T *right, __global int *pl, __global int *pr, \
-                       __global float *out, const int H, const int W, const int Wp, const int cap)        \
+                       __global float *out, const int H, const int W, const int Wp, const int cap,        \
+                       const int y0, const int y1)                                                        \
     {                                                                                                     \
         const int y = get_global_id(0);                                                                  \
         if (y >= H)                                                                                       \
+            return;                                                                                       \
+        for (int x = 0; x < W; ++x)                                                                       \
+            out[y * W + x] = NAN;                                                                         \
+        if (y < y0 || y >= y1)                                                                            \
             return;                                                                                       \
         for (int xp = 0; xp < Wp; ++xp) {                                                                 \
             const int x = xp - GT_STEREO_LANES;                                                          \
@@ -40,8 +49,6 @@ inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(f
                     - (Q(right, u - 1) + 2 * Q(right, c - 1) + Q(right, d - 1));                          \
                 b = min(max(s, -cap), cap) + cap;                                                         \
             }                                                                                             \
-            if (x >= 0 && x < W)                                                                          \
-                out[y * W + x] = NAN;                                                                     \
             pl[y * Wp + xp] = a;                                                                          \
             pr[y * Wp + xp] = b;                                                                          \
         }                                                                                                 \
@@ -50,33 +57,53 @@ inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(f
 GT_STEREO_PREFILTER(gt_stereo_prefilter_u8, uchar, gt_q_u8)
 GT_STEREO_PREFILTER(gt_stereo_prefilter_f32, float, gt_q_f32)
 
-// left costs C(x, d) = sum over the window of |P_L(x') - P_R(x' - d)|
+// left costs, one work-item per (disparity group, tile): the window column sums
+// V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried down its
+// rows (the row entering added, the one leaving subtracted), then running box sums along each run
+// of the row: C(x, d) = C(x - 1, d) + V(x + r) - V(x - r - 1)
 __kernel void gt_stereo_left_costs(__global const int *pl, __global const int *pr, __global const int *runs,
-                                   __global int *ring, __global int *cost, const int S, const int D, const int B,
-                                   const int Wp)
+                                   __global const int *tiles, __global const int *order, __global int *vsum,
+                                   __global int *cost, const int T, const int D, const int B, const int Wp)
 {
-    const int g = get_global_id(0), s = get_global_id(1);
+    const int g = get_global_id(0), b = get_global_id(1);
     const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
-    if (g >= G || s >= S)
+    if (g >= G || b >= T)
         return;
+    const __global int *tile = tiles + 8 * b;
     const int r = B / 2, d0 = g * GT_STEREO_LANES;
-    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], off = runs[5 * s + 3];
-    int8 c = (int8)(0);
-    for (int x = x0 - r; x <= x1 + r; ++x) {
-        int8 v = (int8)(0);
-        for (int i = 0; i < B; ++i) {
-            const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;
-            const int8 rv = vload8(0, pr + at - d0 - 7).s76543210;  // lane j: P_R(x - d0 - j)
-            const int8 t = (int8)(pl[at]) - rv;
-            v += max(t, -t);
+    const int y0 = tile[0], y1 = tile[1], xa = tile[2], xb = tile[3], i1 = tile[5], w = tile[7];
+    __global int *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;  // this work-item's sums
+    const int first = xa - r;
+    int i = tile[4];
+    for (int y = y0; y <= y1; ++y) {
+        for (int j = 0; j < xb - xa + 2 * r + 1; ++j) {
+            const int at = (y - r) * Wp + GT_STEREO_LANES + first + j;  // the window's top row
+            int8 v;
+            if (y == y0) {
+                v = (int8)(0);
+                for (int k = 0; k < B; ++k) {
+                    const int8 t = (int8)(pl[at + k * Wp]) - vload8(0, pr + at + k * Wp - d0 - 7).s76543210;
+                    v += max(t, -t);  // lane l: |P_L(x) - P_R(x - d0 - l)|
+                }
+            } else {
+                const int add = at + (B - 1) * Wp, sub = at - Wp;
+                const int8 t1 = (int8)(pl[add]) - vload8(0, pr + add - d0 - 7).s76543210;
+                const int8 t2 = (int8)(pl[sub]) - vload8(0, pr + sub - d0 - 7).s76543210;
+                v = vload8(j, vs) + max(t1, -t1) - max(t2, -t2);
+            }
+            vstore8(v, j, vs);
         }
-        __global int *slot = ring + (size_t)(s * B + x % B) * Dp + d0;
-        if (x >= x0 + r + 1)
-            c -= vload8(0, slot);  // column x - B, in the same ring slot, leaves the window
-        c += v;
-        vstore8(v, 0, slot);
-        if (x >= x0 + r)
-            vstore8(c, 0, cost + (size_t)(off + x - r - x0) * Dp + d0);
+        for (; i < i1 && runs[5 * order[i]] == y; ++i) {
+            const int q = 5 * order[i], x0 = runs[q + 1], x1 = runs[q + 2], off = runs[q + 3];
+            int8 c = (int8)(0);
+            for (int k = 0; k < B; ++k)
+                c += vload8(x0 - r - first + k, vs);
+            vstore8(c, 0, cost + (size_t)off * Dp + d0);
+            for (int x = x0 + 1; x <= x1; ++x) {
+                c += vload8(x + r - first, vs) - vload8(x - r - 1 - first, vs);
+                vstore8(c, 0, cost + (size_t)(off + x - x0) * Dp + d0);
+            }
+        }
     }
 }
 
@@ -105,8 +132,9 @@ inline int gt_stereo_argmin(const __global int *c, const int n, const int Dp, in
 }
 
 __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const int *cost,
-                                 __global int *ldisp, __global int *rmark, __global float *out, const int S,
-                                 const int D, const int U, const int W)
+                                 __global int *ldisp, __global int *rmark, __global const int *run_tile,
+                                 __global int *marked, __global float *out, const int S, const int D, const int U,
+                                 const int W)
 {
     const int s = get_global_id(0);
     if (s >= S)
@@ -118,6 +146,7 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
     for (int k = 0; k < x1 - x0 + D; ++k)
         rmark[roff + k] = 0;
     const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    int mlo = W, mhi = -1;  // the run's marked right-image positions
     for (int x = x0; x <= x1; ++x) {
         const __global int *c = cost + (size_t)(off + x - x0) * Dp;
         int ld = -1;
@@ -138,49 +167,74 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
                 out[y * W + x] = val;
                 ld = best;
                 rmark[roff + x - best - rlo] = 1;
+                mlo = min(mlo, x - best);
+                mhi = max(mhi, x - best);
             }
         }
         ldisp[off + x - x0] = ld;
     }
+    if (mlo <= mhi) {  // the tile's marked span, for the right costs
+        atomic_min(marked + 2 * run_tile[s], mlo);
+        atomic_max(marked + 2 * run_tile[s] + 1, mhi);
+    }
 }
 
-// right costs at the marked positions: C_R(xr, d) = sum |P_L(x' + d) - P_R(x')| (garbage but in
-// bounds where x' + d >= W: such d are not candidates)
+// right costs at the marked positions, the same way: V(x) = sum over the window's rows of
+// |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds where
+// x + d >= W: such d are not candidates), C_R(xr, d) running along each run's positions in that span
 __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *pr, __global const int *runs,
-                                    __global const int *rmark, __global int *ring, __global int *rcost, const int S,
+                                    __global const int *tiles, __global const int *order, __global const int *marked,
+                                    __global const int *rmark, __global int *vsum, __global int *rcost, const int T,
                                     const int D, const int B, const int Wp)
 {
-    const int g = get_global_id(0), s = get_global_id(1);
+    const int g = get_global_id(0), b = get_global_id(1);
     const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
-    if (g >= G || s >= S)
+    if (g >= G || b >= T)
         return;
+    const __global int *tile = tiles + 8 * b;
     const int r = B / 2, d0 = g * GT_STEREO_LANES;
-    const int y = runs[5 * s], x0 = runs[5 * s + 1], x1 = runs[5 * s + 2], roff = runs[5 * s + 4];
-    const int rlo = x0 - D + 1;
-    int8 c = (int8)(0);
-    int last = -(1 << 30);
-    for (int k = 0; k < x1 - x0 + D; ++k) {
-        if (rmark[roff + k] == 0)
-            continue;
-        const int xr = rlo + k;
-        const bool running = xr == last + 1;
-        if (!running)
-            c = (int8)(0);
-        for (int x = running ? xr + r : xr - r; x <= xr + r; ++x) {  // one new column, or the window after a gap
-            int8 v = (int8)(0);
-            for (int i = 0; i < B; ++i) {
-                const int at = (y - r + i) * Wp + GT_STEREO_LANES + x;
-                const int8 t = vload8(0, pl + at + d0) - (int8)(pr[at]);  // lane j: P_L(x + d0 + j)
-                v += max(t, -t);
+    const int y0 = tile[0], y1 = tile[1], xa = tile[2], i1 = tile[5], w = tile[7];
+    const int mlo = marked[2 * b], mhi = marked[2 * b + 1];
+    if (mlo > mhi)
+        return;  // nothing marked in this tile
+    __global int *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;
+    const int first = xa - D + 1 - r;  // column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
+    int i = tile[4];
+    for (int y = y0; y <= y1; ++y) {
+        for (int j = mlo - r - first; j <= mhi + r - first; ++j) {
+            const int at = (y - r) * Wp + GT_STEREO_LANES + first + j;
+            int8 v;
+            if (y == y0) {
+                v = (int8)(0);
+                for (int k = 0; k < B; ++k) {
+                    const int8 t = vload8(0, pl + at + k * Wp + d0) - (int8)(pr[at + k * Wp]);
+                    v += max(t, -t);  // lane l: |P_L(x + d0 + l) - P_R(x)|
+                }
+            } else {
+                const int add = at + (B - 1) * Wp, sub = at - Wp;
+                const int8 t1 = vload8(0, pl + add + d0) - (int8)(pr[add]);
+                const int8 t2 = vload8(0, pl + sub + d0) - (int8)(pr[sub]);
+                v = vload8(j, vs) + max(t1, -t1) - max(t2, -t2);
             }
-            __global int *slot = ring + (size_t)(s * B + x % B) * Dp + d0;
-            if (running)
-                c -= vload8(0, slot);
-            c += v;
-            vstore8(v, 0, slot);
+            vstore8(v, j, vs);
         }
-        vstore8(c, 0, rcost + (size_t)(roff + k) * Dp + d0);
-        last = xr;
+        for (; i < i1 && runs[5 * order[i]] == y; ++i) {
+            const int q = 5 * order[i], x0 = runs[q + 1], x1 = runs[q + 2], roff = runs[q + 4];
+            const int rlo = x0 - D + 1;
+            const int k0 = max(0, mlo - rlo), k1 = min(x1 - x0 + D - 1, mhi - rlo);
+            if (k0 > k1)
+                continue;
+            int8 c = (int8)(0);
+            for (int k = 0; k < B; ++k)
+                c += vload8(rlo + k0 - r - first + k, vs);
+            for (int k = k0; k <= k1; ++k) {
+                const int xr = rlo + k;
+                if (k > k0)
+                    c += vload8(xr + r - first, vs) - vload8(xr - r - 1 - first, vs);
+                if (rmark[roff + k] != 0)
+                    vstore8(c, 0, rcost + (size_t)(roff + k) * Dp + d0);
+            }
+        }
     }
 }
 

@@ -201,3 +201,73 @@ def test_mask_runs_cover_exactly_the_pixels_that_can_have_a_value():
     np.testing.assert_array_equal(runs[:, 4], np.cumsum(lengths + D - 1) - (lengths + D - 1))
     assert mask_runs(np.zeros((H, W), bool), H, W, D, block).shape == (0, 5)
     assert len(mask_runs(None, H, W, D, block)) == H - 2 * r
+
+
+def test_selftest(device):
+    from gputrack.selftest import check_stereo
+
+    check_stereo(device)
+
+
+def test_scores_count_bad_pixels_and_density():
+    from gputrack.benchmarks.stereo import scores
+
+    truth = np.array([[10.0, 20.0, np.inf, 30.0], [5.0, 6.0, 7.0, 8.0]], np.float32)
+    disp = np.array([[10.5, 21.5, 3.0, np.nan], [8.0, 6.0, np.nan, 8.9]], np.float32)
+    s = scores(disp, truth)  # 5 of the 7 known pixels have a value; errors 0.5, 1.5, 3, 0, 0.9
+    assert s["density"] == pytest.approx(5 / 7)
+    assert s["bad1"] == pytest.approx(2 / 5) and s["bad2"] == pytest.approx(1 / 5)
+
+
+def test_bench_script_smoke(tmp_path):
+    """perf/bench_stereo.py as users run it, on numpy at a small size (no accuracy table: the
+    full motorcycle pair takes seconds): the harness's JSON with both cases and the peer."""
+    pytest.importorskip("skimage")
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    # the script imports this checkout's gputrack (not whichever one the environment installed)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    out = tmp_path / "stereo.json"
+    cmd = [sys.executable, str(root / "perf" / "bench_stereo.py"), "--device", "numpy", "--size", "160x48",
+           "--min-time", "0.001", "--no-accuracy", "--json", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path, check=False, env=env)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc["schema"] == "gputrack-bench/1" and doc["bench"] == "stereo" and "commit" in doc
+    (run,) = doc["runs"]
+    assert run["device"]["spec"] == "numpy"
+    cases = [r["case"] for r in run["results"]]
+    assert cases == ["stereo_match 160x48 mask 15.0 %", "stereo_match 160x48 full"]
+    for r in run["results"]:
+        assert r["params"]["max_disparity"] == 64 and "cv2.StereoBM full" in r["peers"]
+
+
+def test_run_tiles_partition_the_runs():
+    from gputrack.ops.stereo import run_tiles
+
+    rng = np.random.default_rng(6)
+    H, W, D, block = 70, 150, 10, 5
+    mask = blob_mask(H, W, rng, n=5) | (rng.random((H, W)) < 0.02)
+    runs = mask_runs(mask, H, W, D, block)
+    tiles, order, run_tile = run_tiles(runs, D, block, rows=16)
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(runs)))  # every run in one tile
+    r = block // 2
+    for t, (y0, y1, xa, xb, i0, i1, off, w) in enumerate(tiles):
+        assert (run_tile[order[i0:i1]] == t).all()
+        mine = runs[order[i0:i1]]
+        assert (np.diff(mine[:, 0]) >= 0).all() and y0 == mine[0, 0] and y1 == mine[-1, 0]  # by row
+        assert len(set((mine[:, 0] - r) // 16)) == 1  # one band
+        assert xa == mine[:, 1].min() and xb == mine[:, 2].max() and w == xb - xa + D + 2 * r
+    np.testing.assert_array_equal(tiles[:, 6], np.cumsum(tiles[:, 7]) - tiles[:, 7])
+    # tiles of one band do not touch: their ranges [xa - D + 1 - r, xb + r] are disjoint
+    band = (tiles[:, 0] - r) // 16
+    for b in np.unique(band):
+        t = tiles[band == b]
+        lo, hi = np.sort(t[:, 2] - D + 1 - r), np.sort(t[:, 3] + r)
+        assert (lo[1:] > hi[:-1]).all()
+    assert len(tiles) > len(np.unique(band))  # the blobs give several tiles in some band

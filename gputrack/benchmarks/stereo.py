@@ -36,6 +36,8 @@ def add_arguments(parser):
     parser.add_argument("--no-reference", action="store_true", help="skip the NumPy reference on the full image")
     parser.add_argument("--no-accuracy", action="store_true", help="perf/bench_stereo.py: skip the accuracy table")
     parser.add_argument("--accuracy-only", action="store_true", help="perf/bench_stereo.py: only the accuracy table")
+    parser.add_argument("--cpu-time", action="store_true",
+                        help="perf/bench_stereo.py: also CPU time per call of every case and the peer (time.process_time)")
 
 
 def motorcycle_gray():
@@ -109,12 +111,13 @@ def scores(disparity: np.ndarray, truth: np.ndarray) -> dict:
 def accuracy(device=None) -> dict:
     """stereo_match (on ``device``, default numpy), cv2.StereoBM and cv2.StereoSGBM on the whole
     motorcycle pair at max_disparity 64: {method: scores}."""
-    import gputrack
+    from ..device import to_numpy
     from ..ops import stereo_match
+    from ..registry import device as get_device
 
-    device = device or gputrack.device("numpy")
+    device = device or get_device("numpy")
     left, right, truth = motorcycle_gray()
-    ours = gputrack.to_numpy(stereo_match(device, left, right, max_disparity=MAX_DISPARITY, block=BLOCK))
+    ours = to_numpy(stereo_match(device, left, right, max_disparity=MAX_DISPARITY, block=BLOCK))
     return {
         f"stereo_match (block {BLOCK})": scores(ours, truth),
         f"cv2.StereoBM (block {BLOCK})": scores(stereo_bm()(left, right), truth),
@@ -130,11 +133,31 @@ def format_accuracy(rows: dict) -> str:
     return "\n".join(lines)
 
 
-def cases(device, args):
-    import gputrack
-    from ..ops import stereo_match
+def cpu_times(device, args, reps: int = 10) -> dict:
+    """CPU time per call (``time.process_time``, every thread of the process) of each case of
+    :func:`cases` and of its peers, in ms, after 3 warm-up calls: on a shared machine, closer to
+    the work done than the wall time."""
+    import time
 
-    ref = gputrack.device("numpy")
+    rows = {}
+    for case in cases(device, args):
+        for name, fn in [(case.name, case.run), *((f"{p} ({case.name})", f) for p, f in case.peers.items())]:
+            for _ in range(3):
+                fn()
+                device.synchronize()
+            t0 = time.process_time()
+            for _ in range(reps):
+                fn()
+                device.synchronize()
+            rows[name] = (time.process_time() - t0) / reps * 1e3
+    return rows
+
+
+def cases(device, args):
+    from ..ops import stereo_match
+    from ..registry import device as get_device
+
+    ref = get_device("numpy")
     left, right = _pair(args.size)
     H, W = left.shape
     mask = foreground_mask(H, W, args.foreground)

@@ -40,8 +40,9 @@ The method, exactly (every backend gives the same integer costs and the same cho
 Masked matching (``mask``: (H, W) bool or uint8, nonzero = foreground): the result at a mask
 pixel is exactly the unmasked result there; every other pixel is NaN. The work scales with the
 foreground: the left costs are computed only along per-row runs of the mask, the right image's
-costs only at the positions x - d that the run's winners point to, each with running box sums
-along the row (about twice the mask's pixels, times max_disparity, times block + 2 operations).
+costs only at the positions x - d that the runs' winners point to, from window column sums carried
+down tiles of 16 rows (:func:`run_tiles`) and running box sums along the rows (a few operations
+per pixel and disparity).
 A mask given as a device array is downloaded (its runs are found on the host).
 
 An unrectified pair (rows shifted vertically) mostly fails the uniqueness and left-right checks:
@@ -60,7 +61,7 @@ from ..device import DeviceArray
 from . import backend_module
 from ._args import arg, check_device, out_array
 
-__all__ = ["stereo_match", "mask_runs"]
+__all__ = ["stereo_match", "mask_runs", "run_tiles"]
 
 #: the largest window side (keeps every cost and check in int32)
 MAX_BLOCK = 31
@@ -129,6 +130,42 @@ def mask_runs(mask: np.ndarray | None, H: int, W: int, max_disparity: int, block
     return np.concatenate([runs, offsets[:, None], right[:, None]], axis=1).astype(np.int32)
 
 
+#: rows a band (the fast backends carry window column sums down a tile's rows)
+BAND = 16
+
+
+def run_tiles(runs: np.ndarray, max_disparity: int, block: int, rows: int = BAND) -> tuple:
+    """Tiles over the runs of :func:`mask_runs`: the runs of a band of ``rows`` rows whose column
+    ranges [x0 - max_disparity + 1 - r, x1 + r] (the left and right windows a run reads) overlap,
+    directly or through other runs of the band. Returns (tiles, order, run_tile): ``order`` (S,)
+    int32, the run indices tile by tile, by row within a tile; ``run_tile`` (S,) int32, each run's
+    tile; ``tiles`` (T, 8) int32 rows (y0, y1: its first and
+    last row; xa, xb: the smallest x0 and largest x1 of its runs; i0, i1: its runs are
+    runs[order[i0:i1]]; off, w: its window column sums take w = xb - xa + max_disparity + block - 1
+    columns, off = the columns of the tiles before)."""
+    if len(runs) == 0:
+        return np.zeros((0, 8), np.int32), np.zeros(0, np.int32), np.zeros(0, np.int32)
+    r = block // 2
+    y, x0, x1 = (runs[:, k].astype(np.int64) for k in range(3))
+    band = (y - r) // rows
+    lo, hi = x0 - max_disparity + 1 - r, x1 + r
+    by_x = np.lexsort((lo, band))  # within each band by the left end of the range
+    span = np.int64(1) << 32  # keeps the running maximum inside its band
+    reach = np.maximum.accumulate(band[by_x] * span + hi[by_x]) - band[by_x] * span
+    new = np.r_[True, (band[by_x][1:] != band[by_x][:-1]) | (lo[by_x][1:] > reach[:-1])]
+    tile = np.empty(len(runs), np.int64)
+    tile[by_x] = np.cumsum(new) - 1
+    order = np.lexsort((x0, y, tile))
+    t = tile[order]
+    i0 = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+    i1 = np.r_[i0[1:], len(runs)]
+    xa, xb = np.minimum.reduceat(x0[order], i0), np.maximum.reduceat(x1[order], i0)
+    w = xb - xa + max_disparity + 2 * r
+    off = np.cumsum(w) - w
+    tiles = np.stack([y[order][i0], y[order][i1 - 1], xa, xb, i0, i1, off, w], axis=1).astype(np.int32)
+    return tiles, order.astype(np.int32), tile.astype(np.int32)
+
+
 def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, uniqueness=15, out=None):
     """(H, W) float32 disparity of a rectified pair, NaN where invalid (see the module).
 
@@ -160,4 +197,5 @@ def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, u
         host_mask = m.view(np.uint8) if m.dtype == np.bool_ else (m != 0).view(np.uint8)
     out = out_array(device, out, "out", (H, W))
     runs = mask_runs(host_mask, H, W, D, block)
-    return backend_module(device, "stereo").stereo_match(device, L, R, host_mask, runs, D, block, U, cap, out)
+    tiles = run_tiles(runs, D, block)
+    return backend_module(device, "stereo").stereo_match(device, L, R, host_mask, runs, tiles, D, block, U, cap, out)

@@ -1,6 +1,8 @@
 """OpenCL launchers of :mod:`gputrack.ops.stereo` (kernels/gt_stereo.cl; conventions in the op):
 five launches, the steps of gputrack/backends/taichi/stereo.py (8 disparities a work-item in an
-int8)."""
+int8; the costs one work-item per (group, tile of runs)). Work-groups of one work-item: the
+kernels vectorise explicitly, and PoCL then builds each kernel once instead of once per
+work-group size it picks for a new NDRange (3-4 s of the tests' time)."""
 
 from __future__ import annotations
 
@@ -13,11 +15,11 @@ LANES = 8
 
 _I = np.int32
 ARG_TYPES = {
-    "gt_stereo_prefilter_u8": [None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_prefilter_f32": [None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_left_costs": [None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_left_wta": [None, None, None, None, None, None, _I, _I, _I, _I],
-    "gt_stereo_right_costs": [None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_prefilter_u8": [None, None, None, None, None, _I, _I, _I, _I, _I, _I],
+    "gt_stereo_prefilter_f32": [None, None, None, None, None, _I, _I, _I, _I, _I, _I],
+    "gt_stereo_left_costs": [None, None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_left_wta": [None, None, None, None, None, None, None, None, _I, _I, _I, _I],
+    "gt_stereo_right_costs": [None, None, None, None, None, None, None, None, None, _I, _I, _I, _I],
     "gt_stereo_right_check": [None, None, None, None, _I, _I, _I, _I],
 }
 
@@ -32,39 +34,52 @@ def _kernel(device, name):
 
 
 def _capacity(n: int) -> int:
-    return 1 << max(int(n) - 1, 0).bit_length()  # the next power of two: few buffer shapes for the pool
+    """``n`` rounded up to 4 significant bits (at most 1/8 more): few buffer shapes for the pool."""
+    step = 1 << max(int(n).bit_length() - 4, 0)
+    return -(-int(n) // step) * step
 
 
-def stereo_match(device, L, R, mask, runs, D, block, U, cap, out):
+def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     H, W = L.shape
     S = len(runs)
     G = -(-D // LANES)
     Dp = G * LANES
     Wp = W + Dp + 2 * LANES
     q = device.queue
+    y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
     pl, pr = device.empty((H * Wp,), np.int32), device.empty((H * Wp,), np.int32)
     name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
-    _kernel(device, name)(q, (H,), None, L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
-                          out.buffer.data, H, W, Wp, cap)  # fmt: skip
+    _kernel(device, name)(q, (H,), (1,), L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
+                          out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
+    tiles, order, run_tile = tiles
+    T = len(tiles)
     P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3])
-    Sc, Pc, P2c = _capacity(S), _capacity(P), _capacity(P + S * (D - 1))
+    Vn = int(tiles[-1, 6] + tiles[-1, 7])  # column sums of every tile
+    Sc, Tc, Pc, P2c, Vc = (_capacity(n) for n in (S, T, P, P + S * (D - 1), Vn))
     runs_host = np.zeros((Sc, 5), np.int32)
     runs_host[:S] = runs
-    runs_d = device.asarray(runs_host)
+    tiles_host = np.zeros((Tc, 8), np.int32)
+    tiles_host[:T] = tiles
+    order_host, run_tile_host = np.zeros(Sc, np.int32), np.zeros(Sc, np.int32)
+    order_host[:S], run_tile_host[:S] = order, run_tile
+    marked = np.empty((Tc, 2), np.int32)
+    marked[:, 0], marked[:, 1] = W, -1  # no marked position yet
+    runs_d, tiles_d, order_d, run_tile_d, marked_d = (
+        device.asarray(a) for a in (runs_host, tiles_host, order_host, run_tile_host, marked))
     mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
-    ring = device.empty((Sc * block * Dp,), np.int32)
+    vsum = device.empty((Vc * Dp,), np.int32)
     cost = device.empty((Pc * Dp,), np.int32)
     rcost = device.empty((P2c * Dp,), np.int32)
     ldisp = device.empty((Pc,), np.int32)
     rmark = device.empty((P2c,), np.int32)
     b = lambda a: a.buffer.data  # noqa: E731
-    _kernel(device, "gt_stereo_left_costs")(q, (G, S), None, b(pl), b(pr), b(runs_d), b(ring), b(cost), S, D, block,
-                                            Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_left_wta")(q, (S,), None, b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark), b(out), S,
-                                          D, U, W)  # fmt: skip
-    _kernel(device, "gt_stereo_right_costs")(q, (G, S), None, b(pl), b(pr), b(runs_d), b(rmark), b(ring), b(rcost), S,
-                                             D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_right_check")(q, (S,), None, b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
+    _kernel(device, "gt_stereo_left_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d), b(vsum),
+                                            b(cost), T, D, block, Wp)  # fmt: skip
+    _kernel(device, "gt_stereo_left_wta")(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark),
+                                          b(run_tile_d), b(marked_d), b(out), S, D, U, W)  # fmt: skip
+    _kernel(device, "gt_stereo_right_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
+                                             b(marked_d), b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
+    _kernel(device, "gt_stereo_right_check")(q, (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
     return out

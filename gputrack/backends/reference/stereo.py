@@ -68,10 +68,10 @@ def cost_volume(qL: np.ndarray, qR: np.ndarray, D: int, block: int) -> np.ndarra
     return np.where(ok, C, BIG)
 
 
-def stereo_match(device, left, right, mask, runs, D, block, uniqueness, cap, out):
+def stereo_match(device, left, right, mask, runs, tiles, D, block, uniqueness, cap, out):
     """Writes the (H, W) float32 disparity into ``out`` (NaN where invalid) and returns it; arguments
     validated by the op (``cap``: the prefilter's clip in integer units; ``mask``: uint8 (H, W) or
-    None; ``runs`` (the fast backends' work list) is not needed here)."""
+    None; ``runs`` and ``tiles`` (the fast backends' work lists) are not needed here)."""
     H, W = left.shape
     r = block // 2
     out[...] = np.nan
