@@ -1,9 +1,11 @@
 // Foreground points of a depth image, randomly downsampled (gputrack/ops/depth_points.py; paper 002
 // sec. 4.1). Four kernels, launched in order on one queue:
-//   gt_dp_count   NDRange (H): per row, the count of foreground keys below each of GT_LEVELS bounds
-//                 2^(31 - GT_STEP q) (q = 0: every foreground key);
-//   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, row offsets;
-//   gt_dp_compact NDRange (H): (key, pixel) of each candidate at its row's offset (row order);
+//   gt_dp_count   NDRange (chunks, H): per chunk of GT_CHUNK pixels of a row, the count of foreground
+//                 keys below each of GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground
+//                 key) and the smallest key;
+//   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, chunk offsets;
+//   gt_dp_compact NDRange (chunks, H): (key, pixel) of each candidate at its chunk's offset (row
+//                 order), rescanning only the chunks that hold one;
 //   gt_dp_select  one work-item: stable LSD radix sort of the candidates by key, the first
 //                 min(n, C) points back-projected, NaN rows after them.
 // A pixel's key: pcg(pcg(i ^ a) + b) >> 1 (i = r W + c) if it is foreground, else >= 2^31.
@@ -12,8 +14,9 @@
 #ifndef GT_PIXEL
 #define GT_PIXEL float
 #endif
-#define GT_LEVELS 8
-#define GT_STEP 2
+#define GT_LEVELS 4
+#define GT_STEP 3
+#define GT_CHUNK 32
 #define GT_RADIX 256
 
 inline uint gt_dp_pcg(const uint x)
@@ -36,69 +39,76 @@ inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, 
     return fg ? key : (key | 0x80000000u);
 }
 
+// NDRange (chunks, H), chunks = ceil(W / GT_CHUNK): work-item (ch, r) takes pixels
+// [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r: hist[(r chunks + ch) GT_LEVELS + q] = the count of
+// its keys below level q's bound, low[r chunks + ch] = its smallest key
 __kernel void gt_dp_count(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
                           const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                          __global int *hist)
+                          __global int *hist, __global uint *low)
 {
-    const int r = get_global_id(0);
-    if (r >= H)
+    const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
+    if (ch >= chunks || r >= H)
         return;
     int h[GT_LEVELS];
     for (int q = 0; q < GT_LEVELS; ++q)
         h[q] = 0;
-    for (int c = 0; c < W; ++c) {
+    uint lo = 0xffffffffu;
+    const int c1 = min(W, (ch + 1) * GT_CHUNK);
+    for (int c = ch * GT_CHUNK; c < c1; ++c) {
         const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
-        if (key < 0x80000000u)  // foreground: its bucket, the last level whose bound it is below
-            ++h[min(((int)clz(key) - 1) / GT_STEP, GT_LEVELS - 1)];
+        lo = min(lo, key);
+        for (int q = 0; q < GT_LEVELS; ++q)
+            h[q] += key < (1u << (31 - GT_STEP * q));
     }
-    int below = 0;  // keys below level q's bound: the buckets q .. GT_LEVELS - 1
-    for (int q = GT_LEVELS - 1; q >= 0; --q) {
-        below += h[q];
-        hist[r * GT_LEVELS + q] = below;
-    }
+    const int at = r * chunks + ch;
+    for (int q = 0; q < GT_LEVELS; ++q)
+        hist[at * GT_LEVELS + q] = h[q];
+    low[at] = lo;
 }
 
-// info: [N, C, level]
-__kernel void gt_dp_plan(__global const int *hist, const int H, const int n, __global int *offs, __global int *info)
+// offs[g]: the first candidate of chunk g (g = r chunks + ch), offs[G] = C; info: [N, C, level]
+__kernel void gt_dp_plan(__global const int *hist, const int G, const int n, __global int *offs, __global int *info)
 {
     if (get_global_id(0) != 0)
         return;
-    int N = 0;
-    for (int r = 0; r < H; ++r)
-        N += hist[r * GT_LEVELS];
-    const int need = min(n, N);
+    int tot[GT_LEVELS];
+    for (int q = 0; q < GT_LEVELS; ++q)
+        tot[q] = 0;
+    for (int g = 0; g < G; ++g)
+        for (int q = 0; q < GT_LEVELS; ++q)
+            tot[q] += hist[g * GT_LEVELS + q];
+    const int N = tot[0], need = min(n, N);
     int k = 0;
-    for (int q = 1; q < GT_LEVELS; ++q) {  // the tightest bound with at least `need` keys below it
-        int tot = 0;
-        for (int r = 0; r < H; ++r)
-            tot += hist[r * GT_LEVELS + q];
-        if (tot >= need)
+    for (int q = 1; q < GT_LEVELS; ++q)  // the tightest bound with at least `need` keys below it
+        if (tot[q] >= need)
             k = q;
-    }
     int run = 0;
-    for (int r = 0; r < H; ++r) {
-        offs[r] = run;
-        run += hist[r * GT_LEVELS + k];
+    for (int g = 0; g < G; ++g) {
+        offs[g] = run;
+        run += hist[g * GT_LEVELS + k];
     }
-    offs[H] = run;
+    offs[G] = run;
     info[0] = N;
     info[1] = run;
     info[2] = k;
 }
 
+// NDRange (chunks, H): the candidates (key below the level's bound) of a chunk at its offset
 __kernel void gt_dp_compact(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
                             const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                            __global const int *offs, __global const int *info, __global uint *ck,
-                            __global int *ci)
+                            __global const uint *low, __global const int *offs, __global const int *info,
+                            __global uint *ck, __global int *ci)
 {
-    const int r = get_global_id(0);
-    if (r >= H)
+    const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
+    if (ch >= chunks || r >= H)
         return;
-    int j = offs[r];
-    if (offs[r + 1] == j)
-        return;
+    const int g = r * chunks + ch;
     const uint t = 1u << (31 - GT_STEP * info[2]);
-    for (int c = 0; c < W; ++c) {
+    if (low[g] >= t)
+        return;
+    int j = offs[g];
+    const int c1 = min(W, (ch + 1) * GT_CHUNK);
+    for (int c = ch * GT_CHUNK; c < c1; ++c) {
         const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
         if (key < t) {
             ck[j] = key;
