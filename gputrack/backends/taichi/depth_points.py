@@ -1,4 +1,5 @@
-"""Taichi kernel of :mod:`gputrack.ops.depth_points`: one launch of four loops.
+"""Taichi kernels of :mod:`gputrack.ops.depth_points`: six launches (steps 1-3 in one kernel, a
+kernel per radix pass, the points), no host sync until the count is read.
 
 1. one thread per image row: foreground test and key of each pixel (branch-free, so that the
    row loop vectorises), the row's count of foreground keys below each of LEVELS bounds
@@ -57,9 +58,10 @@ def _key(depth: ti.template(), bg: ti.template(), r, c, W, a, b, threshold, max_
 
 
 @ti.kernel
-def _depth_points(depth: nd2, bg: nd2, out: nd2, hist: nd2, lows: nd2, offs: nd1, info: nd1, k0: nd1, i0: nd1, k1: nd1,
-                  i1: nd1, blk: nd2, starts: nd1, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, threshold: ti.f32,
-                  max_range: ti.f32, wa: ti.i32, wb: ti.i32, u16: ti.template(), nearer: ti.template()):  # fmt: skip
+def _candidates(depth: nd2, bg: nd2, hist: nd2, lows: nd2, offs: nd1, info: nd1, k0: nd1, i0: nd1, n: ti.i32,
+                threshold: ti.f32, max_range: ti.f32, wa: ti.i32, wb: ti.i32, u16: ti.template(),
+                nearer: ti.template()):  # fmt: skip
+    """Steps 1-3: the candidates (k0, i0) in row order, info = [N, C, level]."""
     H = bg.shape[0]
     W = bg.shape[1]
     a = ti.cast(wa, ti.u32)
@@ -79,7 +81,6 @@ def _depth_points(depth: nd2, bg: nd2, out: nd2, hist: nd2, lows: nd2, offs: nd1
             hist[r, q] = hv[q]
     ti.loop_config(serialize=True)
     for _ in range(1):  # 2. N, the level, row offsets
-        n = out.shape[0]
         N = 0
         for r in range(H):
             N += hist[r, 0]
@@ -118,47 +119,57 @@ def _depth_points(depth: nd2, bg: nd2, out: nd2, hist: nd2, lows: nd2, offs: nd1
                         k0[j] = _key(depth, bg, r, c0 + e, W, a, b, threshold, max_range, u16, nearer)
                         i0[j] = r * W + c0 + e
                         j += 1
-    # 4. stable LSD radix sort of the C candidates by key, 8 bits a pass, in blocks of BLOCK: every
-    # thread's serial work is bounded (a single long serial task was seen to return garbage on
-    # lavapipe Vulkan past ~10^4 iterations)
-    for p in ti.static(range(4)):
-        src_k, src_i, dst_k, dst_i = ti.static((k0, i0, k1, i1) if p % 2 == 0 else (k1, i1, k0, i0))
-        for blo in range(blk.shape[0]):  # a. each block's digit counts
-            C = info[1]
-            if p < (31 - STEP * info[2] + 7) // 8 and blo * BLOCK < C:
-                for q in range(RADIX):
-                    blk[blo, q] = 0
-                for j in range(blo * BLOCK, ti.min(C, (blo + 1) * BLOCK)):
-                    q = _digit(src_k[j], 8 * p)
-                    blk[blo, q] = blk[blo, q] + 1
-        for q in range(RADIX):  # b. per digit: offsets of the blocks, the digit's total
-            C = info[1]
-            if p < (31 - STEP * info[2] + 7) // 8:
-                run = 0
-                for blo in range((C + BLOCK - 1) // BLOCK):
-                    t = blk[blo, q]
-                    blk[blo, q] = run
-                    run += t
+
+
+@ti.kernel
+def _radix_pass(info: nd1, sk: nd1, si: nd1, dk: nd1, di: nd1, blk: nd2, starts: nd1, p: ti.i32):
+    """Pass p (bits 8p .. 8p + 7) of the stable LSD radix sort of the C = info[1] candidates, in
+    blocks of BLOCK (every thread's serial work is bounded: one long serial task was seen to
+    return garbage on lavapipe Vulkan past ~10^4 iterations); nothing when the keys (below
+    2**(31 - STEP level)) have no bits there."""
+    for blo in range(blk.shape[0]):  # a. each block's digit counts
+        C = info[1]
+        if p < (31 - STEP * info[2] + 7) // 8 and blo * BLOCK < C:
+            for q in range(RADIX):
+                blk[blo, q] = 0
+            for j in range(blo * BLOCK, ti.min(C, (blo + 1) * BLOCK)):
+                q = _digit(sk[j], 8 * p)
+                blk[blo, q] = blk[blo, q] + 1
+    for q in range(RADIX):  # b. per digit: offsets of the blocks, the digit's total
+        C = info[1]
+        if p < (31 - STEP * info[2] + 7) // 8:
+            run = 0
+            for blo in range((C + BLOCK - 1) // BLOCK):
+                t = blk[blo, q]
+                blk[blo, q] = run
+                run += t
+            starts[q] = run
+    ti.loop_config(serialize=True)
+    for _ in range(1):  # c. the digits' starts
+        if p < (31 - STEP * info[2] + 7) // 8:
+            run = 0
+            for q in range(RADIX):
+                t = starts[q]
                 starts[q] = run
-        ti.loop_config(serialize=True)
-        for _ in range(1):  # c. the digits' starts
-            if p < (31 - STEP * info[2] + 7) // 8:
-                run = 0
-                for q in range(RADIX):
-                    t = starts[q]
-                    starts[q] = run
-                    run += t
-        for blo in range(blk.shape[0]):  # d. stable scatter, each block in order
-            C = info[1]
-            if p < (31 - STEP * info[2] + 7) // 8 and blo * BLOCK < C:
-                for j in range(blo * BLOCK, ti.min(C, (blo + 1) * BLOCK)):
-                    q = _digit(src_k[j], 8 * p)
-                    at = starts[q] + blk[blo, q]
-                    blk[blo, q] = blk[blo, q] + 1
-                    dst_k[at] = src_k[j]
-                    dst_i[at] = src_i[j]
+                run += t
+    for blo in range(blk.shape[0]):  # d. stable scatter, each block in order
+        C = info[1]
+        if p < (31 - STEP * info[2] + 7) // 8 and blo * BLOCK < C:
+            for j in range(blo * BLOCK, ti.min(C, (blo + 1) * BLOCK)):
+                q = _digit(sk[j], 8 * p)
+                at = starts[q] + blk[blo, q]
+                blk[blo, q] = blk[blo, q] + 1
+                dk[at] = sk[j]
+                di[at] = si[j]
+
+
+@ti.kernel
+def _points(depth: nd2, info: nd1, i0: nd1, i1: nd1, out: nd2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
+            u16: ti.template()):  # fmt: skip
+    """The first min(n, C) sorted candidates back-projected, NaN rows after them."""
+    W = i0.shape[0] // depth.shape[0]
     nan = ti.bit_cast(ti.u32(0x7FC00000), ti.f32)
-    for j in range(out.shape[0]):  # 5. the first min(n, C) points, back-projected; NaN rows after
+    for j in range(out.shape[0]):
         C = info[1]
         passes = (31 - STEP * info[2] + 7) // 8
         x = nan
@@ -166,7 +177,7 @@ def _depth_points(depth: nd2, bg: nd2, out: nd2, hist: nd2, lows: nd2, offs: nd1
         zz = nan
         if j < C:
             i = i0[j]
-            if passes % 2 == 1:
+            if passes % 2 == 1:  # an odd number of passes ends in the second buffer
                 i = i1[j]
             r = i // W
             c = i - r * W
@@ -194,10 +205,11 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     i0, i1 = scratch(device, "dp i0", (size,), ti.i32), scratch(device, "dp i1", (size,), ti.i32)
     blk = scratch(device, "dp blocks", ((size + BLOCK - 1) // BLOCK, RADIX), ti.i32)
     starts = scratch(device, "dp starts", (RADIX,), ti.i32)
-    launch(
-        _depth_points,
-        (depth.buffer, bg.buffer, out.buffer, hist, lows, offs, info, k0, i0, k1, i1, blk, starts),
-        (pixel == "uint16", bool(nearer)),
-        scalars=(float(fx), float(fy), float(cx), float(cy), float(threshold), float(max_range), _i32(a), _i32(b)),
-    )
+    launch(_candidates, (depth.buffer, bg.buffer, hist, lows, offs, info, k0, i0), (pixel == "uint16", bool(nearer)),
+           scalars=(int(out.shape[0]), float(threshold), float(max_range), _i32(a), _i32(b)))  # fmt: skip
+    for p in range(4):  # the kernel skips the passes the level's keys do not need
+        src, dst = ((k0, i0), (k1, i1)) if p % 2 == 0 else ((k1, i1), (k0, i0))
+        launch(_radix_pass, (info, *src, *dst, blk, starts), scalars=(p,))
+    launch(_points, (depth.buffer, info, i0, i1, out.buffer), (pixel == "uint16",),
+           scalars=(float(fx), float(fy), float(cx), float(cy)))  # fmt: skip
     return int(info.to_numpy()[0])
