@@ -219,3 +219,10 @@ def test_kinect_depth_background_and_mask(device):
     inside[200:300, 250:350] = True
     assert mask[inside & (frame > 0) & ~np.isnan(want) & (want - frame >= 100)].all()
     assert mask[inside].mean() > 0.8 and mask[~inside].mean() < 0.01  # the frames differ little elsewhere
+
+
+def test_selftest(device):
+    from gputrack.selftest import CHECKS, check_background
+
+    assert ("background", check_background) in CHECKS
+    check_background(device)
