@@ -1,8 +1,8 @@
 // Foreground points of a depth image, randomly downsampled (gputrack/ops/depth_points.py; paper 002
 // sec. 4.1). Four kernels, launched in order on one queue:
-//   gt_dp_count   NDRange (chunks, H): per chunk of GT_CHUNK pixels of a row, the count of foreground
-//                 keys below each of GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground
-//                 key) and the smallest key;
+//   gt_dp_count   one work-group per chunk of GT_CHUNK pixels of a row: the count of foreground keys
+//                 below each of GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground key)
+//                 and the smallest key;
 //   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, chunk offsets;
 //   gt_dp_compact NDRange (chunks, H): (key, pixel) of each candidate at its chunk's offset (row
 //                 order), rescanning only the chunks that hold one;
@@ -39,23 +39,28 @@ inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, 
     return fg ? key : (key | 0x80000000u);
 }
 
-// NDRange (chunks, H), chunks = ceil(W / GT_CHUNK): work-item (ch, r) takes pixels
-// [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r: hist[(r chunks + ch) GT_LEVELS + q] = the count of
-// its keys below level q's bound, low[r chunks + ch] = its smallest key
-__kernel void gt_dp_count(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
-                          const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                          __global int *hist, __global uint *low)
+// NDRange (chunks GT_CHUNK, H), work-groups (GT_CHUNK, 1): work-group (ch, r) takes pixels
+// [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r, one a work-item (the keys vectorise across
+// work-items), and its first work-item writes hist[(r chunks + ch) GT_LEVELS + q] = the count of the
+// keys below level q's bound and low[r chunks + ch] = the smallest key
+__kernel __attribute__((reqd_work_group_size(GT_CHUNK, 1, 1)))
+void gt_dp_count(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W, const uint a,
+                 const uint b, const float threshold, const float max_range, const int nearer, __global int *hist,
+                 __global uint *low)
 {
-    const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
-    if (ch >= chunks || r >= H)
+    __local uint keys[GT_CHUNK];
+    const int c = get_global_id(0), r = get_global_id(1), e = get_local_id(0);
+    const int chunks = (W + GT_CHUNK - 1) / GT_CHUNK, ch = get_group_id(0);
+    keys[e] = (c < W && r < H) ? gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer) : 0xffffffffu;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (e != 0 || r >= H)
         return;
     int h[GT_LEVELS];
     for (int q = 0; q < GT_LEVELS; ++q)
         h[q] = 0;
     uint lo = 0xffffffffu;
-    const int c1 = min(W, (ch + 1) * GT_CHUNK);
-    for (int c = ch * GT_CHUNK; c < c1; ++c) {
-        const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
+    for (int k = 0; k < GT_CHUNK; ++k) {
+        const uint key = keys[k];
         lo = min(lo, key);
         for (int q = 0; q < GT_LEVELS; ++q)
             h[q] += key < (1u << (31 - GT_STEP * q));

@@ -58,10 +58,10 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     d, g = depth.buffer.data, bg.buffer.data
     common = (H, W, a, b, float(threshold), float(max_range), int(nearer))
     chunks = (W + CHUNK - 1) // CHUNK
-    grid = (chunks, H)
-    _kernel(device, "gt_dp_count", pixel)(q, grid, None, d, g, *common, s["hist"], s["low"])
+    grid, group = (chunks * CHUNK, H), (CHUNK, 1)  # a work-group per chunk, a work-item per pixel
+    _kernel(device, "gt_dp_count", pixel)(q, grid, group, d, g, *common, s["hist"], s["low"])
     _kernel(device, "gt_dp_plan", pixel)(q, (1,), None, s["hist"], H * chunks, out.shape[0], s["offs"], s["info"])
-    _kernel(device, "gt_dp_compact", pixel)(q, grid, None, d, g, *common, s["low"], s["offs"], s["info"], s["k0"],
+    _kernel(device, "gt_dp_compact", pixel)(q, (chunks, H), None, d, g, *common, s["low"], s["offs"], s["info"], s["k0"],
                                             s["i0"])  # fmt: skip
     _kernel(device, "gt_dp_select", pixel)(q, (1,), None, d, W, s["info"], s["k0"], s["i0"], s["k1"], s["i1"],
                                            s["cnt"], out.shape[0], float(fx), float(fy), float(cx), float(cy),
