@@ -20,7 +20,7 @@ import numpy as np
 
 from .launch import launch
 from .particles import _pcg
-from .pixels import pixel2
+from .pixels import mode, pixel2
 from .runtime import scratch, ti
 
 nd1 = ti.types.ndarray(ndim=1)
@@ -205,11 +205,11 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     i0, i1 = scratch(device, "dp i0", (size,), ti.i32), scratch(device, "dp i1", (size,), ti.i32)
     blk = scratch(device, "dp blocks", ((size + BLOCK - 1) // BLOCK, RADIX), ti.i32)
     starts = scratch(device, "dp starts", (RADIX,), ti.i32)
-    launch(_candidates, (depth.buffer, bg.buffer, hist, lows, offs, info, k0, i0), (pixel == "uint16", bool(nearer)),
+    launch(_candidates, (depth.buffer, bg.buffer, hist, lows, offs, info, k0, i0), (mode(pixel, depth), bool(nearer)),
            scalars=(int(out.shape[0]), float(threshold), float(max_range), _i32(a), _i32(b)))  # fmt: skip
     for p in range(4):  # the kernel skips the passes the level's keys do not need
         src, dst = ((k0, i0), (k1, i1)) if p % 2 == 0 else ((k1, i1), (k0, i0))
         launch(_radix_pass, (info, *src, *dst, blk, starts), scalars=(p,))
-    launch(_points, (depth.buffer, info, i0, i1, out.buffer), (pixel == "uint16",),
+    launch(_points, (depth.buffer, info, i0, i1, out.buffer), (mode(pixel, depth),),
            scalars=(float(fx), float(fy), float(cx), float(cy)))  # fmt: skip
     return int(info.to_numpy()[0])
