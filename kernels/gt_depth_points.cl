@@ -1,11 +1,12 @@
 // Foreground points of a depth image, randomly downsampled (gputrack/ops/depth_points.py; paper 002
-// sec. 4.1). Four kernels, launched in order on one queue:
-//   gt_dp_count   one work-group per chunk of GT_CHUNK pixels of a row: the count of foreground keys
-//                 below each of GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground key)
-//                 and the smallest key;
+// sec. 4.1). Five kernels, launched in order on one queue:
+//   gt_dp_keys    NDRange (H W): every pixel's key and the levels whose bound it is below, of
+//                 GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground key);
+//   gt_dp_count   NDRange (chunks, H): per chunk of GT_CHUNK pixels of a row, the count of keys
+//                 below each bound;
 //   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, chunk offsets;
 //   gt_dp_compact NDRange (chunks, H): (key, pixel) of each candidate at its chunk's offset (row
-//                 order), rescanning only the chunks that hold one;
+//                 order), reading only the chunks that hold one;
 //   gt_dp_select  one work-item: stable LSD radix sort of the candidates by key, the first
 //                 min(n, C) points back-projected, NaN rows after them.
 // A pixel's key: pcg(pcg(i ^ a) + b) >> 1 (i = r W + c) if it is foreground, else >= 2^31.
@@ -26,11 +27,10 @@ inline uint gt_dp_pcg(const uint x)
     return (word >> 22u) ^ word;
 }
 
-// the key of pixel (r, c); foreground: a reading within range, >= threshold off a background value
-inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, const int r, const int c, const int W,
-                      const uint a, const uint b, const float threshold, const float max_range, const int nearer)
+// the key of pixel i = r W + c; foreground: a reading within range, >= threshold off a background value
+inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, const int i, const uint a,
+                      const uint b, const float threshold, const float max_range, const int nearer)
 {
-    const int i = r * W + c;
     const float z = (float)depth[i], g = bg[i];
     const float d = nearer ? g - z : fabs(z - g);
     const int g_nan = (as_uint(g) & 0x7fffffffu) > 0x7f800000u;
@@ -39,36 +39,46 @@ inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, 
     return fg ? key : (key | 0x80000000u);
 }
 
-// NDRange (chunks GT_CHUNK, H), work-groups (GT_CHUNK, 1): work-group (ch, r) takes pixels
-// [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r, one a work-item (the keys vectorise across
-// work-items), and its first work-item writes hist[(r chunks + ch) GT_LEVELS + q] = the count of the
-// keys below level q's bound and low[r chunks + ch] = the smallest key
-__kernel __attribute__((reqd_work_group_size(GT_CHUNK, 1, 1)))
-void gt_dp_count(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W, const uint a,
-                 const uint b, const float threshold, const float max_range, const int nearer, __global int *hist,
-                 __global uint *low)
+// NDRange (H W): every pixel's key and, one byte per level, whether it is below the level's bound
+// (a work-item per pixel: PoCL vectorises it across work-items)
+__kernel void gt_dp_keys(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
+                         const uint a, const uint b, const float threshold, const float max_range, const int nearer,
+                         __global uint *keys, __global uint *below)
 {
-    __local uint keys[GT_CHUNK];
-    const int c = get_global_id(0), r = get_global_id(1), e = get_local_id(0);
-    const int chunks = (W + GT_CHUNK - 1) / GT_CHUNK, ch = get_group_id(0);
-    keys[e] = (c < W && r < H) ? gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer) : 0xffffffffu;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    if (e != 0 || r >= H)
+    const int i = get_global_id(0);
+    if (i >= H * W)
         return;
-    int h[GT_LEVELS];
+    const uint key = gt_dp_key(depth, bg, i, a, b, threshold, max_range, nearer);
+    uint bits = 0;
     for (int q = 0; q < GT_LEVELS; ++q)
-        h[q] = 0;
-    uint lo = 0xffffffffu;
-    for (int k = 0; k < GT_CHUNK; ++k) {
-        const uint key = keys[k];
-        lo = min(lo, key);
-        for (int q = 0; q < GT_LEVELS; ++q)
-            h[q] += key < (1u << (31 - GT_STEP * q));
+        bits |= (uint)(key < (1u << (31 - GT_STEP * q))) << (8 * q);
+    keys[i] = key;
+    below[i] = bits;
+}
+
+// NDRange (chunks, H), chunks = ceil(W / GT_CHUNK): hist[(r chunks + ch) GT_LEVELS + q] = the count
+// of the keys of pixels [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r below level q's bound (the sum
+// of their `below` words: a byte per level, <= 32 each)
+__kernel void gt_dp_count(__global const uint *below, const int H, const int W, __global int *hist)
+{
+    const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
+    if (ch >= chunks || r >= H)
+        return;
+    const int c0 = ch * GT_CHUNK, c1 = min(W, c0 + GT_CHUNK);
+    __global const uint *p = below + (size_t)r * W + c0;
+    uint sum = 0;
+    if (c1 - c0 == 32) {  // a whole chunk: four 8-word loads
+        const uint8 s8 = vload8(0, p) + vload8(1, p) + vload8(2, p) + vload8(3, p);
+        const uint4 s4 = s8.lo + s8.hi;
+        const uint2 s2 = s4.lo + s4.hi;
+        sum = s2.x + s2.y;
+    } else {
+        for (int c = 0; c < c1 - c0; ++c)
+            sum += p[c];
     }
     const int at = r * chunks + ch;
     for (int q = 0; q < GT_LEVELS; ++q)
-        hist[at * GT_LEVELS + q] = h[q];
-    low[at] = lo;
+        hist[at * GT_LEVELS + q] = (sum >> (8 * q)) & 0xffu;
 }
 
 // offs[g]: the first candidate of chunk g (g = r chunks + ch), offs[G] = C; info: [N, C, level]
@@ -98,23 +108,22 @@ __kernel void gt_dp_plan(__global const int *hist, const int G, const int n, __g
     info[2] = k;
 }
 
-// NDRange (chunks, H): the candidates (key below the level's bound) of a chunk at its offset
-__kernel void gt_dp_compact(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
-                            const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                            __global const uint *low, __global const int *offs, __global const int *info,
-                            __global uint *ck, __global int *ci)
+// NDRange (chunks, H): the candidates (key below the level's bound) of a chunk at its offset, in
+// order; chunks without one return at once
+__kernel void gt_dp_compact(__global const uint *keys, const int H, const int W, __global const int *hist,
+                            __global const int *offs, __global const int *info, __global uint *ck, __global int *ci)
 {
     const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
     if (ch >= chunks || r >= H)
         return;
-    const int g = r * chunks + ch;
-    const uint t = 1u << (31 - GT_STEP * info[2]);
-    if (low[g] >= t)
+    const int g = r * chunks + ch, k = info[2];
+    if (hist[g * GT_LEVELS + k] == 0)
         return;
+    const uint t = 1u << (31 - GT_STEP * k);
     int j = offs[g];
     const int c1 = min(W, (ch + 1) * GT_CHUNK);
     for (int c = ch * GT_CHUNK; c < c1; ++c) {
-        const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
+        const uint key = keys[r * W + c];
         if (key < t) {
             ck[j] = key;
             ci[j] = r * W + c;
