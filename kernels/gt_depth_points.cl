@@ -32,9 +32,9 @@ inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, 
                       const uint b, const float threshold, const float max_range, const int nearer)
 {
     const float z = (float)depth[i], g = bg[i];
-    const float d = nearer ? g - z : fabs(z - g);
-    const int g_nan = (as_uint(g) & 0x7fffffffu) > 0x7f800000u;
-    const int fg = z > 0.0f && z <= max_range && !g_nan && g != 0.0f && d >= threshold;
+    // g == g: not NaN (the programs are built without fast-math options); nearer: g - z >= threshold,
+    // i.e. |z - g| >= threshold and g >= z (threshold >= 0), without a select on `nearer`
+    const int fg = z > 0.0f && z <= max_range && g == g && g != 0.0f && fabs(z - g) >= threshold && (!nearer || g >= z);
     const uint key = gt_dp_pcg(gt_dp_pcg((uint)i ^ a) + b) >> 1u;
     return fg ? key : (key | 0x80000000u);
 }
@@ -45,13 +45,15 @@ __kernel void gt_dp_keys(__global const GT_PIXEL *depth, __global const float *b
                          const uint a, const uint b, const float threshold, const float max_range, const int nearer,
                          __global uint *keys, __global uint *below)
 {
-    const int i = get_global_id(0);
-    if (i >= H * W)
-        return;
+    const int i = get_global_id(0);  // launched with exactly H W work-items (a bounds test here
+    // costs PoCL's vectoriser a third of the kernel's time)
     const uint key = gt_dp_key(depth, bg, i, a, b, threshold, max_range, nearer);
-    uint bits = 0;
-    for (int q = 0; q < GT_LEVELS; ++q)
-        bits |= (uint)(key < (1u << (31 - GT_STEP * q))) << (8 * q);
+    // signed compares, written out for GT_LEVELS = 4: PoCL vectorises an unsigned compare (AVX2 has
+    // none) or the loop form badly (1280 x 960 on one core: 3x the time of the hash)
+    const int sk = (int)key;  // foreground keys are >= 0 as ints, the others < 0
+    const uint bits = sk < 0 ? 0u
+                             : 1u | ((uint)(sk < (1 << (31 - GT_STEP))) << 8) | ((uint)(sk < (1 << (31 - 2 * GT_STEP))) << 16) |
+                                   ((uint)(sk < (1 << (31 - 3 * GT_STEP))) << 24);
     keys[i] = key;
     below[i] = bits;
 }
