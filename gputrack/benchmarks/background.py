@@ -28,6 +28,7 @@ H, W = 960, 1280
 def add_arguments(parser):
     parser.add_argument("--frames", type=int, default=30, help="frames of the median (default 30)")
     parser.add_argument("--no-median", action="store_true", help="skip the median case (its reference takes seconds)")
+    parser.add_argument("--size", default=f"{W}x{H}", help=f"image width x height (default {W}x{H})")
 
 
 def depth_scene(rng, h=H, w=W):
@@ -67,7 +68,11 @@ def cases(device, args):
 
     ref = get_device("numpy")
     rng = np.random.default_rng(0)
-    bg16, frame16, cam = depth_scene(rng)
+    try:
+        W, H = (int(v) for v in str(args.size).lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"--size: expected WIDTHxHEIGHT, got {args.size!r}") from None
+    bg16, frame16, cam = depth_scene(rng, H, W)
     bg = bg16.astype(np.float32)
     frame = frame16.astype(np.float32)
     frame[frame16 == 0] = np.nan
