@@ -20,7 +20,7 @@ import numpy as np
 
 from .launch import launch
 from .particles import _pcg
-from .pixels import mode, pixel2
+from .pixels import is_nan, mode, pixel2
 from .runtime import scratch, ti
 
 nd1 = ti.types.ndarray(ndim=1)
@@ -52,7 +52,8 @@ def _key(depth: ti.template(), bg: ti.template(), r, c, W, a, b, threshold, max_
     if ti.static(not nearer):
         d = ti.abs(d)
     # paper 002 sec. 4.1: a reading within range, >= threshold off a background value
-    fg = (z > 0.0) & (z <= max_range) & (g == g) & (g != 0.0) & (d >= threshold)
+    # NaN by its bits: Taichi compiles with fast math, which may assume no NaN in a compare
+    fg = (not is_nan(z)) & (z > 0.0) & (z <= max_range) & (not is_nan(g)) & (g != 0.0) & (d >= threshold)
     key = _pcg(_pcg(ti.cast(r * W + c, ti.u32) ^ a) + b) >> ti.u32(1)
     return key | (ti.u32(0x80000000) * ti.cast(1 - ti.cast(fg, ti.i32), ti.u32))
 

@@ -45,8 +45,8 @@ def pixel3(img: ti.template(), f, r, c, u16: ti.template()):
 
 @ti.func
 def is_nan(x):
-    """NaN by its bits (immune to fast math)."""
-    return (ti.bit_cast(x, ti.u32) & ti.u32(0x7FFFFFFF)) > ti.u32(0x7F800000)
+    """NaN by its bits (immune to fast math; a signed compare: both sides are >= 0)."""
+    return (ti.bit_cast(x, ti.i32) & 0x7FFFFFFF) > 0x7F800000
 
 
 @ti.func
