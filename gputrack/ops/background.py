@@ -53,8 +53,11 @@ def real(name: str, value, *, low=None, high=None, allow_inf: bool = False) -> f
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise ValueError(f"{name}: expected a finite number, got {v}")
     if (low is not None and v < low) or (high is not None and v > high):
-        rng = f"in [{low}, {high}]" if low is not None and high is not None else (f">= {low}" if low is not None else f"<= {high}")
-        raise ValueError(f"{name}: expected a number {rng}, got {v}")
+        if low is not None and high is not None:
+            want = f"in [{low}, {high}]"
+        else:
+            want = f">= {low}" if low is not None else f"<= {high}"
+        raise ValueError(f"{name}: expected a number {want}, got {v}")
     return v
 
 

@@ -46,7 +46,8 @@ def _scratch(device, H, W):
         return cl.Buffer(device.context, rw, max(nbytes, 4))
 
     return {
-        "hist": buf(G * LEVELS * 4), "below": buf(size), "offs": buf((G + 1) * 4), "info": buf(16), "cnt": buf(RADIX * 4),
+        "hist": buf(G * LEVELS * 4), "below": buf(size), "offs": buf((G + 1) * 4), "info": buf(16),
+        "cnt": buf(RADIX * 4),
         "keys": buf(size), "k0": buf(size), "i0": buf(size), "k1": buf(size), "i1": buf(size),
         "host_info": np.zeros(4, np.int32),
     }  # fmt: skip

@@ -8,7 +8,7 @@ a row loop is ~5x faster on taichi:cpu than ``ti.ndrange(H, W)`` (no division pe
 """
 
 from .launch import launch
-from .pixels import mode, is_finite, pixel2, pixel3, valid
+from .pixels import is_finite, mode, pixel2, pixel3, valid
 from .runtime import current_arch, scratch, ti
 
 nd2 = ti.types.ndarray(ndim=2)

@@ -16,8 +16,6 @@ kernel per radix pass, the points), no host sync until the count is read.
 Scratch arrays are kept per device and image size (gputrack/backends/taichi/runtime.py scratch).
 """
 
-import numpy as np
-
 from .launch import launch
 from .particles import _pcg
 from .pixels import is_nan, mode, pixel2
