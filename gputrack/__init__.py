@@ -111,3 +111,8 @@ __all__ = [
     "tuning",
     "__version__",
 ]
+
+# the per-pixel front ends of papers 001 and 002
+from .ops import background_median, depth_points, floor_background, foreground_mask, update_background  # noqa: E402
+
+__all__ += ["background_median", "depth_points", "floor_background", "foreground_mask", "update_background"]

@@ -181,31 +181,6 @@ def check_point_groups(device: Device) -> None:
         assert err <= 1e-3, f"assign_points {name} differ from the reference by {err:.3g}"
 
 
-CHECKS = [
-    ("arrays", check_arrays),
-    ("kinematics", check_kinematics),
-    ("template", check_template),
-    ("lm", check_lm),
-    ("kalman", check_kalman),
-    ("gating", check_gating),
-    ("point_groups", check_point_groups),
-]
-
-
-def run(device: Device) -> list[dict]:
-    """Run every check on ``device``: [{"check", "ok", "detail", "ms"}]."""
-    rows = []
-    for name, check in CHECKS:
-        t0 = time.perf_counter()
-        try:
-            check(device)
-            ok, detail = True, ""
-        except Exception as e:  # noqa: BLE001 - reported per check
-            ok, detail = False, f"{type(e).__name__}: {' '.join(str(e).split())[:300]}"
-        rows.append({"check": name, "ok": ok, "detail": detail, "ms": (time.perf_counter() - t0) * 1e3})
-    return rows
-
-
 def check_stereo(device: Device) -> None:
     """stereo_match of a small random pair (uint8, masked and not): the same pixels with a value
     and the same disparities as the reference."""
@@ -224,4 +199,59 @@ def check_stereo(device: Device) -> None:
         assert err <= 1e-5, f"stereo_match differs from the reference by {err:g}"
 
 
-CHECKS.append(("stereo", check_stereo))
+
+def check_background(device: Device) -> None:
+    """background_median, update_background, foreground_mask and depth_points of a small uint16
+    depth scene (papers 001, 002): bit for bit (the median, the mask, the chosen points' pixels)."""
+    from .models.camera import Camera
+    from .ops.background import background_median, foreground_mask, update_background
+    from .ops.depth_points import depth_points
+
+    rng = np.random.default_rng(3)
+    frames = rng.integers(0, 4000, (6, 13, 29)).astype(np.uint16)
+    ref = get_device("numpy")
+    want = background_median(ref, frames, missing=0)
+    got = to_numpy(background_median(device, frames, missing=0))
+    assert np.array_equal(got, want, equal_nan=True), "background_median differs from the reference"
+    mask = foreground_mask(ref, frames[0], want, 100.0, missing=0)
+    assert np.array_equal(to_numpy(foreground_mask(device, frames[0], want, 100.0, missing=0)), mask), (
+        "foreground_mask differs from the reference"
+    )
+    upd = update_background(ref, want, frames[1], rate=0.1, mask=mask, missing=0)
+    err = np.nanmax(np.abs(to_numpy(update_background(device, want, frames[1], rate=0.1, mask=mask, missing=0)) - upd))
+    assert err <= 1e-3, f"update_background differs from the reference by {err:.3g}"
+    cam = Camera(52.5, 52.5, 14.0, 6.0)
+    p_ref, n_ref = depth_points(ref, frames[0], want, cam, n_points=64, seed=5)
+    p, n = depth_points(device, frames[0], want, cam, n_points=64, seed=5)
+    p = to_numpy(p)
+    assert n == n_ref, f"depth_points counts {n} foreground points, the reference {n_ref}"
+    assert np.array_equal(np.isnan(p), np.isnan(p_ref)), "depth_points returns another number of points"
+    err = float(np.nanmax(np.abs(p - p_ref) / (1 + np.abs(p_ref)), initial=0.0))
+    assert err <= 1e-4, f"depth_points differs from the reference by {err:.3g}"
+
+
+CHECKS = [
+    ("arrays", check_arrays),
+    ("kinematics", check_kinematics),
+    ("template", check_template),
+    ("lm", check_lm),
+    ("kalman", check_kalman),
+    ("gating", check_gating),
+    ("point_groups", check_point_groups),
+    ("stereo", check_stereo),
+    ("background", check_background),
+]
+
+
+def run(device: Device) -> list[dict]:
+    """Run every check on ``device``: [{"check", "ok", "detail", "ms"}]."""
+    rows = []
+    for name, check in CHECKS:
+        t0 = time.perf_counter()
+        try:
+            check(device)
+            ok, detail = True, ""
+        except Exception as e:  # noqa: BLE001 - reported per check
+            ok, detail = False, f"{type(e).__name__}: {' '.join(str(e).split())[:300]}"
+        rows.append({"check": name, "ok": ok, "detail": detail, "ms": (time.perf_counter() - t0) * 1e3})
+    return rows

@@ -1,6 +1,5 @@
 // Per-pixel background model (gputrack/ops/background.py; paper 001 subtraction stereo, paper 002
-// sec. 4.1): median of F frames, running average, foreground mask. One work-item per pixel,
-// NDRange (W, H). Images are GT_PIXEL (float, uchar or ushort; the launcher defines it), read as
+// sec. 4.1): median of F frames, running average, foreground mask. One work-item per pixel. Images are GT_PIXEL (float, uchar or ushort; the launcher defines it), read as
 // float; a sample is valid when it is not NaN and, with use_missing, not equal to `missing`.
 // GT_MAX_FRAMES: the median's private array (the launcher rounds F up to a power of two).
 
@@ -48,16 +47,14 @@ __kernel void gt_background_median(__global const GT_PIXEL *frames, const int F,
     out[at] = m;
 }
 
+// NDRange (H W), exactly: no bounds test (it costs PoCL's vectoriser a third of such a kernel).
 // bg = (1 - rate) bg + rate frame where mask (if has_mask) is 0 and the frame valid; an invalid
 // or infinite background takes the frame's value. out may be bg.
 __kernel void gt_update_background(__global const float *bg, __global const GT_PIXEL *frame,
-                                   __global const uchar *mask, const int has_mask, const int H, const int W,
-                                   const float rate, const int use_missing, const float missing, __global float *out)
+                                   __global const uchar *mask, const int has_mask, const float rate,
+                                   const int use_missing, const float missing, __global float *out)
 {
-    const int c = get_global_id(0), r = get_global_id(1);
-    if (c >= W || r >= H)
-        return;
-    const size_t at = (size_t)r * W + c;
+    const int at = get_global_id(0);
     float b = bg[at];
     const float x = (float)frame[at];
     if (gt_bg_valid(x, use_missing, missing) && !(has_mask && mask[at]))
@@ -67,16 +64,14 @@ __kernel void gt_update_background(__global const float *bg, __global const GT_P
     out[at] = b;
 }
 
-// 1 where frame and bg are valid and |frame - bg| >= threshold (nearer: bg - frame >= threshold)
-__kernel void gt_foreground_mask(__global const GT_PIXEL *frame, __global const float *bg, const int H, const int W,
-                                 const float threshold, const int use_missing, const float missing, const int nearer,
-                                 __global uchar *out)
+// NDRange (H W), exactly. 1 where frame and bg are valid and |frame - bg| >= threshold (nearer:
+// bg - frame >= threshold, i.e. also bg >= frame, threshold >= 0: no select on `nearer`)
+__kernel void gt_foreground_mask(__global const GT_PIXEL *frame, __global const float *bg, const float threshold,
+                                 const int use_missing, const float missing, const int nearer, __global uchar *out)
 {
-    const int c = get_global_id(0), r = get_global_id(1);
-    if (c >= W || r >= H)
-        return;
-    const size_t at = (size_t)r * W + c;
+    const int at = get_global_id(0);
     const float x = (float)frame[at], b = bg[at];
-    const float d = nearer ? b - x : fabs(x - b);
-    out[at] = gt_bg_valid(x, use_missing, missing) && gt_bg_valid(b, use_missing, missing) && d >= threshold;
+    // x == x, b == b: not NaN (the programs are built without fast-math options)
+    const int valid = x == x && b == b && (!use_missing || (x != missing && b != missing));
+    out[at] = valid && fabs(x - b) >= threshold && (!nearer || b >= x);
 }

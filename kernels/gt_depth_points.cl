@@ -1,9 +1,12 @@
 // Foreground points of a depth image, randomly downsampled (gputrack/ops/depth_points.py; paper 002
-// sec. 4.1). Four kernels, launched in order on one queue:
-//   gt_dp_count   NDRange (H): per row, the count of foreground keys below each of GT_LEVELS bounds
-//                 2^(31 - GT_STEP q) (q = 0: every foreground key);
-//   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, row offsets;
-//   gt_dp_compact NDRange (H): (key, pixel) of each candidate at its row's offset (row order);
+// sec. 4.1). Five kernels, launched in order on one queue:
+//   gt_dp_keys    NDRange (H W): every pixel's key and the levels whose bound it is below, of
+//                 GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground key);
+//   gt_dp_count   NDRange (chunks, H): per chunk of GT_CHUNK pixels of a row, the count of keys
+//                 below each bound;
+//   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, chunk offsets;
+//   gt_dp_compact NDRange (chunks, H): (key, pixel) of each candidate at its chunk's offset (row
+//                 order), reading only the chunks that hold one;
 //   gt_dp_select  one work-item: stable LSD radix sort of the candidates by key, the first
 //                 min(n, C) points back-projected, NaN rows after them.
 // A pixel's key: pcg(pcg(i ^ a) + b) >> 1 (i = r W + c) if it is foreground, else >= 2^31.
@@ -12,8 +15,9 @@
 #ifndef GT_PIXEL
 #define GT_PIXEL float
 #endif
-#define GT_LEVELS 8
-#define GT_STEP 2
+#define GT_LEVELS 4
+#define GT_STEP 3
+#define GT_CHUNK 32
 #define GT_RADIX 256
 
 inline uint gt_dp_pcg(const uint x)
@@ -23,83 +27,105 @@ inline uint gt_dp_pcg(const uint x)
     return (word >> 22u) ^ word;
 }
 
-// the key of pixel (r, c); foreground: a reading within range, >= threshold off a background value
-inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, const int r, const int c, const int W,
-                      const uint a, const uint b, const float threshold, const float max_range, const int nearer)
+// the key of pixel i = r W + c; foreground: a reading within range, >= threshold off a background value
+inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, const int i, const uint a,
+                      const uint b, const float threshold, const float max_range, const int nearer)
 {
-    const int i = r * W + c;
     const float z = (float)depth[i], g = bg[i];
-    const float d = nearer ? g - z : fabs(z - g);
-    const int g_nan = (as_uint(g) & 0x7fffffffu) > 0x7f800000u;
-    const int fg = z > 0.0f && z <= max_range && !g_nan && g != 0.0f && d >= threshold;
+    // g == g: not NaN (the programs are built without fast-math options); nearer: g - z >= threshold,
+    // i.e. |z - g| >= threshold and g >= z (threshold >= 0), without a select on `nearer`
+    const int fg = z > 0.0f && z <= max_range && g == g && g != 0.0f && fabs(z - g) >= threshold && (!nearer || g >= z);
     const uint key = gt_dp_pcg(gt_dp_pcg((uint)i ^ a) + b) >> 1u;
     return fg ? key : (key | 0x80000000u);
 }
 
-__kernel void gt_dp_count(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
-                          const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                          __global int *hist)
+// NDRange (H W): every pixel's key and, one byte per level, whether it is below the level's bound
+// (a work-item per pixel: PoCL vectorises it across work-items)
+__kernel void gt_dp_keys(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
+                         const uint a, const uint b, const float threshold, const float max_range, const int nearer,
+                         __global uint *keys, __global uint *below)
 {
-    const int r = get_global_id(0);
-    if (r >= H)
-        return;
-    int h[GT_LEVELS];
-    for (int q = 0; q < GT_LEVELS; ++q)
-        h[q] = 0;
-    for (int c = 0; c < W; ++c) {
-        const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
-        if (key < 0x80000000u)  // foreground: its bucket, the last level whose bound it is below
-            ++h[min(((int)clz(key) - 1) / GT_STEP, GT_LEVELS - 1)];
-    }
-    int below = 0;  // keys below level q's bound: the buckets q .. GT_LEVELS - 1
-    for (int q = GT_LEVELS - 1; q >= 0; --q) {
-        below += h[q];
-        hist[r * GT_LEVELS + q] = below;
-    }
+    const int i = get_global_id(0);  // launched with exactly H W work-items (a bounds test here
+    // costs PoCL's vectoriser a third of the kernel's time)
+    const uint key = gt_dp_key(depth, bg, i, a, b, threshold, max_range, nearer);
+    // signed compares, written out for GT_LEVELS = 4: PoCL vectorises an unsigned compare (AVX2 has
+    // none) or the loop form badly (1280 x 960 on one core: 3x the time of the hash)
+    const int sk = (int)key;  // foreground keys are >= 0 as ints, the others < 0
+    const uint bits = sk < 0 ? 0u
+                             : 1u | ((uint)(sk < (1 << (31 - GT_STEP))) << 8) | ((uint)(sk < (1 << (31 - 2 * GT_STEP))) << 16) |
+                                   ((uint)(sk < (1 << (31 - 3 * GT_STEP))) << 24);
+    keys[i] = key;
+    below[i] = bits;
 }
 
-// info: [N, C, level]
-__kernel void gt_dp_plan(__global const int *hist, const int H, const int n, __global int *offs, __global int *info)
+// NDRange (chunks, H), chunks = ceil(W / GT_CHUNK): hist[(r chunks + ch) GT_LEVELS + q] = the count
+// of the keys of pixels [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r below level q's bound (the sum
+// of their `below` words: a byte per level, <= 32 each)
+__kernel void gt_dp_count(__global const uint *below, const int H, const int W, __global int *hist)
+{
+    const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
+    if (ch >= chunks || r >= H)
+        return;
+    const int c0 = ch * GT_CHUNK, c1 = min(W, c0 + GT_CHUNK);
+    __global const uint *p = below + (size_t)r * W + c0;
+    uint sum = 0;
+    if (c1 - c0 == 32) {  // a whole chunk: four 8-word loads
+        const uint8 s8 = vload8(0, p) + vload8(1, p) + vload8(2, p) + vload8(3, p);
+        const uint4 s4 = s8.lo + s8.hi;
+        const uint2 s2 = s4.lo + s4.hi;
+        sum = s2.x + s2.y;
+    } else {
+        for (int c = 0; c < c1 - c0; ++c)
+            sum += p[c];
+    }
+    const int at = r * chunks + ch;
+    for (int q = 0; q < GT_LEVELS; ++q)
+        hist[at * GT_LEVELS + q] = (sum >> (8 * q)) & 0xffu;
+}
+
+// offs[g]: the first candidate of chunk g (g = r chunks + ch), offs[G] = C; info: [N, C, level]
+__kernel void gt_dp_plan(__global const int *hist, const int G, const int n, __global int *offs, __global int *info)
 {
     if (get_global_id(0) != 0)
         return;
-    int N = 0;
-    for (int r = 0; r < H; ++r)
-        N += hist[r * GT_LEVELS];
-    const int need = min(n, N);
+    int tot[GT_LEVELS];
+    for (int q = 0; q < GT_LEVELS; ++q)
+        tot[q] = 0;
+    for (int g = 0; g < G; ++g)
+        for (int q = 0; q < GT_LEVELS; ++q)
+            tot[q] += hist[g * GT_LEVELS + q];
+    const int N = tot[0], need = min(n, N);
     int k = 0;
-    for (int q = 1; q < GT_LEVELS; ++q) {  // the tightest bound with at least `need` keys below it
-        int tot = 0;
-        for (int r = 0; r < H; ++r)
-            tot += hist[r * GT_LEVELS + q];
-        if (tot >= need)
+    for (int q = 1; q < GT_LEVELS; ++q)  // the tightest bound with at least `need` keys below it
+        if (tot[q] >= need)
             k = q;
-    }
     int run = 0;
-    for (int r = 0; r < H; ++r) {
-        offs[r] = run;
-        run += hist[r * GT_LEVELS + k];
+    for (int g = 0; g < G; ++g) {
+        offs[g] = run;
+        run += hist[g * GT_LEVELS + k];
     }
-    offs[H] = run;
+    offs[G] = run;
     info[0] = N;
     info[1] = run;
     info[2] = k;
 }
 
-__kernel void gt_dp_compact(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
-                            const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                            __global const int *offs, __global const int *info, __global uint *ck,
-                            __global int *ci)
+// NDRange (chunks, H): the candidates (key below the level's bound) of a chunk at its offset, in
+// order; chunks without one return at once
+__kernel void gt_dp_compact(__global const uint *keys, const int H, const int W, __global const int *hist,
+                            __global const int *offs, __global const int *info, __global uint *ck, __global int *ci)
 {
-    const int r = get_global_id(0);
-    if (r >= H)
+    const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
+    if (ch >= chunks || r >= H)
         return;
-    int j = offs[r];
-    if (offs[r + 1] == j)
+    const int g = r * chunks + ch, k = info[2];
+    if (hist[g * GT_LEVELS + k] == 0)
         return;
-    const uint t = 1u << (31 - GT_STEP * info[2]);
-    for (int c = 0; c < W; ++c) {
-        const uint key = gt_dp_key(depth, bg, r, c, W, a, b, threshold, max_range, nearer);
+    const uint t = 1u << (31 - GT_STEP * k);
+    int j = offs[g];
+    const int c1 = min(W, (ch + 1) * GT_CHUNK);
+    for (int c = ch * GT_CHUNK; c < c1; ++c) {
+        const uint key = keys[r * W + c];
         if (key < t) {
             ck[j] = key;
             ci[j] = r * W + c;

@@ -46,7 +46,7 @@ CASES = [
     (5, 13, 29, np.uint16, 0),
     (6, 127, 129, np.uint8, None),
     (7, 127, 129, np.float32, 0.0),
-    (30, 13, 29, np.uint16, 0),
+    (30, 12, 30, np.uint16, 0),  # even width: uploaded as uint32 words (odd: as bytes)
     (MAX_FRAMES, 3, 5, np.float32, None),
 ]
 
@@ -94,8 +94,8 @@ def _bg(rng, H, W):
     return bg
 
 
-@pytest.mark.parametrize("H,W,dtype", [(1, 1, np.float32), (13, 29, np.uint16), (127, 129, np.uint8),
-                                       (127, 129, np.float32)])  # fmt: skip
+@pytest.mark.parametrize("H,W,dtype", [(1, 1, np.float32), (13, 29, np.uint16), (12, 30, np.uint16),
+                                       (127, 129, np.uint8), (127, 129, np.float32)])  # fmt: skip
 def test_update_matches_reference(device, H, W, dtype):
     rng = np.random.default_rng(H + W)
     bg = _bg(rng, H, W)
@@ -134,7 +134,7 @@ def test_foreground_mask_by_hand(device):
 
 
 @pytest.mark.parametrize("H,W,dtype", [(1, 1, np.uint16), (13, 29, np.float32), (127, 129, np.uint16),
-                                       (127, 129, np.uint8)])  # fmt: skip
+                                       (128, 130, np.uint16), (127, 129, np.uint8)])  # fmt: skip
 def test_foreground_mask_matches_reference(device, H, W, dtype):
     rng = np.random.default_rng(H * W)
     bg = _bg(rng, H, W) * (100 if dtype == np.uint16 else 1)
@@ -219,3 +219,10 @@ def test_kinect_depth_background_and_mask(device):
     inside[200:300, 250:350] = True
     assert mask[inside & (frame > 0) & ~np.isnan(want) & (want - frame >= 100)].all()
     assert mask[inside].mean() > 0.8 and mask[~inside].mean() < 0.01  # the frames differ little elsewhere
+
+
+def test_selftest(device):
+    from gputrack.selftest import CHECKS, check_background
+
+    assert ("background", check_background) in CHECKS
+    check_background(device)

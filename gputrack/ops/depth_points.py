@@ -1,7 +1,7 @@
 """Foreground points of a depth image, randomly downsampled on the device (paper 002 sec. 4.1).
 
 :func:`depth_points` turns one depth frame and its background into at most ``n_points``
-foreground points in camera coordinates, in one pass over the image plus a small selection:
+foreground points in camera coordinates:
 
 1. foreground: a reading z (0 < z <= ``max_range``; 0 or NaN = no reading, farther = beyond the
    sensor's range, paper 002: 5 m) whose depth differs from the background by >= ``threshold``
@@ -22,10 +22,11 @@ Output order: ascending key. The rows are thus a random permutation of the subse
 first m rows are themselves a uniform random subset of m points. When fewer than ``n_points``
 pixels are foreground, all of them are returned (in key order) and the remaining rows are NaN.
 
-On the devices the selection needs no sort of the image: a per-row histogram of the keys'
-leading zeros gives the smallest power-of-two key bound holding at least ``n_points`` keys (about
-n to 2n candidates), the candidates are compacted in row order and only they are sorted (a
-radix sort in one work-item).
+On the devices the selection needs no sort of the image: one pass counts, per row (Taichi) or
+per 32-pixel chunk (OpenCL), the foreground keys below four bounds 2**31, 2**28, 2**25, 2**22 and
+keeps each chunk's smallest key; the tightest bound holding ``n_points`` keys gives about n to 8n
+candidates, which a second pass over only the chunks holding one compacts in row order, and only
+they are sorted (a stable radix sort), the first ``n_points`` back-projected.
 
 :func:`floor_background` is a background for a scene without empty frames: the depth at which a
 camera at a known height sees an empty floor, so that foreground = in front of the floor

@@ -12,8 +12,8 @@ _I, _F = np.int32, np.float32
 CL_PIXEL = {"float32": "float", "uint8": "uchar", "uint16": "ushort"}
 ARG_TYPES = {
     "gt_background_median": [None, _I, _I, _I, _I, _F, None],
-    "gt_update_background": [None, None, None, _I, _I, _I, _F, _I, _F, None],
-    "gt_foreground_mask": [None, None, _I, _I, _F, _I, _F, _I, None],
+    "gt_update_background": [None, None, None, _I, _F, _I, _F, None],
+    "gt_foreground_mask": [None, None, _F, _I, _F, _I, None],
 }
 
 
@@ -50,7 +50,7 @@ def update_background(device, bg, frame, pixel, rate, mask, missing, out):
     H, W = out.shape
     k = _kernel(device, "gt_update_background", pixel, 0)
     m = mask.buffer.data if mask is not None else bg.buffer.data  # not read without a mask
-    k(device.queue, (W, H), None, bg.buffer.data, frame.buffer.data, m, int(mask is not None), H, W, float(rate),
+    k(device.queue, (H * W,), None, bg.buffer.data, frame.buffer.data, m, int(mask is not None), float(rate),
       *_missing(missing), out.buffer.data)  # fmt: skip
     return out
 
@@ -58,6 +58,6 @@ def update_background(device, bg, frame, pixel, rate, mask, missing, out):
 def foreground_mask(device, frame, bg, pixel, threshold, missing, nearer, out):
     H, W = out.shape
     k = _kernel(device, "gt_foreground_mask", pixel, 0)
-    k(device.queue, (W, H), None, frame.buffer.data, bg.buffer.data, H, W, float(threshold), *_missing(missing),
+    k(device.queue, (H * W,), None, frame.buffer.data, bg.buffer.data, float(threshold), *_missing(missing),
       int(nearer), out.buffer.data)  # fmt: skip
     return out

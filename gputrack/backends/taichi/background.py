@@ -8,7 +8,7 @@ a row loop is ~5x faster on taichi:cpu than ``ti.ndrange(H, W)`` (no division pe
 """
 
 from .launch import launch
-from .pixels import is_finite, pixel2, pixel3, valid
+from .pixels import is_finite, mode, pixel2, pixel3, valid
 from .runtime import current_arch, scratch, ti
 
 nd2 = ti.types.ndarray(ndim=2)
@@ -118,18 +118,18 @@ def size_class(F: int) -> int:
 
 def background_median(device, frames, pixel, missing, out):
     size = size_class(frames.shape[0])
-    launch(_median, (frames.buffer, out.buffer), (pixel == "uint16", size, by_rows()), scalars=_missing(missing))
+    launch(_median, (frames.buffer, out.buffer), (mode(pixel, frames), size, by_rows()), scalars=_missing(missing))
     return out
 
 
 def update_background(device, bg, frame, pixel, rate, mask, missing, out):
     m = mask.buffer if mask is not None else scratch(device, "no mask", (1, 1), ti.u8)
-    launch(_update, (bg.buffer, frame.buffer, m, out.buffer), (pixel == "uint16", mask is not None, by_rows()),
+    launch(_update, (bg.buffer, frame.buffer, m, out.buffer), (mode(pixel, frame), mask is not None, by_rows()),
            scalars=(float(rate), *_missing(missing)))  # fmt: skip
     return out
 
 
 def foreground_mask(device, frame, bg, pixel, threshold, missing, nearer, out):
-    launch(_mask, (frame.buffer, bg.buffer, out.buffer), (pixel == "uint16", bool(nearer), by_rows()),
+    launch(_mask, (frame.buffer, bg.buffer, out.buffer), (mode(pixel, frame), bool(nearer), by_rows()),
            scalars=(float(threshold), *_missing(missing)))  # fmt: skip
     return out
