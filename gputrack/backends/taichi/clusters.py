@@ -55,6 +55,15 @@ class _Variant:
     atomic: bool  # union-find by atomic min; else rounds of hooking with plain stores
 
 
+def grid(r2, dim: int):
+    """(w, inv): the half-width of the searched box, r (1 + CELL_SLACK), and 1 / the cell side,
+    r (1 - CELL_SLACK) / sqrt(dim) (any two points of a cell are neighbours), in float32."""
+    r = np.sqrt(np.float64(r2))
+    w = np.float32(r * (1.0 + CELL_SLACK))
+    inv = np.float32(np.sqrt(dim) / (r * (1.0 - CELL_SLACK)))
+    return w, inv
+
+
 def buckets(N: int) -> int:
     """Number of hash buckets for N points: a power of two >= 2N, at least one chunk."""
     return max(CHUNK, 1 << max(0, (2 * N - 1).bit_length()))
@@ -128,12 +137,20 @@ def _d2(p, q, dim: ti.template()):
 
 
 @ti.func
+def _same_cell(q, c, inv, dim: ti.template()):
+    same = _cell(q[0], inv) == c[0] and _cell(q[1], inv) == c[1]
+    if ti.static(dim == 3):
+        same = same and _cell(q[2], inv) == c[2]
+    return same
+
+
+@ti.func
 def _scan(i, p, mode: ti.template(), dim: ti.template(), order: ti.template(), spts: ti.template(),
           start: ti.template(), core: ti.template(), parent: ti.template(), out: ti.template(),
           r2, w, inv, ms, mask):  # fmt: skip
     """Visit the neighbours j of point i (coordinates p). mode 0: count them (up to ms), returns
-    the count; 1: union i with each core neighbour j < i; 2: the smallest label (out) of the core
-    neighbours (2**31 - 1 if none); 3: the smallest parent of the core neighbours."""
+    the count; 2: the smallest label (out) of the core neighbours (2**31 - 1 if none); 3: the
+    smallest parent of the core neighbours."""
     lo = ti.Vector([0, 0, 0])
     hi = ti.Vector([0, 0, 0])
     for k in ti.static(range(dim)):
@@ -143,6 +160,16 @@ def _scan(i, p, mode: ti.template(), dim: ti.template(), order: ti.template(), s
     if ti.static(mode >= 2):
         acc = 2147483647
     stop = False
+    own = ti.Vector([0, 0, 0])
+    for k in ti.static(range(dim)):
+        own[k] = _cell(p[k], inv)
+    if ti.static(mode == 0):  # the point's own cell first: in a dense cell the count stops there
+        b = _hash(own[0], own[1], own[2], mask)
+        for t in range(start[b], start[b + 1]):
+            q = _point(spts, t, dim)
+            if _same_cell(q, own, inv, dim) and _d2(p, q, dim) <= r2:
+                acc += 1
+        stop = acc >= ms
     cx = lo[0]
     while cx <= hi[0] and not stop:
         cy = lo[1]
@@ -150,18 +177,18 @@ def _scan(i, p, mode: ti.template(), dim: ti.template(), order: ti.template(), s
             cz = lo[2]
             while cz <= hi[2] and not stop:
                 b = _hash(cx, cy, cz, mask)
+                skip = False
+                if ti.static(mode == 0):
+                    skip = cx == own[0] and cy == own[1] and cz == own[2]  # counted above
                 for t in range(start[b], start[b + 1]):
                     q = _point(spts, t, dim)
                     same = _cell(q[0], inv) == cx and _cell(q[1], inv) == cy
                     if ti.static(dim == 3):
                         same = same and _cell(q[2], inv) == cz
-                    if same and _d2(p, q, dim) <= r2:  # neighbours (paper 001 eq. 12, paper 002 DBSCAN eps)
+                    if not skip and same and _d2(p, q, dim) <= r2:  # neighbours (paper 001 eq. 12, paper 002: within eps)
                         j = order[t]
                         if ti.static(mode == 0):
                             acc += 1
-                        elif ti.static(mode == 1):
-                            if j < i and core[j] != 0:
-                                _union(parent, i, j)
                         elif ti.static(mode == 2):
                             if core[j] != 0:
                                 acc = ti.min(acc, out[j])
@@ -176,9 +203,110 @@ def _scan(i, p, mode: ti.template(), dim: ti.template(), order: ti.template(), s
     return acc
 
 
+@ti.func
+def _first_core(c, b, dim: ti.template(), order: ti.template(), spts: ti.template(), start: ti.template(),
+                core: ti.template(), inv):  # fmt: skip
+    """The slot of the first core point of cell c in bucket b, or -1."""
+    found = -1
+    t = start[b]
+    end = start[b + 1]
+    while t < end and found < 0:
+        if core[order[t]] != 0 and _same_cell(_point(spts, t, dim), c, inv, dim):
+            found = t
+        t += 1
+    return found
+
+
+@ti.func
+def _link_cell(i, s, dim: ti.template(), order: ti.template(), spts: ti.template(), start: ti.template(),
+               core: ti.template(), parent: ti.template(), loose: ti.template(), head: ti.template(), b, r2,
+               inv):  # fmt: skip
+    """Union core point i (slot s) with the first core point of its cell (the cell's head; any two
+    points of a cell are neighbours). A pair that fails the distance test (rounding at huge
+    coordinates) marks the bucket loose: its cells are then linked pair by pair."""
+    p = _point(spts, s, dim)
+    c = ti.Vector([0, 0, 0])
+    for k in ti.static(range(dim)):
+        c[k] = _cell(p[k], inv)
+    t = _first_core(c, b, dim, order, spts, start, core, inv)
+    head[s] = 1 if t == s else 0
+    if t != s:
+        j = order[t]
+        if _d2(p, _point(spts, t, dim), dim) <= r2:
+            _union(parent, i, j)
+        else:
+            loose[b] = 1
+
+
+@ti.func
+def _link_cells(s, dim: ti.template(), order: ti.template(), spts: ti.template(), start: ti.template(),
+                core: ti.template(), parent: ti.template(), loose: ti.template(), r2, w, inv, mask):  # fmt: skip
+    """Cell A (head slot s) with each cell B that can hold a neighbour of one of its points: unless
+    they are connected already, the first pair of their core points within r is united (every pair
+    where a bucket is loose). Each pair of cells is handled by the one with the smaller head slot."""
+    pa = _point(spts, s, dim)
+    cA = ti.Vector([0, 0, 0])
+    for k in ti.static(range(dim)):
+        cA[k] = _cell(pa[k], inv)
+    bA = _hash(cA[0], cA[1], cA[2], mask)
+    endA = start[bA + 1]
+    tightA = loose[bA] == 0
+    lo = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)  # the bounding box of A's core points
+    hi = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
+    for k in ti.static(range(dim)):
+        lo[k] = pa[k]
+        hi[k] = pa[k]
+    for ta in range(s, endA):
+        q = _point(spts, ta, dim)
+        if core[order[ta]] != 0 and _same_cell(q, cA, inv, dim):
+            for k in ti.static(range(dim)):
+                lo[k] = ti.min(lo[k], q[k])
+                hi[k] = ti.max(hi[k], q[k])
+    clo = ti.Vector([0, 0, 0])
+    chi = ti.Vector([0, 0, 0])
+    for k in ti.static(range(dim)):
+        clo[k] = _cell(lo[k] - w, inv)
+        chi[k] = _cell(hi[k] + w, inv)
+    i = order[s]
+    cx = clo[0]
+    while cx <= chi[0]:
+        cy = clo[1]
+        while cy <= chi[1]:
+            cz = clo[2]
+            while cz <= chi[2]:
+                cB = ti.Vector([cx, cy, cz])
+                bB = _hash(cx, cy, cz, mask)
+                tB = _first_core(cB, bB, dim, order, spts, start, core, inv)
+                tight = tightA and loose[bB] == 0
+                go = tB >= 0 and (tB > s or (not tight and tB == s))
+                if go and tight:
+                    go = _find(parent, i) != _find(parent, order[tB])
+                if go:  # the pairs of A x B until the first neighbours (all of them if not tight)
+                    done = False
+                    endB = start[bB + 1]
+                    ta = s
+                    while ta < endA and not done:
+                        a = order[ta]
+                        qa = _point(spts, ta, dim)
+                        if core[a] != 0 and _same_cell(qa, cA, inv, dim):
+                            tb = tB
+                            while tb < endB and not done:
+                                bpt = order[tb]
+                                qb = _point(spts, tb, dim)
+                                if core[bpt] != 0 and _same_cell(qb, cB, inv, dim):
+                                    if _d2(qa, qb, dim) <= r2:  # paper 001 eq. 12: linked points
+                                        _union(parent, a, bpt)
+                                        done = tight
+                                tb += 1
+                        ta += 1
+                cz += 1
+            cy += 1
+        cx += 1
+
+
 @ti.kernel
 def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd, order: nd, spts: nd,
-              parent: nd, core: nd, n: ti.i32, N: ti.i32, H: ti.i32, chunks: ti.i32, r2: ti.f32, w: ti.f32,
+              parent: nd, core: nd, loose: nd, head: nd, n: ti.i32, N: ti.i32, H: ti.i32, chunks: ti.i32, r2: ti.f32, w: ti.f32,
               inv: ti.f32, ms: ti.i32, v: ti.template()):  # fmt: skip
     # N (rows of out), H (buckets) and chunks = H / CHUNK come as arguments: SPIR-V (Taichi Vulkan)
     # takes a top-level loop bound from an argument or a shape, not from an expression of them
@@ -187,6 +315,7 @@ def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd,
     ti.loop_config(serialize=v.serial)
     for b in range(H):  # 1
         cnt[b] = 0
+        loose[b] = 0
     ti.loop_config(serialize=v.serial)
     for i in range(n):  # 2: bin the points
         p = _point(pts, i, dim)
@@ -244,12 +373,17 @@ def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd,
                     core[i] = 0
     if ti.static(v.atomic):
         ti.loop_config(serialize=v.serial)
-        for s in range(n):  # 6: union-find over the core-core edges
+        for s in range(n):  # 6a: the core points of a cell (side < r / sqrt(dim)) are neighbours
             if s < start[H]:
                 i = order[s]
+                head[s] = 0
                 if core[i] != 0:
-                    p = _point(spts, s, dim)
-                    _scan(i, p, 1, dim, order, spts, start, core, parent, out, r2, w, inv, ms, mask)
+                    _link_cell(i, s, dim, order, spts, start, core, parent, loose, head, key[i], r2, inv)
+        ti.loop_config(serialize=v.serial)
+        for s in range(n):  # 6b: union-find over the cells, from their heads
+            if s < start[H]:
+                if head[s] != 0:
+                    _link_cells(s, dim, order, spts, start, core, parent, loose, r2, w, inv, mask)
         _finish_body(out, start, order, spts, parent, core, n, N, H, r2, w, inv, ms, v)
 
 
@@ -326,18 +460,19 @@ def _scratch(device, N, dim):
         scratch(device, "clu_spts", (N, dim), ti.f32),
         scratch(device, "clu_parent", (N,), ti.i32),
         scratch(device, "clu_core", (N,), ti.i32),
+        scratch(device, "clu_loose", (H,), ti.i32),
+        scratch(device, "clu_head", (N,), ti.i32),
     )
 
 
 def _run(device, points, n, r2, ms, out, is_dbscan):
     N, dim = points.shape
-    w = np.float32(np.sqrt(np.float64(r2)) * (1.0 + CELL_SLACK))
-    inv = np.float32(1.0) / w
+    w, inv = grid(r2, dim)
     atomic = current_arch() in ATOMIC_ARCHS
     v = _Variant(dim, is_dbscan, atomic and n <= SERIAL_POINTS, atomic)
-    cnt, start, csum, key, rank, order, spts, parent, core = _scratch(device, N, dim)
+    cnt, start, csum, key, rank, order, spts, parent, core, loose, head = _scratch(device, N, dim)
     H = buckets(N)
-    arrays = (points.buffer, out.buffer, cnt, start, csum, key, rank, order, spts, parent, core)
+    arrays = (points.buffer, out.buffer, cnt, start, csum, key, rank, order, spts, parent, core, loose, head)
     launch(_clusters, arrays, (v,), scalars=(int(n), int(N), H, H // CHUNK, float(r2), float(w), float(inv), int(ms)))
     if atomic:
         return out
