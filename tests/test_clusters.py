@@ -124,6 +124,17 @@ def test_one_cluster_and_all_noise(device):
     np.testing.assert_array_equal(_labels(dbscan(device, nan, 1.0, 1)), np.full(13, -1, np.int32))
 
 
+@pytest.mark.parametrize("offset,r", [(4e6, 0.3), (3e7, 3.0)])
+def test_far_from_the_origin(device, offset, r):
+    """Coordinates so large that float32 cell indices round (the grid's cells then hold points
+    farther apart than r, found and linked pair by pair): still the reference's labels."""
+    p = (offset + np.random.default_rng(2).uniform(0, 30 * r, (500, 2))).astype(np.float32)
+    want = radius_components(REF, p, r)
+    assert 50 < np.unique(want).size < 400
+    np.testing.assert_array_equal(_labels(radius_components(device, p, r)), want)
+    np.testing.assert_array_equal(_labels(dbscan(device, p, r, 3)), dbscan(REF, p, r, 3))
+
+
 def test_n_points_device_inputs_and_out(device):
     p = _cloud(127, 3, 11)
     padded = np.concatenate([p, np.random.default_rng(0).random((40, 3)).astype(np.float32)])

@@ -29,6 +29,8 @@ from .runtime import current_arch, scratch, ti
 #: the grid cell is r (1 + CELL_SLACK): a neighbour found by the float32 test d2 <= r2 lies inside
 #: the searched box p ± w whatever the rounding (as gputrack/backends/opencl/clusters.py)
 CELL_SLACK = 1e-3
+#: two cells whose boxes are farther apart than r (with this relative margin on r2) cannot link
+GAP_SLACK = 1.01
 #: buckets are scanned in chunks of this many
 CHUNK = 256
 #: problems of at most this many points run on the calling thread
@@ -239,8 +241,29 @@ def _link_cell(i, s, dim: ti.template(), order: ti.template(), spts: ti.template
 
 
 @ti.func
+def _box(s, dim: ti.template(), order: ti.template(), spts: ti.template(), start: ti.template(),
+         core: ti.template(), box: ti.template(), inv, mask):  # fmt: skip
+    """box[s] = (lo, hi): the bounding box of the core points of the cell whose head is slot s."""
+    p = _point(spts, s, dim)
+    c = ti.Vector([0, 0, 0])
+    for k in ti.static(range(dim)):
+        c[k] = _cell(p[k], inv)
+    lo = p
+    hi = p
+    for t in range(s, start[_hash(c[0], c[1], c[2], mask) + 1]):
+        q = _point(spts, t, dim)
+        if core[order[t]] != 0 and _same_cell(q, c, inv, dim):
+            lo = ti.min(lo, q)
+            hi = ti.max(hi, q)
+    for k in ti.static(range(3)):
+        box[s, k] = lo[k]
+        box[s, 3 + k] = hi[k]
+
+
+@ti.func
 def _link_cells(s, dim: ti.template(), order: ti.template(), spts: ti.template(), start: ti.template(),
-                core: ti.template(), parent: ti.template(), loose: ti.template(), r2, w, inv, mask):  # fmt: skip
+                core: ti.template(), parent: ti.template(), loose: ti.template(), box: ti.template(), r2, w, inv,
+                mask):  # fmt: skip
     """Cell A (head slot s) with each cell B that can hold a neighbour of one of its points: unless
     they are connected already, the first pair of their core points within r is united (every pair
     where a bucket is loose). Each pair of cells is handled by the one with the smaller head slot."""
@@ -254,14 +277,8 @@ def _link_cells(s, dim: ti.template(), order: ti.template(), spts: ti.template()
     lo = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)  # the bounding box of A's core points
     hi = ti.Vector([0.0, 0.0, 0.0], dt=ti.f32)
     for k in ti.static(range(dim)):
-        lo[k] = pa[k]
-        hi[k] = pa[k]
-    for ta in range(s, endA):
-        q = _point(spts, ta, dim)
-        if core[order[ta]] != 0 and _same_cell(q, cA, inv, dim):
-            for k in ti.static(range(dim)):
-                lo[k] = ti.min(lo[k], q[k])
-                hi[k] = ti.max(hi[k], q[k])
+        lo[k] = box[s, k]
+        hi[k] = box[s, 3 + k]
     clo = ti.Vector([0, 0, 0])
     chi = ti.Vector([0, 0, 0])
     for k in ti.static(range(dim)):
@@ -279,6 +296,12 @@ def _link_cells(s, dim: ti.template(), order: ti.template(), spts: ti.template()
                 tB = _first_core(cB, bB, dim, order, spts, start, core, inv)
                 tight = tightA and loose[bB] == 0
                 go = tB >= 0 and (tB > s or (not tight and tB == s))
+                if go:  # the squared gap between the boxes of A and B: beyond r, no pair links
+                    gap2 = ti.cast(0.0, ti.f32)
+                    for k in ti.static(range(dim)):
+                        g = ti.max(ti.max(box[tB, k] - hi[k], lo[k] - box[tB, 3 + k]), 0.0)
+                        gap2 += g * g
+                    go = gap2 <= r2 * GAP_SLACK
                 if go and tight:
                     go = _find(parent, i) != _find(parent, order[tB])
                 if go:  # the pairs of A x B until the first neighbours (all of them if not tight)
@@ -306,7 +329,7 @@ def _link_cells(s, dim: ti.template(), order: ti.template(), spts: ti.template()
 
 @ti.kernel
 def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd, order: nd, spts: nd,
-              parent: nd, core: nd, loose: nd, head: nd, n: ti.i32, N: ti.i32, H: ti.i32, chunks: ti.i32, r2: ti.f32, w: ti.f32,
+              parent: nd, core: nd, loose: nd, head: nd, box: nd, n: ti.i32, N: ti.i32, H: ti.i32, chunks: ti.i32, r2: ti.f32, w: ti.f32,
               inv: ti.f32, ms: ti.i32, v: ti.template()):  # fmt: skip
     # N (rows of out), H (buckets) and chunks = H / CHUNK come as arguments: SPIR-V (Taichi Vulkan)
     # takes a top-level loop bound from an argument or a shape, not from an expression of them
@@ -380,10 +403,15 @@ def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd,
                 if core[i] != 0:
                     _link_cell(i, s, dim, order, spts, start, core, parent, loose, head, key[i], r2, inv)
         ti.loop_config(serialize=v.serial)
-        for s in range(n):  # 6b: union-find over the cells, from their heads
+        for s in range(n):  # 6b: the bounding box of each cell's core points
             if s < start[H]:
                 if head[s] != 0:
-                    _link_cells(s, dim, order, spts, start, core, parent, loose, r2, w, inv, mask)
+                    _box(s, dim, order, spts, start, core, box, inv, mask)
+        ti.loop_config(serialize=v.serial)
+        for s in range(n):  # 6c: union-find over pairs of cells, from their heads
+            if s < start[H]:
+                if head[s] != 0:
+                    _link_cells(s, dim, order, spts, start, core, parent, loose, box, r2, w, inv, mask)
         _finish_body(out, start, order, spts, parent, core, n, N, H, r2, w, inv, ms, v)
 
 
@@ -462,6 +490,7 @@ def _scratch(device, N, dim):
         scratch(device, "clu_core", (N,), ti.i32),
         scratch(device, "clu_loose", (H,), ti.i32),
         scratch(device, "clu_head", (N,), ti.i32),
+        scratch(device, "clu_box", (N, 6), ti.f32),
     )
 
 
@@ -470,9 +499,9 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
     w, inv = grid(r2, dim)
     atomic = current_arch() in ATOMIC_ARCHS
     v = _Variant(dim, is_dbscan, atomic and n <= SERIAL_POINTS, atomic)
-    cnt, start, csum, key, rank, order, spts, parent, core, loose, head = _scratch(device, N, dim)
+    cnt, start, csum, key, rank, order, spts, parent, core, loose, head, box = _scratch(device, N, dim)
     H = buckets(N)
-    arrays = (points.buffer, out.buffer, cnt, start, csum, key, rank, order, spts, parent, core, loose, head)
+    arrays = (points.buffer, out.buffer, cnt, start, csum, key, rank, order, spts, parent, core, loose, head, box)
     launch(_clusters, arrays, (v,), scalars=(int(n), int(N), H, H // CHUNK, float(r2), float(w), float(inv), int(ms)))
     if atomic:
         return out
