@@ -52,7 +52,6 @@ nd = ti.types.ndarray()
 @dataclasses.dataclass(frozen=True)
 class _Variant:
     dim: int
-    dbscan: bool
     serial: bool
     atomic: bool  # union-find by atomic min; else rounds of hooking with plain stores
 
@@ -167,10 +166,13 @@ def _scan(i, p, mode: ti.template(), dim: ti.template(), order: ti.template(), s
         own[k] = _cell(p[k], inv)
     if ti.static(mode == 0):  # the point's own cell first: in a dense cell the count stops there
         b = _hash(own[0], own[1], own[2], mask)
-        for t in range(start[b], start[b + 1]):
+        t = start[b]
+        end = start[b + 1]
+        while t < end and acc < ms:
             q = _point(spts, t, dim)
             if _same_cell(q, own, inv, dim) and _d2(p, q, dim) <= r2:
                 acc += 1
+            t += 1
         stop = acc >= ms
     cx = lo[0]
     while cx <= hi[0] and not stop:
@@ -385,15 +387,15 @@ def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd,
             order[s] = i
             for k in ti.static(range(dim)):
                 spts[s, k] = pts[i, k]
-    if ti.static(v.dbscan):  # 5: core points (at least ms neighbours, the point itself included)
-        ti.loop_config(serialize=v.serial)
-        for s in range(n):
-            if s < start[H]:
-                i = order[s]
-                p = _point(spts, s, dim)
-                c = _scan(i, p, 0, dim, order, spts, start, core, parent, out, r2, w, inv, ms, mask)
-                if c < ms:
-                    core[i] = 0
+    # 5: core points (at least ms neighbours, the point itself included; ms = 1: every point)
+    ti.loop_config(serialize=v.serial)
+    for s in range(n):
+        if s < start[H]:
+            i = order[s]
+            p = _point(spts, s, dim)
+            c = _scan(i, p, 0, dim, order, spts, start, core, parent, out, r2, w, inv, ms, mask)
+            if c < ms:
+                core[i] = 0
     if ti.static(v.atomic):
         ti.loop_config(serialize=v.serial)
         for s in range(n):  # 6a: the core points of a cell (side < r / sqrt(dim)) are neighbours
@@ -430,16 +432,16 @@ def _finish_body(out: ti.template(), start: ti.template(), order: ti.template(),
                 else:
                     lab = parent[i]  # converged rounds: every parent is a root
         out[i] = lab
-    if ti.static(v.dbscan):  # 8: border points
-        ti.loop_config(serialize=v.serial)
-        for s in range(n):
-            if s < start[H]:
-                i = order[s]
-                if core[i] == 0:
-                    p = _point(spts, s, dim)
-                    m = _scan(i, p, 2, dim, order, spts, start, core, parent, out, r2, w, inv, ms, mask)
-                    if m < 2147483647:
-                        out[i] = m
+    # 8: border points (none where ms = 1)
+    ti.loop_config(serialize=v.serial)
+    for s in range(n):
+        if s < start[H]:
+            i = order[s]
+            if core[i] == 0:
+                p = _point(spts, s, dim)
+                m = _scan(i, p, 2, dim, order, spts, start, core, parent, out, r2, w, inv, ms, mask)
+                if m < 2147483647:
+                    out[i] = m
 
 
 @ti.kernel
@@ -494,11 +496,11 @@ def _scratch(device, N, dim):
     )
 
 
-def _run(device, points, n, r2, ms, out, is_dbscan):
+def _run(device, points, n, r2, ms, out):
     N, dim = points.shape
     w, inv = grid(r2, dim)
     atomic = current_arch() in ATOMIC_ARCHS
-    v = _Variant(dim, is_dbscan, atomic and n <= SERIAL_POINTS, atomic)
+    v = _Variant(dim, atomic and n <= SERIAL_POINTS, atomic)
     cnt, start, csum, key, rank, order, spts, parent, core, loose, head, box = _scratch(device, N, dim)
     H = buckets(N)
     arrays = (points.buffer, out.buffer, cnt, start, csum, key, rank, order, spts, parent, core, loose, head, box)
@@ -518,8 +520,8 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
 
 
 def radius_components(device, points, n, r2, out):
-    return _run(device, points, n, r2, 1, out, False)
+    return _run(device, points, n, r2, 1, out)  # dbscan with min_samples = 1
 
 
 def dbscan(device, points, n, r2, min_samples, out):
-    return _run(device, points, n, r2, min_samples, out, True)
+    return _run(device, points, n, r2, min_samples, out)
