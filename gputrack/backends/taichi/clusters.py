@@ -1,22 +1,36 @@
-"""Taichi kernel of :mod:`gputrack.ops.clusters`: the whole op in one launch.
+"""Taichi kernels of :mod:`gputrack.ops.clusters`: the whole op in one launch on CPU and CUDA.
 
-The kernel's top-level loops run one after the other (Taichi puts a barrier between them):
+The kernel ``_clusters`` runs its top-level loops one after the other (Taichi puts a barrier
+between them); radius_components is dbscan with min_samples = 1 (every point is core):
 
-1. parent[i] = i, bucket counts zeroed;
-2. each point's hashed grid cell (cell size w = r (1 + CELL_SLACK)); its rank in the bucket by an
-   atomic add;
+1. bucket counts and loose flags zeroed;
+2. each point's hashed grid cell, of side r (1 - CELL_SLACK) / sqrt(dim), so that any two points
+   of a cell are neighbours; its rank in its bucket by an atomic add (a NaN row: no bucket);
 3. the exclusive scan of the bucket counts (chunk sums, a serial scan of the chunks, chunk scans);
 4. the points scattered in bucket order (a copy of their coordinates beside their indices);
-5. dbscan: neighbour counts (stopping at min_samples) -> core flags;
-6. union-find over the edges between core points (each edge from its larger index), min-label
-   hooking by atomic min;
+5. neighbour counts, the point's own cell first, stopping at min_samples -> core flags;
+6. union-find by atomic min (min-label hooking, path halving): (a) each core point joins its
+   cell's head (the cell's first core point); (b) the bounding box of each cell's core points;
+   (c) each head links its cell A to every cell B that can hold a neighbour (B's head in the box
+   of A's core points +- w, w = r (1 + CELL_SLACK), and the boxes of A and B within r): unless A and
+   B are connected already, the first pair of their core points within r is united, each pair of
+   cells from the smaller head slot;
 7. labels: the root of each core point (its component's smallest index), -1 for the rest;
-8. dbscan: each border point takes the smallest label among its core neighbours.
+8. each border point takes the smallest label among its core neighbours.
 
-A neighbour search visits the cells of the box p ± w (floor((p ± w) / w) per axis) and takes a
-candidate only in its own cell, so that two cells sharing a bucket do not count a point twice.
-Small problems run every loop on the calling thread (a parallel loop's dispatch costs more than
-the work); see gputrack/ops/clusters.py for the conventions.
+A neighbour search visits the cells of the box p +- w (floor((p +- w) / side) per axis: exact
+whatever the rounding, floor and rounding being monotone) and takes a candidate only in its own
+cell, so that two cells sharing a bucket do not count a point twice. Where float32 rounding of
+huge coordinates puts points farther apart than r into one cell, step 6a marks the bucket loose
+and 6c links its cells pair by pair, with no shortcut.
+
+Taichi 1.7.4 on Vulkan (lavapipe) loses atomic updates made inside loops when invocations
+contend (seen with a plain atomic add), so on Vulkan steps 6-8 are replaced by launches of ROUNDS
+rounds of min-label hooking and pointer jumping with plain stores (``_rounds``: every write
+lowers a parent to an index of the same component, so lost races only cost rounds), a changed
+flag read back after each launch, then ``_finish`` (steps 7-8). Small problems run every loop on
+the calling thread (a parallel loop's dispatch costs more than the work). Conventions:
+gputrack/ops/clusters.py.
 """
 
 import dataclasses
@@ -26,8 +40,9 @@ import numpy as np
 from .launch import launch
 from .runtime import current_arch, scratch, ti
 
-#: the grid cell is r (1 + CELL_SLACK): a neighbour found by the float32 test d2 <= r2 lies inside
-#: the searched box p ± w whatever the rounding (as gputrack/backends/opencl/clusters.py)
+#: the searched box is p +- r (1 + CELL_SLACK) (a neighbour found by the float32 test d2 <= r2 lies
+#: inside it whatever the rounding), the cell side r (1 - CELL_SLACK) / sqrt(dim) (as
+#: gputrack/backends/opencl/clusters.py)
 CELL_SLACK = 1e-3
 #: two cells whose boxes are farther apart than r (with this relative margin on r2) cannot link
 GAP_SLACK = 1.01
