@@ -27,7 +27,8 @@ and 6c links its cells pair by pair, with no shortcut.
 Taichi 1.7.4 on Vulkan (lavapipe) loses atomic updates made inside loops when invocations
 contend (seen with a plain atomic add), so on Vulkan steps 6-8 are replaced by launches of ROUNDS
 rounds of min-label hooking and pointer jumping with plain stores (``_rounds``: every write
-lowers a parent to an index of the same component, so lost races only cost rounds), a changed
+sets a parent to a smaller index of the same component, so there are no cycles and a lost race
+only costs rounds), a changed
 flag read back after each launch, then ``_finish`` (steps 7-8). Small problems run every loop on
 the calling thread (a parallel loop's dispatch costs more than the work). Conventions:
 gputrack/ops/clusters.py.
