@@ -140,12 +140,13 @@ __kernel void gt_clu_place(__global const float *pts, __global const int *key, _
         spts[(size_t)s * DIM + k] = pts[(size_t)i * DIM + k];
 }
 
-inline int gt_same_cell(__global const float *q, const int *c, float inv)
+inline int gt_same_cell(__global const float *q, int cx, int cy, int cz, float inv)
 {
-    int same = gt_cell(q[0], inv) == c[0] && gt_cell(q[1], inv) == c[1];
-    if (DIM == 3)
-        same = same && gt_cell(q[2], inv) == c[2];
-    return same;
+#if DIM == 3
+    return gt_cell(q[0], inv) == cx && gt_cell(q[1], inv) == cy && gt_cell(q[2], inv) == cz;
+#else
+    return gt_cell(q[0], inv) == cx && gt_cell(q[1], inv) == cy;
+#endif
 }
 
 inline float gt_d2(const float *p, __global const float *q)
@@ -172,20 +173,19 @@ inline float gt_d2(const float *p, __global const float *q)
         if (MODE == 0) {                                                                                     \
             const int b = gt_hash(own[0], own[1], own[2], mask);                                             \
             for (int t = start[b]; t < start[b + 1]; t++)                                                    \
-                if (gt_same_cell(spts + (size_t)t * DIM, own, inv) && gt_d2(p, spts + (size_t)t * DIM) <= r2) \
+                if (gt_same_cell(spts + (size_t)t * DIM, own[0], own[1], own[2], inv) && gt_d2(p, spts + (size_t)t * DIM) <= r2) \
                     acc++;                                                                                   \
             stop = acc >= ms;                                                                                \
         }                                                                                                    \
         for (int cx = lo[0]; cx <= hi[0] && !stop; cx++)                                                     \
             for (int cy = lo[1]; cy <= hi[1] && !stop; cy++)                                                 \
                 for (int cz = lo[2]; cz <= hi[2] && !stop; cz++) {                                           \
-                    const int c[3] = {cx, cy, cz};                                                           \
                     if (MODE == 0 && cx == own[0] && cy == own[1] && cz == own[2])                           \
                         continue; /* counted above */                                                        \
                     const int b = gt_hash(cx, cy, cz, mask);                                                 \
                     for (int t = start[b]; t < start[b + 1]; t++) {                                          \
                         __global const float *q = spts + (size_t)t * DIM;                                    \
-                        if (!gt_same_cell(q, c, inv) || !(gt_d2(p, q) <= r2))                                \
+                        if (!gt_same_cell(q, cx, cy, cz, inv) || !(gt_d2(p, q) <= r2))                       \
                             continue;                                                                        \
                         const int j = order[t];                                                              \
                         if (MODE == 0)                                                                       \
@@ -207,11 +207,11 @@ inline void gt_load(__global const float *spts, int s, float *p, int *own, float
 }
 
 // The slot of the first core point of cell c in bucket b, or -1.
-inline int gt_first_core(const int *c, int b, __global const float *spts, __global const int *order,
+inline int gt_first_core(int cx, int cy, int cz, int b, __global const float *spts, __global const int *order,
                          __global const int *start, __global const int *core, float inv)
 {
     for (int t = start[b]; t < start[b + 1]; t++)
-        if (core[order[t]] && gt_same_cell(spts + (size_t)t * DIM, c, inv))
+        if (core[order[t]] && gt_same_cell(spts + (size_t)t * DIM, cx, cy, cz, inv))
             return t;
     return -1;
 }
@@ -239,7 +239,8 @@ __kernel void gt_clu_count(__global const float *spts, __global const int *order
 // loose, whose cells are then linked pair by pair in 5b.
 __kernel void gt_clu_link_cell(__global const float *spts, __global const int *order, __global const int *start,
                                __global const int *core, volatile __global int *parent, __global int *loose,
-                               __global int *heads, const int mask, const float r2, const float inv, const int H)
+                               __global int *heads, const int mask, const float r2, const float inv, const int H,
+                               const int n)
 {
     const int s = get_global_id(0);
     if (s >= start[H])
@@ -251,9 +252,9 @@ __kernel void gt_clu_link_cell(__global const float *spts, __global const int *o
     float p[3];
     gt_load(spts, s, p, own, inv);
     const int b = gt_hash(own[0], own[1], own[2], mask);
-    const int t = gt_first_core(own, b, spts, order, start, core, inv);
-    if (t == s) {  // a head: appended to the list (heads[N] counts them) that 5b works through
-        heads[atomic_inc(&heads[get_global_size(0)])] = s;
+    const int t = gt_first_core(own[0], own[1], own[2], b, spts, order, start, core, inv);
+    if (t == s) {  // a head: appended to the list (heads[n] counts them) that 5b and 5c work through
+        heads[atomic_inc(&heads[n])] = s;
         return;
     }
     if (gt_d2(p, spts + (size_t)t * DIM) <= r2)
@@ -265,10 +266,10 @@ __kernel void gt_clu_link_cell(__global const float *spts, __global const int *o
 // 5b: the bounding box of each cell's core points, box[head slot] = (lo, hi) (one work-item per head).
 __kernel void gt_clu_box(__global const float *spts, __global const int *order, __global const int *start,
                          __global const int *core, __global const int *heads, __global float *box, const int mask,
-                         const float inv)
+                         const float inv, const int n)
 {
     const int k = get_global_id(0);
-    if (k >= heads[get_global_size(0)])
+    if (k >= heads[n])
         return;
     const int s = heads[k];
     int c[3];
@@ -278,7 +279,7 @@ __kernel void gt_clu_box(__global const float *spts, __global const int *order, 
     float lo[3] = {p[0], p[1], p[2]}, hi[3] = {p[0], p[1], p[2]};
     for (int t = s; t < start[b + 1]; t++) {
         __global const float *q = spts + (size_t)t * DIM;
-        if (core[order[t]] && gt_same_cell(q, c, inv))
+        if (core[order[t]] && gt_same_cell(q, c[0], c[1], c[2], inv))
             for (int d = 0; d < DIM; d++) {
                 lo[d] = min(lo[d], q[d]);
                 hi[d] = max(hi[d], q[d]);
@@ -296,10 +297,10 @@ __kernel void gt_clu_box(__global const float *spts, __global const int *order, 
 __kernel void gt_clu_link_cells(__global const float *spts, __global const int *order, __global const int *start,
                                 __global const int *core, volatile __global int *parent, __global const int *loose,
                                 __global const int *heads, __global const float *box, const int mask,
-                                const float r2, const float w, const float inv, const int H)
+                                const float r2, const float w, const float inv, const int H, const int n)
 {
     const int k = get_global_id(0);
-    if (k >= heads[get_global_size(0)])  // one work-item per head: no idle lanes in a busy group
+    if (k >= heads[n])  // one work-item per head
         return;
     const int s = heads[k];
     int cA[3];
@@ -321,9 +322,8 @@ __kernel void gt_clu_link_cells(__global const float *spts, __global const int *
     for (int cx = clo[0]; cx <= chi[0]; cx++)
         for (int cy = clo[1]; cy <= chi[1]; cy++)
             for (int cz = clo[2]; cz <= chi[2]; cz++) {
-                const int cB[3] = {cx, cy, cz};
                 const int bB = gt_hash(cx, cy, cz, mask);
-                const int tB = gt_first_core(cB, bB, spts, order, start, core, inv);
+                const int tB = gt_first_core(cx, cy, cz, bB, spts, order, start, core, inv);
                 const int tight = tightA && !loose[bB];
                 if (tB < 0 || tB < s || (tB == s && tight))
                     continue;
@@ -340,7 +340,7 @@ __kernel void gt_clu_link_cells(__global const float *spts, __global const int *
                 int done = 0;
                 for (int ta = s; ta < endA && !done; ta++) {
                     const int a = order[ta];
-                    if (!core[a] || !gt_same_cell(spts + (size_t)ta * DIM, cA, inv))
+                    if (!core[a] || !gt_same_cell(spts + (size_t)ta * DIM, cA[0], cA[1], cA[2], inv))
                         continue;
                     float qa[3];
                     for (int k = 0; k < 3; k++)
@@ -348,7 +348,7 @@ __kernel void gt_clu_link_cells(__global const float *spts, __global const int *
                     for (int tb = tB; tb < endB && !done; tb++) {
                         const int bp = order[tb];
                         __global const float *qb = spts + (size_t)tb * DIM;
-                        if (core[bp] && gt_same_cell(qb, cB, inv) && gt_d2(qa, qb) <= r2) {
+                        if (core[bp] && gt_same_cell(qb, cx, cy, cz, inv) && gt_d2(qa, qb) <= r2) {
                             gt_union(parent, a, bp);  // paper 001 eq. 12: linked points
                             done = tight;
                         }

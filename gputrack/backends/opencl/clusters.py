@@ -28,9 +28,9 @@ _SCALARS = {
     "gt_clu_chunk_scan": [None, None, None],
     "gt_clu_place": [None] * 6 + [_I],
     "gt_clu_count": [None] * 4 + [_I, _F, _F, _F, _I, _I],
-    "gt_clu_link_cell": [None] * 7 + [_I, _F, _F, _I],
-    "gt_clu_box": [None] * 6 + [_I, _F],
-    "gt_clu_link_cells": [None] * 8 + [_I, _F, _F, _F, _I],
+    "gt_clu_link_cell": [None] * 7 + [_I, _F, _F, _I, _I],
+    "gt_clu_box": [None] * 6 + [_I, _F, _I],
+    "gt_clu_link_cells": [None] * 8 + [_I, _F, _F, _F, _I, _I],
     "gt_clu_label": [None] * 3 + [_I, _I],
     "gt_clu_border": [None] * 5 + [_I, _F, _F, _F, _I],
 }
@@ -93,9 +93,9 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
         k["gt_clu_count"](q, (n,), None, *grid, b["core"], mask, r2, w, inv, int(ms), H)
     cl.enqueue_fill_buffer(q, b["heads"], np.int32(0), 4 * n, 4)  # heads[n]: the number of heads
     link = (*grid, b["core"], b["parent"], b["loose"], b["heads"], mask, r2)
-    k["gt_clu_link_cell"](q, (n,), None, *link, inv, H)
-    k["gt_clu_box"](q, (n,), None, *grid, b["core"], b["heads"], b["box"], mask, inv)
-    k["gt_clu_link_cells"](q, (n,), (1,), *link[:-2], b["box"], mask, r2, w, inv, H)  # uneven work: small groups
+    k["gt_clu_link_cell"](q, (n,), None, *link, inv, H, n)
+    k["gt_clu_box"](q, (n,), None, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
+    k["gt_clu_link_cells"](q, (n,), (1,), *link[:-2], b["box"], mask, r2, w, inv, H, n)  # uneven work: small groups
     k["gt_clu_label"](q, (N,), None, b["parent"], b["core"], out.buffer.data, n, N)
     if is_dbscan:
         k["gt_clu_border"](q, (n,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
