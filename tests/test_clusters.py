@@ -234,3 +234,9 @@ def test_bad_input(device):
         dbscan(device, p, 1.0, 2, out=device.empty((13,), np.float32))
     with pytest.raises(TypeError, match="expected a gputrack.Device"):
         radius_components("numpy", p, 1.0)
+
+
+def test_selftest(device):
+    from gputrack.selftest import check_clusters
+
+    check_clusters(device)
