@@ -240,3 +240,19 @@ def test_selftest(device):
     from gputrack.selftest import check_clusters
 
     check_clusters(device)
+
+
+def test_benchmark_cases_run(device):
+    """gputrack/benchmarks/clusters.py at small sizes: its cases check the device's labels against
+    the reference when they are built, and every callable runs."""
+    import argparse
+
+    from gputrack.benchmarks import clusters as bench
+
+    args = argparse.Namespace(dbscan_points=300, components_points=600)
+    cases = bench.cases(device, args)
+    assert [c.name for c in cases] == ["dbscan N=300 2D", "radius_components N=600 3D"]
+    for case in cases:
+        np.testing.assert_array_equal(_labels(case.run()), _labels(case.reference()))
+        np.testing.assert_array_equal(_labels(case.end_to_end()), _labels(case.reference()))
+        assert case.params["dim"] in (2, 3)
