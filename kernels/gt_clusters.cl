@@ -5,7 +5,7 @@
 // head (its first core point), then pairs of cells. The launcher
 // (gputrack/backends/opencl/clusters.py) enqueues, in order: gt_clu_bin, gt_clu_chunk_sums,
 // gt_clu_scan_chunks, gt_clu_chunk_scan, gt_clu_place, [gt_clu_count], gt_clu_link_cell,
-// gt_clu_link_cells, gt_clu_label, [gt_clu_border]. Points (N, DIM) float32; a row with a NaN
+// gt_clu_box, gt_clu_link_cells, gt_clu_label, [gt_clu_border]. Points (N, DIM) float32; a row with a NaN
 // is not a point. Defines: DIM (2 or 3), CHUNK (buckets per scan chunk).
 
 #pragma OPENCL FP_CONTRACT OFF  // d2 rounds as the reference: (d0 d0 + d1 d1) + d2 d2, no fused multiply-add
@@ -173,7 +173,8 @@ inline float gt_d2(const float *p, __global const float *q)
         if (MODE == 0) {                                                                                     \
             const int b = gt_hash(own[0], own[1], own[2], mask);                                             \
             for (int t = start[b]; t < start[b + 1]; t++)                                                    \
-                if (gt_same_cell(spts + (size_t)t * DIM, own[0], own[1], own[2], inv) && gt_d2(p, spts + (size_t)t * DIM) <= r2) \
+                if (gt_same_cell(spts + (size_t)t * DIM, own[0], own[1], own[2], inv) &&                     \
+                    gt_d2(p, spts + (size_t)t * DIM) <= r2)                                                  \
                     acc++;                                                                                   \
             stop = acc >= ms;                                                                                \
         }                                                                                                    \
@@ -291,7 +292,8 @@ __kernel void gt_clu_box(__global const float *spts, __global const int *order, 
     }
 }
 
-// 5c (NDRange n, as 5a): cell A (head slot s = heads[k]) with each cell B that can hold a neighbour of one of its core points:
+// 5c (NDRange n, as 5a): cell A (head slot s = heads[k]) with each cell B that can hold a neighbour
+// of one of its core points:
 // unless connected already, the first pair of their core points within r is united (every pair
 // where a bucket is loose). Each pair of cells is handled from the smaller head slot.
 __kernel void gt_clu_link_cells(__global const float *spts, __global const int *order, __global const int *start,
@@ -329,7 +331,8 @@ __kernel void gt_clu_link_cells(__global const float *spts, __global const int *
                     continue;
                 float gap2 = 0.0f;  // squared gap between the boxes of A and B: beyond r, no pair links
                 for (int k = 0; k < DIM; k++) {
-                    const float g = max(max(box[(size_t)tB * 6 + k] - hi[k], lo[k] - box[(size_t)tB * 6 + 3 + k]), 0.0f);
+                    const float below = box[(size_t)tB * 6 + k] - hi[k], above = lo[k] - box[(size_t)tB * 6 + 3 + k];
+                    const float g = max(max(below, above), 0.0f);
                     gap2 += g * g;
                 }
                 if (gap2 > r2 * GT_GAP_SLACK)

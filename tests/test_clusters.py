@@ -149,8 +149,8 @@ def test_n_points_device_inputs_and_out(device):
     np.testing.assert_array_equal(_labels(dbscan(device, dev_pts, 0.1, 4, n_points=127, out=out)), want)
     np.testing.assert_array_equal(_labels(dbscan(device, dev_pts, 0.1, 4, n_points=0, out=out)), -1)
     # a smaller frame in the same buffers after a larger one
-    np.testing.assert_array_equal(_labels(radius_components(device, dev_pts, 0.1, n_points=13)),
-                                  np.concatenate([radius_components(REF, p[:13], 0.1), np.full(154, -1, np.int32)]))  # fmt: skip
+    want = np.concatenate([radius_components(REF, p[:13], 0.1), np.full(154, -1, np.int32)])
+    np.testing.assert_array_equal(_labels(radius_components(device, dev_pts, 0.1, n_points=13)), want)
 
 
 def _sklearn(p, eps, min_samples):

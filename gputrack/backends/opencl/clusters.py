@@ -1,5 +1,6 @@
 """OpenCL launchers of :mod:`gputrack.ops.clusters` (kernels/gt_clusters.cl): one fixed sequence
-of launches per call (bin, scan, place, [count], link cells, label, [border]), no host read-back; one
+of launches per call (bin, scan, place, [count], link cells, label, [border]: 11 kernels and 3
+buffer fills), no host read-back; one
 program per point dimension, scratch buffers kept per device and number of rows."""
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ CELL_SLACK = 1e-3
 CHUNK = 256
 
 _I, _F = np.int32, np.float32
-
 
 
 def buckets(N: int) -> int:

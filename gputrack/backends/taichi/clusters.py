@@ -205,7 +205,8 @@ def _scan(i, p, mode: ti.template(), dim: ti.template(), order: ti.template(), s
                     same = _cell(q[0], inv) == cx and _cell(q[1], inv) == cy
                     if ti.static(dim == 3):
                         same = same and _cell(q[2], inv) == cz
-                    if not skip and same and _d2(p, q, dim) <= r2:  # neighbours (paper 001 eq. 12, paper 002: within eps)
+                    # neighbours (paper 001 eq. 12: linked points; paper 002: within eps)
+                    if not skip and same and _d2(p, q, dim) <= r2:
                         j = order[t]
                         if ti.static(mode == 0):
                             acc += 1
@@ -347,7 +348,8 @@ def _link_cells(s, dim: ti.template(), order: ti.template(), spts: ti.template()
 
 @ti.kernel
 def _clusters(pts: nd, out: nd, cnt: nd, start: nd, csum: nd, key: nd, rank: nd, order: nd, spts: nd,
-              parent: nd, core: nd, loose: nd, head: nd, box: nd, n: ti.i32, N: ti.i32, H: ti.i32, chunks: ti.i32, r2: ti.f32, w: ti.f32,
+              parent: nd, core: nd, loose: nd, head: nd, box: nd, n: ti.i32, N: ti.i32, H: ti.i32, chunks: ti.i32,
+              r2: ti.f32, w: ti.f32,
               inv: ti.f32, ms: ti.i32, v: ti.template()):  # fmt: skip
     # N (rows of out), H (buckets) and chunks = H / CHUNK come as arguments: SPIR-V (Taichi Vulkan)
     # takes a top-level loop bound from an argument or a shape, not from an expression of them
