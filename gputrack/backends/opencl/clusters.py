@@ -95,7 +95,10 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
     link = (*grid, b["core"], b["parent"], b["loose"], b["heads"], mask, r2)
     k["gt_clu_link_cell"](q, (n,), None, *link, inv, H, n)
     k["gt_clu_box"](q, (n,), None, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
-    k["gt_clu_link_cells"](q, (n,), (1,), *link[:-2], b["box"], mask, r2, w, inv, H, n)  # uneven work: small groups
+    # one work-item per cell head, uneven work: on a CPU device one-item work-groups spread it over
+    # the cores (the heads are the first items); a GPU keeps the driver's work-group size
+    local = (1,) if device.info.kind == "cpu" else None
+    k["gt_clu_link_cells"](q, (n,), local, *link[:-2], b["box"], mask, r2, w, inv, H, n)
     k["gt_clu_label"](q, (N,), None, b["parent"], b["core"], out.buffer.data, n, N)
     if is_dbscan:
         k["gt_clu_border"](q, (n,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
