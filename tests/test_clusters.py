@@ -125,6 +125,38 @@ def test_one_cluster_and_all_noise(device):
     np.testing.assert_array_equal(_labels(dbscan(device, nan, 1.0, 1)), np.full(13, -1, np.int32))
 
 
+def _ties(n, seed=0):
+    """n pairs of 2D points (10 apart) at distance exactly on the radius 1 in float32, where a fused
+    multiply-add would round d2 to the other side of r2 = 1 (some linked, some not)."""
+    f32 = np.float32
+    rng = np.random.default_rng(seed)
+    rows = []
+    while len(rows) < 2 * n:
+        x0 = f32(10.0 * len(rows))
+        q0 = f32(x0 + f32(rng.uniform(0.3, 0.9)))
+        d0 = f32(q0 - x0)
+        v = f32(np.sqrt(1.0 - np.float64(d0) ** 2))
+        for d1 in (np.nextafter(v, f32(0)), v, np.nextafter(v, f32(2))):
+            plain = f32(f32(d0 * d0) + f32(d1 * d1))
+            fused = f32(np.float64(d1) * d1 + np.float64(f32(d0 * d0)))
+            if plain != fused and f32(1.0) in (plain, fused):
+                rows += [[x0, 0.0], [q0, d1]]
+                break
+    return np.array(rows, f32)
+
+
+def test_exact_ties_at_the_radius(device):
+    """Pairs on the radius to the last bit: linked exactly when the unfused float32 d2 <= r2."""
+    p = _ties(20)
+    d = p[1::2] - p[0::2]
+    linked = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= np.float32(1.0)
+    assert 0 < linked.sum() < 20
+    want = np.where(np.repeat(linked, 2), np.repeat(np.arange(0, 40, 2), 2), np.arange(40)).astype(np.int32)
+    np.testing.assert_array_equal(radius_components(REF, p, 1.0), want)
+    np.testing.assert_array_equal(_labels(radius_components(device, p, 1.0)), want)
+    np.testing.assert_array_equal(_labels(dbscan(device, p, 1.0, 2)), np.where(np.repeat(linked, 2), want, -1))
+
+
 @pytest.mark.parametrize("offset,r", [(4e6, 0.3), (3e7, 3.0)])
 def test_far_from_the_origin(device, offset, r):
     """Coordinates so large that float32 cell indices round (the grid's cells then hold points

@@ -15,9 +15,9 @@ caller can upload every frame into one buffer of a fixed size; the rows after th
 and get label -1. ``out``: an (N,) int32 array of the device to write into.
 
 Neighbours: points i and j are neighbours when d2 <= r2, with d = p_i - p_j, d2 = (d_0 d_0 +
-d_1 d_1) + d_2 d_2 in float32 and r2 = float32(r)**2, on every backend. (A pair whose d2 lies
-within one float32 rounding of r2 may be linked differently where a compiler fuses the multiply
-and add, as Taichi's fast math may; every test cloud avoids such exact ties.)
+d_1 d_1) + d_2 d_2 in float32 and r2 = float32(r)**2, on every backend, with no fused multiply-add
+(OpenCL builds with FP_CONTRACT OFF; tests/test_clusters.py pins every backend on pairs exactly
+on the radius, where a fused multiply-add would round d2 to the other side of r2).
 
 Labels are canonical, the same on every backend, so results compare exactly:
 
