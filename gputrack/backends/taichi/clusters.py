@@ -49,7 +49,7 @@ CELL_SLACK = 1e-3
 GAP_SLACK = 1.01
 #: buckets are scanned in chunks of this many
 CHUNK = 256
-#: problems of at most this many points run on the calling thread
+#: problems of at most this many points run on the calling thread (taichi:cpu)
 SERIAL_POINTS = 2048
 #: hooking rounds per launch where atomics are not used (taichi:vulkan)
 ROUNDS = 8
@@ -517,8 +517,9 @@ def _scratch(device, N, dim):
 def _run(device, points, n, r2, ms, out):
     N, dim = points.shape
     w, inv = grid(r2, dim)
-    atomic = current_arch() in ATOMIC_ARCHS
-    v = _Variant(dim, atomic and n <= SERIAL_POINTS, atomic)
+    arch = current_arch()
+    atomic = arch in ATOMIC_ARCHS
+    v = _Variant(dim, arch == "cpu" and n <= SERIAL_POINTS, atomic)  # one thread only on a CPU
     cnt, start, csum, key, rank, order, spts, parent, core, loose, head, box = _scratch(device, N, dim)
     H = buckets(N)
     arrays = (points.buffer, out.buffer, cnt, start, csum, key, rank, order, spts, parent, core, loose, head, box)
