@@ -230,6 +230,20 @@ def check_background(device: Device) -> None:
     assert err <= 1e-4, f"depth_points differs from the reference by {err:.3g}"
 
 
+def check_clusters(device: Device) -> None:
+    """dbscan (core, border and noise points, a NaN row) of 2D points against the reference."""
+    from .ops.clusters import dbscan
+
+    ref = get_device("numpy")
+    rng = np.random.default_rng(5)
+    p = np.concatenate([rng.normal(0.0, 0.1, (40, 2)), rng.normal(1.0, 0.1, (40, 2)), rng.uniform(-1, 2, (20, 2))])
+    p = p.astype(np.float32)
+    p[7] = np.nan
+    want = dbscan(ref, p, 0.1, 5)
+    got = to_numpy(dbscan(device, p, 0.1, 5))
+    assert np.array_equal(got, want), f"dbscan labels differ from the reference at {np.flatnonzero(got != want)[:5]}"
+
+
 CHECKS = [
     ("arrays", check_arrays),
     ("kinematics", check_kinematics),
@@ -240,6 +254,7 @@ CHECKS = [
     ("point_groups", check_point_groups),
     ("stereo", check_stereo),
     ("background", check_background),
+    ("clusters", check_clusters),
 ]
 
 

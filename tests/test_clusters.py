@@ -92,18 +92,19 @@ def test_reference_matches_brute_force():
 
 @pytest.mark.parametrize("order", ["sorted", "shuffled", "reversed"])
 def test_long_chain_is_one_component(device, order):
-    """A path graph of 1535 points (spacing 0.8 r): the labels must travel 1534 hops."""
-    N = 1535
+    """A path graph of 2500 points (spacing 0.8 r; more points than taichi:cpu runs on one thread):
+    the labels must travel 2499 hops."""
+    N = 2500
     x = np.arange(N, dtype=np.float32) * np.float32(0.8)
-    p = np.stack([x, np.zeros(N, np.float32), np.zeros(N, np.float32)], 1)
+    p = np.stack([x, np.full(N, 5.0, np.float32)], 1)  # 2D only: one more kernel variant to compile
     if order == "shuffled":
         p = p[np.random.default_rng(1).permutation(N)]
     elif order == "reversed":
         p = p[::-1].copy()
     np.testing.assert_array_equal(_labels(radius_components(device, p, 1.0)), np.zeros(N, np.int32))
     # dbscan with min_samples 3: the two ends are border points of the one cluster
-    got = _labels(dbscan(device, p[:, :2].copy(), 1.0, 3))
-    np.testing.assert_array_equal(got, dbscan(REF, p[:, :2].copy(), 1.0, 3))
+    got = _labels(dbscan(device, p, 1.0, 3))
+    np.testing.assert_array_equal(got, dbscan(REF, p, 1.0, 3))
     assert np.unique(got).size == 1 and got.min() >= 0
     # cut the chain in the middle (a gap of 2 r): two components
     q = np.stack([x + np.float32(2.0) * (np.arange(N) >= N // 2), np.zeros(N, np.float32)], 1).astype(np.float32)
@@ -124,6 +125,49 @@ def test_one_cluster_and_all_noise(device):
     np.testing.assert_array_equal(_labels(dbscan(device, nan, 1.0, 1)), np.full(13, -1, np.int32))
 
 
+def _ties(n, seed=0):
+    """n pairs of 2D points (10 apart) at distance exactly on the radius 1 in float32, where a fused
+    multiply-add would round d2 to the other side of r2 = 1 (some linked, some not)."""
+    f32 = np.float32
+    rng = np.random.default_rng(seed)
+    rows = []
+    while len(rows) < 2 * n:
+        x0 = f32(10.0 * len(rows))
+        q0 = f32(x0 + f32(rng.uniform(0.3, 0.9)))
+        d0 = f32(q0 - x0)
+        v = f32(np.sqrt(1.0 - np.float64(d0) ** 2))
+        for d1 in (np.nextafter(v, f32(0)), v, np.nextafter(v, f32(2))):
+            plain = f32(f32(d0 * d0) + f32(d1 * d1))
+            fused = f32(np.float64(d1) * d1 + np.float64(f32(d0 * d0)))
+            if plain != fused and f32(1.0) in (plain, fused):
+                rows += [[x0, 0.0], [q0, d1]]
+                break
+    return np.array(rows, f32)
+
+
+def test_exact_ties_at_the_radius(device):
+    """Pairs on the radius to the last bit: linked exactly when the unfused float32 d2 <= r2."""
+    p = _ties(20)
+    d = p[1::2] - p[0::2]
+    linked = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= np.float32(1.0)
+    assert 0 < linked.sum() < 20
+    want = np.where(np.repeat(linked, 2), np.repeat(np.arange(0, 40, 2), 2), np.arange(40)).astype(np.int32)
+    np.testing.assert_array_equal(radius_components(REF, p, 1.0), want)
+    np.testing.assert_array_equal(_labels(radius_components(device, p, 1.0)), want)
+    np.testing.assert_array_equal(_labels(dbscan(device, p, 1.0, 2)), np.where(np.repeat(linked, 2), want, -1))
+
+
+@pytest.mark.parametrize("offset,r", [(4e6, 0.3), (3e7, 3.0)])
+def test_far_from_the_origin(device, offset, r):
+    """Coordinates so large that float32 cell indices round (the grid's cells then hold points
+    farther apart than r, found and linked pair by pair): still the reference's labels."""
+    p = (offset + np.random.default_rng(2).uniform(0, 30 * r, (500, 2))).astype(np.float32)
+    want = radius_components(REF, p, r)
+    assert 50 < np.unique(want).size < 400
+    np.testing.assert_array_equal(_labels(radius_components(device, p, r)), want)
+    np.testing.assert_array_equal(_labels(dbscan(device, p, r, 3)), dbscan(REF, p, r, 3))
+
+
 def test_n_points_device_inputs_and_out(device):
     p = _cloud(127, 3, 11)
     padded = np.concatenate([p, np.random.default_rng(0).random((40, 3)).astype(np.float32)])
@@ -137,8 +181,8 @@ def test_n_points_device_inputs_and_out(device):
     np.testing.assert_array_equal(_labels(dbscan(device, dev_pts, 0.1, 4, n_points=127, out=out)), want)
     np.testing.assert_array_equal(_labels(dbscan(device, dev_pts, 0.1, 4, n_points=0, out=out)), -1)
     # a smaller frame in the same buffers after a larger one
-    np.testing.assert_array_equal(_labels(radius_components(device, dev_pts, 0.1, n_points=13)),
-                                  np.concatenate([radius_components(REF, p[:13], 0.1), np.full(154, -1, np.int32)]))  # fmt: skip
+    want = np.concatenate([radius_components(REF, p[:13], 0.1), np.full(154, -1, np.int32)])
+    np.testing.assert_array_equal(_labels(radius_components(device, dev_pts, 0.1, n_points=13)), want)
 
 
 def _sklearn(p, eps, min_samples):
@@ -222,3 +266,25 @@ def test_bad_input(device):
         dbscan(device, p, 1.0, 2, out=device.empty((13,), np.float32))
     with pytest.raises(TypeError, match="expected a gputrack.Device"):
         radius_components("numpy", p, 1.0)
+
+
+def test_selftest(device):
+    from gputrack.selftest import check_clusters
+
+    check_clusters(device)
+
+
+def test_benchmark_cases_run(device):
+    """gputrack/benchmarks/clusters.py at small sizes: its cases check the device's labels against
+    the reference when they are built, and every callable runs."""
+    import argparse
+
+    from gputrack.benchmarks import clusters as bench
+
+    args = argparse.Namespace(dbscan_points=300, components_points=600)
+    cases = bench.cases(device, args)
+    assert [c.name for c in cases] == ["dbscan N=300 2D", "radius_components N=600 3D"]
+    for case in cases:
+        np.testing.assert_array_equal(_labels(case.run()), _labels(case.reference()))
+        np.testing.assert_array_equal(_labels(case.end_to_end()), _labels(case.reference()))
+        assert case.params["dim"] in (2, 3)

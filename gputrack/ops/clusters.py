@@ -15,9 +15,9 @@ caller can upload every frame into one buffer of a fixed size; the rows after th
 and get label -1. ``out``: an (N,) int32 array of the device to write into.
 
 Neighbours: points i and j are neighbours when d2 <= r2, with d = p_i - p_j, d2 = (d_0 d_0 +
-d_1 d_1) + d_2 d_2 in float32 and r2 = float32(r)**2, on every backend. (A pair whose d2 lies
-within one float32 rounding of r2 may be linked differently where a compiler fuses the multiply
-and add, as Taichi's fast math may; every test cloud avoids such exact ties.)
+d_1 d_1) + d_2 d_2 in float32 and r2 = float32(r)**2, on every backend, with no fused multiply-add
+(OpenCL builds with FP_CONTRACT OFF; tests/test_clusters.py pins every backend on pairs exactly
+on the radius, where a fused multiply-add would round d2 to the other side of r2).
 
 Labels are canonical, the same on every backend, so results compare exactly:
 
@@ -32,17 +32,24 @@ Labels are canonical, the same on every backend, so results compare exactly:
   the labels to 0..C-1 in increasing order, which is exactly scikit-learn's ``labels_``
   (radius_components is dbscan with ``min_samples=1``).
 
-Device algorithm (Taichi and OpenCL): the points are binned into a hashed uniform grid of cell
-size r (1 + 1e-3) (a counting sort: per-bucket counts by atomic add, a scan, a scatter); a point's
-neighbour search visits the cells of the box p ± r, found from floor((p ± r) / cell), so no
-neighbour is missed whatever the rounding of the cell coordinates, and counts each candidate once
-(a candidate is taken only in its own cell). The components come from a concurrent union-find with
-min-label hooking: every edge (i, j) hooks the larger of the two roots under the smaller with an
-atomic min (retrying when another edge hooked that root first), and finds halve paths with atomic
-mins (parent pointers only ever decrease, so every root is its component's smallest index). It
-needs no rounds to convergence: the whole op is one Taichi kernel launch (its stages are the
-kernel's top-level loops) or one fixed sequence of OpenCL launches, with no host read-back, even
-for a path graph of N points.
+Device algorithm (Taichi and OpenCL): the points are binned into a hashed uniform grid by a
+counting sort (per-bucket counts by atomic add, a scan, a scatter). The cell side is
+r (1 - 1e-3) / sqrt(dim), so any two points of a cell are neighbours; a point's neighbour search
+visits the cells of the box p +- r (1 + 1e-3), found from floor((p +- w) / side), so no neighbour is
+missed whatever the rounding, and takes each candidate only in its own cell. Neighbour counts
+(own cell first, stopping at min_samples) give the core points. The components come from a
+concurrent union-find with min-label hooking: parent pointers only ever decrease (hooks and path
+halving by atomic min, retried where another edge hooked a root first), so every root is its
+component's smallest index. The core points of a cell join the cell's first core point; then each
+cell is linked to each cell that can hold a neighbour: skipped when the two are connected already
+or their bounding boxes are farther apart than r, else the first pair within r is united. It needs
+no rounds to convergence: the whole op is one Taichi kernel launch (its stages are the kernel's
+top-level loops) or one fixed sequence of OpenCL launches, with no host read-back, even for a path
+graph of N points. Where float32 rounding of huge coordinates puts points farther apart than r in
+one cell, that cell's bucket is linked pair by pair instead. taichi:vulkan, whose atomics are not
+trusted (gputrack/backends/taichi/clusters.py), runs rounds of min-label hooking and pointer
+jumping (8 per launch, a changed flag read back after each launch; about log2 of the longest path
+in rounds).
 
 Validation: points (N, 2) or (N, 3) float32 (TypeError for another dtype), no infinities in a
 NumPy input (a device input is not inspected); radius / eps a positive finite real whose float32

@@ -1,5 +1,6 @@
 """OpenCL launchers of :mod:`gputrack.ops.clusters` (kernels/gt_clusters.cl): one fixed sequence
-of launches per call (bin, scan, place, [count], union, label, [border]), no host read-back; one
+of launches per call (bin, scan, place, [count], link cells, label, [border]: 11 kernels and 3
+buffer fills), no host read-back; one
 program per point dimension, scratch buffers kept per device and number of rows."""
 
 from __future__ import annotations
@@ -8,8 +9,8 @@ import numpy as np
 
 from ...device import per_device
 
-#: as gputrack/backends/taichi/clusters.py: the grid cell is r (1 + CELL_SLACK); buckets are a
-#: power of two >= 2N, scanned in chunks of CHUNK
+#: as gputrack/backends/taichi/clusters.py: cells of side r (1 - CELL_SLACK) / sqrt(dim), the box
+#: p +- r (1 + CELL_SLACK) searched; buckets are a power of two >= 2N, scanned in chunks of CHUNK
 CELL_SLACK = 1e-3
 CHUNK = 256
 
@@ -27,7 +28,9 @@ _SCALARS = {
     "gt_clu_chunk_scan": [None, None, None],
     "gt_clu_place": [None] * 6 + [_I],
     "gt_clu_count": [None] * 4 + [_I, _F, _F, _F, _I, _I],
-    "gt_clu_union": [None] * 5 + [_I, _F, _F, _F, _I],
+    "gt_clu_link_cell": [None] * 7 + [_I, _F, _F, _I, _I],
+    "gt_clu_box": [None] * 6 + [_I, _F, _I],
+    "gt_clu_link_cells": [None] * 8 + [_I, _F, _F, _F, _I, _I],
     "gt_clu_label": [None] * 3 + [_I, _I],
     "gt_clu_border": [None] * 5 + [_I, _F, _F, _F, _I],
 }
@@ -58,7 +61,8 @@ def _scratch(device, N, dim):
 
     return {
         "cnt": buf(H), "start": buf(H + 1), "csum": buf(H // CHUNK), "key": buf(N), "rank": buf(N),
-        "order": buf(N), "spts": buf(N * dim), "parent": buf(N), "core": buf(N),
+        "order": buf(N), "spts": buf(N * dim), "parent": buf(N), "core": buf(N), "loose": buf(H), "heads": buf(N + 1),
+        "box": buf(6 * N),
     }  # fmt: skip
 
 
@@ -69,14 +73,16 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
     H = buckets(N)
     chunks = H // CHUNK
     mask = H - 1
-    w = np.float32(np.sqrt(np.float64(r2)) * (1.0 + CELL_SLACK))
-    inv = np.float32(1.0) / w
+    r = np.sqrt(np.float64(r2))
+    w = np.float32(r * (1.0 + CELL_SLACK))  # the searched box p +- w
+    inv = np.float32(np.sqrt(dim) / (r * (1.0 - CELL_SLACK)))  # 1 / the cell side
     r2 = np.float32(r2)
     k = _kernels(device, dim)
     b = _scratch(device, N, dim)
     q = device.queue
     pts = points.buffer.data
     cl.enqueue_fill_buffer(q, b["cnt"], np.int32(0), 0, 4 * H)
+    cl.enqueue_fill_buffer(q, b["loose"], np.int32(0), 0, 4 * H)
     k["gt_clu_bin"](q, (n,), None, pts, b["cnt"], b["key"], b["rank"], b["parent"], b["core"], n, mask, inv)
     k["gt_clu_chunk_sums"](q, (chunks,), None, b["cnt"], b["csum"])
     k["gt_clu_scan_chunks"](q, (1,), None, b["csum"], b["start"], chunks, H)
@@ -85,7 +91,14 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
     grid = (b["spts"], b["order"], b["start"])
     if is_dbscan:
         k["gt_clu_count"](q, (n,), None, *grid, b["core"], mask, r2, w, inv, int(ms), H)
-    k["gt_clu_union"](q, (n,), None, *grid, b["core"], b["parent"], mask, r2, w, inv, H)
+    cl.enqueue_fill_buffer(q, b["heads"], np.int32(0), 4 * n, 4)  # heads[n]: the number of heads
+    link = (*grid, b["core"], b["parent"], b["loose"], b["heads"], mask, r2)
+    k["gt_clu_link_cell"](q, (n,), None, *link, inv, H, n)
+    k["gt_clu_box"](q, (n,), None, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
+    # one work-item per cell head, uneven work: on a CPU device one-item work-groups spread it over
+    # the cores (the heads are the first items); a GPU keeps the driver's work-group size
+    local = (1,) if device.info.kind == "cpu" else None
+    k["gt_clu_link_cells"](q, (n,), local, *link[:-2], b["box"], mask, r2, w, inv, H, n)
     k["gt_clu_label"](q, (N,), None, b["parent"], b["core"], out.buffer.data, n, N)
     if is_dbscan:
         k["gt_clu_border"](q, (n,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
