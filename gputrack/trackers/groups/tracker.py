@@ -199,11 +199,17 @@ def _points(a, name: str, N=None) -> np.ndarray:
 
 def _components(device, points: np.ndarray, radius: float) -> np.ndarray:
     """Connected components of the graph linking points within ``radius`` (eq. 12), on the
-    device (:func:`gputrack.ops.radius_components`): (k,) labels."""
-    if len(points) == 0:
+    device (:func:`gputrack.ops.radius_components`): (k,) labels. The points are padded with NaN
+    rows (no point) to a power of two, so that the kernels see a few sizes only (an OpenCL driver
+    may compile a kernel again for every new launch size)."""
+    k = len(points)
+    if k == 0:
         return np.zeros(0, np.int64)
-    labels = radius_components(device, np.ascontiguousarray(points, np.float32), float(radius))
-    return np.asarray(labels if device.backend == "numpy" else labels.numpy()).astype(np.int64)
+    rows = max(16, 1 << (k - 1).bit_length())
+    padded = np.full((rows, 3), np.nan, np.float32)
+    padded[:k] = points
+    labels = radius_components(device, padded, float(radius), n_points=k)
+    return np.asarray(labels if device.backend == "numpy" else labels.numpy())[:k].astype(np.int64)
 
 
 class GroupTracker:
