@@ -235,3 +235,22 @@ def test_the_alloc_benchmark_cases_run_and_report_flat_memory(device):
     assert mem["after"]["pool"]["allocated"] == mem["before"]["pool"]["allocated"]
     if device.backend != "numpy":
         assert mem["after"]["pool"]["reused"] >= mem["before"]["pool"]["reused"] + 20 * 8
+
+
+def test_a_vector_typed_scratch_array_leaves_the_pool_on():
+    """An ndarray of a vector element type (the stereo kernels' scratch) takes Taichi's own path;
+    the arrays after it still come from the pool (it once turned pooling off for the process)."""
+    specs = {i.spec for i in gputrack.devices() if i.available}
+    if "taichi:cpu" not in specs:
+        pytest.skip("taichi:cpu is not available")
+    dev = gputrack.device("taichi:cpu")
+    from gputrack.backends.taichi import runtime
+
+    vec = runtime.ndarray(runtime.ti.types.vector(4, runtime.ti.i32), (3,))
+    assert vec.shape == (3,)
+    gc.collect()
+    dev.empty_pool()
+    a = dev.empty((17, 5), np.float32)
+    del a
+    gc.collect()
+    assert dev.pool_stats().held_buffers == 1

@@ -160,7 +160,9 @@ def set_pool_limit(limit: int) -> None:
 
 
 def ndarray(dtype, shape):
-    """A new, uninitialised Taichi ndarray of ``dtype`` (a Taichi primitive type) and ``shape``.
+    """A new, uninitialised Taichi ndarray of ``dtype`` (a Taichi primitive type) and ``shape``
+    (another element type, e.g. a ``ti.types.vector``, goes through ``ti.ndarray`` and not the
+    pool).
 
     ``ti.ndarray`` zero-fills the memory and records the Python stack of its caller for Taichi's
     debug messages: 0.1-0.7 ms per array on a CPU (more under a deep stack), where the allocation
@@ -170,6 +172,8 @@ def ndarray(dtype, shape):
     """
     global _fast_alloc
     shape = tuple(int(s) for s in shape)
+    if dtype not in _ITEMSIZE:  # a vector or matrix element type: Taichi's own path, pool bypassed
+        return ti.ndarray(dtype, shape)
     if _fast_alloc:
         try:
             nbytes = math.prod(shape) * _ITEMSIZE[dtype]
