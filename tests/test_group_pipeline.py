@@ -153,12 +153,16 @@ def test_demo_groups(tmp_path, capsys):
 
 
 def test_track_groups_command(tmp_path, scenes, capsys):
+    """A recording of the full-size crossing written as PNG files, tracked from the command line."""
     import cv2
 
-    sc = scenes["half"]
+    avail = {i.spec for i in gputrack.devices() if i.available}
+    spec = "taichi:cpu" if "taichi:cpu" in avail else "numpy"
+    sc = scenes["crossing"]
+    n = sc.empty_frames + 40
     for side in ("left", "right"):
         (tmp_path / side).mkdir()
-    for k in range(sc.empty_frames + 20):
+    for k in range(n):
         f = sc[k]
         cv2.imwrite(str(tmp_path / "left" / f"{k:04d}.png"), f.left)
         cv2.imwrite(str(tmp_path / "right" / f"{k:04d}.png"), f.right)
@@ -166,12 +170,12 @@ def test_track_groups_command(tmp_path, scenes, capsys):
     (tmp_path / "cam.json").write_text(json.dumps({"f": cam.f, "b": cam.b, "cx": cam.cx, "cy": cam.cy}))
     out = tmp_path / "groups.jsonl"
     args = ["track", "groups", "--left", str(tmp_path / "left"), "--right", str(tmp_path / "right" / "*.png"),
-            "--camera", str(tmp_path / "cam.json"), "--device", "numpy", "--out", str(out)]  # fmt: skip
+            "--camera", str(tmp_path / "cam.json"), "--device", spec, "--out", str(out)]  # fmt: skip
     assert cli.main(args) == 0
     lines = [json.loads(s) for s in out.read_text().splitlines()]
-    assert len(lines) == sc.empty_frames + 20 and lines[0]["groups"] == []
+    assert len(lines) == n and lines[0]["groups"] == []
     last = lines[-1]["groups"]
-    truth = sc.truth(sc.empty_frames + 19).group_mean
+    truth = sc.truth(n - 1).group_mean
     assert len(last) == 2
     for g in last:
         assert np.linalg.norm(truth - np.array(g["position"]), axis=1).min() < 500
