@@ -32,7 +32,8 @@ Rules (sec. 4.3), written down:
   hidden): after ``max_missed`` (2) unmatched frames in a row it is deleted.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, grown by ``containment_margin``), that pedestrian has
-  *split* (occlusion): each part gets a child track with that parent. Otherwise a pedestrian
+  *split* (occlusion; half extents at least ``person_radius``; the parts together no larger than
+  ``split_volume`` times its largest volume of the last frames, else someone beside it entered): each part gets a child track with that parent. Otherwise a pedestrian
   *entered*: a new one at the segment's position with zero velocity.
 - **Parents**: a parent with two or more observed parts (its own segment and its split
   children's) is updated from their combined points (the midpoint of the union of their boxes,
@@ -73,6 +74,7 @@ __all__ = ["Pedestrian", "PedestrianConfig", "PedestrianFrame", "PedestrianTrack
 POS = np.array([0, 2, 4])  # x = [x xdot y ydot z zdot]
 VEL = np.array([1, 3, 5])
 FREE, PEDESTRIAN, CHILD = 0, 1, 2
+CHILD_IDS = 1 << 40  # the first id of the internal child tracks
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +91,9 @@ class PedestrianConfig:
     (mm), ``p0`` initial standard deviations (position mm, velocity mm/frame).
     Gain (eq. 4-6): ``beta`` (0.2), ``v_thr`` (m^3), ``volume_frames`` (5), ``occlusion_gain``.
     Causes (Fig. 6-7): ``split_merge``, ``max_missed`` (2), ``end_children_after`` (2),
-    ``containment_margin`` (mm). ``capacity``: initial table slots (it grows).
+    ``containment_margin`` (mm), ``person_radius`` (mm, the least half extent of a predicted
+    pedestrian in the split test), ``split_volume`` (the parts of a split together at most this
+    times the pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
     """
 
     background_frames: int = 30
@@ -117,6 +121,8 @@ class PedestrianConfig:
     max_missed: int = 2
     end_children_after: int = 2
     containment_margin: float = 150.0
+    person_radius: float = 400.0
+    split_volume: float = 1.25
     capacity: int = 16
 
     def __post_init__(self):
@@ -128,7 +134,7 @@ class PedestrianConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
             raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
         for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
-                     "v_thr", "min_extent"):  # fmt: skip
+                     "v_thr", "min_extent", "person_radius", "split_volume"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
@@ -214,6 +220,7 @@ class PedestrianTracker:
         self.status = np.array(["tracked"] * C, dtype=object)
         self.parents: dict[int, set] = {}  # child slot -> parent slots
         self.next_id = 0
+        self.next_child = 0
         self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))
         self.scheduler = Scheduler(self.device, [
             Stage("points", self._points, writes=("points",)),
@@ -371,7 +378,7 @@ class PedestrianTracker:
                 continue
             whole = s in seg_of and s not in union and s not in merged_now
             self.again[s] = self.again[s] + 1 if whole else 0
-            if whole and self.status[s] not in ("new",):
+            if whole and s not in self._born:
                 self.status[s] = "tracked"
         ended = []
         for s in np.flatnonzero((self.ids >= 0) & (self.missed >= cfg.max_missed)):
@@ -427,9 +434,14 @@ class PedestrianTracker:
             for i in peds:
                 if self.ids[i] < 0 or self.status[i] == "merged":
                     continue
-                lo, hi = pred[i] - self.half[i], pred[i] + self.half[i]
+                half = np.maximum(self.half[i], self.config.person_radius)
+                lo, hi = pred[i] - half, pred[i] + half
                 if not rules.inside(sg.position, lo, hi, m):
                     continue
+                have = union.get(int(i)) or ([seg_of[i]] if i in seg_of else [])
+                vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
+                if sg.volume + sum(segs[p].volume for p in have) > self.config.split_volume * vmax:
+                    continue  # too big to be a part of it: someone else (e.g. entering beside it)
                 parts = union.setdefault(int(i), [])
                 if not parts:
                     if i in seg_of:
@@ -489,8 +501,13 @@ class PedestrianTracker:
         s = int(free[0])
         cfg = self.config
         self._born.add(s)
-        self.ids[s], self.kind[s] = self.next_id, kind
-        self.next_id += 1
+        if kind == PEDESTRIAN:
+            self.ids[s] = self.next_id
+            self.next_id += 1
+        else:  # children are internal: ids of their own, never output
+            self.ids[s] = CHILD_IDS + self.next_child
+            self.next_child += 1
+        self.kind[s] = kind
         self.missed[s] = self.again[s] = self.age[s] = 0
         self.volume[s] = seg.volume
         self.vols[s] = np.nan
