@@ -462,8 +462,13 @@ class PedestrianTracker:
         for i in peds:  # ongoing splits: the parent and its children on two or more segments
             if int(i) in union or self.ids[i] < 0:
                 continue
-            parts = sorted({seg_of[c] for c in self._children(i) if c in seg_of and len(self.parents[c]) == 1}
-                           | ({seg_of[i]} if i in seg_of else set()))  # fmt: skip
+            half = np.maximum(self.half[i], self.config.person_radius)
+            near = [c for c in self._children(i) if c in seg_of and len(self.parents[c]) == 1
+                    and rules.inside(segs[seg_of[c]].position, pred[i] - half, pred[i] + half, m)]  # fmt: skip
+            for c in self._children(i):  # a split child that walked off is no part of it any more
+                if c in seg_of and len(self.parents[c]) == 1 and c not in near:
+                    self.parents[c].discard(int(i))
+            parts = sorted({seg_of[c] for c in near} | ({seg_of[i]} if i in seg_of else set()))
             if len(parts) >= 2:
                 union[int(i)] = parts
 
@@ -474,7 +479,9 @@ class PedestrianTracker:
         for i in peds:
             if self.ids[i] < 0 or i in seg_of or i in union or i in merged_now:
                 continue
-            seen = [c for c in self._children(i) if c in seg_of]
+            half = np.maximum(self.half[i], self.config.person_radius) + self.config.containment_margin
+            seen = [c for c in self._children(i) if c in seg_of
+                    and rules.inside(segs[seg_of[c]].position, self._x[i, POS] - half, self._x[i, POS] + half, 0.0)]
             if not seen:
                 continue
             c = seen[0]
