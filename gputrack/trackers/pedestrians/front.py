@@ -11,7 +11,10 @@ Per frame (:meth:`DepthFrontEnd.points`, :meth:`DepthFrontEnd.segments`):
    (sec. 4.2: upper bodies touch less than hands and feet); the vertical axis is dropped: each
    point becomes (e_x . p, e_z . p), its coordinates in the ground plane.
 3. **Segments** on the device (:func:`gputrack.ops.dbscan` of the 2D points, ``eps`` and
-   ``min_samples``); a cluster of at least ``min_segment_points`` points is a segment. Its
+   ``min_samples``); a cluster of at least ``min_segment_points`` points and at least ``min_width``
+   wide in the ground plane, with no point higher than ``max_height`` above the floor (2.3 m, the
+   tallest person of PCL's people detector: a structure reaching higher, e.g. a door frame when the
+   background is the floor plane, is no person) is a segment. Its
    ``position`` is the midpoint of the minimum and maximum of its 3D points per camera axis
    (sec. 4.2), its ``volume`` V the volume of that axis-aligned bounding box in m^3 (the paper
    does not define V; this is its plain reading: x extent * y extent * z extent, each extent at
@@ -104,19 +107,30 @@ def plane_background(camera, plane, shape) -> np.ndarray:
     return z.astype(np.float32)
 
 
-def segments_of(points: np.ndarray, labels: np.ndarray, min_points: int = 1, min_extent: float = 50.0) -> list:
+def segments_of(points: np.ndarray, labels: np.ndarray, min_points: int = 1, min_extent: float = 50.0,
+                min_width: float = 0.0, axes=None, plane=None, max_height: float = np.inf) -> list:
     """Segments (sec. 4.2) of 3D points (N, 3) mm with cluster labels (N,) (-1: noise): one per
-    label with at least ``min_points`` points, in increasing label order."""
-    out = []
+    label with at least ``min_points`` points and a ground-plane width (the larger extent along the
+    ground ``axes`` (2, 3), default x and z) of at least ``min_width`` mm and no point higher than
+    ``max_height`` above the ground ``plane`` (4,), in increasing label order. Returns (segments,
+    kept labels)."""
+    out, kept = [], []
     lab = np.asarray(labels)
+    g = np.array([[1.0, 0, 0], [0, 0, 1.0]]) if axes is None else np.asarray(axes, np.float64)
     for c in np.unique(lab[lab >= 0]):
         p = points[lab == c].astype(np.float64)
         if len(p) < min_points:
             continue
+        xz = p @ g.T
+        if (xz.max(axis=0) - xz.min(axis=0)).max() < min_width:
+            continue
+        if plane is not None and np.isfinite(max_height) and (-(p @ plane[:3] + plane[3])).max() > max_height:
+            continue
+        kept.append(int(c))
         lo, hi = p.min(axis=0), p.max(axis=0)
         ext = np.maximum(hi - lo, min_extent) / 1000.0  # m
         out.append(Segment((lo + hi) / 2, float(np.prod(ext)), int(len(p)), lo, hi))
-    return out
+    return out, kept
 
 
 class DepthFrontEnd:
@@ -212,9 +226,8 @@ class DepthFrontEnd:
         xz = np.ascontiguousarray((points.astype(np.float64) @ self.axes.T).astype(np.float32))
         lab = dbscan(self.device, xz, c.eps, c.min_samples)
         lab = np.asarray(lab if self.device.backend == "numpy" else lab.numpy()).astype(np.int64)
-        segs = segments_of(points, lab, c.min_segment_points, c.min_extent)
-        # relabel to segment indices
-        keep = [int(k) for k in np.unique(lab[lab >= 0]) if (lab == k).sum() >= c.min_segment_points]
+        segs, keep = segments_of(points, lab, c.min_segment_points, c.min_extent, c.min_width, self.axes,
+                                 self.plane, c.max_height)  # fmt: skip
         idx = np.full(len(lab), -1, np.int64)
         for i, k in enumerate(keep):
             idx[lab == k] = i

@@ -85,7 +85,9 @@ class PedestrianConfig:
     ``max_range`` (5000 mm), ``n_points`` (1024), ``seed`` (of the random subsets),
     ``camera_height`` (1000 mm, level camera) or ``ground_plane`` (a, b, c, d) mm for another
     mounting, DBSCAN ``eps`` (mm) and ``min_samples``, ``min_segment_points`` (smaller clusters
-    are no segment), ``min_extent`` (mm, the least extent per axis in a volume).
+    are no segment), ``min_width`` (mm: narrower clusters in the ground plane are no segment; 0:
+    off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
+    ``min_extent`` (mm, the least extent per axis in a volume).
     Assignment (eq. 1-3): ``alpha`` (0.8), ``max_distance`` (mm), ``max_volume_change`` (m^3).
     Kalman: ``q`` acceleration variance (mm/frame^2)^2, ``r`` observation standard deviation
     (mm), ``p0`` initial standard deviations (position mm, velocity mm/frame).
@@ -107,6 +109,8 @@ class PedestrianConfig:
     min_samples: int = 6
     min_segment_points: int = 12
     min_extent: float = 50.0
+    min_width: float = 0.0
+    max_height: float = 2300.0
     alpha: float = 0.8
     max_distance: float = 900.0
     max_volume_change: float = 0.15
@@ -134,7 +138,7 @@ class PedestrianConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
             raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
         for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
-                     "v_thr", "min_extent", "person_radius", "split_volume"):  # fmt: skip
+                     "v_thr", "min_extent", "person_radius", "split_volume", "max_height"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
