@@ -24,9 +24,10 @@ import numpy as np
 
 from ..sim.pedestrians import pedestrian_sequence
 from ..trackers.pedestrians import PedestrianConfig, PedestrianTracker
+from ..trackers.pedestrians.recording import image_boxes
 from ..trackers.pedestrians.metrics import clear_mot, detection_metrics, format_tables, identification_metrics
 
-__all__ = ["ABLATIONS", "image_boxes", "run", "track_sequence", "write_json"]
+__all__ = ["ABLATIONS", "evaluate", "run", "track_sequence", "write_json"]
 
 #: config switches of the ablation table: name -> changes to the config
 ABLATIONS = {
@@ -35,18 +36,6 @@ ABLATIONS = {
     "no split/merge": {"split_merge": False},
     "Kalman + Hungarian": {"occlusion_gain": False, "split_merge": False},
 }
-
-
-def image_boxes(camera, segments) -> np.ndarray:
-    """(S, 4) image boxes [row0, row1, col0, col1) of the segments' 3D boxes (projected corners)."""
-    out = []
-    for s in segments:
-        c = np.array([[x, y, z] for x in (s.lo[0], s.hi[0]) for y in (s.lo[1], s.hi[1]) for z in (s.lo[2], s.hi[2])])
-        c[:, 2] = np.maximum(c[:, 2], 1.0)
-        u = camera.fx * c[:, 0] / c[:, 2] + camera.cx
-        v = camera.fy * c[:, 1] / c[:, 2] + camera.cy
-        out.append([np.floor(v.min()), np.ceil(v.max()) + 1, np.floor(u.min()), np.ceil(u.max()) + 1])
-    return np.array(out, dtype=np.float64).reshape(-1, 4)
 
 
 def _mot_available() -> bool:
