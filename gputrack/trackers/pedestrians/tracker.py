@@ -32,9 +32,11 @@ Rules (sec. 4.3), written down:
   hidden): after ``max_missed`` (2) unmatched frames in a row it is deleted.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, grown by ``containment_margin``), that pedestrian has
-  *split* (occlusion; half extents at least ``person_radius``; the parts together no larger than
-  ``split_volume`` times its largest volume of the last frames, else someone beside it entered): each part gets a child track with that parent. Otherwise a pedestrian
-  *entered*: a new one at the segment's position with zero velocity.
+  *split* (occlusion; half extents at least ``person_radius``; the part no larger than
+  ``split_volume`` times its largest volume of the last frames, else someone beside it entered):
+  each part gets a child track with that parent. Otherwise a pedestrian *entered*: a new one at
+  the segment's position with zero velocity. Segments are taken largest first, so a person who
+  enters in two pieces is one new pedestrian with a split part.
 - **Parents**: a parent with two or more observed parts (its own segment and its split
   children's) is updated from their combined points (the midpoint of the union of their boxes,
   volume the sum); with one observed child only, from the child's displacement since its last
@@ -94,8 +96,8 @@ class PedestrianConfig:
     Gain (eq. 4-6): ``beta`` (0.2), ``v_thr`` (m^3), ``volume_frames`` (5), ``occlusion_gain``.
     Causes (Fig. 6-7): ``split_merge``, ``max_missed`` (2), ``end_children_after`` (2),
     ``containment_margin`` (mm), ``person_radius`` (mm, the least half extent of a predicted
-    pedestrian in the split test), ``split_volume`` (the parts of a split together at most this
-    times the pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
+    pedestrian in the split test), ``split_volume`` (a split part is at most this times the
+    pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
     """
 
     background_frames: int = 30
@@ -126,7 +128,7 @@ class PedestrianConfig:
     end_children_after: int = 2
     containment_margin: float = 150.0
     person_radius: float = 400.0
-    split_volume: float = 1.25
+    split_volume: float = 0.6
     capacity: int = 16
 
     def __post_init__(self):
@@ -328,13 +330,13 @@ class PedestrianTracker:
             self._merges(peds, seg_of, owner, taken, segs, pred, merged_now)
         union: dict = {}  # parent slot -> segment indices of its split parts
         if cfg.split_merge:
-            self._splits(peds, seg_of, taken, segs, pred, union)
-        started = []
-        for j in np.flatnonzero(~taken):  # entered the view (Fig. 7)
-            s = self._add(PEDESTRIAN, segs[j], velocity=None)
-            seg_of[s] = int(j)
-            started.append(int(self.ids[s]))
-            self.status[s] = "new"
+            started = self._splits(peds, seg_of, taken, segs, pred, union)
+        else:
+            started = []
+            for j in np.flatnonzero(~taken):  # entered the view (Fig. 7)
+                s = self._add(PEDESTRIAN, segs[j], velocity=None)
+                seg_of[s] = int(j)
+                started.append(int(self.ids[s]))
         # observations
         C = self.capacity
         z = np.full((C, 3), np.nan, np.float32)
@@ -349,6 +351,8 @@ class PedestrianTracker:
                 z[s], obs_vol[s] = segs[j].position, segs[j].volume
                 self.half[s] = (segs[j].hi - segs[j].lo) / 2
         for s, parts in union.items():
+            if new[s]:
+                continue
             lo = np.min([segs[j].lo for j in parts], axis=0)
             hi = np.max([segs[j].hi for j in parts], axis=0)
             z[s], obs_vol[s] = (lo + hi) / 2, float(sum(segs[j].volume for j in parts))
@@ -430,39 +434,53 @@ class PedestrianTracker:
                 taken[j] = True
                 break
 
-    def _splits(self, peds, seg_of, taken, segs, pred, union) -> None:
-        """Fig. 7: an unassigned segment inside a pedestrian's predicted extent is a part of it."""
-        m = self.config.containment_margin
-        for j in np.flatnonzero(~taken):
+    def _splits(self, peds, seg_of, taken, segs, pred, union) -> list:
+        """Fig. 7: an unassigned segment inside a pedestrian's predicted extent, no larger than
+        ``split_volume`` times its largest recent volume, is a part of it (split); any other starts
+        a pedestrian (entered). Largest segments first, so that a person entering in two pieces is
+        one new pedestrian and a split part. Returns the ids started."""
+        cfg = self.config
+        m = cfg.containment_margin
+        started = []
+        cands = [int(i) for i in peds]
+        for j in sorted(np.flatnonzero(~taken), key=lambda j: -segs[j].volume):
             sg = segs[j]
-            for i in peds:
+            parent = None
+            for i in cands:
                 if self.ids[i] < 0 or self.status[i] == "merged":
                     continue
-                half = np.maximum(self.half[i], self.config.person_radius)
-                lo, hi = pred[i] - half, pred[i] + half
-                if not rules.inside(sg.position, lo, hi, m):
+                half = np.maximum(self.half[i], cfg.person_radius)
+                if not rules.inside(sg.position, self._x[i, POS] - half, self._x[i, POS] + half, m):
                     continue
-                have = union.get(int(i)) or ([seg_of[i]] if i in seg_of else [])
                 vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
-                if sg.volume + sum(segs[p].volume for p in have) > self.config.split_volume * vmax:
+                if sg.volume > cfg.split_volume * vmax:
                     continue  # too big to be a part of it: someone else (e.g. entering beside it)
-                parts = union.setdefault(int(i), [])
-                if not parts:
-                    if i in seg_of:
-                        parts.append(seg_of[i])
-                    parts.extend(seg_of[c] for c in self._children(i) if c in seg_of and seg_of[c] not in parts)
-                if i not in seg_of and not parts:  # its own segment, rejected by volume
-                    seg_of[int(i)] = int(j)
-                    union.pop(int(i))
-                else:
-                    parts.append(int(j))
-                    for p in list(parts):
-                        if not any(seg_of.get(c) == p for c in self._children(i)):
-                            c = self._add(CHILD, segs[p], velocity=self._x[i, VEL])
-                            seg_of[c] = p
-                            self.parents[c] = {int(i)}
-                taken[j] = True
+                parent = i
                 break
+            taken[j] = True
+            if parent is None:  # entered the view
+                s = self._add(PEDESTRIAN, sg, velocity=None)
+                seg_of[s] = int(j)
+                started.append(int(self.ids[s]))
+                cands.append(s)
+                continue
+            i = parent
+            parts = union.setdefault(i, [])
+            if not parts:
+                if i in seg_of:
+                    parts.append(seg_of[i])
+                parts.extend(seg_of[c] for c in self._children(i) if c in seg_of and seg_of[c] not in parts)
+            if not parts:  # unassigned and no children: its own segment, rejected by volume
+                seg_of[i] = int(j)
+                union.pop(i)
+                continue
+            parts.append(int(j))
+            for p in list(parts):
+                if not any(seg_of.get(c) == p for c in self._children(i)):
+                    c = self._add(CHILD, segs[p], velocity=self._x[i, VEL])
+                    seg_of[c] = p
+                    self.parents[c] = {i}
+        pred = self._x[:, POS]
         for i in peds:  # ongoing splits: the parent and its children on two or more segments
             if int(i) in union or self.ids[i] < 0:
                 continue
@@ -475,6 +493,7 @@ class PedestrianTracker:
             parts = sorted({seg_of[c] for c in near} | ({seg_of[i]} if i in seg_of else set()))
             if len(parts) >= 2:
                 union[int(i)] = parts
+        return started
 
     def _parent_updates(self, peds, seg_of, union, merged_now, segs, z, obs_vol) -> set:
         """Unassigned parents follow their one observed child's displacement (predicted only in the
