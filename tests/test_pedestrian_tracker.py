@@ -6,7 +6,6 @@ import warnings
 
 import numpy as np
 import pytest
-from conftest import full_protocol
 
 import gputrack
 from gputrack.benchmarks.pedestrians import crowd_depth, crowd_positions
@@ -17,6 +16,8 @@ from gputrack.trackers.pedestrians import PedestrianConfig, PedestrianTracker, p
 from gputrack.trackers.pedestrians import rules
 from gputrack.trackers.pedestrians.metrics import detection_metrics, identification_metrics
 
+#: the one device that runs the long protocols (the suite's time budget); the others are pinned to numpy
+PROTOCOL_DEVICE = "taichi:cpu"
 SMALL = Camera(160 / (2 * np.tan(np.radians(29.5))), 120 / (2 * np.tan(np.radians(23.0))), 79.5, 59.5)
 
 
@@ -76,8 +77,8 @@ def test_accuracy_protocol_on_the_simulator(device):
     """Paper 002 sec. 5 on a 250-frame, 640 x 480 simulated sequence (seed 0, up to 5 in view):
     detection and identification near the paper's figures, and the split/merge reasoning with the
     occlusion gain beat plain Kalman + Hungarian on identification precision."""
-    if not full_protocol(device):
-        pytest.skip("the protocol runs in full on taichi:cpu and opencl; every device is pinned to numpy below")
+    if device.spec != PROTOCOL_DEVICE:
+        pytest.skip(f"the protocol runs on {PROTOCOL_DEVICE}; every device is pinned to numpy below")
     seq = pedestrian_sequence(np.random.default_rng(0), frames=250, people=10, max_in_view=5, scale=0.5)
     full, plain = _run(device, seq, 250, [PedestrianConfig(),
                                            PedestrianConfig(occlusion_gain=False, split_merge=False)])  # fmt: skip
@@ -180,7 +181,7 @@ def test_a_person_standing_still_keeps_one_id(device):
     """Two minutes at 5 fps of one person standing still: one id, velocity ~0, finite state."""
     trk = _tracker(device)
     person = crowd_depth(SMALL, (120, 160), [[300.0, 3000.0]])
-    for _ in range(600 if full_protocol(device) else 60):
+    for _ in range(600 if device.spec == PROTOCOL_DEVICE else 60):
         fr = trk.track(person)
     assert [p.id for p in fr.pedestrians] == [0] and fr.pedestrians[0].status == "tracked"
     assert np.abs(fr.pedestrians[0].velocity).max() < 1.0

@@ -150,6 +150,7 @@ class DepthFrontEnd:
         self.nearer = False
         self.shape = None
         self.counter = 0
+        self._xz = self._labels = None  # the device buffers of the 2D points and their labels
 
     # -- background --------------------------------------------------------------------------
     def learn_background(self, frames) -> None:
@@ -223,9 +224,18 @@ class DepthFrontEnd:
         c = self.config
         if len(points) == 0:
             return [], np.zeros(0, np.int64)
-        xz = np.ascontiguousarray((points.astype(np.float64) @ self.axes.T).astype(np.float32))
-        lab = dbscan(self.device, xz, c.eps, c.min_samples)
-        lab = np.asarray(lab if self.device.backend == "numpy" else lab.numpy()).astype(np.int64)
+        k = len(points)
+        xz = np.full((max(c.n_points, k), 2), np.nan, np.float32)  # one buffer size every frame:
+        xz[:k] = points.astype(np.float64) @ self.axes.T  # the device kernels compile once
+        if self.device.backend == "numpy":
+            lab = dbscan(self.device, xz, c.eps, c.min_samples, n_points=k)
+        else:
+            if self._xz is None or self._xz.shape != xz.shape:
+                self._xz, self._labels = self.device.asarray(xz), self.device.empty((len(xz),), np.int32)
+            else:
+                self.device.asarray(xz, out=self._xz)
+            lab = dbscan(self.device, self._xz, c.eps, c.min_samples, n_points=k, out=self._labels).numpy()
+        lab = np.asarray(lab[:k]).astype(np.int64)
         segs, keep = segments_of(points, lab, c.min_segment_points, c.min_extent, c.min_width, self.axes,
                                  self.plane, c.max_height)  # fmt: skip
         idx = np.full(len(lab), -1, np.int64)
