@@ -36,7 +36,8 @@ Rules (sec. 4.3), written down:
   ``split_volume`` times its largest volume of the last frames, else someone beside it entered):
   each part gets a child track with that parent. Otherwise a pedestrian *entered*: a new one at
   the segment's position with zero velocity. Segments are taken largest first, so a person who
-  enters in two pieces is one new pedestrian with a split part.
+  enters in two pieces is one new pedestrian with a split part (for a pedestrian born this frame
+  the extent is its own segment's box, grown by the margin, without ``person_radius``).
 - **Parents**: a parent with two or more observed parts (its own segment and its split
   children's) is updated from their combined points (the midpoint of the union of their boxes,
   volume the sum); with one observed child only, from the child's displacement since its last
@@ -128,7 +129,7 @@ class PedestrianConfig:
     end_children_after: int = 2
     containment_margin: float = 150.0
     person_radius: float = 400.0
-    split_volume: float = 0.6
+    split_volume: float = 0.5
     capacity: int = 16
 
     def __post_init__(self):
@@ -449,7 +450,8 @@ class PedestrianTracker:
             for i in cands:
                 if self.ids[i] < 0 or self.status[i] == "merged":
                     continue
-                half = np.maximum(self.half[i], cfg.person_radius)
+                # a pedestrian born this frame has no prediction yet: its own box, not person_radius
+                half = self.half[i] if i in self._born else np.maximum(self.half[i], cfg.person_radius)
                 if not rules.inside(sg.position, self._x[i, POS] - half, self._x[i, POS] + half, m):
                     continue
                 vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
