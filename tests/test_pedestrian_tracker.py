@@ -181,7 +181,7 @@ def test_a_person_standing_still_keeps_one_id(device):
     """Two minutes at 5 fps of one person standing still: one id, velocity ~0, finite state."""
     trk = _tracker(device)
     person = crowd_depth(SMALL, (120, 160), [[300.0, 3000.0]])
-    for _ in range(600 if device.spec == PROTOCOL_DEVICE else 60):
+    for _ in range(600 if device.spec == PROTOCOL_DEVICE else 12):
         fr = trk.track(person)
     assert [p.id for p in fr.pedestrians] == [0] and fr.pedestrians[0].status == "tracked"
     assert np.abs(fr.pedestrians[0].velocity).max() < 1.0
