@@ -32,7 +32,7 @@ Rules (sec. 4.3), written down:
   hidden): after ``max_missed`` (2) unmatched frames in a row it is deleted.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, grown by ``containment_margin``), that pedestrian has
-  *split* (occlusion; half extents at least ``person_radius``; the part no larger than
+  *split* (occlusion; half extents at least ``person_radius`` across, ``person_depth`` along the view; the part no larger than
   ``split_volume`` times its largest volume of the last frames, else someone beside it entered):
   each part gets a child track with that parent. Otherwise a pedestrian *entered*: a new one at
   the segment's position with zero velocity. Segments are taken largest first, so a person who
@@ -96,8 +96,8 @@ class PedestrianConfig:
     (mm), ``p0`` initial standard deviations (position mm, velocity mm/frame).
     Gain (eq. 4-6): ``beta`` (0.2), ``v_thr`` (m^3), ``volume_frames`` (5), ``occlusion_gain``.
     Causes (Fig. 6-7): ``split_merge``, ``max_missed`` (2), ``end_children_after`` (2),
-    ``containment_margin`` (mm), ``person_radius`` (mm, the least half extent of a predicted
-    pedestrian in the split test), ``split_volume`` (a split part is at most this times the
+    ``containment_margin`` (mm), ``person_radius`` and ``person_depth`` (mm, the least half
+    extents of a predicted pedestrian across and along the view in the containment tests), ``split_volume`` (a split part is at most this times the
     pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
     """
 
@@ -129,6 +129,7 @@ class PedestrianConfig:
     end_children_after: int = 2
     containment_margin: float = 150.0
     person_radius: float = 400.0
+    person_depth: float = 250.0
     split_volume: float = 0.5
     capacity: int = 16
 
@@ -141,7 +142,7 @@ class PedestrianConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
             raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
         for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
-                     "v_thr", "min_extent", "person_radius", "split_volume", "max_height"):  # fmt: skip
+                     "v_thr", "min_extent", "person_radius", "split_volume", "max_height", "person_depth"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
@@ -210,6 +211,8 @@ class PedestrianTracker:
             raise TypeError(f"config: expected a PedestrianConfig, got {type(config).__name__}")
         self.camera, self.config = camera, config
         self.front = DepthFrontEnd(self.device, camera, config)
+        #: least half extents (x, y, z) of a predicted pedestrian in the containment tests
+        self._least_half = np.array([config.person_radius, config.person_radius, config.person_depth])
         self.F, self.Q = constant_velocity(3, 1.0, config.q)
         self.H = np.zeros((3, 6), np.float32)
         self.H[[0, 1, 2], POS] = 1.0
@@ -317,9 +320,12 @@ class PedestrianTracker:
             cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, alpha=cfg.alpha,
                                          max_distance=cfg.max_distance, max_volume_change=cfg.max_volume_change)  # fmt: skip
             for a, c in enumerate(kids):
+                ps = self.parents.get(int(c), ())
                 for j in range(M):
-                    if owner[j] >= 0 and owner[j] not in self.parents.get(int(c), ()):
-                        ok[a, j] = False
+                    if owner[j] >= 0 and owner[j] not in ps:
+                        ok[a, j] = False  # another pedestrian's segment
+                    elif not any(self._near(p, segs[j].position) for p in ps):
+                        ok[a, j] = False  # a child stays within its parents' extent
             cost = np.where(ok, cost, rules._REJECTED)
             for a, j in rules.assign(cost, ok):
                 seg_of[int(kids[a])] = j
@@ -357,7 +363,9 @@ class PedestrianTracker:
             lo = np.min([segs[j].lo for j in parts], axis=0)
             hi = np.max([segs[j].hi for j in parts], axis=0)
             z[s], obs_vol[s] = (lo + hi) / 2, float(sum(segs[j].volume for j in parts))
-            self.half[s] = (hi - lo) / 2
+            # the extent stays one person's: the largest part's (a union's box would grow)
+            big = max(parts, key=lambda j: segs[j].volume)
+            self.half[s] = (segs[big].hi - segs[big].lo) / 2
             self.status[s] = "split"
         displaced = self._parent_updates(peds, seg_of, union, merged_now, segs, z, obs_vol)
         explained = merged_now | self._waiting
@@ -401,7 +409,7 @@ class PedestrianTracker:
                 self._free(c)
         mask = np.isfinite(z).all(axis=1) & (self.ids >= 0)
         z[~mask] = np.nan
-        self._put_table(b, C != C0 or started)
+        self._put_table(b, C != C0 or bool(self._born))  # new tracks (pedestrians and children) start on the host
         b["z"] = self._put("z", z)
         b["mask"] = self._put("mask", mask.astype(np.uint8))
         b["gain"] = self._put("gain", gain) if cfg.occlusion_gain else None
@@ -451,7 +459,7 @@ class PedestrianTracker:
                 if self.ids[i] < 0 or self.status[i] == "merged":
                     continue
                 # a pedestrian born this frame has no prediction yet: its own box, not person_radius
-                half = self.half[i] if i in self._born else np.maximum(self.half[i], cfg.person_radius)
+                half = self.half[i] if i in self._born else np.maximum(self.half[i], self._least_half)
                 if not rules.inside(sg.position, self._x[i, POS] - half, self._x[i, POS] + half, m):
                     continue
                 vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
@@ -486,7 +494,7 @@ class PedestrianTracker:
         for i in peds:  # ongoing splits: the parent and its children on two or more segments
             if int(i) in union or self.ids[i] < 0:
                 continue
-            half = np.maximum(self.half[i], self.config.person_radius)
+            half = np.maximum(self.half[i], self._least_half)
             near = [c for c in self._children(i) if c in seg_of and len(self.parents[c]) == 1
                     and rules.inside(segs[seg_of[c]].position, pred[i] - half, pred[i] + half, m)]  # fmt: skip
             for c in self._children(i):  # a split child that walked off is no part of it any more
@@ -504,7 +512,7 @@ class PedestrianTracker:
         for i in peds:
             if self.ids[i] < 0 or i in seg_of or i in union or i in merged_now:
                 continue
-            half = np.maximum(self.half[i], self.config.person_radius) + self.config.containment_margin
+            half = np.maximum(self.half[i], self._least_half) + self.config.containment_margin
             seen = [c for c in self._children(i) if c in seg_of
                     and rules.inside(segs[seg_of[c]].position, self._x[i, POS] - half, self._x[i, POS] + half, 0.0)]
             if not seen:
@@ -520,6 +528,12 @@ class PedestrianTracker:
             if self.status[i] != "merged":
                 self.status[i] = "split"
         return out
+
+    def _near(self, i, position) -> bool:
+        """Is ``position`` inside pedestrian i's predicted extent (its last segment's half extents,
+        at least ``person_radius``, grown by ``containment_margin``)?"""
+        half = np.maximum(self.half[i], self._least_half)
+        return rules.inside(position, self._x[i, POS] - half, self._x[i, POS] + half, self.config.containment_margin)
 
     def _children(self, parent) -> list:
         return [c for c, ps in self.parents.items() if parent in ps and self.ids[c] >= 0]
