@@ -138,3 +138,23 @@ def test_track_command_reports_bad_input(tmp_path, capsys):
     assert main(["track", "pedestrians", "--depth", str(tmp_path / "depth"), "--camera", str(tmp_path / "cam.json"),
                  "--device", "numpy", "--out", str(tmp_path / "x.csv")]) == 1  # fmt: skip
     assert "16-bit single-channel" in capsys.readouterr().err
+
+
+def test_benchmark_cases_run_and_match_the_reference(device):
+    """perf/bench_pedestrians.py's cases at a tiny size: the tracker's frame runs, the device DBSCAN
+    gives the reference's labels and the NumPy + scikit-learn peer finds the same people."""
+    import argparse
+
+    from gputrack.benchmarks import pedestrians as bench
+
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args(["--people", "5", "--frames", "2", "--scale", "0.25"])
+    frame, clusters = bench.cases(device, args)
+    fr = frame.run()
+    assert len(fr.segments) >= 1 and fr.pedestrians
+    got, want = clusters.run(), clusters.reference()
+    got = got if device.backend == "numpy" else got.numpy()
+    np.testing.assert_array_equal(got, want)
+    peer = frame.peers["numpy front end + sklearn"]()
+    assert abs(len(peer) - len(fr.segments)) <= 1
