@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-__all__ = ["assign", "cost_matrix", "inside", "occlusion_gain"]
+__all__ = ["assign", "behind", "cost_matrix", "inside", "occlusion_gain"]
 
 #: cost of a rejected pair in the assignment: above any feasible pair's cost
 _REJECTED = 1e6
@@ -46,6 +46,19 @@ def assign(cost, feasible) -> list[tuple[int, int]]:
 def inside(point, lo, hi, margin: float) -> bool:
     """Is ``point`` (3,) inside the box [lo, hi] grown by ``margin`` in the ground plane (x, z)?"""
     return bool(lo[0] - margin <= point[0] <= hi[0] + margin and lo[2] - margin <= point[2] <= hi[2] + margin)
+
+
+def behind(point, lo, hi, margin: float) -> bool:
+    """Is ``point`` (3,) in the shadow of the box [lo, hi] seen from the camera: farther than its
+    front (z > lo_z) and within its bearings x / z in the ground plane, widened by ``margin`` at
+    the point's depth?"""
+    z = point[2]
+    if not z > lo[2] or lo[2] <= 0:
+        return False
+    b = point[0] / z
+    bearings = (lo[0] / lo[2], hi[0] / lo[2], lo[0] / hi[2], hi[0] / hi[2])
+    w = margin / z
+    return bool(min(bearings) - w <= b <= max(bearings) + w)
 
 
 def occlusion_gain(v_det: float, v_max: float, *, v_thr: float, beta: float) -> float:

@@ -28,8 +28,11 @@ Rules (sec. 4.3), written down:
   ``containment_margin``) that another pedestrian k took, the two have *merged*: a child track
   starts at that segment with parents {i, k}, k's assignment is undone, and both parents are
   predicted only in this first frame; inside a segment nobody took, it is that pedestrian's own
-  segment whose volume changed too much (a merge of one): assigned. Otherwise it *left* (or is
-  hidden): after ``max_missed`` (2) unmatched frames in a row it is deleted.
+  segment whose volume changed too much (a merge of one): assigned. Beyond the paper: a
+  pedestrian whose prediction lies in the shadow of a nearer segment (behind it, within its
+  bearings) is hidden there, predicted only and not output, for up to ``max_hidden`` frames (a
+  depth camera's full occlusion: in the ground plane the two are apart, so DBSCAN never merges
+  them; when it reappears the assignment finds it again, with its id). Otherwise it *left*: after ``max_missed`` (2) unmatched frames in a row it is deleted.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, grown by ``containment_margin``), that pedestrian has
   *split* (occlusion; half extents at least ``person_radius`` across, ``person_depth`` along the view; the part no larger than
@@ -97,7 +100,9 @@ class PedestrianConfig:
     Gain (eq. 4-6): ``beta`` (0.2), ``v_thr`` (m^3), ``volume_frames`` (5), ``occlusion_gain``.
     Causes (Fig. 6-7): ``split_merge``, ``max_missed`` (2), ``end_children_after`` (2),
     ``containment_margin`` (mm), ``person_radius`` and ``person_depth`` (mm, the least half
-    extents of a predicted pedestrian across and along the view in the containment tests), ``split_volume`` (a split part is at most this times the
+    extents of a predicted pedestrian across and along the view in the containment tests),
+    ``max_hidden`` (frames a pedestrian hidden behind a nearer segment is kept, predicted only;
+    0: off, the paper's plain rule), ``split_volume`` (a split part is at most this times the
     pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
     """
 
@@ -130,6 +135,7 @@ class PedestrianConfig:
     containment_margin: float = 150.0
     person_radius: float = 400.0
     person_depth: float = 250.0
+    max_hidden: int = 5
     split_volume: float = 0.5
     capacity: int = 16
 
@@ -169,7 +175,8 @@ class Pedestrian:
     """One tracked pedestrian: ``position`` (3,) mm and ``velocity`` (3,) mm/frame (camera
     coordinates), ``volume`` (m^3, of its last observation), ``status``: "new" (entered this
     frame), "tracked" (assigned a segment), "split" (updated from its split parts), "merged"
-    (inside a segment shared with another pedestrian), "missed" (no observation this frame)."""
+    (inside a segment shared with another pedestrian), "missed" (no observation this frame). A
+    pedestrian hidden behind a nearer one (see the module) is kept but not output."""
 
     id: int
     position: np.ndarray
@@ -222,6 +229,7 @@ class PedestrianTracker:
         self.kind = np.zeros(C, np.int64)
         self.missed = np.zeros(C, np.int64)
         self.again = np.zeros(C, np.int64)  # frames in a row a parent was seen again whole
+        self.hidden = np.zeros(C, np.int64)  # frames in a row a pedestrian was hidden behind a segment
         self.age = np.zeros(C, np.int64)
         self.volume = np.zeros(C)  # volume of the last observation (m^3)
         self.vols = np.full((C, config.volume_frames), np.nan)  # the last volume_frames observed volumes
@@ -384,6 +392,8 @@ class PedestrianTracker:
         # bookkeeping: missed, seen again, deletions
         observed = np.isfinite(z).all(axis=1) | new
         for s in np.flatnonzero(self.ids >= 0):
+            if observed[s]:
+                self.hidden[s] = 0
             if observed[s] or s in explained:
                 self.missed[s] = 0
             else:
@@ -442,6 +452,11 @@ class PedestrianTracker:
                     owner[j] = i
                 taken[j] = True
                 break
+            else:  # hidden behind a nearer segment (its shadow): predicted only, for a while
+                if self.hidden[i] < self.config.max_hidden and any(rules.behind(pred[i], sg.lo, sg.hi, m) for sg in segs):
+                    self.hidden[i] += 1
+                    merged_now.add(int(i))
+                    self.status[i] = "hidden"
 
     def _splits(self, peds, seg_of, taken, segs, pred, union) -> list:
         """Fig. 7: an unassigned segment inside a pedestrian's predicted extent, no larger than
@@ -554,7 +569,7 @@ class PedestrianTracker:
             self.ids[s] = CHILD_IDS + self.next_child
             self.next_child += 1
         self.kind[s] = kind
-        self.missed[s] = self.again[s] = self.age[s] = 0
+        self.missed[s] = self.again[s] = self.age[s] = self.hidden[s] = 0
         self.volume[s] = seg.volume
         self.vols[s] = np.nan
         self.vols[s, -1] = seg.volume
@@ -579,7 +594,7 @@ class PedestrianTracker:
         C = self.capacity
         g = C
         self.ids = np.concatenate([self.ids, np.full(g, -1, np.int64)])
-        for name in ("kind", "missed", "again", "age"):
+        for name in ("kind", "missed", "again", "age", "hidden"):
             setattr(self, name, np.concatenate([getattr(self, name), np.zeros(g, np.int64)]))
         self.volume = np.concatenate([self.volume, np.zeros(g)])
         self.vols = np.concatenate([self.vols, np.full((g, self.vols.shape[1]), np.nan)])
@@ -607,7 +622,7 @@ class PedestrianTracker:
     def _result(self, x) -> PedestrianFrame:
         if not np.isfinite(x[self.ids >= 0]).all():  # never expected: the filter is in Joseph form
             raise FloatingPointError("pedestrian tracker: a track's state became non-finite")
-        peds = np.flatnonzero(self.kind == PEDESTRIAN)
+        peds = np.flatnonzero((self.kind == PEDESTRIAN) & (self.status != "hidden"))  # hidden: kept, not output
         peds = peds[np.argsort(self.ids[peds], kind="stable")]
         out = [Pedestrian(int(self.ids[s]), x[s, POS].copy(), x[s, VEL].copy(), float(self.volume[s]),
                           str(self.status[s])) for s in peds]  # fmt: skip
