@@ -74,20 +74,21 @@ def _run(device, seq, frames, configs):
 
 
 def test_accuracy_protocol_on_the_simulator(device):
-    """Paper 002 sec. 5 on a 250-frame, 640 x 480 simulated sequence (seed 0, up to 5 in view):
-    detection and identification near the paper's figures, and the split/merge reasoning with the
-    occlusion gain beat plain Kalman + Hungarian on identification precision."""
+    """Paper 002 sec. 5 on a 200-frame, 640 x 480 simulated sequence (seed 0, 8 people, up to 5 in
+    view): detection and identification near the paper's figures (measured: detection P 99.4 %,
+    R 94.4 %; identification P 97.1 %, R 97.0 %), and the split/merge reasoning with the occlusion
+    gain far above plain Kalman + Hungarian on identification precision (43.7 %)."""
     if device.spec != PROTOCOL_DEVICE:
         pytest.skip(f"the protocol runs on {PROTOCOL_DEVICE}; every device is pinned to numpy below")
-    seq = pedestrian_sequence(np.random.default_rng(0), frames=250, people=10, max_in_view=5, scale=0.5)
-    full, plain = _run(device, seq, 250, [PedestrianConfig(),
+    seq = pedestrian_sequence(np.random.default_rng(0), frames=200, people=8, max_in_view=5, scale=0.5)
+    full, plain = _run(device, seq, 200, [PedestrianConfig(),
                                            PedestrianConfig(occlusion_gain=False, split_merge=False)])  # fmt: skip
     det = detection_metrics(full["tp"], full["seg"])
     ident = identification_metrics(full["ti"], full["tp"], full["hi"], full["hp"])
     base = identification_metrics(plain["ti"], plain["tp"], plain["hi"], plain["hp"])
-    assert det.precision >= 0.98 and det.recall >= 0.88 and det.f >= 0.93
-    assert ident.precision >= 0.8 and ident.recall >= 0.85
-    assert ident.precision > base.precision + 0.05
+    assert det.precision >= 0.98 and det.recall >= 0.9 and det.f >= 0.94
+    assert ident.precision >= 0.9 and ident.recall >= 0.9
+    assert ident.precision > base.precision + 0.2
     ids = set().union(*[set(h.tolist()) for h in full["hi"]])
     people = set().union(*[set(t.tolist()) for t in full["ti"]])
     assert len(ids) <= 2 * len(people)  # no flood of short-lived tracks
