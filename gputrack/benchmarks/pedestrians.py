@@ -86,7 +86,8 @@ def numpy_front_end(depth, background, camera, config, rng):
     from ..trackers.pedestrians.front import segments_of
 
     d = depth.astype(np.float32)
-    fg = (d > 0) & (d <= config.max_range) & np.isfinite(background) & (np.abs(d - background) >= config.foreground_threshold)
+    fg = (d > 0) & (d <= config.max_range) & np.isfinite(background)
+    fg &= np.abs(d - background) >= config.foreground_threshold
     rows, cols = np.nonzero(fg)
     if len(rows) < config.n_points:
         return []
@@ -153,8 +154,9 @@ def cases(device, args):
                 return numpy_front_end(frames[ks["k"] % len(frames)], bgf, cam, config, rng)
 
             peers["numpy front end + sklearn"] = host_front
+        params = {"people": n, "width": shape[1], "height": shape[0], "frames": len(frames)}
         out.append(Case(f"pedestrian frame N={n} {shape[1]}x{shape[0]}", run=run, reference=reference, peers=peers,
-                        params={"people": n, "width": shape[1], "height": shape[0], "frames": len(frames)}))  # fmt: skip
+                        params=params))
         # the DBSCAN of one frame's points, alone
         fr = run()
         pts = np.ascontiguousarray((fr.points.astype(np.float64) @ run.tracker.front.axes.T).astype(np.float32))

@@ -167,7 +167,8 @@ class DepthFrontEnd:
             raise ValueError(f"frames: expected at most {MAX_FRAMES} frames, got F = {f.shape[0]}")
         if f.shape[0] < self.config.background_frames:
             warnings.warn(f"learn_background: {f.shape[0]} frames, fewer than the paper's "
-                          f"{self.config.background_frames}: the median removes fewer dropouts", stacklevel=3)  # fmt: skip
+                          f"{self.config.background_frames}: the median removes fewer dropouts",
+                          stacklevel=3)  # fmt: skip
         if f.dtype == np.float32 and np.isinf(f).any():
             raise ValueError("frames: expected finite depths, 0 or NaN (no reading), got an infinity")
         bg = background_median(self.device, f, missing=0)

@@ -32,15 +32,17 @@ Rules (sec. 4.3), written down:
   pedestrian whose prediction lies in the shadow of a nearer segment (behind it, within its
   bearings) is hidden there, predicted only and not output, for up to ``max_hidden`` frames (a
   depth camera's full occlusion: in the ground plane the two are apart, so DBSCAN never merges
-  them; when it reappears the assignment finds it again, with its id). Otherwise it *left*: after ``max_missed`` (2) unmatched frames in a row it is deleted.
+  them; when it reappears the assignment finds it again, with its id). Otherwise it *left*:
+  after ``max_missed`` (2) unmatched frames in a row it is deleted.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
-  segment's box centred on the prediction, grown by ``containment_margin``), that pedestrian has
-  *split* (occlusion; half extents at least ``person_radius`` across, ``person_depth`` along the view; the part no larger than
-  ``split_volume`` times its largest volume of the last frames, else someone beside it entered):
-  each part gets a child track with that parent. Otherwise a pedestrian *entered*: a new one at
-  the segment's position with zero velocity. Segments are taken largest first, so a person who
-  enters in two pieces is one new pedestrian with a split part (for a pedestrian born this frame
-  the extent is its own segment's box, grown by the margin, without ``person_radius``).
+  segment's box centred on the prediction, half extents at least ``person_radius`` across and
+  ``person_depth`` along the view, grown by ``containment_margin``) and is no larger than
+  ``split_volume`` times its largest volume of the last frames (else someone beside it entered),
+  that pedestrian has *split* (occlusion): each part gets a child track with that parent.
+  Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
+  Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
+  with a split part (for a pedestrian born this frame the extent is its own segment's box, grown
+  by the margin, without ``person_radius``).
 - **Parents**: a parent with two or more observed parts (its own segment and its split
   children's) is updated from their combined points (the midpoint of the union of their boxes,
   volume the sum); with one observed child only, from the child's displacement since its last
@@ -319,14 +321,13 @@ class PedestrianTracker:
         kids = np.flatnonzero(self.kind == CHILD)
         owner = np.full(M, -1, np.int64)  # the pedestrian that took segment j in stage 1
         seg_of = {}  # slot -> segment index (direct observation)
-        cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, alpha=cfg.alpha,
-                                     max_distance=cfg.max_distance, max_volume_change=cfg.max_volume_change)  # fmt: skip
+        limits = {"alpha": cfg.alpha, "max_distance": cfg.max_distance, "max_volume_change": cfg.max_volume_change}
+        cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, **limits)
         for i, j in rules.assign(cost, ok):  # stage 1
             owner[j] = peds[i]
             seg_of[int(peds[i])] = j
         if len(kids):  # stage 2: children, on the segments left or their parent's
-            cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, alpha=cfg.alpha,
-                                         max_distance=cfg.max_distance, max_volume_change=cfg.max_volume_change)  # fmt: skip
+            cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, **limits)
             for a, c in enumerate(kids):
                 ps = self.parents.get(int(c), ())
                 for j in range(M):
@@ -453,7 +454,8 @@ class PedestrianTracker:
                 taken[j] = True
                 break
             else:  # hidden behind a nearer segment (its shadow): predicted only, for a while
-                if self.hidden[i] < self.config.max_hidden and any(rules.behind(pred[i], sg.lo, sg.hi, m) for sg in segs):
+                shadow = any(rules.behind(pred[i], sg.lo, sg.hi, m) for sg in segs)
+                if shadow and self.hidden[i] < self.config.max_hidden:
                     self.hidden[i] += 1
                     merged_now.add(int(i))
                     self.status[i] = "hidden"
