@@ -1,5 +1,5 @@
 """The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack bench``, ``gputrack tune``,
-``gputrack demo body|groups``, ``gputrack track groups``."""
+``gputrack demo body|groups|pedestrians``, ``gputrack track groups|pedestrians``."""
 
 from __future__ import annotations
 
@@ -59,6 +59,14 @@ def cmd_demo(args) -> int:
     from .registry import device
 
     dev = device(args.device)
+    if args.what == "pedestrians":
+        from .demos import pedestrians
+
+        report = pedestrians.run(dev, people=args.people, frames=args.frames, seed=args.seed, scale=args.scale,
+                                 ablations=not args.no_ablations, save=args.save)  # fmt: skip
+        if args.json:
+            pedestrians.write_json(report, args.json)
+        return 0
     if args.what == "groups":
         from .demos import groups
 
@@ -77,7 +85,43 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_track_pedestrians(args) -> int:
+    import dataclasses
+
+    from .registry import device
+    from .trackers.pedestrians import PedestrianConfig
+    from .trackers.pedestrians.recording import read_camera, track_recording
+
+    try:
+        cam, mounting = read_camera(args.camera)
+        config = dataclasses.replace(PedestrianConfig(), **mounting)
+    except (FileNotFoundError, ValueError, TypeError) as e:
+        print(f"gputrack track pedestrians: {e}", file=sys.stderr)
+        return 1
+    dev = device(args.device)
+    out = open(args.out, "w") if args.out else sys.stdout
+
+    def progress(k, fr):
+        if args.out:
+            print(f"  frame {k + 1:5d}  {len(fr.segments)} segments  pedestrians "
+                  + " ".join(str(p.id) for p in fr.pedestrians), file=sys.stderr, flush=True)  # fmt: skip
+
+    try:
+        n = track_recording(dev, args.depth, cam, out, config=config, background=args.background, save=args.save,
+                            progress=progress)  # fmt: skip
+    except (FileNotFoundError, ValueError, TypeError) as e:
+        print(f"gputrack track pedestrians: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if args.out:
+            out.close()
+    print(f"gputrack track pedestrians: {n} frames", file=sys.stderr)
+    return 0
+
+
 def cmd_track(args) -> int:
+    if args.what == "pedestrians":
+        return cmd_track_pedestrians(args)
     from .models import StereoCamera
     from .registry import device
     from .trackers.groups.recording import read_camera, track_recording
@@ -211,7 +255,18 @@ def main(argv=None) -> int:
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.set_defaults(func=cmd_demo)
 
-    track = sub.add_parser("track", help="track a real recording (paper 001 groups)")
+    p = which.add_parser("pedestrians", help="paper 002: pedestrians from a simulated level depth camera")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--people", type=int, default=5, help="most people in view at once (default 5)")
+    p.add_argument("--frames", type=int, default=851, help="frames at 5 fps (default 851, as the paper)")
+    p.add_argument("--scale", type=float, default=1.0, help="image size: 1 = 1280 x 960 (default), 0.5 = 640 x 480")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-ablations", action="store_true", help="skip the runs without the occlusion gain / split-merge")
+    p.add_argument("--save", metavar="DIR", help="write pictures (top view of the tracks, depth with segments)")
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON")
+    p.set_defaults(func=cmd_demo)
+
+    track = sub.add_parser("track", help="track a real recording (paper 001 groups, paper 002 pedestrians)")
     which = track.add_subparsers(dest="what", required=True)
     p = which.add_parser("groups", help="a rectified stereo recording -> groups per frame as JSON lines")
     p.add_argument("--left", required=True, help="left video, image directory or glob pattern")
@@ -223,6 +278,15 @@ def main(argv=None) -> int:
     p.add_argument("--background-left", metavar="PATH", help="empty left frames for the background instead")
     p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
     p.add_argument("--out", metavar="FILE", help="write the JSON lines to FILE (default: stdout)")
+    p.set_defaults(func=cmd_track)
+    p = which.add_parser("pedestrians", help="16-bit depth images (mm) -> pedestrian tracks as MOTChallenge-like CSV")
+    p.add_argument("--depth", required=True, help="depth PNGs in mm: a glob pattern or a directory")
+    p.add_argument("--camera", required=True, metavar="FILE",
+                   help='JSON {"fx", "fy", "cx", "cy"} px, optional "camera_height" mm or "ground_plane" [a, b, c, d]')
+    p.add_argument("--background", metavar="PATH", help="empty depth frames (glob or directory; default: the floor)")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--save", metavar="DIR", help="write pictures every 10 frames")
+    p.add_argument("--out", metavar="FILE", help="write the CSV to FILE (default: stdout)")
     p.set_defaults(func=cmd_track)
 
     p = sub.add_parser("bench", help="time the ops on every device, with ratios against NumPy")

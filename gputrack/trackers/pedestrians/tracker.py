@@ -1,0 +1,633 @@
+"""Pedestrian tracker of paper 002 (Ukyo et al.): pedestrians from a level depth camera's frames,
+one Kalman filter per pedestrian, all of them in one device table.
+
+A frame (:meth:`PedestrianTracker.track`) is five stages of a :class:`gputrack.Scheduler`:
+
+=========  ===========================================================================  ======
+stage      what                                                                         where
+=========  ===========================================================================  ======
+points     foreground vs background, back-projection, 5 m cut, 1024 random points       device
+           (:func:`gputrack.ops.depth_points`, sec. 4.1)
+segments   the points above the sensor, ground-plane DBSCAN (:func:`gputrack.ops.dbscan`),  device,
+           segment positions and volumes (sec. 4.2; :mod:`.front`)                      host
+predict    every track, constant velocity x = [x xdot y ydot z zdot], one launch         device
+associate  Hungarian assignment on eq. 1-3, the causes of unassigned pedestrians and      host,
+           segments (Fig. 6-7), new and deleted tracks, each track's observation and      small
+           occlusion gain (eq. 4-6)
+update     every observed track, one :func:`gputrack.ops.kf_update` with ``gain_scale``    device
+=========  ===========================================================================  ======
+
+Rules (sec. 4.3), written down:
+
+- **Assignment**: pedestrians (stage 1), then the split/merge children (stage 2, on the segments
+  left, or their parent's), each by :func:`rules.assign` on c = alpha d + (1 - alpha)|V_j - V_i|
+  (eq. 1-3, d in m, V in m^3), pairs farther than ``max_distance`` or differing in volume by more
+  than ``max_volume_change`` rejected. A track's V_i is the volume of its last observation.
+- **Unassigned pedestrian** (Fig. 6): if it has split/merge children, it is updated from them
+  (below); else if its predicted position lies inside a segment (ground-plane box grown by
+  ``containment_margin``) that another pedestrian k took, the two have *merged*: a child track
+  starts at that segment with parents {i, k}, k's assignment is undone, and both parents are
+  predicted only in this first frame; inside a segment nobody took, it is that pedestrian's own
+  segment whose volume changed too much (a merge of one): assigned. Beyond the paper: a
+  pedestrian whose prediction lies in the shadow of a nearer segment (behind it, within its
+  bearings) is hidden there, predicted only and not output, for up to ``max_hidden`` frames (a
+  depth camera's full occlusion: in the ground plane the two are apart, so DBSCAN never merges
+  them; when it reappears the assignment finds it again, with its id). Otherwise it *left*:
+  after ``max_missed`` (2) unmatched frames in a row it is deleted.
+- **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
+  segment's box centred on the prediction, half extents at least ``person_radius`` across and
+  ``person_depth`` along the view, grown by ``containment_margin``) and is no larger than
+  ``split_volume`` times its largest volume of the last frames (else someone beside it entered),
+  that pedestrian has *split* (occlusion): each part gets a child track with that parent.
+  Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
+  Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
+  with a split part (for a pedestrian born this frame the extent is its own segment's box, grown
+  by the margin, without ``person_radius``).
+- **Parents**: a parent with two or more observed parts (its own segment and its split
+  children's) is updated from their combined points (the midpoint of the union of their boxes,
+  volume the sum); with one observed child only, from the child's displacement since its last
+  frame applied to the parent's position (predicted only in the child's first frame). A merged
+  parent is never updated from the merged segment itself. A parent *seen again* (assigned in
+  stage 1, no split child on another segment) for ``end_children_after`` (2) frames in a row ends
+  the children it is a parent of; children also end after ``max_missed`` unmatched frames or when
+  they have no parent left. Children are internal: only pedestrians are output.
+- **Occlusion gain** (eq. 4-6, :func:`rules.occlusion_gain`): each observed track's Kalman gain is
+  scaled by O_ocl = beta V_abs + (1 - beta) V_rel (clipped to [0, 1]) with V_max the largest volume
+  it was observed with in the last ``volume_frames`` (5) frames.
+- Ids are never reused; the table grows as needed (a crowd of 50 is fine).
+
+Switches: ``occlusion_gain=False`` (gain 1), ``split_merge=False`` (no children: an unassigned
+segment is new, an unassigned pedestrian missed) give the plain Kalman + Hungarian tracker.
+
+Units: millimetres and frames (velocity mm/frame), camera coordinates x right, y down, z forward.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ...device import Device
+from ...models.camera import Camera, DepthCamera
+from ...ops import constant_velocity, kf_predict, kf_update
+from ...ops._args import check_device
+from ...scheduler import Scheduler, Stage
+from . import rules
+from .front import DepthFrontEnd, Segment
+
+__all__ = ["Pedestrian", "PedestrianConfig", "PedestrianFrame", "PedestrianTracker"]
+
+POS = np.array([0, 2, 4])  # x = [x xdot y ydot z zdot]
+VEL = np.array([1, 3, 5])
+FREE, PEDESTRIAN, CHILD = 0, 1, 2
+CHILD_IDS = 1 << 40  # the first id of the internal child tracks
+
+
+@dataclasses.dataclass(frozen=True)
+class PedestrianConfig:
+    """Constants of the pedestrian tracker, the paper's value as default where it gives one.
+
+    Front end (sec. 4.1-4.2): ``background_frames`` (30), ``foreground_threshold`` (100 mm),
+    ``max_range`` (5000 mm), ``n_points`` (1024), ``seed`` (of the random subsets),
+    ``camera_height`` (1000 mm, level camera) or ``ground_plane`` (a, b, c, d) mm for another
+    mounting, DBSCAN ``eps`` (mm) and ``min_samples``, ``min_segment_points`` (smaller clusters
+    are no segment), ``min_width`` (mm: narrower clusters in the ground plane are no segment; 0:
+    off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
+    ``min_extent`` (mm, the least extent per axis in a volume).
+    Assignment (eq. 1-3): ``alpha`` (0.8), ``max_distance`` (mm), ``max_volume_change`` (m^3).
+    Kalman: ``q`` acceleration variance (mm/frame^2)^2, ``r`` observation standard deviation
+    (mm), ``p0`` initial standard deviations (position mm, velocity mm/frame).
+    Gain (eq. 4-6): ``beta`` (0.2), ``v_thr`` (m^3), ``volume_frames`` (5), ``occlusion_gain``.
+    Causes (Fig. 6-7): ``split_merge``, ``max_missed`` (2), ``end_children_after`` (2),
+    ``containment_margin`` (mm), ``person_radius`` and ``person_depth`` (mm, the least half
+    extents of a predicted pedestrian across and along the view in the containment tests),
+    ``max_hidden`` (frames a pedestrian hidden behind a nearer segment is kept, predicted only;
+    0: off, the paper's plain rule), ``split_volume`` (a split part is at most this times the
+    pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
+    """
+
+    background_frames: int = 30
+    foreground_threshold: float = 100.0
+    max_range: float = 5000.0
+    n_points: int = 1024
+    seed: int = 0
+    camera_height: float = 1000.0
+    ground_plane: tuple | None = None
+    eps: float = 120.0
+    min_samples: int = 6
+    min_segment_points: int = 12
+    min_extent: float = 50.0
+    min_width: float = 0.0
+    max_height: float = 2300.0
+    alpha: float = 0.8
+    max_distance: float = 900.0
+    max_volume_change: float = 0.15
+    q: float = 1600.0
+    r: float = 60.0
+    p0: tuple = (150.0, 100.0)
+    beta: float = 0.2
+    v_thr: float = 0.05
+    volume_frames: int = 5
+    occlusion_gain: bool = True
+    split_merge: bool = True
+    max_missed: int = 2
+    end_children_after: int = 2
+    containment_margin: float = 150.0
+    person_radius: float = 400.0
+    person_depth: float = 250.0
+    max_hidden: int = 5
+    split_volume: float = 0.5
+    capacity: int = 16
+
+    def __post_init__(self):
+        for name in ("background_frames", "n_points", "min_samples", "min_segment_points", "volume_frames",
+                     "max_missed", "end_children_after", "capacity"):  # fmt: skip
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"PedestrianConfig.{name}: expected a positive integer, got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
+            raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
+        for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
+                     "v_thr", "min_extent", "person_radius", "split_volume", "max_height", "person_depth"):  # fmt: skip
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
+        if not (isinstance(self.max_range, (int, float)) and self.max_range > 0):
+            raise ValueError(f"PedestrianConfig.max_range: expected a number > 0 (inf: no cut), got {self.max_range!r}")
+        if not (isinstance(self.containment_margin, (int, float)) and 0 <= self.containment_margin < 1e4):
+            raise ValueError(f"PedestrianConfig.containment_margin: expected mm in [0, 1e4), got "
+                             f"{self.containment_margin!r}")  # fmt: skip
+        for name in ("alpha", "beta"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise ValueError(f"PedestrianConfig.{name}: expected a weight in [0, 1], got {v!r}")
+        p0 = np.asarray(self.p0, dtype=float)
+        if p0.shape != (2,) or not (np.isfinite(p0).all() and (p0 > 0).all()):
+            raise ValueError(f"PedestrianConfig.p0: expected 2 positive finite numbers, got {self.p0!r}")
+        if self.ground_plane is not None:
+            from .front import ground_plane
+
+            ground_plane(self.ground_plane)
+
+
+@dataclasses.dataclass(frozen=True)
+class Pedestrian:
+    """One tracked pedestrian: ``position`` (3,) mm and ``velocity`` (3,) mm/frame (camera
+    coordinates), ``volume`` (m^3, of its last observation), ``status``: "new" (entered this
+    frame), "tracked" (assigned a segment), "split" (updated from its split parts), "merged"
+    (inside a segment shared with another pedestrian), "missed" (no observation this frame). A
+    pedestrian hidden behind a nearer one (see the module) is kept but not output."""
+
+    id: int
+    position: np.ndarray
+    velocity: np.ndarray
+    volume: float
+    status: str
+
+
+@dataclasses.dataclass(frozen=True)
+class PedestrianFrame:
+    """One frame's result: ``pedestrians`` (ascending id), ``segments`` (:class:`Segment`),
+    ``points`` (N, 3) the points above the sensor (mm) and ``labels`` (N,) their segment index
+    (-1: none), ``foreground`` the foreground pixels before downsampling, ``started`` and ``ended``
+    the ids that began and ended this frame."""
+
+    pedestrians: list
+    segments: list
+    points: np.ndarray
+    labels: np.ndarray
+    foreground: int
+    started: list
+    ended: list
+
+
+class PedestrianTracker:
+    """Paper 002's pedestrian tracker on one device (see the module for the frame and the rules).
+
+    ``camera``: intrinsics (:class:`gputrack.models.Camera` or ``DepthCamera``; fx, fy, cx, cy in
+    pixels); ``config``: :class:`PedestrianConfig`; ``profile``: time each stage on the device.
+    Call :meth:`learn_background` (or :meth:`floor_background`) before the first :meth:`track`.
+    """
+
+    def __init__(self, device: Device, *, camera, config: PedestrianConfig | None = None, profile: bool = False):
+        self.device = check_device(device)
+        if not isinstance(camera, (Camera, DepthCamera)):
+            raise TypeError(f"camera: expected a gputrack.models.Camera or DepthCamera, got {type(camera).__name__}")
+        config = PedestrianConfig() if config is None else config
+        if not isinstance(config, PedestrianConfig):
+            raise TypeError(f"config: expected a PedestrianConfig, got {type(config).__name__}")
+        self.camera, self.config = camera, config
+        self.front = DepthFrontEnd(self.device, camera, config)
+        #: least half extents (x, y, z) of a predicted pedestrian in the containment tests
+        self._least_half = np.array([config.person_radius, config.person_radius, config.person_depth])
+        self.F, self.Q = constant_velocity(3, 1.0, config.q)
+        self.H = np.zeros((3, 6), np.float32)
+        self.H[[0, 1, 2], POS] = 1.0
+        self.R = np.eye(3, dtype=np.float32) * np.float32(config.r**2)
+        C = config.capacity
+        self.ids = np.full(C, -1, np.int64)
+        self.kind = np.zeros(C, np.int64)
+        self.missed = np.zeros(C, np.int64)
+        self.again = np.zeros(C, np.int64)  # frames in a row a parent was seen again whole
+        self.hidden = np.zeros(C, np.int64)  # frames in a row a pedestrian was hidden behind a segment
+        self.age = np.zeros(C, np.int64)
+        self.volume = np.zeros(C)  # volume of the last observation (m^3)
+        self.vols = np.full((C, config.volume_frames), np.nan)  # the last volume_frames observed volumes
+        self.half = np.zeros((C, 3))  # half extents of the last segment (mm)
+        self.last_seg = np.full((C, 3), np.nan)  # a child's last segment position (displacements)
+        self.status = np.array(["tracked"] * C, dtype=object)
+        self.parents: dict[int, set] = {}  # child slot -> parent slots
+        self.next_id = 0
+        self.next_child = 0
+        self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))
+        self.scheduler = Scheduler(self.device, [
+            Stage("points", self._points, writes=("points",)),
+            Stage("segments", self._segments, reads=("points",), writes=("segments",)),
+            Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
+            Stage("associate", self._associate, host_reads=("x", "P"), reads=("segments",),
+                  writes=("x", "P", "z", "mask", "gain")),
+            Stage("update", self._update, reads=("x", "P", "z", "mask", "gain"), writes=("x", "P")),
+        ], state=("x", "P"), outputs=("x",), profile=profile)  # fmt: skip
+        self.scheduler.set("x", self._x.astype(np.float32))
+        self.scheduler.set("P", self._P.astype(np.float32))
+        self._frame = None
+
+    # -- background ------------------------------------------------------------------------------
+    def learn_background(self, frames) -> None:
+        """Background from empty frames (F, H, W) uint16 or float32 mm, 0 = no reading (sec. 4.1:
+        the per-pixel median ignoring missing readings; F < 30 warns, F > 64 is an error)."""
+        self.front.learn_background(frames)
+
+    def floor_background(self, shape) -> None:
+        """The empty floor as background, for a scene without empty frames: (H, W) of the frames;
+        the floor is the config's ground plane (see :mod:`.front`)."""
+        self.front.floor_background(shape)
+
+    @property
+    def capacity(self) -> int:
+        return len(self.ids)
+
+    # -- one frame -------------------------------------------------------------------------------
+    def track(self, depth) -> PedestrianFrame:
+        """Track one depth frame (H, W) uint16 or float32 mm (0 or NaN: no reading)."""
+        self._frame = {"depth": self.front.check_frame(depth)}
+        try:
+            out = self.scheduler.run()
+            return self._result(np.asarray(out["x"], np.float64))
+        finally:
+            self._frame = None
+
+    def _points(self, b) -> None:
+        pts, count = self.front.points(self._frame["depth"])
+        self._frame["count"] = count
+        b["points"] = self.front.upper(pts)
+
+    def _segments(self, b) -> None:
+        segs, labels = self.front.segments(b["points"])
+        self._frame["labels"] = labels
+        b["segments"] = segs
+
+    def _predict(self, b) -> None:
+        b["x"], b["P"] = kf_predict(self.device, b["x"], b["P"], self.F, self.Q, out=(b["x"], b["P"]))
+
+    def _update(self, b) -> None:
+        res = kf_update(self.device, b["x"], b["P"], b["z"], self.H, self.R, mask=b["mask"], gain_scale=b["gain"],
+                        out=(b["x"], b["P"], self._status()))  # fmt: skip
+        b["x"], b["P"] = res.x, res.P
+
+    def _status(self):
+        st = getattr(self, "_status_array", None)
+        if st is None or tuple(st.shape) != (self.capacity,):
+            st = self._status_array = (np.zeros(self.capacity, np.uint8) if self.device.backend == "numpy"
+                                       else self.device.empty((self.capacity,), np.uint8))  # fmt: skip
+        return st
+
+    # -- the rules -------------------------------------------------------------------------------
+    def _associate(self, b) -> None:
+        cfg = self.config
+        segs: list[Segment] = b["segments"]
+        self._x, self._P = np.array(b["x"], np.float64), np.array(b["P"], np.float64)
+        C0 = self.capacity
+        self._born, self._waiting = set(), set()
+        M = len(segs)
+        sp = np.array([s.position for s in segs]).reshape(-1, 3)
+        sv = np.array([s.volume for s in segs])
+        pred = self._x[:, POS]
+        live = self.ids >= 0
+        self.age[live] += 1
+        peds = np.flatnonzero(self.kind == PEDESTRIAN)
+        kids = np.flatnonzero(self.kind == CHILD)
+        owner = np.full(M, -1, np.int64)  # the pedestrian that took segment j in stage 1
+        seg_of = {}  # slot -> segment index (direct observation)
+        limits = {"alpha": cfg.alpha, "max_distance": cfg.max_distance, "max_volume_change": cfg.max_volume_change}
+        cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, **limits)
+        for i, j in rules.assign(cost, ok):  # stage 1
+            owner[j] = peds[i]
+            seg_of[int(peds[i])] = j
+        if len(kids):  # stage 2: children, on the segments left or their parent's
+            cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, **limits)
+            for a, c in enumerate(kids):
+                ps = self.parents.get(int(c), ())
+                for j in range(M):
+                    if owner[j] >= 0 and owner[j] not in ps:
+                        ok[a, j] = False  # another pedestrian's segment
+                    elif not any(self._near(p, segs[j].position) for p in ps):
+                        ok[a, j] = False  # a child stays within its parents' extent
+            cost = np.where(ok, cost, rules._REJECTED)
+            for a, j in rules.assign(cost, ok):
+                seg_of[int(kids[a])] = j
+        taken = np.zeros(M, bool)
+        for j in seg_of.values():
+            taken[j] = True
+        merged_now: set = set()  # parents predicted only this frame (a merge began)
+        if cfg.split_merge:
+            self._merges(peds, seg_of, owner, taken, segs, pred, merged_now)
+        union: dict = {}  # parent slot -> segment indices of its split parts
+        if cfg.split_merge:
+            started = self._splits(peds, seg_of, taken, segs, pred, union)
+        else:
+            started = []
+            for j in np.flatnonzero(~taken):  # entered the view (Fig. 7)
+                s = self._add(PEDESTRIAN, segs[j], velocity=None)
+                seg_of[s] = int(j)
+                started.append(int(self.ids[s]))
+        # observations
+        C = self.capacity
+        z = np.full((C, 3), np.nan, np.float32)
+        gain = np.ones(C, np.float32)
+        obs_vol = np.full(C, np.nan)
+        new = np.zeros(C, bool)
+        new[list(self._born)] = True  # started at their detection: no update this frame
+        for s, j in seg_of.items():
+            if self.kind[s] == CHILD or s not in union:
+                if new[s]:
+                    continue
+                z[s], obs_vol[s] = segs[j].position, segs[j].volume
+                self.half[s] = (segs[j].hi - segs[j].lo) / 2
+        for s, parts in union.items():
+            if new[s]:
+                continue
+            lo = np.min([segs[j].lo for j in parts], axis=0)
+            hi = np.max([segs[j].hi for j in parts], axis=0)
+            z[s], obs_vol[s] = (lo + hi) / 2, float(sum(segs[j].volume for j in parts))
+            # the extent stays one person's: the largest part's (a union's box would grow)
+            big = max(parts, key=lambda j: segs[j].volume)
+            self.half[s] = (segs[big].hi - segs[big].lo) / 2
+            self.status[s] = "split"
+        displaced = self._parent_updates(peds, seg_of, union, merged_now, segs, z, obs_vol)
+        explained = merged_now | self._waiting
+        # occlusion gain (eq. 4-6) and the volume history
+        for s in np.flatnonzero(np.isfinite(obs_vol)):
+            if cfg.occlusion_gain and s not in displaced:
+                vmax = np.nanmax(self.vols[s]) if np.isfinite(self.vols[s]).any() else np.nan
+                gain[s] = rules.occlusion_gain(obs_vol[s], vmax, v_thr=cfg.v_thr, beta=cfg.beta)
+            if s not in displaced:
+                self.vols[s] = np.roll(self.vols[s], -1)
+                self.vols[s, -1] = obs_vol[s]
+                self.volume[s] = obs_vol[s]
+        for s, j in seg_of.items():
+            if self.kind[s] == CHILD:
+                self.last_seg[s] = segs[j].position
+        # bookkeeping: missed, seen again, deletions
+        observed = np.isfinite(z).all(axis=1) | new
+        for s in np.flatnonzero(self.ids >= 0):
+            if observed[s]:
+                self.hidden[s] = 0
+            if observed[s] or s in explained:
+                self.missed[s] = 0
+            else:
+                self.missed[s] += 1
+                if self.kind[s] == PEDESTRIAN:
+                    self.status[s] = "missed"
+        for s in peds:
+            if self.ids[s] < 0:
+                continue
+            whole = s in seg_of and s not in union and s not in merged_now
+            self.again[s] = self.again[s] + 1 if whole else 0
+            if whole and s not in self._born:
+                self.status[s] = "tracked"
+        ended = []
+        for s in np.flatnonzero((self.ids >= 0) & (self.missed >= cfg.max_missed)):
+            if self.kind[s] == PEDESTRIAN:
+                ended.append(int(self.ids[s]))
+            self._free(s)
+        for c in list(self.parents):
+            ps = self.parents[c]
+            ps &= {p for p in ps if self.ids[p] >= 0 and self.kind[p] == PEDESTRIAN}
+            if not ps or all(self.again[p] >= cfg.end_children_after for p in ps):
+                self._free(c)
+        mask = np.isfinite(z).all(axis=1) & (self.ids >= 0)
+        z[~mask] = np.nan
+        self._put_table(b, C != C0 or bool(self._born))  # new tracks (pedestrians and children) start on the host
+        b["z"] = self._put("z", z)
+        b["mask"] = self._put("mask", mask.astype(np.uint8))
+        b["gain"] = self._put("gain", gain) if cfg.occlusion_gain else None
+        self._frame["started"], self._frame["ended"] = started, ended
+
+    def _merges(self, peds, seg_of, owner, taken, segs, pred, merged_now) -> None:
+        """Fig. 6: an unassigned pedestrian inside a segment another pedestrian took has merged."""
+        m = self.config.containment_margin
+        for i in peds:
+            if i in seg_of or self._children(i):
+                continue
+            for j, sg in enumerate(segs):
+                if not rules.inside(pred[i], sg.lo, sg.hi, m):
+                    continue
+                k = int(owner[j])
+                if k >= 0:
+                    kid = next((c for c, ps in self.parents.items() if k in ps and seg_of.get(c) == j), None)
+                    if kid is None:
+                        kid = self._add(CHILD, sg, velocity=self._x[k, VEL])
+                        seg_of[kid] = j
+                        self.parents[kid] = {k}
+                        merged_now.add(k)
+                    self.parents[kid].add(int(i))
+                    merged_now.add(int(i))
+                    seg_of.pop(k, None)
+                    self.status[k] = self.status[i] = "merged"
+                    owner[j] = -1
+                elif not taken[j]:  # its own segment, whose volume changed too much
+                    seg_of[int(i)] = j
+                    owner[j] = i
+                taken[j] = True
+                break
+            else:  # hidden behind a nearer segment (its shadow): predicted only, for a while
+                shadow = any(rules.behind(pred[i], sg.lo, sg.hi, m) for sg in segs)
+                if shadow and self.hidden[i] < self.config.max_hidden:
+                    self.hidden[i] += 1
+                    merged_now.add(int(i))
+                    self.status[i] = "hidden"
+
+    def _splits(self, peds, seg_of, taken, segs, pred, union) -> list:
+        """Fig. 7: an unassigned segment inside a pedestrian's predicted extent, no larger than
+        ``split_volume`` times its largest recent volume, is a part of it (split); any other starts
+        a pedestrian (entered). Largest segments first, so that a person entering in two pieces is
+        one new pedestrian and a split part. Returns the ids started."""
+        cfg = self.config
+        m = cfg.containment_margin
+        started = []
+        cands = [int(i) for i in peds]
+        for j in sorted(np.flatnonzero(~taken), key=lambda j: -segs[j].volume):
+            sg = segs[j]
+            parent = None
+            for i in cands:
+                if self.ids[i] < 0 or self.status[i] == "merged":
+                    continue
+                # a pedestrian born this frame has no prediction yet: its own box, not person_radius
+                half = self.half[i] if i in self._born else np.maximum(self.half[i], self._least_half)
+                if not rules.inside(sg.position, self._x[i, POS] - half, self._x[i, POS] + half, m):
+                    continue
+                vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
+                if sg.volume > cfg.split_volume * vmax:
+                    continue  # too big to be a part of it: someone else (e.g. entering beside it)
+                parent = i
+                break
+            taken[j] = True
+            if parent is None:  # entered the view
+                s = self._add(PEDESTRIAN, sg, velocity=None)
+                seg_of[s] = int(j)
+                started.append(int(self.ids[s]))
+                cands.append(s)
+                continue
+            i = parent
+            parts = union.setdefault(i, [])
+            if not parts:
+                if i in seg_of:
+                    parts.append(seg_of[i])
+                parts.extend(seg_of[c] for c in self._children(i) if c in seg_of and seg_of[c] not in parts)
+            if not parts:  # unassigned and no children: its own segment, rejected by volume
+                seg_of[i] = int(j)
+                union.pop(i)
+                continue
+            parts.append(int(j))
+            for p in list(parts):
+                if not any(seg_of.get(c) == p for c in self._children(i)):
+                    c = self._add(CHILD, segs[p], velocity=self._x[i, VEL])
+                    seg_of[c] = p
+                    self.parents[c] = {i}
+        pred = self._x[:, POS]
+        for i in peds:  # ongoing splits: the parent and its children on two or more segments
+            if int(i) in union or self.ids[i] < 0:
+                continue
+            half = np.maximum(self.half[i], self._least_half)
+            near = [c for c in self._children(i) if c in seg_of and len(self.parents[c]) == 1
+                    and rules.inside(segs[seg_of[c]].position, pred[i] - half, pred[i] + half, m)]  # fmt: skip
+            for c in self._children(i):  # a split child that walked off is no part of it any more
+                if c in seg_of and len(self.parents[c]) == 1 and c not in near:
+                    self.parents[c].discard(int(i))
+            parts = sorted({seg_of[c] for c in near} | ({seg_of[i]} if i in seg_of else set()))
+            if len(parts) >= 2:
+                union[int(i)] = parts
+        return started
+
+    def _parent_updates(self, peds, seg_of, union, merged_now, segs, z, obs_vol) -> set:
+        """Unassigned parents follow their one observed child's displacement (predicted only in the
+        child's first frame). Returns the slots updated so."""
+        out = set()
+        for i in peds:
+            if self.ids[i] < 0 or i in seg_of or i in union or i in merged_now:
+                continue
+            half = np.maximum(self.half[i], self._least_half) + self.config.containment_margin
+            seen = [c for c in self._children(i) if c in seg_of
+                    and rules.inside(segs[seg_of[c]].position, self._x[i, POS] - half, self._x[i, POS] + half, 0.0)]
+            if not seen:
+                continue
+            c = seen[0]
+            j = seg_of[c]
+            if np.isfinite(self.last_seg[c]).all() and self.age[c] > 0:
+                z[i] = self._x[i, POS] - self._x[i, VEL] + (segs[j].position - self.last_seg[c])
+                obs_vol[i] = self.volume[i]
+                out.add(int(i))
+            else:
+                self._waiting.add(int(i))  # the child's first frame: predicted only, not missed
+            if self.status[i] != "merged":
+                self.status[i] = "split"
+        return out
+
+    def _near(self, i, position) -> bool:
+        """Is ``position`` inside pedestrian i's predicted extent (its last segment's half extents,
+        at least ``person_radius``, grown by ``containment_margin``)?"""
+        half = np.maximum(self.half[i], self._least_half)
+        return rules.inside(position, self._x[i, POS] - half, self._x[i, POS] + half, self.config.containment_margin)
+
+    def _children(self, parent) -> list:
+        return [c for c, ps in self.parents.items() if parent in ps and self.ids[c] >= 0]
+
+    def _add(self, kind: int, seg: Segment, velocity) -> int:
+        """A new track in the lowest free slot at ``seg`` (velocity: 0 for a new pedestrian)."""
+        free = np.flatnonzero(self.ids < 0)
+        if not len(free):
+            self._grow()
+            free = np.flatnonzero(self.ids < 0)
+        s = int(free[0])
+        cfg = self.config
+        self._born.add(s)
+        if kind == PEDESTRIAN:
+            self.ids[s] = self.next_id
+            self.next_id += 1
+        else:  # children are internal: ids of their own, never output
+            self.ids[s] = CHILD_IDS + self.next_child
+            self.next_child += 1
+        self.kind[s] = kind
+        self.missed[s] = self.again[s] = self.age[s] = self.hidden[s] = 0
+        self.volume[s] = seg.volume
+        self.vols[s] = np.nan
+        self.vols[s, -1] = seg.volume
+        self.half[s] = (seg.hi - seg.lo) / 2
+        self.last_seg[s] = seg.position
+        self.status[s] = "new" if kind == PEDESTRIAN else "child"
+        x = np.zeros(6)
+        x[POS] = seg.position
+        if velocity is not None:
+            x[VEL] = velocity
+        self._x[s] = x
+        self._P[s] = np.diag(np.tile([cfg.p0[0] ** 2, cfg.p0[1] ** 2], 3))
+        return s
+
+    def _free(self, s) -> None:
+        self.ids[s], self.kind[s] = -1, FREE
+        self.parents.pop(int(s), None)
+        for ps in self.parents.values():
+            ps.discard(int(s))
+
+    def _grow(self) -> None:
+        C = self.capacity
+        g = C
+        self.ids = np.concatenate([self.ids, np.full(g, -1, np.int64)])
+        for name in ("kind", "missed", "again", "age", "hidden"):
+            setattr(self, name, np.concatenate([getattr(self, name), np.zeros(g, np.int64)]))
+        self.volume = np.concatenate([self.volume, np.zeros(g)])
+        self.vols = np.concatenate([self.vols, np.full((g, self.vols.shape[1]), np.nan)])
+        self.half = np.concatenate([self.half, np.zeros((g, 3))])
+        self.last_seg = np.concatenate([self.last_seg, np.full((g, 3), np.nan)])
+        self.status = np.concatenate([self.status, np.array(["tracked"] * g, dtype=object)])
+        self._x = np.concatenate([self._x, np.zeros((g, 6))])
+        self._P = np.concatenate([self._P, np.tile(np.eye(6), (g, 1, 1))])
+
+    def _put_table(self, b, changed) -> None:
+        if changed or b["x"].shape[0] != self.capacity:
+            b["x"] = self._put("x", self._x.astype(np.float32))
+            b["P"] = self._put("P", self._P.astype(np.float32))
+
+    def _put(self, name, host):
+        host = np.ascontiguousarray(host)
+        if self.device.backend == "numpy":
+            return host.copy()
+        dev = self.scheduler.buffers.get(name)
+        if dev is not None and tuple(dev.shape) == host.shape and dev.dtype == host.dtype:
+            return self.device.asarray(host, out=dev)
+        return self.device.asarray(host)
+
+    # -- reading ---------------------------------------------------------------------------------
+    def _result(self, x) -> PedestrianFrame:
+        if not np.isfinite(x[self.ids >= 0]).all():  # never expected: the filter is in Joseph form
+            raise FloatingPointError("pedestrian tracker: a track's state became non-finite")
+        peds = np.flatnonzero((self.kind == PEDESTRIAN) & (self.status != "hidden"))  # hidden: kept, not output
+        peds = peds[np.argsort(self.ids[peds], kind="stable")]
+        out = [Pedestrian(int(self.ids[s]), x[s, POS].copy(), x[s, VEL].copy(), float(self.volume[s]),
+                          str(self.status[s])) for s in peds]  # fmt: skip
+        f = self._frame
+        return PedestrianFrame(out, list(self.scheduler.buffers["segments"]), self.scheduler.buffers["points"],
+                               f["labels"], f["count"], f["started"], f["ended"])  # fmt: skip
