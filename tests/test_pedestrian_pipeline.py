@@ -31,7 +31,7 @@ def test_lzf_literals_and_overlapping_back_references():
         lzf_decompress(bytes([0]) + b"x", 5)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # built once, not again per device
 def five_people():
     if not DATA.exists():
         pytest.skip(f"{DATA} is absent (the shared test data lives beside the repository, not in it)")

@@ -24,7 +24,7 @@ REF = gputrack.device("numpy")
 SEED = 2**40 + 12345
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # built once, not again per device (see test_body_tracker.py)
 def scene():
     """Frame 1 of a simulated sequence, the template at frame 0, and 10 candidates near the truth."""
     seq = sequence("arm_cross", frames=2, seed=0)

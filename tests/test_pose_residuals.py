@@ -21,7 +21,7 @@ REF = gputrack.device("numpy")
 SENTINEL = 1e9  # entries a central call may leave as they were
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["14 params", "20 params"])
+@pytest.fixture(scope="session", params=[False, True], ids=["14 params", "20 params"])
 def scene(request):
     seq = sequence("arm_cross", frames=2, seed=0, shoulders=request.param)
     rgb, dep = sparse_template(seq.chain, seq.params[0], 64, 48)
