@@ -81,14 +81,14 @@ def test_scenes_from_observation_points(device, scenes):
 
 
 @pytest.mark.parametrize("name", ["crossing", "stairs"])
-def test_scenes_from_images(name, scenes):
+def test_scenes_from_images(device, name, scenes):
     """The whole pipeline on the full-size images (taichi:cpu; the image pipeline is pinned to the
     reference on every device below): the crossing keeps two groups apart with no id switch and
     purity >= 95 %; the stairs group's mean is followed within 100 mm."""
-    if "taichi:cpu" not in {i.spec for i in gputrack.devices() if i.available}:
-        pytest.skip("taichi:cpu is not available")
+    if device.spec != "taichi:cpu":
+        pytest.skip("the full-size scenes run on taichi:cpu; every device runs the pipeline test below")
     # the crossing's first 136 frames hold the pass (at 120); the stairs' first 120 the approach and the steps
-    rec, frs, _ = _run(gputrack.device("taichi:cpu"), scenes[name], frames=136 if name == "crossing" else 120)
+    rec, frs, _ = _run(device, scenes[name], frames=136 if name == "crossing" else 120)
     m = evaluate(rec, mot=False)
     assert m.total_switches == 0 and m.mean_purity >= 0.95
     if name == "crossing":
@@ -154,12 +154,14 @@ def test_demo_groups(tmp_path, capsys):
     assert json.loads((tmp_path / "r.json").read_text())["scene"]["name"] == "merging"
 
 
-def test_track_groups_command(tmp_path, scenes, capsys):
-    """A recording of the full-size crossing written as PNG files, tracked from the command line."""
+def test_track_groups_command(device, tmp_path, scenes, capsys):
+    """A recording of the full-size crossing written as PNG files, tracked from the command line
+    (on taichi:cpu, inside the test run's own taichi:cpu phase)."""
     import cv2
 
-    avail = {i.spec for i in gputrack.devices() if i.available}
-    spec = "taichi:cpu" if "taichi:cpu" in avail else "numpy"
+    if device.spec != "taichi:cpu":
+        pytest.skip("the command runs on taichi:cpu")
+    spec = device.spec
     sc = scenes["crossing"]
     n = sc.empty_frames + 40
     for side in ("left", "right"):
