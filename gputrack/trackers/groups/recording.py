@@ -21,6 +21,7 @@ import os
 import numpy as np
 
 from ...models.camera import StereoCamera
+from ..camera_file import read_camera_json
 
 __all__ = ["frames", "read_camera", "track_recording"]
 
@@ -55,16 +56,7 @@ def frames(path: str):
 
 def read_camera(path: str) -> StereoCamera:
     """A StereoCamera from a JSON file with f (px), b (mm), cx, cy."""
-    try:
-        with open(path) as fh:
-            data = json.load(fh)
-    except OSError as e:
-        raise FileNotFoundError(f"{path}: cannot read the camera file ({e.strerror})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: expected JSON with f, b, cx, cy, got invalid JSON ({e.msg})") from None
-    missing = [k for k in ("f", "b", "cx", "cy") if k not in data]
-    if missing:
-        raise ValueError(f"{path}: expected the keys f, b, cx, cy, missing {', '.join(missing)}")
+    data = read_camera_json(path, ("f", "b", "cx", "cy"))
     return StereoCamera(f=data["f"], b=data["b"], cx=data["cx"], cy=data["cy"])
 
 

@@ -19,12 +19,12 @@ boxes; the top view of the tracks with ids and the segments, as paper 002's Fig.
 from __future__ import annotations
 
 import glob
-import json
 import os
 
 import numpy as np
 
 from ...models.camera import Camera
+from ..camera_file import read_camera_json
 
 __all__ = ["depth_frames", "image_boxes", "read_camera", "track_recording"]
 
@@ -54,18 +54,7 @@ def depth_frames(path: str):
 def read_camera(path: str) -> tuple[Camera, dict]:
     """(Camera, mounting) from a JSON file with fx, fy, cx, cy and optionally camera_height or
     ground_plane (``mounting``: the PedestrianConfig fields they set)."""
-    try:
-        with open(path) as fh:
-            data = json.load(fh)
-    except OSError as e:
-        raise FileNotFoundError(f"{path}: cannot read the camera file ({e.strerror})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: expected JSON with fx, fy, cx, cy, got invalid JSON ({e.msg})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object with fx, fy, cx, cy, got {type(data).__name__}")
-    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
-    if missing:
-        raise ValueError(f"{path}: expected the keys fx, fy, cx, cy, missing {', '.join(missing)}")
+    data = read_camera_json(path, ("fx", "fy", "cx", "cy"))
     mounting = {}
     if "camera_height" in data:
         mounting["camera_height"] = float(data["camera_height"])
