@@ -112,8 +112,8 @@ class StereoFrontEnd:
         self.scheduler = Scheduler(device, [
             Stage("foreground", self._foreground, reads=("left", "background"), writes=("fg", "background")),
             Stage("stereo", self._stereo, reads=("left", "right", "fg"), writes=("disparity",)),
-            Stage("klt", self._track, host_reads=("fg",), writes=("tracks",)),
-            Stage("points", self._triangulate, host_reads=("disparity",), reads=("tracks",), writes=("points",)),
+            Stage("klt", self._track, host_reads=("fg",)),  # the tracks live on the host (self._pts, ...)
+            Stage("points", self._triangulate, host_reads=("disparity",)),
         ], inputs=("left", "right"), state=("background",), profile=profile)  # fmt: skip
 
     @property
@@ -167,7 +167,6 @@ class StereoFrontEnd:
         fg = np.asarray(b["fg"])
         self._klt(self._gray, fg)
         self._fg_share = float(np.count_nonzero(fg)) / fg.size
-        b["tracks"] = None  # the tracks live on the host (self._pts, self._hist)
 
     def _triangulate(self, b) -> None:
         cfg = self.config
@@ -175,7 +174,6 @@ class StereoFrontEnd:
         self._hist = np.concatenate([self._hist[:, 1:], xyz[:, None]], axis=1)
         ok = (self._age >= cfg.window) & np.isfinite(self._hist[:, [0, -1]]).all((1, 2))
         vel = (self._hist[ok, -1] - self._hist[ok, 0]) / (cfg.window - 1)
-        b["points"] = None
         self._result = StereoPoints(xyz[ok].astype(np.float32), vel.astype(np.float32), self._pts[ok].copy(),
                                     self._ids[ok].copy(), self._fg_share, self.scheduler.buffers["disparity"])  # fmt: skip
 
