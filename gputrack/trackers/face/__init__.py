@@ -1,0 +1,19 @@
+"""Paper 003's face tracker (Sugano & Sato): head pose, facial deformation and identity from one camera.
+
+- :mod:`.tracker` — :class:`FaceTracker`: start on n frames, then per frame the particle filter, the
+  feature-point re-localisation and the incremental bundle adjustment as scheduler stages;
+- :mod:`.config` — :class:`FaceConfig`, every constant with the paper's value as default;
+- :mod:`.pf` — the particle filter over pose + deformation scored by NCC (sec. 4.1, eq. 11-13);
+- :mod:`.relocate` — feature-point re-localisation (sec. 4.2, eq. 14) and the patch sampler;
+- :mod:`.bundle` — the incremental bundle adjustment (sec. 3, eq. 5-10): :func:`bundle_adjust` of n
+  frames, :class:`IncrementalBundle` (key-frame choice and the running mean of the identity),
+  :func:`keyframe_spread`;
+- :mod:`.metrics` — Table 1's errors and the shape error; :mod:`.pictures` — drawn frames.
+"""
+
+from .bundle import BundleProblem, BundleResult, IncrementalBundle, bundle_adjust, keyframe_spread
+from .config import FaceConfig
+from .tracker import FaceEstimate, FaceTracker, detect_face
+
+__all__ = ["BundleProblem", "BundleResult", "FaceConfig", "FaceEstimate", "FaceTracker", "IncrementalBundle",
+           "bundle_adjust", "detect_face", "keyframe_spread"]

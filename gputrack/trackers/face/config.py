@@ -1,0 +1,90 @@
+"""The face tracker's constants (paper 003), each with the paper's value as default where it gives one."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["FaceConfig"]
+
+
+def _positive(owner, name, v, *, zero=False):
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v) \
+            or v < 0 or (v == 0 and not zero):
+        raise ValueError(f"{owner}.{name}: expected a finite number {'>=' if zero else '>'} 0, got {v!r}")
+
+
+def _count(owner, name, v, lo):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ValueError(f"{owner}.{name}: expected an int >= {lo}, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class FaceConfig:
+    """Constants of :class:`gputrack.trackers.face.FaceTracker`.
+
+    Particle filter (sec. 4.1, eq. 11-13): ``particles`` N = 1000; ``sigma`` = 1.0 of eq. 13;
+    ``kappa`` = 0.2: the deformation noise std as a multiple of the model's std; ``rotation_noise``
+    (rad) and ``translation_noise`` (mm, x y z): the pose noise at rest, plus ``speed_gain`` times the
+    estimate's speed per component (adaptive pose noise, as Oka et al.); ``near``: the state is the
+    weighted mean of the hypotheses within this many noise standard deviations of the best one in
+    every component; ``prior``: eq. 13's deformation prior term.
+
+    Templates and re-localisation (sec. 4.2, eq. 14): ``template`` = 16 px patches; ``rho`` = 4,
+    ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps.
+
+    Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
+    iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``
+    (rad, mm) = lambda_p of eq. 8; ``identity_sigmas`` = 2 of eq. 9; ``identity_prior`` (beyond the
+    paper; 0 = the paper's box only): the weight of a Gaussian prior on the identity in the bundle
+    adjustment (:func:`~gputrack.trackers.face.bundle.bundle_adjust`); ``learn_identity``: run the
+    incremental bundle adjustment while tracking (False keeps the identity of the start).
+
+    Loss (beyond the paper): a frame whose best hypothesis has a mean NCC below ``lost_score`` is
+    reported with confidence 0 and skips the re-localisation and the bundle adjustment; after
+    ``redetect_after`` such frames in a row the face is searched again (Haar cascade) and the
+    filter restarts at the detection, keeping the identity. ``seed``: the filter's random numbers.
+    """
+
+    particles: int = 1000
+    sigma: float = 1.0
+    kappa: float = 0.2
+    rotation_noise: float = 0.015
+    translation_noise: tuple = (2.0, 2.0, 8.0)
+    speed_gain: float = 0.5
+    near: float = 2.0
+    prior: bool = True
+    template: int = 16
+    rho: float = 4.0
+    eps: float = 4000.0
+    relocate_iterations: int = 5
+    keyframes: int = 7
+    init_iterations: int = 10
+    iterations: int = 5
+    pose_range: tuple = (0.15, 30.0)
+    identity_sigmas: float = 2.0
+    identity_prior: float = 1.0
+    learn_identity: bool = True
+    lost_score: float = 0.3
+    redetect_after: int = 5
+    seed: int = 0
+
+    def __post_init__(self):
+        o = "FaceConfig"
+        for name in ("particles", "template", "keyframes"):
+            _count(o, name, getattr(self, name), 2 if name == "template" else 1)
+        for name in ("relocate_iterations", "init_iterations", "iterations", "redetect_after"):
+            _count(o, name, getattr(self, name), 0)
+        for name in ("sigma", "near", "identity_sigmas"):
+            _positive(o, name, getattr(self, name))
+        for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior"):
+            _positive(o, name, getattr(self, name), zero=True)
+        tn = np.asarray(self.translation_noise, dtype=np.float64)
+        if tn.shape != (3,) or not np.isfinite(tn).all() or (tn < 0).any():
+            raise ValueError(f"{o}.translation_noise: expected 3 numbers >= 0, got {self.translation_noise!r}")
+        pr = np.asarray(self.pose_range, dtype=np.float64)
+        if pr.shape != (2,) or not np.isfinite(pr).all() or (pr <= 0).any():
+            raise ValueError(f"{o}.pose_range: expected (radians, mm) > 0, got {self.pose_range!r}")
+        if not np.isfinite(self.lost_score) or not -1.0 <= self.lost_score <= 1.0:
+            raise ValueError(f"{o}.lost_score: expected a number in [-1, 1], got {self.lost_score!r}")

@@ -1,0 +1,133 @@
+"""The particle filter of paper 003 sec. 4.1: pose and deformation hypotheses scored by NCC (eq. 11-13).
+
+State u = (r (3) Rodrigues vector model -> camera, t (3) mm, a (D) deformation), D = A' of the
+multilinear model (or the generic model's coefficients). With the identity s fixed from the last
+bundle adjustment the shape is linear in a (eq. 11): M_t = mean + basis a.
+
+Per frame (:meth:`FaceParticleFilter.step`):
+
+1. **Sample** (eq. 12): N hypotheses u_i = u'_i + tau v + omega, u'_i drawn from the previous
+   hypotheses by their weights (systematic resampling), v the estimate's velocity over the last
+   frame (zero for a), omega ~ N(0, diag(sigma^2)): pose noise adapting to speed,
+   sigma_pose = base + speed_gain |v| per component (as Oka et al.), and kappa sigma_a for a.
+   Components of a whose model std is 0 do not move.
+2. **Score** (eq. 13) on the device, one launch: N(u_i) = the sum over the K feature points of
+   the zero-mean NCC of their 16 x 16 templates with the image patch at the projected point
+   (:func:`gputrack.ops.ncc.patch_ncc`); log pi_i = -(K - N(u_i))^2 / (2 sigma^2)
+   - 1/2 sum_b ((a_ib - abar_b) / sigma_a_b)^2, normalised to sum 1.
+3. **Estimate**: the weighted mean of the hypotheses near the best one (within ``near`` standard
+   deviations of the sampling noise, per component).
+
+The projection of the N x K points runs on the host (N K 3 values, a few hundred microseconds)
+and is uploaded with the frame; the device scores the N K S^2 patch samples.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...models.camera import Camera
+from ...models.pose import rodrigues
+from .config import FaceConfig
+
+__all__ = ["FaceParticleFilter", "project_hypotheses"]
+
+
+def project_hypotheses(camera: Camera, states, mean, basis) -> np.ndarray:
+    """(N, K, 2) float32 pixels of the K model points of each hypothesis (N, 6 + D) (eq. 5, 11)."""
+    states = np.asarray(states, np.float64)
+    N, D = len(states), basis.shape[2]
+    shapes = mean + (states[:, 6:] @ basis.reshape(-1, D).T).reshape(N, -1, 3)  # eq. 11
+    R = rodrigues(states[:, :3])
+    X = [R[:, c, 0, None] * shapes[..., 0] + R[:, c, 1, None] * shapes[..., 1] + R[:, c, 2, None] * shapes[..., 2]
+         + states[:, 3 + c, None] for c in range(3)]  # fmt: skip
+    z = np.maximum(X[2], 1.0)  # points behind the camera land far off the image and score 0
+    uv = np.stack([camera.fx * X[0] / z + camera.cx, camera.fy * X[1] / z + camera.cy], axis=-1)
+    return np.clip(uv, -1e6, 1e6).astype(np.float32)
+
+
+class FaceParticleFilter:
+    """N hypotheses over pose + deformation of one face (sec. 4.1); see the module docstring.
+
+    ``a_mean``/``a_std`` (D,): the model's deformation prior (eq. 13); components with std 0 are
+    held at their mean. ``rng``: a seeded ``numpy.random.Generator``. Per frame: :meth:`propose`
+    the hypotheses' points, score them on the device, :meth:`update` with the scores.
+    """
+
+    def __init__(self, camera: Camera, a_mean, a_std, config: FaceConfig, rng):
+        self.camera = camera
+        self.config = config
+        self.rng = rng
+        self.a_mean = np.asarray(a_mean, np.float64)
+        a_std = np.asarray(a_std, np.float64)
+        self.a_free = a_std > 1e-9 * max(float(a_std.max(initial=0.0)), 1e-300)
+        self.a_std = np.where(self.a_free, a_std, 1.0)
+        self.D = len(self.a_mean)
+        self.K = 0  # feature points, set by reset
+        self.proposed = None  # (N, 6 + D) the hypotheses being scored
+        self.best_score = 0.0
+        self.states = None  # (N, 6 + D) the hypotheses of the last step
+        self.weights = None  # (N,)
+        self.scores = None  # (N,) N(u_i) of eq. 13
+        self.estimate = None  # (6 + D,) the last state estimate
+        self.velocity = np.zeros(6 + self.D)
+
+    def reset(self, state, K: int) -> None:
+        """Start every hypothesis at ``state`` (6 + D,), at rest; ``K`` feature points are scored."""
+        self.K = int(K)
+        state = np.asarray(state, np.float64)
+        if state.shape != (6 + self.D,) or not np.isfinite(state).all():
+            raise ValueError(f"state: expected {6 + self.D} finite values, got {state.shape}")
+        state = state.copy()
+        state[6:][~self.a_free] = self.a_mean[~self.a_free]
+        n = self.config.particles
+        self.states = np.tile(state, (n, 1))
+        self.weights = np.full(n, 1.0 / n)
+        self.estimate = state
+        self.velocity = np.zeros(6 + self.D)
+
+    def noise(self) -> np.ndarray:
+        """(6 + D,) standard deviations of omega (eq. 12): pose noise adapted to speed, kappa sigma_a for a."""
+        c = self.config
+        base = np.concatenate([np.full(3, c.rotation_noise), np.asarray(c.translation_noise, np.float64)])
+        pose = base + c.speed_gain * np.abs(self.velocity[:6])
+        return np.concatenate([pose, np.where(self.a_free, c.kappa * self.a_std, 0.0)])
+
+    def sample(self) -> np.ndarray:
+        """(N, 6 + D) new hypotheses (eq. 12) from the last ones, resampled by weight."""
+        n = self.config.particles
+        u = (self.rng.random() + np.arange(n)) / n  # systematic resampling
+        idx = np.minimum(np.searchsorted(np.cumsum(self.weights), u), n - 1)
+        drift = self.velocity.copy()
+        drift[6:] = 0.0  # eq. 12: no velocity term for the deformation
+        return self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
+
+    def log_weights(self, scores, states) -> np.ndarray:
+        """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2."""
+        lw = -((self.K - scores) ** 2) / (2.0 * self.config.sigma**2)
+        if self.config.prior:
+            z = (states[:, 6:] - self.a_mean) / self.a_std
+            lw -= 0.5 * np.sum(np.where(self.a_free, z * z, 0.0), axis=1)
+        return lw
+
+    def propose(self, mean, basis) -> np.ndarray:
+        """Sample the frame's hypotheses (eq. 12) and return their K points (N, K, 2) float32 to score
+        (eq. 11 with the shape ``mean`` (K, 3) and ``basis`` (K, 3, D) of the current identity)."""
+        self.proposed = self.sample()
+        return project_hypotheses(self.camera, self.proposed, mean, basis)
+
+    def update(self, scores) -> np.ndarray:
+        """Weigh the proposed hypotheses by their NCC sums ``scores`` (N,) (eq. 13) and return the
+        state estimate (6 + D,): the weighted mean of the hypotheses near the best one."""
+        states = self.proposed
+        scores = np.asarray(scores, np.float64)
+        lw = self.log_weights(scores, states)
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        best = int(np.argmax(lw))
+        near = np.all(np.abs(states - states[best]) <= self.config.near * np.maximum(self.noise(), 1e-12), axis=1)
+        est = np.average(states[near], axis=0, weights=w[near])
+        self.velocity = est - self.estimate
+        self.states, self.weights, self.scores, self.estimate = states, w, scores, est
+        self.best_score = float(scores[best])
+        return est

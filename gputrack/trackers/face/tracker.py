@@ -1,0 +1,329 @@
+"""Paper 003's monocular face tracker: head pose, facial deformation and the person's identity.
+
+:class:`FaceTracker` composes the parts of this package (Fig. 1 of the paper):
+
+- **Start** (:meth:`FaceTracker.start`, sec. 4.1 "initialisation"): the first n frames with the K
+  feature points of each (given, or found from OpenCV's Haar face box in the first frame with the
+  model's mean shape and followed into the next frames by pyramidal Lucas-Kanade); each frame's
+  pose from its points by PnP with the mean shape; then the bundle adjustment of all n frames
+  (``init_iterations`` LM iterations, eq. 6-9) gives the poses, deformations and the identity
+  s(1). The K templates (16 x 16) are the first frame's patches at its points.
+- **Per frame** (:meth:`FaceTracker.track`), as :class:`gputrack.Scheduler` stages:
+  ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
+  every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
+  scores), ``relocate`` (eq. 14, host, K 16 x 16 patches) and ``bundle`` (the incremental bundle
+  adjustment on the key frames, eq. 6-10, ``iterations`` LM iterations through
+  :func:`gputrack.least_squares` on the device; the identity's running mean, eq. 10).
+- **Loss** (beyond the paper): a frame whose best hypothesis has a mean NCC below
+  ``config.lost_score`` (an occluded or vanished face) is returned with confidence 0 and neither
+  re-localises nor adjusts; after ``config.redetect_after`` such frames in a row the face is searched
+  again with the Haar cascade and the filter restarts there (the identity is kept). A face that
+  leaves the image scores 0 and is lost the same way.
+
+The image is uploaded once per frame as float32; the templates stay on the device.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ...device import Device
+from ...models.camera import Camera
+from ...models.pose import project, rodrigues
+from ...ops.ncc import patch_ncc
+from ...scheduler import Scheduler, Stage
+from .bundle import IncrementalBundle
+from .config import FaceConfig
+from .pf import FaceParticleFilter
+from .relocate import relocate, sample_patches
+
+log = logging.getLogger("gputrack")
+
+__all__ = ["FaceEstimate", "FaceTracker", "detect_face"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FaceEstimate:
+    """One frame's result. rotation (3, 3) and translation (3,) mm: model -> camera; rvec (3,) the
+    rotation as a Rodrigues vector; expression (D,) the deformation; identity (S',) s(t);
+    landmarks (K, 2) px: the projection of the estimate (m'_t); features (K, 2) px: the
+    re-localised points (eq. 14; NaN when lost); confidence in [0, 1]: the best hypothesis' mean NCC
+    (0 when lost); lost: the face was not found in this frame."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    rvec: np.ndarray
+    expression: np.ndarray
+    identity: np.ndarray
+    landmarks: np.ndarray
+    features: np.ndarray
+    confidence: float
+    lost: bool
+
+
+_CASCADE = None
+
+
+def detect_face(gray) -> tuple[int, int, int, int] | None:
+    """The largest face box (x, y, w, h) px found by OpenCV's bundled frontal Haar cascade, or None."""
+    import cv2
+
+    global _CASCADE
+    if _CASCADE is None:
+        _CASCADE = cv2.CascadeClassifier(cv2.data.haarcascades + "haarcascade_frontalface_default.xml")
+    boxes = _CASCADE.detectMultiScale(np.asarray(gray, np.uint8), scaleFactor=1.1, minNeighbors=5, minSize=(40, 40))
+    if len(boxes) == 0:
+        return None
+    x, y, w, h = max(boxes, key=lambda b: b[2] * b[3])
+    return int(x), int(y), int(w), int(h)
+
+
+def _gray(image, name: str, shape=None) -> np.ndarray:
+    a = np.asarray(image)
+    if a.dtype.kind not in "uif" or a.ndim != 2:
+        raise ValueError(f"{name}: expected a (H, W) gray image of uint8 or float, got {a.dtype.name} {a.shape}")
+    if shape is not None and a.shape != shape:
+        raise ValueError(f"{name}: expected a frame of the started size {shape}, got {a.shape}")
+    if a.shape[0] < 32 or a.shape[1] < 32:
+        raise ValueError(f"{name}: expected an image of at least 32 x 32 pixels, got {a.shape}")
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise ValueError(f"{name}: expected finite pixel values, got NaN or inf")
+    return a
+
+
+class FaceTracker:
+    """Track one face's pose, deformation and identity (paper 003); see the module docstring.
+
+    model: :class:`gputrack.models.face.FaceModel` (multilinear) or ``PcaFaceModel`` (the generic
+    comparison model, no identity); camera: :class:`gputrack.models.Camera`; config: FaceConfig.
+    """
+
+    def __init__(self, device: Device, model, camera: Camera, config: FaceConfig = FaceConfig()):
+        if not isinstance(device, Device):
+            raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera: expected a gputrack.models.Camera, got {type(camera).__name__}")
+        if not isinstance(config, FaceConfig):
+            raise TypeError(f"config: expected a FaceConfig, got {type(config).__name__}")
+        if not hasattr(model, "expression_basis"):
+            raise TypeError(f"model: expected a FaceModel or PcaFaceModel, got {type(model).__name__}")
+        self.device, self.model, self.camera, self.config = device, model, camera, config
+        self.bundle = IncrementalBundle(device, model, camera, n=config.keyframes, iterations=config.iterations,
+                                        init_iterations=config.init_iterations, pose_range=config.pose_range,
+                                        identity_sigmas=config.identity_sigmas,
+                                        identity_prior=config.identity_prior)  # fmt: skip
+        self.pf = FaceParticleFilter(camera, model.expression_mean, model.expression_std, config,
+                                     np.random.default_rng(config.seed))  # fmt: skip
+        self.identity = np.asarray(model.identity_mean, np.float64).copy()
+        self._basis = model.expression_basis(self.identity)
+        self.shape = None  # (H, W) of the started frames
+        self.lost_frames = 0
+        self.frame = 0
+        self._host = {}  # this frame's host-side values between stages
+        self.scheduler = Scheduler(device, [
+            Stage("sample", self._sample, writes=("points",)),
+            Stage("score", self._score, reads=("image", "points", "templates"), writes=("scores",)),
+            Stage("estimate", self._estimate, host_reads=("scores",)),
+            Stage("relocate", self._relocate),
+            Stage("bundle", self._bundle),
+        ], inputs=("image",), state=("templates",))  # fmt: skip
+
+    # -- start ---------------------------------------------------------------------------------------
+
+    def _pose_from_points(self, points, guess=None):
+        """(rvec, tvec) of the current shape at expression mean seen at ``points`` (K, 2) (PnP)."""
+        import cv2
+
+        mean, basis = self._basis
+        X = mean + basis @ self.model.expression_mean
+        ok = np.isfinite(points).all(axis=1)
+        if ok.sum() < 6:
+            raise ValueError(f"landmarks: expected at least 6 finite points for the start pose, got {int(ok.sum())}")
+        K = np.array([[self.camera.fx, 0, self.camera.cx], [0, self.camera.fy, self.camera.cy], [0, 0, 1]])
+        if guess is None:
+            guess = self._box_pose(points)
+        r0, t0 = (np.asarray(g, np.float64).reshape(3, 1).copy() for g in guess)
+        found, r, t = cv2.solvePnP(X[ok], np.asarray(points, np.float64)[ok], K, None, r0, t0, True,
+                                   cv2.SOLVEPNP_ITERATIVE)  # fmt: skip
+        if not found or not np.isfinite(r).all() or t[2, 0] <= 0:
+            return guess
+        return r.ravel(), t.ravel()
+
+    def _box_pose(self, points):
+        """A frontal pose whose mean shape spans the points' extent (the start guess of PnP)."""
+        mean, basis = self._basis
+        X = mean + basis @ self.model.expression_mean
+        pts = np.asarray(points, np.float64)
+        ok = np.isfinite(pts).all(axis=1)
+        span = np.ptp(pts[ok, 0]) if ok.sum() >= 2 else 100.0
+        z = self.camera.fx * np.ptp(X[:, 0]) / max(span, 1.0)
+        c = pts[ok].mean(axis=0) if ok.any() else np.array([self.camera.cx, self.camera.cy])
+        t = np.array([(c[0] - self.camera.cx) * z / self.camera.fx, (c[1] - self.camera.cy) * z / self.camera.fy, z])
+        return np.zeros(3), t - np.array([0.0, 0.0, X[:, 2].mean()])
+
+    def _points_from_box(self, box):
+        """K points of the mean shape placed in a Haar face box (frontal, eyes at 38 % of its height)."""
+        x, y, w, h = box
+        mean, basis = self._basis
+        X = mean + basis @ self.model.expression_mean
+        span = np.ptp(X[:, 0])
+        z = self.camera.fx * span / (0.72 * w)  # the K points span ~72 % of a Haar box's width
+        t = np.array([(x + w / 2 - self.camera.cx) * z / self.camera.fx,
+                      (y + 0.55 * h - self.camera.cy) * z / self.camera.fy, z])  # fmt: skip
+        return project(self.camera, np.eye(3), t, X)
+
+    def start(self, frames, landmarks=None) -> list[FaceEstimate]:
+        """Initialise on the first n = ``config.keyframes`` frames (n, H, W) gray, with their K feature
+        points (n, K, 2) px (NaN: unknown) or, without them, from a Haar face box in the first frame.
+        Returns the estimates of the n frames. Raises ValueError for fewer or more frames than n, or
+        when no face is found."""
+        n, K = self.config.keyframes, self.model.K
+        frames = [np.asarray(f) for f in frames] if not isinstance(frames, np.ndarray) else list(frames)
+        if len(frames) != n:
+            raise ValueError(f"frames: expected the first n={n} frames (FaceConfig.keyframes), got {len(frames)}")
+        frames = [_gray(f, f"frames[{i}]", None if i == 0 else frames[0].shape) for i, f in enumerate(frames)]
+        if landmarks is None:
+            landmarks = self._landmarks_from_detection(frames)
+        lm = np.asarray(landmarks, np.float64)
+        if lm.shape != (n, K, 2):
+            raise ValueError(f"landmarks: expected shape (n={n}, K={K}, 2), got {lm.shape}")
+        if np.isinf(lm).any():
+            raise ValueError("landmarks: expected finite values or NaN (unknown), got inf")
+        if not np.isfinite(lm[0]).all():
+            raise ValueError("landmarks: expected every point of the first frame (its templates), got NaN")
+        self.shape = frames[0].shape
+        poses = [self._pose_from_points(lm[0])]
+        for i in range(1, n):
+            poses.append(self._pose_from_points(lm[i], poses[-1]))
+        rv, tv = np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
+        A = np.tile(self.model.expression_mean, (n, 1))
+        self.identity = self.bundle.start(lm, rv, tv, A)
+        self._basis = self.model.expression_basis(self.identity)
+        res = self.bundle.last
+        S = self.config.template
+        first = [sample_patches(frames[0].astype(np.float32), lm[0], S)]
+        self._first = first[0]
+        self.scheduler.set("templates", self._first.astype(np.float32))
+        last = n - 1
+        self._features = lm[last].copy()
+        self._features[~np.isfinite(self._features)] = self._predicted(res.rvecs[last], res.tvecs[last],
+                                                                        res.expressions[last])[~np.isfinite(lm[last])]
+        self._previous = sample_patches(frames[last].astype(np.float32), self._features, S)
+        self.pf.reset(np.concatenate([res.rvecs[last], res.tvecs[last], res.expressions[last]]), K)
+        self.lost_frames, self.frame = 0, n
+        out = []
+        for i in range(n):
+            pts = self._predicted(res.rvecs[i], res.tvecs[i], res.expressions[i])
+            out.append(self._estimate_of(res.rvecs[i], res.tvecs[i], res.expressions[i], pts, lm[i], 1.0, False))
+        return out
+
+    def _landmarks_from_detection(self, frames):
+        import cv2
+
+        box = detect_face(frames[0])
+        if box is None:
+            raise ValueError("frames[0]: expected a face (OpenCV's Haar cascade found none); pass landmarks=")
+        p0 = self._points_from_box(box).astype(np.float32)
+        out = [p0.astype(np.float64)]
+        prev, prev_pts = frames[0].astype(np.uint8), p0.reshape(-1, 1, 2)
+        for f in frames[1:]:
+            img = f.astype(np.uint8)
+            nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev, img, prev_pts, None, winSize=(21, 21), maxLevel=3)
+            pts = nxt.reshape(-1, 2).astype(np.float64)
+            pts[st.ravel() == 0] = np.nan
+            out.append(pts)
+            prev, prev_pts = img, nxt
+        return np.array(out)
+
+    # -- per frame -----------------------------------------------------------------------------------
+
+    def _predicted(self, rvec, tvec, a):
+        mean, basis = self._basis
+        return project(self.camera, rodrigues(rvec), tvec, mean + basis @ a)
+
+    def _estimate_of(self, rvec, tvec, a, landmarks, features, confidence, lost) -> FaceEstimate:
+        return FaceEstimate(rotation=rodrigues(rvec), translation=np.array(tvec, np.float64),
+                            rvec=np.array(rvec, np.float64), expression=np.array(a, np.float64),
+                            identity=self.identity.copy(), landmarks=landmarks, features=features,
+                            confidence=float(confidence), lost=bool(lost))  # fmt: skip
+
+    def _sample(self, b):
+        pts = self.pf.propose(*self._basis)
+        b["points"] = self.device.asarray(pts, out=b.get("points"))
+
+    def _score(self, b):
+        b["scores"] = patch_ncc(self.device, b["points"], b["templates"], b["image"])  # eq. 13 N(u), one launch
+
+    def _estimate(self, b):
+        est = self.pf.update(b["scores"])
+        conf = max(0.0, self.pf.best_score / self.model.K)
+        self._host.update(state=est, confidence=conf, lost=conf < self.config.lost_score)
+
+    def _relocate(self, b):
+        h = self._host
+        est = h["state"]
+        h["landmarks"] = self._predicted(est[:3], est[3:6], est[6:])
+        if h["lost"]:
+            h["features"] = np.full_like(h["landmarks"], np.nan)
+            return
+        c = self.config
+        m = relocate(h["gray"], h["landmarks"], self._previous, self._first, rho=c.rho, eps=c.eps,
+                     iterations=c.relocate_iterations)  # eq. 14
+        self._previous = sample_patches(h["gray"], m, c.template)
+        self._features = m
+        h["features"] = m
+
+    def _bundle(self, b):
+        h = self._host
+        if h["lost"] or not self.config.learn_identity or self.model.identity_dims == 0:
+            return  # the generic model has no identity to learn
+        est = h["state"]
+        self.identity = self.bundle.add(h["features"], est[:3], est[3:6], est[6:])  # eq. 6-10
+        self._basis = self.model.expression_basis(self.identity)
+
+    def track(self, gray) -> FaceEstimate:
+        """Track one frame (H, W) gray (the size of the start frames). Returns its :class:`FaceEstimate`."""
+        if self.shape is None:
+            raise RuntimeError("FaceTracker: call start() with the first frames before track()")
+        img = _gray(gray, "gray", self.shape).astype(np.float32)
+        self._host = {"gray": img}
+        self.scheduler.run(image=img)
+        h = self._host
+        self.frame += 1
+        est = h["state"]
+        if h["lost"]:
+            self.lost_frames += 1
+            if self.lost_frames >= self.config.redetect_after:
+                self._redetect(img)
+        else:
+            self.lost_frames = 0
+        return self._estimate_of(est[:3], est[3:6], est[6:], h["landmarks"], h["features"],
+                                 0.0 if h["lost"] else h["confidence"], h["lost"])  # fmt: skip
+
+    def _redetect(self, img) -> None:
+        box = detect_face(np.clip(img, 0, 255))
+        if box is None:
+            return
+        pts = self._points_from_box(box)
+        r, t = self._pose_from_points(pts)
+        self.pf.reset(np.concatenate([r, t, self.model.expression_mean]), self.model.K)
+        self.lost_frames = 0
+        log.info("FaceTracker: face re-detected at frame %d", self.frame)
+
+    def fix_identity(self, identity) -> None:
+        """Use ``identity`` (S',) from now on (with ``config.learn_identity=False`` it stays: e.g. the
+        true identity, for the depth floor of a landmark-only tracker)."""
+        s = np.asarray(identity, np.float64)
+        if s.shape != (self.model.identity_dims,) or not np.isfinite(s).all():
+            raise ValueError(f"identity: expected {self.model.identity_dims} finite values, got shape {s.shape}")
+        self.identity = s.copy()
+        self._basis = self.model.expression_basis(self.identity)
+
+    @property
+    def keyframes(self) -> np.ndarray:
+        """Frame numbers of the bundle adjustment's key frames."""
+        return self.bundle.keyframes
+
