@@ -59,6 +59,14 @@ def cmd_demo(args) -> int:
     from .registry import device
 
     dev = device(args.device)
+    if args.what == "face":
+        from .demos import face
+
+        report = face.run(dev, sequence=args.sequence, frames=args.frames, seed=args.seed, init=args.init,
+                          generic=not args.no_generic, floor=not args.no_floor, save=args.save)  # fmt: skip
+        if args.json:
+            face.write_json(report, args.json)
+        return 0
     if args.what == "pedestrians":
         from .demos import pedestrians
 
@@ -263,6 +271,20 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-ablations", action="store_true", help="skip the runs without the occlusion gain / split-merge")
     p.add_argument("--save", metavar="DIR", help="write pictures (top view of the tracks, depth with segments)")
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON")
+    p.set_defaults(func=cmd_demo)
+
+    p = which.add_parser("face", help="paper 003: head pose, deformation and identity from a simulated camera")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--sequence", default="turns",
+                   help="simulated sequence: 0-4 or turns, depth, expressions, lighting, mixed (default turns)")
+    p.add_argument("--frames", type=int, default=300, help="frames at 30 fps (default 300)")
+    p.add_argument("--init", choices=["landmarks", "haar"], default="landmarks",
+                   help="start from the first 7 frames' feature points (+1 px noise) or from a Haar face box")
+    p.add_argument("--no-generic", action="store_true", help="skip the generic PCA model's run")
+    p.add_argument("--no-floor", action="store_true", help="skip the run with the true identity (the depth floor)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--save", metavar="DIR", help="write pictures (frames with points and axes, errors over time)")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.set_defaults(func=cmd_demo)
 

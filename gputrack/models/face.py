@@ -142,6 +142,18 @@ def default_ict_path() -> str:
     return os.path.join(base, "ict_face")
 
 
+def _read_npz(path: str, what: str) -> dict:
+    """Every array of an .npz file (no pickles), or ValueError naming the file."""
+    try:
+        d = np.load(path, allow_pickle=False)
+        if not hasattr(d, "files"):
+            raise ValueError("a single array, not an archive")
+        with d:
+            return {k: np.array(d[k]) for k in d.files}
+    except (OSError, EOFError, ValueError) as e:
+        raise ValueError(f"{path}: expected {what}, could not read it as an .npz file ({e})") from None
+
+
 def load_ict(path=None) -> IctFace:
     """Read the ICT face data (a folder holding :data:`ICT_FILE`, or the file itself; default
     :func:`default_ict_path`). Raises FileNotFoundError naming the path, or ValueError naming what a
@@ -150,14 +162,10 @@ def load_ict(path=None) -> IctFace:
     file = os.path.join(path, ICT_FILE) if os.path.isdir(path) else path
     if not os.path.isfile(file):
         raise FileNotFoundError(f"ICT face data: expected {ICT_FILE} at {path}, found no such file")
-    try:
-        with np.load(file, allow_pickle=False) as d:
-            missing = [k for k in _ICT_KEYS if k not in d.files]
-            if missing:
-                raise ValueError(f"{file}: expected the arrays {list(_ICT_KEYS)}, missing {missing}")
-            raw = {k: d[k] for k in _ICT_KEYS}
-    except (OSError, EOFError) as e:  # np.load of a file that is not an .npz
-        raise ValueError(f"{file}: expected an .npz file, could not read it ({e})") from None
+    raw = _read_npz(file, "ICT face data")
+    missing = [k for k in _ICT_KEYS if k not in raw]
+    if missing:
+        raise ValueError(f"{file}: expected the arrays {list(_ICT_KEYS)}, missing {missing}")
     lm = raw["neutral_lm68"]
     if lm.shape != (68, 3) or raw["id_modes_lm68"].shape[1:] != (68, 3) or raw["exp_modes_lm68"].shape[1:] != (68, 3):
         raise ValueError(f"{file}: expected 68 landmarks of 3 coordinates, got {lm.shape}")
@@ -383,17 +391,14 @@ def load_face_model(path) -> FaceModel | PcaFaceModel:
         raise FileNotFoundError(f"face model: expected an .npz file at {path}, found none")
     want = {"multilinear": ("mean", "core", "identity_rows", "expression_rows", "landmarks"),
             "pca": ("mean", "basis", "coefficients", "landmarks")}  # fmt: skip
-    try:
-        with np.load(path, allow_pickle=False) as d:
-            kind = str(d["kind"]) if "kind" in d.files else None
-            if kind not in want:
-                raise ValueError(f"{path}: expected a face model .npz with kind 'multilinear' or 'pca', got {kind!r}")
-            missing = [k for k in want[kind] if k not in d.files]
-            if missing:
-                raise ValueError(f"{path}: expected the arrays {list(want[kind])}, missing {missing}")
-            a = {k: np.array(d[k]) for k in want[kind]}
-    except (OSError, EOFError) as e:
-        raise ValueError(f"{path}: expected an .npz face model, could not read it ({e})") from None
+    d = _read_npz(path, "an .npz face model")
+    kind = str(d["kind"]) if "kind" in d else None
+    if kind not in want:
+        raise ValueError(f"{path}: expected a face model .npz with kind 'multilinear' or 'pca', got {kind!r}")
+    missing = [k for k in want[kind] if k not in d]
+    if missing:
+        raise ValueError(f"{path}: expected the arrays {list(want[kind])}, missing {missing}")
+    a = {k: d[k] for k in want[kind]}
     lm = tuple(int(i) for i in a.pop("landmarks"))
     K = a["mean"].shape[0] if a["mean"].ndim == 2 else -1
     if a["mean"].shape != (K, 3) or len(lm) != K:

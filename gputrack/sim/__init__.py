@@ -33,3 +33,8 @@ __all__ = [
 from .pedestrians import DepthSensor, Hall, PedestrianFrame, PedestrianSequence, pedestrian_sequence  # noqa: E402
 
 __all__ += ["DepthSensor", "Hall", "PedestrianFrame", "PedestrianSequence", "pedestrian_sequence"]
+
+# paper 003's monocular face sequences (gputrack.sim.face)
+from .face import FaceFrame, FaceSequence, face_sequence, render_face  # noqa: E402
+
+__all__ += ["FaceFrame", "FaceSequence", "face_sequence", "render_face"]

@@ -72,6 +72,8 @@ POSE_RANGE = (0.15, 30.0)
 #: the LM's initial damping C in the scaled parameters (whose start Jacobian has unit columns, see
 #: BundleProblem.solve): 1e-3 of the diagonal, Nielsen's usual tau
 DAMPING = 1e-3
+#: the box of the start poses in :meth:`IncrementalBundle.start` (rad, mm)
+START_POSE_RANGE = (0.5, 300.0)
 #: default expression box half-width in units of ``model.expression_std`` (eq. 8)
 EXPRESSION_SIGMAS = 2.0
 #: a point nearer than this (mm) along the optical axis is projected as if it were at this depth
@@ -562,9 +564,10 @@ class IncrementalBundle:
         """:func:`keyframe_spread` of the current key frames (0 before :meth:`start`)."""
         return 0.0 if self._keys is None else float(keyframe_spread(self._keys["rvecs"]))
 
-    def _solve(self, keys, identity, max_iter) -> BundleResult:
+    def _solve(self, keys, identity, max_iter, pose_range=None) -> BundleResult:
         problem = BundleProblem(self.terms, self.camera, keys["landmarks"], keys["rvecs"], keys["tvecs"],
-                                keys["expressions"], identity, pose_range=self.pose_range,
+                                keys["expressions"], identity,
+                                pose_range=self.pose_range if pose_range is None else pose_range,
                                 expression_range=self.expression_range, identity_sigmas=self.identity_sigmas,
                                 weights=keys["weights"], identity_prior=self.identity_prior)  # fmt: skip
         res = problem.solve(self.device, max_iter)
@@ -572,10 +575,15 @@ class IncrementalBundle:
         self._keys, self.last = keys, res
         return res
 
-    def start(self, landmarks, rvecs, tvecs, expressions, identity=None, weights=None) -> np.ndarray:
+    def start(self, landmarks, rvecs, tvecs, expressions, identity=None, weights=None,
+              pose_range=START_POSE_RANGE) -> np.ndarray:  # fmt: skip
         """The initial adjustment over the first n frames (sec. 4.1): landmarks (n, K, 2) (NaN: unknown),
         rvecs, tvecs (n, 3), expressions (n, A'), identity (S',) or None (``identity_mean``), weights
-        (n, K) or None. Returns s(1). Restarts the running mean."""
+        (n, K) or None. Returns s(1). Restarts the running mean.
+
+        ``pose_range`` boxes the start poses (default :data:`START_POSE_RANGE`, wider than the
+        tracking box: start poses found with the mean shape are off in depth by as much as the
+        person's size differs from the mean, and the adjustment must be free to move them)."""
         K, A = self.terms.K, self.terms.A
         lm = np.asarray(landmarks)
         if lm.ndim != 3 or lm.shape[1:] != (K, 2) or lm.shape[0] != self.n:
@@ -592,7 +600,7 @@ class IncrementalBundle:
             "frame": list(range(n)),
         }
         s = self.terms.identity_mean if identity is None else _real_array(identity, "identity", (self.terms.S,))
-        res = self._solve(keys, s, self.init_iterations)
+        res = self._solve(keys, s, self.init_iterations, _pose_range(pose_range))
         self._frames, self.count = n, 1
         self.identity = res.identity.copy()  # s(1)
         return self.identity.copy()

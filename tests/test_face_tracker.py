@@ -1,0 +1,225 @@
+"""Paper 003's face tracker: the particle filter's pieces (eq. 11-13), the re-localisation (eq. 14), every
+device against the reference on the start and the first tracked frame, Table 1 on a simulated
+sequence (full protocol on the fast local devices), a lost face, a Haar start and bad input."""
+
+import dataclasses
+import functools
+
+import numpy as np
+import pytest
+from conftest import full_protocol
+
+import gputrack
+from gputrack.models import Camera
+from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
+from gputrack.models.pose import project, rodrigues
+from gputrack.trackers.face import FaceConfig, FaceTracker
+from gputrack.trackers.face.metrics import pose_errors, shape_error, table1
+from gputrack.trackers.face.pf import FaceParticleFilter, project_hypotheses
+from gputrack.trackers.face.relocate import relocate, sample_patches
+
+REF = gputrack.device("numpy")
+
+
+@functools.lru_cache(maxsize=1)
+def _data():
+    from gputrack.sim.face import face_sequence
+
+    ict = load_ict()
+    return ict, FaceModel.from_ict(ict), PcaFaceModel.from_ict(ict), face_sequence("expressions", frames=90, ict=ict)
+
+
+@functools.lru_cache(maxsize=4)
+def _frames(n):
+    seq = _data()[3]
+    return [seq[k] for k in range(n)]
+
+
+@pytest.fixture(scope="module")
+def data():
+    try:
+        return _data()
+    except FileNotFoundError as e:
+        pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository): {e}")
+
+
+def start_points(frames, noise=1.0, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.array([f.landmarks2d + rng.normal(0, noise, f.landmarks2d.shape) for f in frames])
+
+
+# -- the particle filter's pieces (host code) ---------------------------------------------------------------
+
+
+def test_hypotheses_project_like_the_pose_model():
+    rng = np.random.default_rng(0)
+    cam = Camera(700, 690, 319.5, 239.5)
+    states = np.concatenate([rng.normal(0, 0.3, (50, 3)), rng.normal([0, 0, 600], 20, (50, 3)),
+                             rng.normal(0, 1, (50, 4))], axis=1)  # fmt: skip
+    mean, basis = rng.normal(0, 40, (10, 3)), rng.normal(0, 3, (10, 3, 4))
+    want = project(cam, rodrigues(states[:, :3]), states[:, 3:6], mean + np.einsum("kcd,nd->nkc", basis, states[:, 6:]))
+    got = project_hypotheses(cam, states, mean, basis)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-3)
+
+
+def test_particle_filter_weights_and_estimate():
+    cfg = FaceConfig(particles=400, seed=3)
+    a_std = np.array([0.0, 0.5, 0.2])  # the first component is fixed (std 0)
+    pf = FaceParticleFilter(Camera(700, 700, 320, 240), np.array([0.3, 0.0, 0.1]), a_std, cfg,
+                            np.random.default_rng(cfg.seed))  # fmt: skip
+    state = np.array([0.0, 0.1, 0.0, 5.0, -3.0, 600.0, 0.9, 0.2, 0.1])
+    pf.reset(state, K=10)
+    assert pf.estimate[6] == 0.3  # held at its mean
+    pf.propose(np.zeros((10, 3)), np.zeros((10, 3, 3)))
+    assert np.all(pf.proposed[:, 6] == 0.3)
+    np.testing.assert_allclose(pf.proposed.std(axis=0)[:6], pf.noise()[:6], rtol=0.15)
+    np.testing.assert_allclose(pf.noise()[7:], cfg.kappa * a_std[1:])  # eq. 12: kappa sigma_a
+    scores = np.linspace(-2, 9, 400)
+    lw = pf.log_weights(scores, pf.proposed)
+    z = (pf.proposed[:, 7:] - [0.0, 0.1]) / a_std[1:]
+    np.testing.assert_allclose(lw, -((10 - scores) ** 2) / 2 - 0.5 * (z**2).sum(axis=1))  # eq. 13, sigma = 1
+    noise = pf.noise()  # of this frame (the update changes the velocity it adapts to)
+    est = pf.update(scores)
+    best = int(np.argmax(lw))
+    near = np.all(np.abs(pf.states - pf.states[best]) <= cfg.near * noise, axis=1)
+    w = np.exp(lw - lw.max())
+    np.testing.assert_allclose(est, np.average(pf.states[near], axis=0, weights=w[near]))
+    np.testing.assert_allclose(pf.weights.sum(), 1.0)
+    assert pf.best_score == scores[best]
+
+
+def test_relocation_follows_the_appearance_and_the_prediction():
+    rng = np.random.default_rng(1)
+    import cv2
+
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
+    true = rng.uniform(30, 90, (10, 2))
+    tpl = sample_patches(img, true, 16)
+    start = true + rng.normal(0, 1.5, true.shape)
+    m = relocate(img, start, tpl, tpl, eps=0.0, iterations=10)  # appearance only: back onto the true points
+    np.testing.assert_allclose(m, true, atol=0.05)
+    m = relocate(img, start, tpl, tpl, eps=1e9, iterations=10)  # eq. 14's prior term dominates: stays put
+    np.testing.assert_allclose(m, start, atol=1e-3)
+    flat = np.full((120, 160), 7.0, np.float32)  # no gradient: the 2 x 2 systems are eps I, the points stay
+    np.testing.assert_allclose(relocate(flat, start, tpl, tpl), start)
+
+
+# -- every device against the reference --------------------------------------------------------------------
+
+
+def _run(device, data, frames, config, n_track):
+    _, model, _, seq = data
+    trk = FaceTracker(device, model, seq.camera, config)
+    ests = trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+    for f in frames[7 : 7 + n_track]:
+        ests.append(trk.track(f.gray))
+    return trk, ests
+
+
+def test_devices_match_the_reference(device, data):
+    frames = _frames(8)
+    cfg = FaceConfig(particles=256)
+    _, want = _run(REF, data, frames, cfg, 1)
+    _, got = _run(device, data, frames, cfg, 1)
+    for w, g in zip(want, got):  # the start (7 bundle-adjusted frames) and the first tracked frame
+        np.testing.assert_allclose(g.rvec, w.rvec, atol=2e-4)
+        np.testing.assert_allclose(g.translation, w.translation, atol=0.05)
+        np.testing.assert_allclose(g.expression, w.expression, atol=2e-3)
+        np.testing.assert_allclose(g.identity, w.identity, atol=2e-3)
+        np.testing.assert_allclose(g.confidence, w.confidence, atol=1e-4)
+
+
+def test_table1_on_a_simulated_sequence(device, data):
+    """Table 1 on the 'expressions' sequence (a person not among the model's 26, 90 frames): the
+    multilinear tracker within bounds set from measurements (taichi:cpu and opencl), and ahead of the
+    generic PCA model in depth. Full protocol on the fast local devices only."""
+    if not full_protocol(device):
+        pytest.skip(f"{device.spec}: the 90-frame protocol runs on the fast local devices; "
+                    "test_devices_match_the_reference pins this device to the reference")  # fmt: skip
+    ict, model, pca, seq = data
+    frames = _frames(90)
+    from gputrack.demos.face import track_sequence
+
+    class Frames:  # the rendered frames, shared by both runs
+        camera, identity = seq.camera, seq.identity
+
+        def __len__(self):
+            return len(frames)
+
+        def __getitem__(self, k):
+            return frames[k]
+
+    rec = track_sequence(device, Frames(), model, FaceConfig())
+    t = table1(rec["errors"])
+    assert rec["lost"].sum() == 0
+    assert t["x"][0] < 3.0 and t["y"][0] < 3.0 and t["z"][0] < 40.0
+    assert t["roll"][0] < 2.0 and t["pitch"][0] < 6.0 and t["yaw"][0] < 6.0
+    assert np.isfinite(rec["errors"]).all()
+    generic = track_sequence(device, Frames(), pca, FaceConfig())
+    assert t["z"][0] < table1(generic["errors"])["z"][0]
+
+
+def test_a_lost_face_is_reported_and_found_again(data):
+    dev = gputrack.device("taichi:cpu")
+    frames = _frames(12)
+    cfg = FaceConfig(particles=256, redetect_after=2)
+    trk, _ = _run(dev, data, frames, cfg, 1)
+    blank = np.full_like(frames[0].gray, 90)
+    ests = [trk.track(blank) for _ in range(3)]
+    assert all(e.lost and e.confidence == 0.0 for e in ests)
+    assert all(np.isfinite(e.translation).all() and np.isfinite(e.rvec).all() for e in ests)
+    assert np.isnan(ests[0].features).all()
+    back = [trk.track(f.gray) for f in frames[9:12]]
+    assert not back[-1].lost and back[-1].confidence > 0.4
+    err = pose_errors([back[-1].rotation], [back[-1].translation], [frames[11].rotation], [frames[11].translation])
+    assert err[0, :2].max() < 10.0  # x, y within 10 mm after the re-detection
+
+
+def test_start_from_a_haar_face_box(data):
+    dev = gputrack.device("taichi:cpu")
+    _, model, _, seq = data
+    frames = _frames(10)
+    trk = FaceTracker(dev, model, seq.camera, FaceConfig(particles=256))
+    ests = trk.start(np.array([f.gray for f in frames[:7]]))
+    for f in frames[7:10]:
+        ests.append(trk.track(f.gray))
+    err = np.abs(ests[-1].landmarks - frames[9].landmarks2d)
+    assert np.median(err) < 6.0  # px
+    assert shape_error(model, ests[-1].identity, ests[-1].expression, frames[9].shape) < 8.0
+
+
+def test_bad_input(data):
+    dev = REF
+    _, model, _, seq = data
+    frames = _frames(8)
+    gray = np.array([f.gray for f in frames[:7]])
+    trk = FaceTracker(dev, model, seq.camera, FaceConfig(particles=64))
+    with pytest.raises(RuntimeError, match="call start"):
+        trk.track(frames[7].gray)
+    with pytest.raises(ValueError, match=r"frames: expected the first n=7 frames \(FaceConfig.keyframes\), got 6"):
+        trk.start(gray[:6], start_points(frames[:6]))
+    with pytest.raises(ValueError, match=r"landmarks: expected shape \(n=7, K=10, 2\), got \(7, 9, 2\)"):
+        trk.start(gray, start_points(frames[:7])[:, :9])
+    lm = start_points(frames[:7])
+    lm[0, 3] = np.nan
+    with pytest.raises(ValueError, match="every point of the first frame"):
+        trk.start(gray, lm)
+    with pytest.raises(ValueError, match="expected a face"):
+        trk.start(np.zeros_like(gray))
+    trk.start(gray, start_points(frames[:7]))
+    with pytest.raises(ValueError, match=r"gray: expected a frame of the started size \(480, 640\), got \(240, 320\)"):
+        trk.track(frames[7].gray[::2, ::2])
+    with pytest.raises(ValueError, match="gray: expected finite pixel values"):
+        trk.track(np.full((480, 640), np.nan, np.float32))
+    with pytest.raises(ValueError, match="gray: expected a"):
+        trk.track(frames[7].gray.astype(complex))
+    with pytest.raises(TypeError, match="model: expected a FaceModel or PcaFaceModel, got str"):
+        FaceTracker(dev, "model", seq.camera)
+    with pytest.raises(ValueError, match="FaceConfig.particles: expected an int >= 1, got 0"):
+        FaceConfig(particles=0)
+    with pytest.raises(ValueError, match=r"FaceConfig.pose_range: expected \(radians, mm\) > 0"):
+        dataclasses.replace(FaceConfig(), pose_range=(0.1,))
+    # a flat (occluded) frame: reported lost, the pose stays finite
+    est = trk.track(np.full((480, 640), 128, np.uint8))
+    assert est.lost and est.confidence == 0.0 and np.isfinite(est.translation).all()
