@@ -1,5 +1,5 @@
 """The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack bench``, ``gputrack tune``,
-``gputrack demo body|groups|pedestrians``, ``gputrack track groups|pedestrians``."""
+``gputrack demo body|groups|pedestrians|face``, ``gputrack track groups|pedestrians|face``."""
 
 from __future__ import annotations
 
@@ -127,7 +127,50 @@ def cmd_track_pedestrians(args) -> int:
     return 0
 
 
+def cmd_track_face(args) -> int:
+    from .models.face import load_face_model
+    from .registry import device
+    from .trackers.face.recording import read_camera, read_landmarks, track_recording
+
+    name = "gputrack track face"
+    try:
+        cam = read_camera(args.camera) if args.camera else None
+        model = load_face_model(args.model) if args.model else None
+        if model is None:
+            from .models.face import FaceModel
+
+            model = FaceModel.from_ict()
+        lm = read_landmarks(args.landmarks, model.K) if args.landmarks else None
+    except (FileNotFoundError, ValueError, TypeError) as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 1
+    if cam is None:
+        print(f"{name}: no --camera: assuming fx = fy = the image width, the principal point at the centre",
+              file=sys.stderr)  # fmt: skip
+    dev = device(args.device)
+    out = open(args.out, "w") if args.out else sys.stdout
+
+    def progress(k, est):
+        if args.out and k % 30 == 0:
+            print(f"  frame {k:5d}  confidence {est.confidence:.2f}{'  LOST' if est.lost else ''}", file=sys.stderr,
+                  flush=True)  # fmt: skip
+
+    try:
+        n = track_recording(dev, args.video, out, camera=cam, landmarks=lm, model=model, save=args.save,
+                            progress=progress)  # fmt: skip
+    except (FileNotFoundError, ValueError, TypeError) as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if args.out:
+            out.close()
+    print(f"{name}: {n} frames", file=sys.stderr)
+    return 0
+
+
 def cmd_track(args) -> int:
+    if args.what == "face":
+        return cmd_track_face(args)
     if args.what == "pedestrians":
         return cmd_track_pedestrians(args)
     from .models import StereoCamera
@@ -231,7 +274,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print the table as JSON")
     p.set_defaults(func=cmd_devices)
 
-    demo = sub.add_parser("demo", help="simulate a scene and track it (papers 000, 001)")
+    demo = sub.add_parser("demo", help="simulate a scene and track it (papers 000-003)")
     which = demo.add_subparsers(dest="what", required=True)
     p = which.add_parser("body", help="paper 000: upper-body PF + LM on simulated RGB-D")
     p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
@@ -288,7 +331,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.set_defaults(func=cmd_demo)
 
-    track = sub.add_parser("track", help="track a real recording (paper 001 groups, paper 002 pedestrians)")
+    track = sub.add_parser("track", help="track a real recording (paper 001 groups, 002 pedestrians, 003 face)")
     which = track.add_subparsers(dest="what", required=True)
     p = which.add_parser("groups", help="a rectified stereo recording -> groups per frame as JSON lines")
     p.add_argument("--left", required=True, help="left video, image directory or glob pattern")
@@ -309,6 +352,17 @@ def main(argv=None) -> int:
     p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
     p.add_argument("--save", metavar="DIR", help="write pictures every 10 frames")
     p.add_argument("--out", metavar="FILE", help="write the CSV to FILE (default: stdout)")
+    p.set_defaults(func=cmd_track)
+
+    p = which.add_parser("face", help="a video of one face -> pose, deformation and feature points as JSON lines")
+    p.add_argument("--video", required=True, help="a video file, a directory of images or a glob pattern")
+    p.add_argument("--camera", metavar="JSON", help="camera intrinsics {fx, fy, cx, cy} (default: fx = fy = width)")
+    p.add_argument("--landmarks", metavar="JSON", help="the first frame's 10 feature points {\"landmarks\": [[u, v], ...]} "
+                   "(default: a Haar face box)")  # fmt: skip
+    p.add_argument("--model", metavar="NPZ", help="a face model file (default: the multilinear model of the ICT data)")
+    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--out", metavar="FILE", help="write the JSON lines here (default stdout)")
+    p.add_argument("--save", metavar="DIR", help="write every 10th frame with the points and the head's axes")
     p.set_defaults(func=cmd_track)
 
     p = sub.add_parser("bench", help="time the ops on every device, with ratios against NumPy")

@@ -223,3 +223,85 @@ def test_bad_input(data):
     # a flat (occluded) frame: reported lost, the pose stays finite
     est = trk.track(np.full((480, 640), 128, np.uint8))
     assert est.lost and est.confidence == 0.0 and np.isfinite(est.translation).all()
+
+
+# -- the command line ---------------------------------------------------------------------------------------
+
+
+def test_track_command_on_an_image_folder(tmp_path, data):
+    import json
+
+    import cv2
+
+    from gputrack.cli import main
+
+    _, _, _, seq = data
+    frames = _frames(14)
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"{k:03d}.png"), f.gray)
+    cam = seq.camera
+    (tmp_path / "cam.json").write_text(json.dumps({"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}))
+    (tmp_path / "first.json").write_text(json.dumps({"landmarks": start_points(frames[:1])[0].tolist()}))
+    out = tmp_path / "poses.jsonl"
+    assert main(["track", "face", "--video", str(tmp_path / "*.png"), "--camera", str(tmp_path / "cam.json"),
+                 "--landmarks", str(tmp_path / "first.json"), "--device", "taichi:cpu", "--out", str(out),
+                 "--save", str(tmp_path / "pics")]) == 0  # fmt: skip
+    lines = [json.loads(s) for s in out.read_text().splitlines()]
+    assert len(lines) == 15 and lines[-1]["frames"] == 14 and len(lines[-1]["identity"]) == 15
+    last = lines[13]
+    err = pose_errors([np.array(last["rotation"])], [np.array(last["translation"])], [frames[13].rotation],
+                      [frames[13].translation])  # fmt: skip
+    assert err[0, :2].max() < 5.0 and err[0, 3:].max() < 8.0 and not last["lost"]
+    assert (tmp_path / "pics" / "frame_00010.png").exists()
+
+
+def test_track_command_reports_bad_input(tmp_path, capsys):
+    import json
+
+    from gputrack.cli import main
+
+    assert main(["track", "face", "--video", str(tmp_path / "none*.png")]) == 1
+    assert "expected a video, a directory of images or a glob pattern, found nothing" in capsys.readouterr().err
+    (tmp_path / "lm.json").write_text(json.dumps({"landmarks": [[1, 2]] * 9}))
+    assert main(["track", "face", "--video", str(tmp_path), "--landmarks", str(tmp_path / "lm.json")]) == 1
+    assert 'expected "landmarks" of shape (10, 2) or (n, 10, 2), got (9, 2)' in capsys.readouterr().err
+    (tmp_path / "m.npz").write_bytes(b"junk")
+    assert main(["track", "face", "--video", str(tmp_path), "--model", str(tmp_path / "m.npz")]) == 1
+    assert "expected an .npz face model, could not read it" in capsys.readouterr().err
+
+
+def test_demo_command(tmp_path, capsys, data):
+    import json
+
+    from gputrack.cli import main
+
+    assert main(["demo", "face", "--device", "taichi:cpu", "--frames", "12", "--sequence", "depth",
+                 "--save", str(tmp_path), "--json", str(tmp_path / "r.json")]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert "Table 1: errors against the truth (sequence depth" in text and "true identity (floor)" in text
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert set(rep["table1"]) == {"multilinear", "generic PCA", "true identity (floor)"}
+    assert all(np.isfinite(v[0]) for t in rep["table1"].values() for v in t.values())
+    assert (tmp_path / "errors.png").exists() and (tmp_path / "frame_0011.png").exists()
+
+
+def test_benchmark_cases_run_and_match_the_reference(data):
+    """perf/bench_face.py's cases at a small size on taichi:cpu: the frame tracks, the NCC scores equal
+    the reference's, the bundle step and its scipy peer reach about the same cost."""
+    import argparse
+
+    from gputrack.benchmarks import face as bench
+    from tolerances import assert_matches
+
+    dev = gputrack.device("taichi:cpu")
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args(["--frames", "10", "--particles", "128"])
+    frame, score, bundle = bench.cases(dev, args)
+    est = frame.run()
+    assert np.isfinite(est.translation).all() and not est.lost
+    assert_matches(dev, score.run(), score.reference(), scale=10.0 * 10)
+    s = bundle.run()
+    assert s.shape == (15,) and np.isfinite(s).all()
+    peer = bundle.peers["scipy least_squares (trf, 5 iterations)"]()
+    assert np.isfinite(peer.cost)

@@ -179,7 +179,8 @@ class FaceTracker:
 
     def start(self, frames, landmarks=None) -> list[FaceEstimate]:
         """Initialise on the first n = ``config.keyframes`` frames (n, H, W) gray, with their K feature
-        points (n, K, 2) px (NaN: unknown) or, without them, from a Haar face box in the first frame.
+        points (n, K, 2) px (NaN: unknown), or the first frame's only (K, 2) (followed into the next
+        frames by pyramidal Lucas-Kanade), or, without them, from a Haar face box in the first frame.
         Returns the estimates of the n frames. Raises ValueError for fewer or more frames than n, or
         when no face is found."""
         n, K = self.config.keyframes, self.model.K
@@ -188,7 +189,12 @@ class FaceTracker:
             raise ValueError(f"frames: expected the first n={n} frames (FaceConfig.keyframes), got {len(frames)}")
         frames = [_gray(f, f"frames[{i}]", None if i == 0 else frames[0].shape) for i, f in enumerate(frames)]
         if landmarks is None:
-            landmarks = self._landmarks_from_detection(frames)
+            landmarks = self._follow(frames, self._detected_points(frames[0]))
+        elif np.ndim(landmarks) == 2:
+            first = np.asarray(landmarks, np.float64)
+            if first.shape != (K, 2) or not np.isfinite(first).all():
+                raise ValueError(f"landmarks: expected the first frame's K={K} finite points (K, 2), got {first.shape}")
+            landmarks = self._follow(frames, first)
         lm = np.asarray(landmarks, np.float64)
         if lm.shape != (n, K, 2):
             raise ValueError(f"landmarks: expected shape (n={n}, K={K}, 2), got {lm.shape}")
@@ -222,15 +228,19 @@ class FaceTracker:
             out.append(self._estimate_of(res.rvecs[i], res.tvecs[i], res.expressions[i], pts, lm[i], 1.0, False))
         return out
 
-    def _landmarks_from_detection(self, frames):
-        import cv2
-
-        box = detect_face(frames[0])
+    def _detected_points(self, gray):
+        box = detect_face(gray)
         if box is None:
             raise ValueError("frames[0]: expected a face (OpenCV's Haar cascade found none); pass landmarks=")
-        p0 = self._points_from_box(box).astype(np.float32)
-        out = [p0.astype(np.float64)]
-        prev, prev_pts = frames[0].astype(np.uint8), p0.reshape(-1, 1, 2)
+        return self._points_from_box(box)
+
+    @staticmethod
+    def _follow(frames, p0):
+        """(n, K, 2): the points ``p0`` of the first frame followed by pyramidal Lucas-Kanade (NaN: lost)."""
+        import cv2
+
+        out = [np.asarray(p0, np.float64)]
+        prev, prev_pts = frames[0].astype(np.uint8), np.asarray(p0, np.float32).reshape(-1, 1, 2)
         for f in frames[1:]:
             img = f.astype(np.uint8)
             nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev, img, prev_pts, None, winSize=(21, 21), maxLevel=3)
