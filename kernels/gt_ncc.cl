@@ -2,6 +2,19 @@
 // Conventions: gputrack/ops/ncc.py.
 #define GT_FLAT 1e-6f
 
+// The NCC of the shifted sums (see gt_ncc_one): 0 for a flat patch or template.
+inline float gt_ncc_finish(const float n, const float p0, const float t0, const float sp, const float st,
+                           const float spp, const float stt, const float spt)
+{
+    const float vp = spp - sp * sp / n, vt = stt - st * st / n, cv = spt - sp * st / n;  // centred sums
+    const float mp = p0 + sp / n, mt = t0 + st / n;
+    // a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
+    const float fp = GT_FLAT * (fabs(mp) + 1.0f), ft = GT_FLAT * (fabs(mt) + 1.0f);
+    if (!(vp > n * fp * fp && vt > n * ft * ft))
+        return 0.0f;
+    return clamp(cv / sqrt(vp * vt), -1.0f, 1.0f);
+}
+
 inline float gt_ncc_one(const float u, const float v, __global const float *t, const int s,
                         __global const float *img, const int h, const int w)
 {
@@ -16,7 +29,41 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
     float p0 = 0.0f;
     const float t0 = t[0];
     float sp = 0.0f, st = 0.0f, spp = 0.0f, stt = 0.0f, spt = 0.0f;
-    for (int i = 0; i < s; ++i) {
+    if (s < w && s < h) {
+        // inside the image every patch pixel has the same bilinear weights: one base pixel (the
+        // last column and row start one pixel in with weight 1 where the patch touches the border,
+        // as x0 = min(floor(x), w - 2) does) and two new loads per pixel along a row
+        const int xb = min((int)u0, w - 1 - s), yb = min((int)v0, h - 1 - s);
+        const float a = u0 - (float)xb, bw = v0 - (float)yb;
+        for (int i = 0; i < s; ++i) {
+            __global const float *top = img + (size_t)(yb + i) * (size_t)w + xb;
+            __global const float *bot = top + w;
+            float lt = top[0], lb = bot[0];
+            float rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
+            for (int jj = 0; jj < s; ++jj) {
+                const float nt = top[jj + 1], nb = bot[jj + 1];
+                const float tp = lt + a * (nt - lt), bt = lb + a * (nb - lb);
+                const float P0 = tp + bw * (bt - tp);  // patch pixel (i, jj), bilinear
+                lt = nt;
+                lb = nb;
+                if (i == 0 && jj == 0)
+                    p0 = P0;
+                const float P = P0 - p0, T = t[i * s + jj] - t0;
+                rp += P;
+                rt += T;
+                rpp += P * P;
+                rtt += T * T;
+                rpt += P * T;
+            }
+            sp += rp;
+            st += rt;
+            spp += rpp;
+            stt += rtt;
+            spt += rpt;
+        }
+        return gt_ncc_finish(n, p0, t0, sp, st, spp, stt, spt);
+    }
+    for (int i = 0; i < s; ++i) {  // a patch as large as the image: each pixel's own bilinear weights
         const float vv = v + ((float)i - ctr);
         const int y0 = min((int)vv, h - 2);
         const float bw = vv - (float)y0;
@@ -44,13 +91,7 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
         stt += rtt;
         spt += rpt;
     }
-    const float vp = spp - sp * sp / n, vt = stt - st * st / n, cv = spt - sp * st / n;  // centred sums
-    const float mp = p0 + sp / n, mt = t0 + st / n;
-    // a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
-    const float fp = GT_FLAT * (fabs(mp) + 1.0f), ft = GT_FLAT * (fabs(mt) + 1.0f);
-    if (!(vp > n * fp * fp && vt > n * ft * ft))
-        return 0.0f;
-    return clamp(cv / sqrt(vp * vt), -1.0f, 1.0f);
+    return gt_ncc_finish(n, p0, t0, sp, st, spp, stt, spt);
 }
 
 // One work-item per (hypothesis, point): ncc (B, K).

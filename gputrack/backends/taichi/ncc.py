@@ -24,6 +24,23 @@ def _sample(img: ti.template(), uu, vv, h, w):
 
 
 @ti.func
+def _finish(n, p0, t0, sp, st, spp, stt, spt):
+    """The NCC of the shifted sums (see _ncc_one): 0 for a flat patch or template."""
+    out = ti.f32(0.0)
+    vp = spp - sp * sp / n  # centred sums
+    vt = stt - st * st / n
+    cv = spt - sp * st / n
+    mp = p0 + sp / n
+    mt = t0 + st / n
+    # a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
+    fp = FLAT * (ti.abs(mp) + 1.0)
+    ft = FLAT * (ti.abs(mt) + 1.0)
+    if vp > n * fp * fp and vt > n * ft * ft:
+        out = ti.min(ti.max(cv / ti.sqrt(vp * vt), -1.0), 1.0)
+    return out
+
+
+@ti.func
 def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
     s = tpl.shape[1]
     h = img.shape[0]
@@ -35,46 +52,78 @@ def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
     # the whole patch must lie inside the image (NaN fails the tests)
     if u - ctr >= 0.0 and u + ctr <= ti.cast(w - 1, ti.f32) and v - ctr >= 0.0 and v + ctr <= ti.cast(h - 1, ti.f32):
         n = ti.cast(s * s, ti.f32)
-        # one pass; sums of values shifted by the first patch and template values (so the
-        # centred sums below do not cancel), accumulated per row then over the rows
-        p0 = _sample(img, u - ctr, v - ctr, h, w)
+        # one pass; sums of values shifted by the first patch and template values (so the centred
+        # sums do not cancel), accumulated per row then over the rows
         t0 = tpl[k, 0, 0]
+        p0 = ti.f32(0.0)
         sp = ti.f32(0.0)
         st = ti.f32(0.0)
         spp = ti.f32(0.0)
         stt = ti.f32(0.0)
         spt = ti.f32(0.0)
-        for i in range(s):
-            vv = v + (ti.cast(i, ti.f32) - ctr)
-            rp = ti.f32(0.0)
-            rt = ti.f32(0.0)
-            rpp = ti.f32(0.0)
-            rtt = ti.f32(0.0)
-            rpt = ti.f32(0.0)
-            for jj in range(s):
-                uu = u + (ti.cast(jj, ti.f32) - ctr)
-                p = _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj), bilinear
-                t = tpl[k, i, jj] - t0
-                rp += p
-                rt += t
-                rpp += p * p
-                rtt += t * t
-                rpt += p * t
-            sp += rp
-            st += rt
-            spp += rpp
-            stt += rtt
-            spt += rpt
-        vp = spp - sp * sp / n  # centred sums
-        vt = stt - st * st / n
-        cv = spt - sp * st / n
-        mp = p0 + sp / n
-        mt = t0 + st / n
-        # a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
-        fp = FLAT * (ti.abs(mp) + 1.0)
-        ft = FLAT * (ti.abs(mt) + 1.0)
-        if vp > n * fp * fp and vt > n * ft * ft:
-            out = ti.min(ti.max(cv / ti.sqrt(vp * vt), -1.0), 1.0)
+        if s < w and s < h:
+            # inside the image every patch pixel has the same bilinear weights: one base pixel (the
+            # last column and row start one pixel in with weight 1 where the patch touches the
+            # border, as x0 = min(floor(x), w - 2) does) and two new loads per pixel along a row
+            u0 = u - ctr
+            v0 = v - ctr
+            xb = ti.min(ti.cast(u0, ti.i32), w - 1 - s)
+            yb = ti.min(ti.cast(v0, ti.i32), h - 1 - s)
+            a = u0 - ti.cast(xb, ti.f32)
+            bw = v0 - ti.cast(yb, ti.f32)
+            p0 = _sample(img, u0, v0, h, w)
+            for i in range(s):
+                y = yb + i
+                lt = img[y, xb]
+                lb = img[y + 1, xb]
+                rp = ti.f32(0.0)
+                rt = ti.f32(0.0)
+                rpp = ti.f32(0.0)
+                rtt = ti.f32(0.0)
+                rpt = ti.f32(0.0)
+                for jj in range(s):
+                    nt = img[y, xb + jj + 1]
+                    nb = img[y + 1, xb + jj + 1]
+                    tp = lt + a * (nt - lt)
+                    bt = lb + a * (nb - lb)
+                    p = tp + bw * (bt - tp) - p0  # patch pixel (i, jj), bilinear
+                    lt = nt
+                    lb = nb
+                    t = tpl[k, i, jj] - t0
+                    rp += p
+                    rt += t
+                    rpp += p * p
+                    rtt += t * t
+                    rpt += p * t
+                sp += rp
+                st += rt
+                spp += rpp
+                stt += rtt
+                spt += rpt
+        else:  # a patch as large as the image: each pixel's own bilinear weights
+            p0 = _sample(img, u - ctr, v - ctr, h, w)
+            for i in range(s):
+                vv = v + (ti.cast(i, ti.f32) - ctr)
+                rp = ti.f32(0.0)
+                rt = ti.f32(0.0)
+                rpp = ti.f32(0.0)
+                rtt = ti.f32(0.0)
+                rpt = ti.f32(0.0)
+                for jj in range(s):
+                    uu = u + (ti.cast(jj, ti.f32) - ctr)
+                    p = _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj), bilinear
+                    t = tpl[k, i, jj] - t0
+                    rp += p
+                    rt += t
+                    rpp += p * p
+                    rtt += t * t
+                    rpt += p * t
+                sp += rp
+                st += rt
+                spp += rpp
+                stt += rtt
+                spt += rpt
+        out = _finish(n, p0, t0, sp, st, spp, stt, spt)
     return out
 
 
