@@ -403,7 +403,7 @@ class BundleProblem:
         fns = _Callables(self, device, d)
         res = least_squares(fns.residuals, (self.x0 / d)[None], device=device, jacobian=fns.jacobian,
                             lower=self.lower / d, upper=self.upper / d, max_iter=int(max_iter),
-                            damping=DAMPING)  # fmt: skip
+                            damping=DAMPING, early_stop=False)  # fmt: skip
         x = np.clip(res.x[0].astype(np.float64) * d, self.lower, self.upper)
         cost = self.cost(x)
         rv, tv, ex, s = self.unpack(x)
@@ -420,12 +420,12 @@ def _outputs(device, M: int, P: int, dtype: str):
 
 class _Callables:
     """The residual and Jacobian callables handed to least_squares. Both are evaluated at the same point
-    each iteration: the residual call computes the Jacobian too and keeps it for the Jacobian call (which
-    checks the point). On a device the results are written into the reused buffers of :func:`_outputs`."""
+    each iteration: the residual call computes the Jacobian too and keeps it for the Jacobian call that
+    least_squares makes next at the same points (its protocol). On a device the results are written into the reused buffers of :func:`_outputs`."""
 
     def __init__(self, problem: BundleProblem, device, scale):
         self.problem, self.device, self.scale = problem, device, scale
-        self._x = self._J = None
+        self._J, self._dtype = None, np.dtype(np.float64)
 
     def _out(self, value, dtype, which):
         if self.device.backend == "numpy":
@@ -437,16 +437,17 @@ class _Callables:
         Xn = to_numpy(X)
         x = Xn.astype(np.float64) * self.scale
         r, self._J = self.problem.evaluate(x, jacobian=x.shape[0] == 1)
-        self._x = x
+        self._dtype = Xn.dtype
         return self._out(r, Xn.dtype, 0)
 
     def jacobian(self, X):
-        Xn = to_numpy(X)
-        x = Xn.astype(np.float64) * self.scale
-        J = self._J if self._x is not None and np.array_equal(self._x, x) else self.problem.jacobian(x)
-        J = J * self.scale
-        self._x = self._J = None
-        return self._out(J, Xn.dtype, 1)
+        # least_squares calls this at the points of the residual call just before it (its protocol), so
+        # the Jacobian computed there is used without downloading X again
+        if self._J is None:
+            self.residuals(X)
+        J = self._J * self.scale
+        self._J = None
+        return self._out(J, self._dtype, 1)
 
 
 @dataclasses.dataclass(frozen=True)
