@@ -53,7 +53,7 @@ class FaceConfig:
     rotation_noise: float = 0.015
     translation_noise: tuple = (2.0, 2.0, 8.0)
     speed_gain: float = 0.5
-    near: float = 2.0
+    near: float = 4.0
     prior: bool = True
     template: int = 16
     rho: float = 4.0
