@@ -29,7 +29,9 @@ class FaceConfig:
     (rad) and ``translation_noise`` (mm, x y z): the pose noise at rest, plus ``speed_gain`` times the
     estimate's speed per component (adaptive pose noise, as Oka et al.); ``near``: the state is the
     weighted mean of the hypotheses within this many noise standard deviations of the best one in
-    every component; ``prior``: eq. 13's deformation prior term.
+    every component; ``prior``: eq. 13's deformation prior term; ``max_turn`` (deg, beyond the paper):
+    hypotheses whose face turns further than this from the line of sight get weight 0 (their
+    feature points would be hidden; without it a filter can drift to a face seen edge-on).
 
     Templates and re-localisation (sec. 4.2, eq. 14): ``template`` = 16 px patches; ``rho`` = 4,
     ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps.
@@ -52,9 +54,10 @@ class FaceConfig:
     kappa: float = 0.2
     rotation_noise: float = 0.015
     translation_noise: tuple = (2.0, 2.0, 8.0)
-    speed_gain: float = 0.5
+    speed_gain: float = 0.25
     near: float = 4.0
     prior: bool = True
+    max_turn: float = 75.0
     template: int = 16
     rho: float = 4.0
     eps: float = 4000.0
@@ -76,6 +79,8 @@ class FaceConfig:
             _count(o, name, getattr(self, name), 2 if name == "template" else 1)
         for name in ("relocate_iterations", "init_iterations", "iterations", "redetect_after"):
             _count(o, name, getattr(self, name), 0)
+        if not np.isfinite(self.max_turn) or not 0 < self.max_turn <= 180:
+            raise ValueError(f"{o}.max_turn: expected degrees in (0, 180], got {self.max_turn!r}")
         for name in ("sigma", "near", "identity_sigmas"):
             _positive(o, name, getattr(self, name))
         for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior"):

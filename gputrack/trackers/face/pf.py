@@ -103,8 +103,13 @@ class FaceParticleFilter:
         return self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
 
     def log_weights(self, scores, states) -> np.ndarray:
-        """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2."""
+        """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2; -inf for a
+        hypothesis whose face is turned more than ``config.max_turn`` degrees from the camera (its
+        feature points would be hidden: no NCC can speak for it)."""
         lw = -((self.K - scores) ** 2) / (2.0 * self.config.sigma**2)
+        into = rodrigues(states[:, :3])[:, :, 2]  # the model's z axis (into the head) in the camera frame
+        ray = states[:, 3:6] / np.maximum(np.linalg.norm(states[:, 3:6], axis=1, keepdims=True), 1e-9)
+        lw[np.einsum("nc,nc->n", into, ray) < np.cos(np.radians(self.config.max_turn))] = -np.inf
         if self.config.prior:
             z = (states[:, 6:] - self.a_mean) / self.a_std
             lw -= 0.5 * np.sum(np.where(self.a_free, z * z, 0.0), axis=1)
@@ -122,6 +127,8 @@ class FaceParticleFilter:
         states = self.proposed
         scores = np.asarray(scores, np.float64)
         lw = self.log_weights(scores, states)
+        if not np.isfinite(lw).any():  # every hypothesis turned away: keep them all, equally weighted
+            lw = np.zeros_like(lw)
         w = np.exp(lw - lw.max())
         w /= w.sum()
         best = int(np.argmax(lw))
