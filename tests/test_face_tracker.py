@@ -86,6 +86,12 @@ def test_particle_filter_weights_and_estimate():
     np.testing.assert_allclose(est, np.average(pf.states[near], axis=0, weights=w[near]))
     np.testing.assert_allclose(pf.weights.sum(), 1.0)
     assert pf.best_score == scores[best]
+    # beyond eq. 13: a face turned away from the camera, or a head outside the depth range, weighs 0
+    odd = np.tile(state, (3, 1))
+    odd[0, :3] = [0.0, np.radians(80.0), 0.0]  # turned 80 deg (> max_turn 75)
+    odd[1, 5], odd[2, 5] = 100.0, 5000.0  # nearer / farther than depth_range
+    assert np.all(pf.log_weights(np.full(3, 10.0), odd) == -np.inf)
+    assert np.isfinite(pf.log_weights(np.full(1, 10.0), state[None])).all()
 
 
 def test_relocation_follows_the_appearance_and_the_prediction():

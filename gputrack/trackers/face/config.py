@@ -31,7 +31,9 @@ class FaceConfig:
     weighted mean of the hypotheses within this many noise standard deviations of the best one in
     every component; ``prior``: eq. 13's deformation prior term; ``max_turn`` (deg, beyond the paper):
     hypotheses whose face turns further than this from the line of sight get weight 0 (their
-    feature points would be hidden; without it a filter can drift to a face seen edge-on).
+    feature points would be hidden; without it a filter can drift to a face seen edge-on);
+    ``depth_range`` (mm, beyond the paper): hypotheses of the model origin nearer or farther than this
+    get weight 0 (a filter that loses the face must not run away in depth).
 
     Templates and re-localisation (sec. 4.2, eq. 14): ``template`` = 16 px patches; ``rho`` = 4,
     ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps.
@@ -58,6 +60,7 @@ class FaceConfig:
     near: float = 4.0
     prior: bool = True
     max_turn: float = 75.0
+    depth_range: tuple = (150.0, 3000.0)
     template: int = 16
     rho: float = 4.0
     eps: float = 4000.0
@@ -88,6 +91,9 @@ class FaceConfig:
         tn = np.asarray(self.translation_noise, dtype=np.float64)
         if tn.shape != (3,) or not np.isfinite(tn).all() or (tn < 0).any():
             raise ValueError(f"{o}.translation_noise: expected 3 numbers >= 0, got {self.translation_noise!r}")
+        dr = np.asarray(self.depth_range, dtype=np.float64)
+        if dr.shape != (2,) or not np.isfinite(dr).all() or not 0 < dr[0] < dr[1]:
+            raise ValueError(f"{o}.depth_range: expected (near, far) mm with 0 < near < far, got {self.depth_range!r}")
         pr = np.asarray(self.pose_range, dtype=np.float64)
         if pr.shape != (2,) or not np.isfinite(pr).all() or (pr <= 0).any():
             raise ValueError(f"{o}.pose_range: expected (radians, mm) > 0, got {self.pose_range!r}")

@@ -105,11 +105,14 @@ class FaceParticleFilter:
     def log_weights(self, scores, states) -> np.ndarray:
         """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2; -inf for a
         hypothesis whose face is turned more than ``config.max_turn`` degrees from the camera (its
-        feature points would be hidden: no NCC can speak for it)."""
+        feature points would be hidden: no NCC can speak for it) or whose depth is outside
+        ``config.depth_range`` (a filter that loses the face must not run away in depth)."""
         lw = -((self.K - scores) ** 2) / (2.0 * self.config.sigma**2)
         into = rodrigues(states[:, :3])[:, :, 2]  # the model's z axis (into the head) in the camera frame
         ray = states[:, 3:6] / np.maximum(np.linalg.norm(states[:, 3:6], axis=1, keepdims=True), 1e-9)
         lw[np.einsum("nc,nc->n", into, ray) < np.cos(np.radians(self.config.max_turn))] = -np.inf
+        lo, hi = self.config.depth_range
+        lw[(states[:, 5] < lo) | (states[:, 5] > hi)] = -np.inf  # a head nearer or farther than a camera sees one
         if self.config.prior:
             z = (states[:, 6:] - self.a_mean) / self.a_std
             lw -= 0.5 * np.sum(np.where(self.a_free, z * z, 0.0), axis=1)
