@@ -198,15 +198,7 @@ def _fp(device):
     return np.float64 if device.fp64 else np.float32
 
 
-def _known_failure(request, device):
-    """taichi:vulkan's LM kernels return wrong steps for P above ~68 (lm_step from P = 70, lm_solve already
-    at P = 64; the bundle of 7 frames has P = 92): a backend defect, expected to fail until it is fixed."""
-    if device.spec == "taichi:vulkan":
-        request.applymarker(pytest.mark.xfail(strict=True, reason="taichi:vulkan LM wrong for P > ~68 (P = 92 here)"))
-
-
-def test_devices_match_reference_and_keep_the_box(request, device, model, reference_runs):
-    _known_failure(request, device)
+def test_devices_match_reference_and_keep_the_box(device, model, reference_runs):
     sc, kw, ref = reference_runs
     res = adjust(device, model, sc, **kw)
     st = sc["start"]
@@ -232,8 +224,7 @@ def test_devices_match_reference_and_keep_the_box(request, device, model, refere
     np.testing.assert_array_equal(res.tvecs[0], st["tvecs"][0])
 
 
-def test_incremental_on_device_matches_reference(request, device, model, ict):
-    _known_failure(request, device)
+def test_incremental_on_device_matches_reference(device, model, ict):
     sc = face_scene(model, ict, seed=3, n=8)
     st = sc["start"]
     out = []

@@ -1,6 +1,7 @@
 """Taichi batched Levenberg-Marquardt: the same steps as backends/reference/lm.py.
 
-One launch per op call and one per solver iteration, through ``launch.launch`` (the compiled
+One launch per op call and one per solver iteration on taichi:cpu (two per iteration on the
+parallel archs, a few more for a large P on lavapipe), through ``launch.launch`` (the compiled
 kernel launched directly: ~13 us with six ndarray arguments on taichi:cpu instead of ~38 us
 through ``kernel(...)``). The solver packs its state into few arrays (gputrack.ops.lm.Layout:
 S small float state, I int32, W workspace, Out result).
@@ -8,8 +9,10 @@ S small float state, I int32, W workspace, Out result).
 taichi:cpu runs one serial loop over the problems (``_per_problem``): every phase of problem b
 in order (Jacobian rows, acceptance, J^T J and J^T r, damped Cholesky step, next points), so that
 the problem's data stays in cache between the phases (why not parallel: see ``_per_problem``).
-The other archs run the O(B P M) Jacobian rows and the O(B P^2 M) normal equations as parallel
-loops over (problem, row) with serial per-problem phases between.
+The parallel archs (Vulkan, CUDA) run every phase as a parallel loop over small items (a row of
+J^T, a 2 x 4 block of J^T J, a problem's acceptance, damped factorisation or next points) whose
+loop passes per invocation are bounded: lavapipe stops all loops of a shader invocation after
+65535 passes in total and goes on with wrong numbers (section "the parallel archs" below).
 
 ``lm_solve`` and ``normal_equations`` on taichi:cpu with P <= STATIC_P_MAX read J (B, M, P) as
 stored: P is a compile-time value and each row of J adds its outer product with itself to J^T J
@@ -36,10 +39,10 @@ serial task, ~15-20 us) replaces uploading ~340 KB and downloading ~330 KB per s
 P = 14, M = 256 in float64; on taichi:cpu the start points go up and the result comes down
 through one direct copy launch each (~15 us; ``from_numpy`` / ``to_numpy`` took ~0.1 ms).
 
-On taichi:vulkan (lavapipe, a CPU) the kernels take ~10 ms per iteration: its invocations run the
-long per-row loops in SIMD lanes with gathers; one item per entry was slower still (~23 ms), so
-no separate variant is kept. A CUDA variant (shared-memory reductions) is not written: no GPU
-was available to measure one.
+On taichi:vulkan (lavapipe, a CPU; B = 10, M = 256, P = 20, float64, 2 shared cores, 2026-11-26,
+bench medians): a solver iteration ~4 ms, ``lm_solve`` ~7 ms, most of it the dispatch of each
+task (``_grid``). A CUDA variant (shared-memory reductions) is not written: no GPU was available
+to measure one; CUDA runs the parallel archs' kernels.
 
 Finiteness is tested on the bit pattern (Taichi compiles with fast-math, where x != x may be
 folded away).
@@ -51,7 +54,7 @@ from ...abi import LMLayout as LAY
 from ...abi import LMReason, LMStatus
 from .arrays import copy
 from .launch import launch
-from .runtime import current_arch, scratch, ti
+from .runtime import SPIRV_GRID_ITEMS, current_arch, loop_limit, scratch, ti
 
 nd = ti.types.ndarray()
 
@@ -355,7 +358,7 @@ def _chol_solve(W: ti.template(), a, delta: ti.template(), b, P, C, dt: ti.templ
 
 @ti.kernel
 def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template()):
-    """W: (B*P*P,) work for the factors."""
+    """W: (B*P*P,) work for the factors. taichi:cpu; the parallel archs run ``_lm_step_tasks``."""
     B, P = Jtr.shape[0], Jtr.shape[1]
     for b in range(B):
         for i in range(P):
@@ -367,17 +370,13 @@ def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.tem
 
 @ti.kernel
 def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template(), SP: ti.template()):
-    """W: (B * _ops_block(P, M),) work. One problem after the other on taichi:cpu (``_per_problem``;
-    the problem's data stays in cache between the products and the factorisation). SP: P as a
-    compile-time value for ``_gram_static``, else 0."""
+    """W: (B * _ops_block(P, M),) work. taichi:cpu: one problem after the other (``_per_problem``;
+    the problem's data stays in cache between the products and the factorisation); the parallel
+    archs run ``_lm_solve_tasks``. SP: P as a compile-time value for ``_gram_static``, else 0."""
     B = J.shape[0]
-    if ti.static(_per_problem()):
-        ti.loop_config(serialize=True)
-        for b in range(B):
-            _solve_one(J, r, damping, delta, ok, W, b, dt, SP)
-    else:
-        for b in range(B):
-            _solve_one(J, r, damping, delta, ok, W, b, dt, SP)
+    ti.loop_config(serialize=True)
+    for b in range(B):
+        _solve_one(J, r, damping, delta, ok, W, b, dt, SP)
 
 
 @ti.func
@@ -421,18 +420,28 @@ def normal_equations(device, J, r, out):
     B, M, P = J.shape
     JtJ, Jtr = out
     W = _work(device, (B * (P * P + P * M + P),), J.dtype)
-    launch(_normal_equations, (J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W),
-           (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)  # fmt: skip
+    args = (J.buffer, r.buffer, JtJ.buffer, Jtr.buffer, W)
+    if _per_problem():
+        launch(_normal_equations, args, (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)
+    else:
+        _tasks_plan(device, B, P, M, "normal")  # raises where the device cannot run it
+        launch(_normal_equations_tasks, args, (_ti_dtype(J.dtype), _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))))
     return JtJ, Jtr
 
 
 def lm_step(device, JtJ, Jtr, damping, out):
     B, P = Jtr.shape
     delta, ok = out
-    W = _work(device, (B * P * P,), Jtr.dtype)
-    launch(
-        _lm_step, (JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W), (_ti_dtype(Jtr.dtype),)
-    )
+    if _per_problem():
+        W = _work(device, (B * P * P,), Jtr.dtype)
+        args = (JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W)
+        launch(_lm_step, args, (_ti_dtype(Jtr.dtype),))
+    else:
+        ncol, nt = _tasks_plan(device, B, P, 0, "ops")
+        W = _work(device, (B * (P * P + P),), Jtr.dtype)
+        args = (JtJ.buffer, Jtr.buffer, damping.buffer, delta.buffer, ok.buffer, W)
+        for it in range(nt):
+            launch(_lm_step_tasks, args, (_ti_dtype(Jtr.dtype), _grid(B * P)), scalars=(ncol, it, nt))
     return delta, ok
 
 
@@ -440,8 +449,14 @@ def lm_solve(device, J, r, damping, out):
     B, M, P = J.shape
     delta, ok = out
     W = _work(device, (B * (P * P + P * M + P),), J.dtype)
-    launch(_lm_solve, (J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W),
-           (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)  # fmt: skip
+    args = (J.buffer, r.buffer, damping.buffer, delta.buffer, ok.buffer, W)
+    if _per_problem():
+        launch(_lm_solve, args, (_ti_dtype(J.dtype), _static_p(P)), scalarize=False)
+    else:
+        ncol, nt = _tasks_plan(device, B, P, M, "ops")
+        NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))
+        for it in range(nt):
+            launch(_lm_solve_tasks, args, (_ti_dtype(J.dtype), NI), scalars=(ncol, it, nt))
     return delta, ok
 
 
@@ -801,7 +816,7 @@ def _export(S: ti.template(), I: ti.template(), Out: ti.template(), b, P):
 @ti.kernel
 def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
     """S and I from the start points X0 and the constants K (gputrack.ops.lm.Layout); the
-    first points to evaluate into X."""
+    first points to evaluate into X. taichi:cpu; the parallel archs run ``_init_tasks``."""
     B, P = X0.shape[0], X0.shape[1]
     SB = _sb(P)
     KB = LAY.K_NVEC * P + 1
@@ -820,22 +835,30 @@ def _init(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template()):
             I[LAY.IG_P] = P
             for t in range(nk):
                 S[G + t] = K[kg + t]
-        for t in range(LAY.I_NFIX + P):
-            I[_ib(b, P) + t] = 0
-        base = b * SB
-        for n in range(P):
-            x = ti.cast(X0[b, n], dt)
-            S[base + LAY.S_X * P + n] = x
-            S[base + LAY.S_XT * P + n] = x
-            S[base + LAY.S_G * P + n] = ti.cast(0, dt)
-            S[base + LAY.S_LO * P + n] = K[b * KB + LAY.K_LO * P + n]
-            S[base + LAY.S_HI * P + n] = K[b * KB + LAY.K_HI * P + n]
-            S[base + LAY.S_H * P + n] = K[kh + n]
-        for k in range(LAY.NSCAL):
-            S[base + LAY.S_NVEC * P + k] = ti.cast(0, dt)
-        S[base + LAY.S_NVEC * P + LAY.SC_C] = K[b * KB + LAY.K_NVEC * P]  # C
-        S[base + LAY.S_NVEC * P + LAY.SC_NU] = ti.cast(2, dt)  # nu
-        _points(S, X, b, base + LAY.S_X * P, B, P, rel, dt)
+        _init_problem(X0, K, S, I, b, B, P, dt)
+        _points(S, X, b, b * SB + LAY.S_X * P, B, P, rel, dt)
+
+
+@ti.func
+def _init_problem(X0: ti.template(), K: ti.template(), S: ti.template(), I: ti.template(), b, B, P, dt: ti.template()):
+    """Problem b's blocks of S and I from its start point X0[b] and the constants K."""
+    KB = LAY.K_NVEC * P + 1
+    kh = B * KB
+    for t in range(LAY.I_NFIX + P):
+        I[_ib(b, P) + t] = 0
+    base = b * _sb(P)
+    for n in range(P):
+        x = ti.cast(X0[b, n], dt)
+        S[base + LAY.S_X * P + n] = x
+        S[base + LAY.S_XT * P + n] = x
+        S[base + LAY.S_G * P + n] = ti.cast(0, dt)
+        S[base + LAY.S_LO * P + n] = K[b * KB + LAY.K_LO * P + n]
+        S[base + LAY.S_HI * P + n] = K[b * KB + LAY.K_HI * P + n]
+        S[base + LAY.S_H * P + n] = K[kh + n]
+    for k in range(LAY.NSCAL):
+        S[base + LAY.S_NVEC * P + k] = ti.cast(0, dt)
+    S[base + LAY.S_NVEC * P + LAY.SC_C] = K[b * KB + LAY.K_NVEC * P]  # C
+    S[base + LAY.S_NVEC * P + LAY.SC_NU] = ti.cast(2, dt)  # nu
 
 
 @ti.kernel
@@ -853,45 +876,583 @@ def _update(
     use_jac: ti.template(),
     fused: ti.template(),
 ):
-    """One solver iteration; ``Jg`` is the user's Jacobian when ``use_jac``, else unused (pass R).
-    ``fused`` (central differences without a mask): J^T J and J^T r straight from the stacked
-    residuals, J^T never stored (on taichi:cpu storing it cost as much as the products)."""
+    """One solver iteration on taichi:cpu (the parallel archs run ``_update_tasks``); ``Jg`` is the
+    user's Jacobian when ``use_jac``, else unused (pass R). ``fused`` (central differences without a
+    mask): J^T J and J^T r straight from the stacked residuals, J^T never stored (on taichi:cpu
+    storing it cost as much as the products)."""
     B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
     NPR = (P + 1) // 2  # row pairs
-    if ti.static(_per_problem()):
-        ti.loop_config(serialize=True)
-        for b in range(B):  # every phase of problem b, in order
-            if ti.static(not final):  # noqa: SIM102 - a compile-time branch
-                if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
-                    if ti.static(fused):
-                        _phase_finite(S, I, R, b, dt)
-                    else:
-                        for n in range(P):
-                            _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
-            _phase_accept(S, I, W, R, b, dt, first, final)
-            if ti.static(not final):
-                for i2 in range(NPR):
-                    _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
-                _phase_step(S, I, W, X, b, M, dt)
-            _export(S, I, Out, b, P)
-    else:
+    ti.loop_config(serialize=True)
+    for b in range(B):  # every phase of problem b, in order
+        if ti.static(not final):  # noqa: SIM102 - a compile-time branch
+            if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
+                if ti.static(fused):
+                    _phase_finite(S, I, R, b, dt)
+                else:
+                    for n in range(P):
+                        _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
+        _phase_accept(S, I, W, R, b, dt, first, final)
         if ti.static(not final):
-            for t in range(B * P):
+            for i2 in range(NPR):
+                _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
+            _phase_step(S, I, W, X, b, M, dt)
+        _export(S, I, Out, b, P)
+
+
+# ------------------------------------------------------------------------------------------------
+# the parallel archs (Vulkan, CUDA): every task bounded in loop passes per invocation
+#
+# lavapipe (Vulkan on a CPU) stops every loop of a shader invocation after 65535 passes in total
+# (runtime.LLVMPIPE_LOOP_LIMIT) and goes on with wrong numbers: one invocation per problem running
+# the whole damped Cholesky factorisation (~P^3 / 6 inner passes) returned wrong steps with ok = 1
+# from P = 70. So on these archs an invocation of a task (a top-level loop: its own shader) gets
+# work whose loop passes are known in advance: a row of J^T, a 2 x 4 block of J^T J (M / GRAM_U
+# passes), one problem's acceptance or next points; and the factorisation is a resumable
+# per-problem state machine that each launch advances by at most ``ncol`` columns, launched NT
+# times (``_tasks_plan`` plans both; on lavapipe NT = 1 up to P = 218 for the ops, P = 132 for the
+# solver, which plans room for CHOL_TRIES_PLANNED tries). Inner products take DOT_U terms per pass
+# and the factor CHOL_R rows per pass: one launch factors a P = 128 matrix ~5 times over. Sizes
+# whose tasks cannot fit (on lavapipe: P above 659 for the ops, 462 for the solver, or ~60000
+# residuals per problem) raise ValueError. Where the device has no such limit one launch
+# does it all. The unrolled bodies are kept small: Taichi's compile time grows with them (a cold
+# compile of ``_lm_step_tasks`` ~2 s with 8 x 8 terms per pass, ~12 s with 16 x 8 and separate
+# tails).
+
+DOT_U = 8  # terms per loop pass of the inner products (_dot_acc, _dot_diff, _chol_col)
+CHOL_R = 8  # rows of the factor per loop pass of _chol_col
+GRAM_U = 4  # residuals per loop pass of _gram_block
+LOOP_BUDGET = 60000  # loop passes a task plans per invocation under runtime.LLVMPIPE_LOOP_LIMIT (the rest: margin)
+CHOL_TRIES_PLANNED = 4  # full-depth factorisations (tries of the damping) the solver's launches have room for, at least
+# the factorisation's state between the launches of one step: next column (-1: none pending, -2:
+# failed) and tries so far, in the two spare scalars of the problem's S block (exact as floats; 0
+# again after the step's last launch)
+SC_COL, SC_TRIES = LAY.NSCAL - 2, LAY.NSCAL - 1
+if max(LAY.SC_F, LAY.SC_C, LAY.SC_NU, LAY.SC_PRED, LAY.SC_FT, LAY.SC_SNORM) >= SC_COL:
+    raise RuntimeError("gputrack.abi.LMLayout: the taichi solver needs its last two scalar slots spare")
+
+
+@ti.func
+def _dot_acc(v, X: ti.template(), a, sa, Y: ti.template(), c, sc, n, dt: ti.template()):
+    """v - sum_{k<n} X[a + k sa] Y[c + k sc], term after term in order of k; DOT_U terms per loop pass
+    (ceil(n / DOT_U) passes)."""
+    s = ti.cast(v, dt)
+    k = 0
+    while k < n:
+        for e in ti.static(range(DOT_U)):
+            if k + e < n:
+                s -= X[a + (k + e) * sa] * Y[c + (k + e) * sc]
+        k += DOT_U
+    return s
+
+
+@ti.func
+def _dot_diff(W: ti.template(), a, S: ti.template(), xo, yo, n, dt: ti.template()):
+    """sum_{k<n} W[a + k] (S[xo + k] - S[yo + k]) in order of k; DOT_U terms per loop pass."""
+    s = ti.cast(0, dt)
+    k = 0
+    while k < n:
+        for e in ti.static(range(DOT_U)):
+            if k + e < n:
+                s += W[a + k + e] * (S[xo + k + e] - S[yo + k + e])
+        k += DOT_U
+    return s
+
+
+@ti.func
+def _chol_col(W: ti.template(), A, L, j, P, C, dt: ti.template(), S: ti.template(), xo, loo, hio, go,
+              bounds: ti.template()) -> ti.i32:  # fmt: skip
+    """Column j of the Cholesky factor of A + C I (the P x P matrix at W[A], lower triangle read) into
+    W[L] (L may be A: in place), from its columns 0..j-1: left-looking, the operations of
+    ``_chol_solve`` / ``_phase_step`` in their order. With ``bounds`` a parameter held at a bound by
+    the gradient (``_active``) gets a unit row and column, as in ``_phase_step``. Returns 0 if the
+    pivot is not positive and finite. Rows j .. P - 1 in blocks of CHOL_R (the first block gives the
+    pivot; the last repeats row P - 1), each one pass over k per DOT_U: ``_col_passes`` loop passes."""
+    ok = 1
+    aj = 0
+    if ti.static(bounds):
+        aj = _active(S, xo, loo, hio, go, j)
+    d = ti.cast(1, dt)
+    i = j
+    while i < P and ok:
+        row = ti.Vector([ti.min(i + r, P - 1) for r in ti.static(range(CHOL_R))])
+        v = ti.Vector([W[A + row[r] * P + j] for r in ti.static(range(CHOL_R))], dt=dt)
+        if ti.static(bounds):
+            for r in ti.static(range(CHOL_R)):
+                if aj or _active(S, xo, loo, hio, go, row[r]):
+                    v[r] = ti.cast(0, dt)
+        if i == j:
+            v[0] = ti.select(aj, ti.cast(1, dt), W[A + j * P + j]) + C  # the pivot's row
+        k = 0
+        while k < j:
+            for e in ti.static(range(DOT_U)):
+                if k + e < j:
+                    lj = W[L + j * P + k + e]
+                    for r in ti.static(range(CHOL_R)):
+                        v[r] -= W[L + row[r] * P + k + e] * lj
+            k += DOT_U
+        if i == j:
+            if v[0] <= 0 or not _finite(v[0], dt):
+                ok = 0
+            else:
+                d = ti.sqrt(v[0])
+                W[L + j * P + j] = d
+        if ok:
+            for r in ti.static(range(CHOL_R)):
+                if i + r < P and i + r > j:
+                    W[L + (i + r) * P + j] = v[r] / d
+        i += CHOL_R
+    return ok
+
+
+@ti.func
+def _substitute(W: ti.template(), L, X: ti.template(), x, P, dt: ti.template()):
+    """X[x : x + P] (the right-hand side) -> (L L^T)^-1 X[x : x + P], L the factor at W[L]: forward, then
+    backward substitution (the operations of ``_chol_solve``). ``_subst_passes`` loop passes."""
+    for ph in range(2):
+        for ii in range(P):
+            i, a, sa, c, n = ii, L + ii * P, 1, x, ii  # L[i, :i] . X[:i]
+            if ph == 1:
+                i = P - 1 - ii
+                a, sa, c, n = L + (i + 1) * P + i, P, x + i + 1, P - 1 - i  # L[i+1:, i] . X[i+1:]
+            X[x + i] = _dot_acc(X[x + i], W, a, sa, X, c, 1, n, dt) / W[L + i * P + i]
+
+
+@ti.func
+def _ops_factor(W: ti.template(), a, g, C, ok: ti.template(), delta: ti.template(), b, P, ncol, t, last,
+                dt: ti.template()):  # fmt: skip
+    """Launch t of the ops' factorisation of problem b: columns t*ncol .. of A + C I (at W[a], in place),
+    ok[b] = 0 at a pivot that is not positive definite; the ``last`` launch solves for the right-hand
+    side at W[g] into delta[b] (0 where not ok) (eq. 22)."""
+    if t == 0:
+        ok[b] = 1
+    if ok[b]:
+        j = t * ncol
+        end = ti.min(P, j + ncol)
+        while j < end:
+            if not _chol_col(W, a, a, j, P, C, dt, W, 0, 0, 0, 0, False):
+                ok[b] = 0
+                j = end
+            j += 1
+    if last:
+        if ok[b]:
+            _substitute(W, a, W, g, P, dt)
+            for i in range(P):
+                delta[b, i] = W[g + i]
+        else:
+            for i in range(P):
+                delta[b, i] = ti.cast(0, dt)
+
+
+@ti.func
+def _gram_block(W: ti.template(), jt, a, R: ti.template(), rrow, G: ti.template(), goff, i, q, M, P,
+                dt: ti.template()):  # fmt: skip
+    """One item of the normal equations (eq. 22) on the parallel archs: rows i and k = min(i + 1, P - 1)
+    of J^T J against columns 4q .. 4q + 3 (the entries on or below the diagonal, both triangles) into
+    W[a + i*P + j], or with 4q >= P rows i and k of J^T r into G[goff + i]; J^T in rows of M at W[jt],
+    r = R[rrow, :]. ceil(M / GRAM_U) loop passes."""
+    k = ti.min(i + 1, P - 1)
+    j0 = 4 * q
+    ri, rk = jt + i * M, jt + k * M
+    if j0 >= P:  # J^T r
+        s = ti.cast(0, dt)
+        t = ti.cast(0, dt)
+        m = 0
+        while m < M:
+            for u in ti.static(range(GRAM_U)):
+                if m + u < M:
+                    v = ti.cast(R[rrow, m + u], dt)
+                    s += W[ri + m + u] * v
+                    t += W[rk + m + u] * v
+            m += GRAM_U
+        G[goff + i] = s
+        G[goff + k] = t
+    elif j0 <= k:
+        c = ti.Vector([jt + ti.min(j0 + e, P - 1) * M for e in ti.static(range(4))])
+        s = ti.Vector([0.0] * 4, dt=dt)
+        t = ti.Vector([0.0] * 4, dt=dt)
+        m = 0
+        while m < M:
+            for u in ti.static(range(GRAM_U)):
+                if m + u < M:
+                    x = W[ri + m + u]
+                    y = W[rk + m + u]
+                    for e in ti.static(range(4)):
+                        w = W[c[e] + m + u]
+                        s[e] += x * w
+                        t[e] += y * w
+            m += GRAM_U
+        for e in ti.static(range(4)):
+            j = j0 + e
+            if j <= i:
+                W[a + i * P + j] = s[e]
+                W[a + j * P + i] = s[e]
+            if j <= k:
+                W[a + k * P + j] = t[e]
+                W[a + j * P + k] = t[e]
+
+
+@ti.func
+def _copy_rows(W: ti.template(), WB, JtJ: ti.template(), Jtr: ti.template(), b, i, P, back: ti.template()):
+    """Row i of problem b: JtJ[b, i, :] and Jtr[b, i] from W (``back``) or the lower triangle of that
+    row and Jtr[b, i] into W (J^T J at b*WB, J^T r at b*WB + WB - P)."""
+    if ti.static(back):
+        for j in range(P):
+            JtJ[b, i, j] = W[b * WB + i * P + j]
+        Jtr[b, i] = W[b * WB + WB - P + i]
+    else:
+        for j in range(i + 1):
+            W[b * WB + i * P + j] = JtJ[b, i, j]
+        W[b * WB + WB - P + i] = Jtr[b, i]
+
+
+@ti.kernel
+def _normal_equations_tasks(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template(), NI: ti.template()):
+    """``_normal_equations`` on the parallel archs: J^T, then one 2 x 4 block of J^T J (or two entries of
+    J^T r) per item, then the rows out. NI: the grid of every task (``_grid``)."""
+    B, M, P = J.shape[0], J.shape[1], J.shape[2]
+    WB = _ops_block(P, M)
+    NPR, NQ = (P + 1) // 2, (P + 3) // 4 + 1
+    for u in range(NI):
+        t = u
+        while t < B * P:
+            _transpose(J, W, t // P, t % P, (t // P) * WB + P * P, M)
+            t += NI
+    for u in range(NI):
+        t = u
+        while t < B * NPR * NQ:
+            b, v = t // (NPR * NQ), t % (NPR * NQ)
+            a = b * WB
+            _gram_block(W, a + P * P, a, r, b, W, a + P * P + P * M, 2 * (v // NQ), v % NQ, M, P, dt)  # eq. 22
+            t += NI
+    for u in range(NI):
+        t = u
+        while t < B * P:
+            _copy_rows(W, WB, JtJ, Jtr, t // P, t % P, P, True)
+            t += NI
+
+
+@ti.kernel
+def _lm_step_tasks(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, ncol: ti.i32, it: ti.i32, nt: ti.i32,
+                   dt: ti.template(), NI: ti.template()):  # fmt: skip
+    """``_lm_step`` on the parallel archs, launch ``it`` of nt (``_tasks_plan``): the first copies the
+    lower triangle and J^T r into W (B * (P*P + P),), each factors ``ncol`` columns, the last solves."""
+    B, P = Jtr.shape[0], Jtr.shape[1]
+    WB = P * P + P
+    for u in range(NI):
+        t = u
+        while t < ti.select(it == 0, B * P, 0):
+            _copy_rows(W, WB, JtJ, Jtr, t // P, t % P, P, False)
+            t += NI
+    for u in range(NI):
+        b = u
+        while b < B:
+            _ops_factor(W, b * WB, b * WB + P * P, damping[b], ok, delta, b, P, ncol, it, it == nt - 1, dt)  # eq. 22
+            b += NI
+
+
+@ti.kernel
+def _lm_solve_tasks(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, ncol: ti.i32, it: ti.i32, nt: ti.i32,
+                    dt: ti.template(), NI: ti.template()):  # fmt: skip
+    """``_lm_solve`` on the parallel archs, launch ``it`` of nt: the first computes J^T J and J^T r as
+    ``_normal_equations_tasks`` does, then as ``_lm_step_tasks``; W: (B * _ops_block(P, M),)."""
+    B, M, P = J.shape[0], J.shape[1], J.shape[2]
+    WB = _ops_block(P, M)
+    NPR, NQ = (P + 1) // 2, (P + 3) // 4 + 1
+    for u in range(NI):
+        t = u
+        while t < ti.select(it == 0, B * P, 0):
+            _transpose(J, W, t // P, t % P, (t // P) * WB + P * P, M)
+            t += NI
+    for u in range(NI):
+        t = u
+        while t < ti.select(it == 0, B * NPR * NQ, 0):
+            b, v = t // (NPR * NQ), t % (NPR * NQ)
+            a = b * WB
+            _gram_block(W, a + P * P, a, r, b, W, a + P * P + P * M, 2 * (v // NQ), v % NQ, M, P, dt)  # eq. 22
+            t += NI
+    for u in range(NI):
+        b = u
+        while b < B:
+            a = b * WB
+            _ops_factor(W, a, a + P * P + P * M, damping[b], ok, delta, b, P, ncol, it, it == nt - 1, dt)  # eq. 22
+            b += NI
+
+
+@ti.func
+def _step_factor(S: ti.template(), I: ti.template(), W: ti.template(), Out: ti.template(), b, M, ncol, first, last,
+                 dt: ti.template()):  # fmt: skip
+    """``_phase_step`` in launches on the parallel archs. The ``first`` makes the gtol test and starts
+    the damped factorisation; each advances it by at most ``ncol`` columns (raising C tenfold and
+    starting again at a pivot that is not positive definite, as ``_phase_step``); the ``last`` solves
+    for the trial point and its predicted reduction, and exports. A factorisation not finished by
+    then (more full-depth tries than the launches had room for, at least CHOL_TRIES_PLANNED) fails
+    as one that runs out of tries does (FAILED, NOT_PD)."""
+    P, B = I[LAY.IG_P], I[LAY.IG_B]
+    base = b * _sb(P)
+    sc = base + LAY.S_NVEC * P
+    ib = _ib(b, P)
+    G = B * _sb(P)
+    A = b * _wb(P, M) + LAY.W_A * P * P
+    L = A + (LAY.W_L - LAY.W_A) * P * P
+    xo, xto, go = base + LAY.S_X * P, base + LAY.S_XT * P, base + LAY.S_G * P
+    loo, hio = base + LAY.S_LO * P, base + LAY.S_HI * P
+    if first:
+        if I[ib + LAY.I_STATUS] == RUNNING and I[ib + LAY.I_ACCEPTED]:
+            gmax = ti.cast(0, dt)  # projected gradient (components pushing against an active bound removed)
+            for i in range(P):
+                if not _active(S, xo, loo, hio, go, i):
+                    gmax = ti.max(gmax, ti.abs(S[go + i]))
+            if gmax <= S[G + LAY.G_GTOL]:
+                I[ib + LAY.I_STATUS] = CONVERGED
+                I[ib + LAY.I_REASON] = R_GTOL
+        S[sc + SC_COL] = ti.cast(ti.select(I[ib + LAY.I_STATUS] == RUNNING, 0, -1), dt)
+        S[sc + SC_TRIES] = ti.cast(0, dt)
+    col = ti.cast(S[sc + SC_COL], ti.i32)
+    if col >= 0 and col < P:
+        tries = ti.cast(S[sc + SC_TRIES], ti.i32)
+        C = S[sc + LAY.SC_C]
+        dmax = ti.cast(0, dt)
+        for i in range(P):
+            dmax = ti.max(dmax, W[A + i * P + i])
+        dmax += 1
+        steps = 0
+        while steps < ncol and col >= 0 and col < P:
+            if _chol_col(W, A, L, col, P, C, dt, S, xo, loo, hio, go, True):  # eq. 22: J^T J + C I
+                col += 1
+            elif C > S[G + LAY.G_CMAX] * dmax:
+                col = -2
+            else:
+                C = ti.max(10 * C, S[G + LAY.G_CTINY] * dmax)  # not PD: raise C tenfold and try again
+                tries += 1
+                col = ti.select(tries <= MAX_CHOL_TRIES, 0, -2)
+            steps += 1
+        S[sc + SC_COL] = ti.cast(col, dt)
+        S[sc + SC_TRIES] = ti.cast(tries, dt)
+        S[sc + LAY.SC_C] = C
+    if last:
+        if I[ib + LAY.I_STATUS] == RUNNING:
+            if col != P:
+                I[ib + LAY.I_STATUS] = FAILED
+                I[ib + LAY.I_REASON] = R_NOTPD
+            else:
+                # delta = (J^T J + C I)^-1 J^T r in the xt slots, then the step projected into the box
+                for i in range(P):
+                    S[xto + i] = ti.select(_active(S, xo, loo, hio, go, i), ti.cast(0, dt), S[go + i])
+                _substitute(W, L, S, xto, P, dt)
+                for i in range(P):
+                    S[xto + i] = ti.min(ti.max(S[xo + i] - S[xto + i], S[loo + i]), S[hio + i])  # paper 003 eq. 8-9
+                # predicted reduction of the model ||r - J s||^2 for s = x - xt
+                pr = ti.cast(0, dt)
+                for i in range(P):
+                    si = S[xo + i] - S[xto + i]
+                    pr += 2 * si * S[go + i] - si * _dot_diff(W, A + i * P, S, xo, xto, P, dt)
+                S[sc + LAY.SC_PRED] = pr
+        S[sc + SC_COL] = ti.cast(0, dt)  # spare again between iterations (as the layout says)
+        S[sc + SC_TRIES] = ti.cast(0, dt)
+        _export(S, I, Out, b, P)
+
+
+@ti.func
+def _point_pair(S: ti.template(), X: ti.template(), b, n, src, B, P, rel, dt: ti.template()):
+    """One item of ``_points`` on the parallel archs: rows b*SX + 1 + 2n and + 2 + 2n of X (the point
+    S[src : src + P] moved by +-eps in parameter n, eq. 24) and den[n]; n = P: row b*SX, the point."""
+    base = b * _sb(P)
+    SX = X.shape[0] // B
+    if n == P:
+        for m in range(P):
+            X[b * SX, m] = S[src + m]
+    elif SX > 1:
+        rp = b * SX + 1 + 2 * n
+        for m in range(P):
+            if m != n:
+                X[rp, m] = S[src + m]
+                X[rp + 1, m] = S[src + m]
+        p = S[src + n]
+        eps = S[base + LAY.S_H * P + n]
+        if eps <= 0:
+            eps = rel * ti.max(ti.abs(p), ti.cast(1, dt))
+        X[rp, n] = ti.min(p + eps, S[base + LAY.S_HI * P + n])
+        X[rp + 1, n] = ti.max(p - eps, S[base + LAY.S_LO * P + n])
+        S[base + LAY.S_DEN * P + n] = ti.cast(X[rp, n], dt) - ti.cast(X[rp + 1, n], dt)
+    else:
+        S[base + LAY.S_DEN * P + n] = ti.cast(0, dt)
+
+
+@ti.kernel
+def _init_tasks(X0: nd, K: nd, S: nd, I: nd, X: nd, dt: ti.template(), NI: ti.template()):
+    """``_init`` on the parallel archs: the problems, the globals and mask, the points: one item each."""
+    B, P = X0.shape[0], X0.shape[1]
+    KB = LAY.K_NVEC * P + 1
+    kg = B * KB + P
+    nk = K.shape[0] - kg  # globals and mask
+    for u in range(NI):
+        b = u
+        while b < B:
+            _init_problem(X0, K, S, I, b, B, P, dt)
+            b += NI
+    for u in range(NI):
+        t = u
+        while t < nk:
+            if t == 0:
+                for g in range(LAY.NIGLOB):
+                    I[g] = 0
+                I[LAY.IG_B] = B
+                I[LAY.IG_HAS_MASK] = ti.i32(nk > LAY.NGLOB)
+                I[LAY.IG_P] = P
+            S[B * _sb(P) + t] = K[kg + t]
+            t += NI
+    for u in range(NI):
+        t = u
+        while t < B * (P + 1):
+            b = t // (P + 1)
+            _point_pair(S, X, b, t % (P + 1), b * _sb(P) + LAY.S_X * P, B, P, K[kg + LAY.G_REL], dt)
+            t += NI
+
+
+@ti.kernel
+def _update_tasks(
+    S: nd,
+    I: nd,
+    W: nd,
+    R: nd,
+    Jg: nd,
+    Out: nd,
+    dt: ti.template(),
+    first: ti.template(),
+    final: ti.template(),
+    use_jac: ti.template(),
+    NI: ti.template(),
+):
+    """``_update`` on the parallel archs up to the normal equations: the rows of J^T, acceptance, the
+    blocks of J^T J and J^T r; ``_step_tasks`` launches follow (but after the ``final`` acceptance)."""
+    B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
+    SR = R.shape[0] // B
+    NPR, NQ = (P + 1) // 2, (P + 3) // 4 + 1
+    if ti.static(not final):
+        for u in range(NI):
+            t = u
+            while t < B * P:
                 b, n = t // P, t % P
                 if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
                     _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
-        ti.loop_config(serialize=True)
-        for b in range(B):
+                t += NI
+    for u in range(NI):
+        b = u
+        while b < B:
             _phase_accept(S, I, W, R, b, dt, first, final)
             if ti.static(final):
                 _export(S, I, Out, b, P)
-        if ti.static(not final):
-            for t in range(B * NPR):
-                _phase_normal(S, I, W, R, t // NPR, 2 * (t % NPR), dt, False)
-            ti.loop_config(serialize=True)
-            for b in range(B):
-                _phase_step(S, I, W, X, b, M, dt)
-                _export(S, I, Out, b, P)
+            b += NI
+    if ti.static(not final):
+        for u in range(NI):
+            t = u
+            while t < B * NPR * NQ:
+                b, v = t // (NPR * NQ), t % (NPR * NQ)
+                if I[_ib(b, P) + LAY.I_ACCEPTED]:
+                    a = b * _wb(P, M) + LAY.W_A * P * P
+                    jt = b * _wb(P, M) + LAY.W_NSQ * P * P
+                    g = b * _sb(P) + LAY.S_G * P
+                    _gram_block(W, jt, a, R, b * SR, S, g, 2 * (v // NQ), v % NQ, M, P, dt)  # eq. 22
+                t += NI
+
+
+@ti.kernel
+def _step_tasks(S: nd, I: nd, W: nd, X: nd, Out: nd, M: ti.i32, ncol: ti.i32, it: ti.i32, nt: ti.i32,
+                dt: ti.template(), NI: ti.template()):  # fmt: skip
+    """Launch ``it`` of nt of the step on the parallel archs (``_step_factor``); the last also writes
+    the next points (the trial and its perturbed copies, or the accepted x when stopped)."""
+    B, P = I[LAY.IG_B], I[LAY.IG_P]
+    for u in range(NI):
+        b = u
+        while b < B:
+            _step_factor(S, I, W, Out, b, M, ncol, it == 0, it == nt - 1, dt)
+            b += NI
+    for u in range(NI):
+        t = u
+        while t < ti.select(it == nt - 1, B * (P + 1), 0):
+            b = t // (P + 1)
+            base = b * _sb(P)
+            src = base + LAY.S_XT * P
+            if I[_ib(b, P) + LAY.I_STATUS] != RUNNING:
+                src = base + LAY.S_X * P  # stopped: the accepted x
+            _point_pair(S, X, b, t % (P + 1), src, B, P, S[B * _sb(P) + LAY.G_REL], dt)
+            t += NI
+
+
+GRIDS = (256, 1024, 4096, 16384, 65536, SPIRV_GRID_ITEMS)
+
+
+def _grid(items: int) -> int:
+    """Invocations of every task of a parallel-arch kernel whose largest task has ``items`` items: a
+    compile-time size from GRIDS (few variants to compile), each invocation taking the items u, u + NI,
+    .... A loop over a size known only at run time would dispatch SPIRV_GRID_ITEMS invocations
+    whatever it holds: ~1-5 ms per task on lavapipe for the idle ones (more the larger the shader),
+    against ~0.1 ms for a grid of 256."""
+    return next((g for g in GRIDS if g >= items), GRIDS[-1])
+
+
+def _col_passes(P: int) -> np.ndarray:
+    """Loop passes of ``_chol_col`` for each column j of a P x P factor. A loop of n iterations takes
+    n + 1 passes on llvmpipe (the last one finds the loop done)."""
+    j = np.arange(P)
+    return -(-(P - j) // CHOL_R) * (2 + -(-j // DOT_U)) + 1
+
+
+def _subst_passes(P: int) -> int:
+    """Loop passes of ``_substitute``."""
+    return 3 + 2 * (P + 1) + 2 * (P + int((-(-np.arange(P) // DOT_U)).sum()))
+
+
+def _tasks_plan(device, B: int, P: int, M: int, kind: str) -> tuple[int, int]:
+    """(ncol, NT) for the parallel archs' launches of ``kind`` ("normal": normal_equations, "ops":
+    lm_step and lm_solve, "solver"): columns of the factorisation per launch, launches. Where the
+    device bounds the loop passes of an invocation (runtime.loop_limit) every task stays within
+    LOOP_BUDGET: the ops plan one factorisation, the solver room for CHOL_TRIES_PLANNED of them (each
+    launch has room for ncol / P). Elsewhere one launch does it all. Raises ValueError where a task
+    would need more passes for (B, P, M) than the device runs."""
+    limit = loop_limit(device)
+    tries = MAX_CHOL_TRIES + 1 if kind == "solver" else 1
+    if limit is None:
+        return P * tries, 1
+
+    def per_item(items):  # items of a task that one invocation runs
+        return -(-items // _grid(items))
+
+    # passes per item (a loop of n iterations takes n + 1, the parallel loop's own included)
+    k = per_item(B)
+    step = int(_col_passes(P).max()) + 1  # a column and its pass of the launch's column loop
+    gram = per_item(B * ((P + 1) // 2) * ((P + 3) // 4 + 1)) * (-(-M // GRAM_U) + 3)
+    if kind == "solver":
+        # gtol test, 1 + max diag, the column loop's end; right-hand side, substitution, box,
+        # predicted reduction, export
+        fixed = 2 * (P + 1) + 3 + (P + 1) + _subst_passes(P) + 2 * (P + 1) + P * (-(-P // DOT_U) + 1) + (P + 1)
+        need = {
+            "Jacobian rows": per_item(B * P) * (M + 3),
+            "acceptance": k * (M + 3 * P + 6),
+            "normal equations": gram,
+            "points": per_item(B * (P + 1)) * (P + 3),
+        }
+    else:
+        fixed = 3 + _subst_passes(P) + (P + 1)  # the column loop's end, substitution, delta
+        need = {
+            "transpose": per_item(B * P) * (M // 8 + 10),
+            "normal equations": gram,
+            "rows": per_item(B * P) * (P + 4),
+        }
+    if kind != "normal":
+        need["factorisation"] = k * (fixed + step)
+    worst = max(need, key=need.get)
+    if need[worst] > LOOP_BUDGET:
+        raise ValueError(
+            f"{device.spec} ({device.info.name}) runs at most {limit} loop passes per kernel invocation; the LM "
+            f"kernels' {worst} would need {need[worst]} for B={B}, P={P}, M={M}: use fewer parameters or "
+            "residuals per problem, or another device (taichi:cpu, opencl)"
+        )
+    if kind == "normal":
+        return 0, 0
+    ncol = (LOOP_BUDGET // k - fixed) // step
+    planned = CHOL_TRIES_PLANNED if kind == "solver" else 1
+    return ncol, max(1, -(-planned * P // ncol))
 
 
 class State:
@@ -901,6 +1462,7 @@ class State:
         self.device, self.lay, self.S, self.I, self.Out = device, lay, S, I, Out
         self.W = None
         self.dt = _ti_dtype(S.dtype)
+        self.plan = None  # (ncol, launches) of the parallel archs' step (``_tasks_plan``)
 
 
 def upload_into(device, arr, host):
@@ -917,21 +1479,36 @@ def solver_state(device, lay, S, I, Out):
 
 def solver_workspace(state, lay, W):
     state.lay, state.W = lay, W
+    if not _per_problem():  # raises where the device cannot run the parallel tasks for these sizes
+        state.plan = _tasks_plan(state.device, lay.B, lay.P, lay.M, "solver")
 
 
 def solver_init(state, X0, K, X):
-    launch(_init, (X0.buffer, K.buffer, state.S.buffer, state.I.buffer, X.buffer), (state.dt,))
+    args = (X0.buffer, K.buffer, state.S.buffer, state.I.buffer, X.buffer)
+    if _per_problem():
+        launch(_init, args, (state.dt,))
+    else:
+        B, P = X0.shape
+        launch(_init_tasks, args, (state.dt, _grid(max(B * (P + 1), K.shape[0] - B * (2 * P + 1) - P))))
 
 
 def solver_update(state, R, X, *, first, final, jac=None):
     S, I, W, Out = state.S.buffer, state.I.buffer, state.W.buffer, state.Out.buffer
     Jg = R if jac is None else jac  # unused without a Jacobian callable
-    fused = jac is None and not state.lay.has_mask and not final and _per_problem()
-    launch(
-        _update,
-        (S, I, W, X.buffer, R.buffer, Jg.buffer, Out),
-        (state.dt, bool(first), bool(final), jac is not None, fused),
-    )
+    args = (S, I, W, X.buffer, R.buffer, Jg.buffer, Out)
+    if _per_problem():
+        fused = jac is None and not state.lay.has_mask and not final
+        launch(_update, args, (state.dt, bool(first), bool(final), jac is not None, fused))
+    else:
+        B, P = state.lay.B, state.lay.P
+        NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))
+        launch(_update_tasks, (S, I, W, R.buffer, Jg.buffer, Out), (state.dt, bool(first), bool(final), jac is not None,
+                                                                    NI))  # fmt: skip
+        if not final:
+            ncol, nt = state.plan
+            for it in range(nt):
+                launch(_step_tasks, (S, I, W, X.buffer, Out), (state.dt, _grid(B * (P + 1))),
+                       scalars=(state.lay.M, ncol, it, nt))  # fmt: skip
 
 
 def _download(arr):

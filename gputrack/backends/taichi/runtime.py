@@ -77,6 +77,25 @@ def current_arch() -> str | None:
     return _current
 
 
+#: loop passes one shader invocation may run in total on Mesa's llvmpipe (the compiler of lavapipe,
+#: Vulkan on a CPU): gallivm's LP_MAX_TGSI_LOOP_ITERATIONS, one counter shared by every loop of the
+#: shader and decremented at each pass. Past it every loop runs its body once and exits: the kernel
+#: goes on with wrong numbers and no error. Each task (top-level loop) of a Taichi kernel is its own
+#: shader; an invocation runs one item of its loop, or several past Taichi's grid-stride cap
+#: (SPIRV_GRID_ITEMS items), and the lanes of one SIMD vector share the counter.
+LLVMPIPE_LOOP_LIMIT = 65535
+#: items of a parallel loop above which Taichi's SPIR-V tasks give an invocation several (grid-stride loop)
+SPIRV_GRID_ITEMS = 131072
+
+
+def loop_limit(device) -> int | None:
+    """Loop passes one invocation of a kernel task may run on ``device``: LLVMPIPE_LOOP_LIMIT for
+    taichi:vulkan on anything but a GPU (lavapipe), None where there is no such limit."""
+    if device.spec == "taichi:vulkan" and device.info.kind != "gpu":
+        return LLVMPIPE_LOOP_LIMIT
+    return None
+
+
 def start(arch: str) -> None:
     """Initialise Taichi on ``arch`` unless it already runs it; refuse a different arch.
 
