@@ -17,7 +17,8 @@
 - **Loss** (beyond the paper): a frame whose best hypothesis has a mean NCC below
   ``config.lost_score`` (an occluded or vanished face) is returned with confidence 0 and neither
   re-localises nor adjusts; after ``config.redetect_after`` such frames in a row the face is searched
-  again with the Haar cascade and the filter restarts there (the identity is kept). A face that
+  again with the Haar cascade and the filter restarts at the box nearest to the face's last place of
+  about its last size (the identity is kept). A face that
   leaves the image scores 0 and is lost the same way.
 
 The image is uploaded once per frame as float32; the templates stay on the device.
@@ -42,7 +43,7 @@ from .relocate import relocate, sample_patches
 
 log = logging.getLogger("gputrack")
 
-__all__ = ["FaceEstimate", "FaceTracker", "detect_face"]
+__all__ = ["FaceEstimate", "FaceTracker", "detect_face", "detect_faces"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,18 +68,21 @@ class FaceEstimate:
 _CASCADE = None
 
 
-def detect_face(gray) -> tuple[int, int, int, int] | None:
-    """The largest face box (x, y, w, h) px found by OpenCV's bundled frontal Haar cascade, or None."""
+def detect_faces(gray) -> list[tuple[int, int, int, int]]:
+    """Face boxes (x, y, w, h) px found by OpenCV's bundled frontal Haar cascade."""
     import cv2
 
     global _CASCADE
     if _CASCADE is None:
         _CASCADE = cv2.CascadeClassifier(cv2.data.haarcascades + "haarcascade_frontalface_default.xml")
     boxes = _CASCADE.detectMultiScale(np.asarray(gray, np.uint8), scaleFactor=1.1, minNeighbors=5, minSize=(40, 40))
-    if len(boxes) == 0:
-        return None
-    x, y, w, h = max(boxes, key=lambda b: b[2] * b[3])
-    return int(x), int(y), int(w), int(h)
+    return [tuple(int(v) for v in b) for b in boxes]
+
+
+def detect_face(gray) -> tuple[int, int, int, int] | None:
+    """The largest face box (x, y, w, h) px of :func:`detect_faces`, or None."""
+    boxes = detect_faces(gray)
+    return max(boxes, key=lambda b: b[2] * b[3]) if boxes else None
 
 
 def _gray(image, name: str, shape=None) -> np.ndarray:
@@ -316,9 +320,15 @@ class FaceTracker:
                                  0.0 if h["lost"] else h["confidence"], h["lost"])  # fmt: skip
 
     def _redetect(self, img) -> None:
-        box = detect_face(np.clip(img, 0, 255))
-        if box is None:
+        """Restart the filter at the face box nearest to where the face was last seen whose size is
+        within a factor 2 of the face's last size (a box elsewhere is more likely background)."""
+        est = self.pf.estimate
+        last = self._predicted(est[:3], est[3:6], est[6:])
+        centre, width = last.mean(axis=0), np.ptp(last[:, 0]) / 0.49  # the box a face of that size gets
+        boxes = [b for b in detect_faces(np.clip(img, 0, 255)) if 0.5 <= b[2] / max(width, 1.0) <= 2.0]
+        if not boxes:
             return
+        box = min(boxes, key=lambda b: np.hypot(b[0] + 0.49 * b[2] - centre[0], b[1] + 0.53 * b[3] - centre[1]))
         pts = self._points_from_box(box)
         r, t = self._pose_from_points(pts)
         self.pf.reset(np.concatenate([r, t, self.model.expression_mean]), self.model.K)
