@@ -12,7 +12,8 @@ from gputrack.models import Camera
 from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
 from gputrack.ops.lm import LMStatus
 from gputrack.trackers.face import BundleProblem, IncrementalBundle, bundle_adjust, keyframe_spread
-from gputrack.trackers.face.bundle import MIN_KEYFRAME_POINTS, rodrigues
+from gputrack.models.pose import rodrigues
+from gputrack.trackers.face.bundle import MIN_KEYFRAME_POINTS
 
 REF = gputrack.device("numpy")
 CAMERA = Camera(700.0, 700.0, 320.0, 240.0)  # a VGA camera (the paper: 640x480)

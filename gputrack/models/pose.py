@@ -13,38 +13,56 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["euler_from_rotation", "project", "rodrigues", "rotation_from_euler", "rotation_vector"]
+__all__ = ["euler_from_rotation", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
+           "rotation_vector", "skew"]
+
+
+def skew(v) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices [v]x."""
+    v = np.asarray(v, dtype=np.float64)
+    K = np.zeros((*v.shape, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return K
+
+
+def rotation_coefficients(r):
+    """sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 of t = |r| for r (..., 3), by series near t = 0."""
+    r = np.asarray(r, dtype=np.float64)
+    t2 = np.einsum("...c,...c->...", r, r)
+    t = np.sqrt(t2)
+    small = t < 1e-3
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 1 - t2 / 6 + t2 * t2 / 120, np.sin(ts) / ts)
+    b = np.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - np.cos(ts)) / ts**2)
+    c = np.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040, (ts - np.sin(ts)) / ts**3)
+    return a, b, c
 
 
 def rodrigues(rvec) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of Rodrigues vectors (..., 3) (exact near 0: Taylor terms)."""
+    """(..., 3, 3) rotation matrices R = I + sin t/t [r]x + (1 - cos t)/t^2 [r]x^2 of Rodrigues vectors r (..., 3)."""
     r = np.asarray(rvec, dtype=np.float64)
-    th2 = np.einsum("...i,...i->...", r, r)
-    th = np.sqrt(th2)
-    small = th2 < 1e-12
-    safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)  # sin(th)/th
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / np.where(small, 1.0, th2))  # (1-cos)/th^2
-    K = np.zeros(r.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -r[..., 2], r[..., 1], -r[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = r[..., 2], -r[..., 1], r[..., 0]
+    a, b, _ = rotation_coefficients(r)
+    K = skew(r)
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
 def rotation_vector(R) -> np.ndarray:
-    """(..., 3) Rodrigues vectors of rotation matrices (..., 3, 3) (angles in [0, pi])."""
+    """(..., 3) Rodrigues vectors (angle in [0, pi]) of rotation matrices (..., 3, 3), as ``cv2.Rodrigues``."""
     R = np.asarray(R, dtype=np.float64)
     w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    th = np.arccos(c)
-    s = np.linalg.norm(w, axis=-1) / 2.0
-    out = w * np.where(th < 1e-6, 0.5, th / (2.0 * np.maximum(np.sin(th), 1e-300)))[..., None]
-    near_pi = (th > np.pi - 1e-3) & (s < 1e-3)
-    if near_pi.any():  # axis from the largest diagonal of (R + I) / 2
-        B = (R[near_pi] + np.eye(3)) / 2.0
-        i = np.argmax(np.diagonal(B, axis1=-2, axis2=-1), axis=-1)
-        axis = B[np.arange(len(i)), :, i] / np.sqrt(np.maximum(B[np.arange(len(i)), i, i], 1e-300))[:, None]
-        out[near_pi] = axis / np.linalg.norm(axis, axis=-1, keepdims=True) * th[near_pi][:, None]
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    sin = np.sin(theta)
+    out = w * np.where(sin > 1e-6, theta / np.maximum(2.0 * sin, 1e-300), 0.5 + theta**2 / 12.0)[..., None]
+    near_pi = theta > np.pi - 1e-3  # the axis from the symmetric part: (R + R^T) / 2 - cos I = (1 - cos) n n^T
+    if np.any(near_pi):
+        S = (R[near_pi] + np.swapaxes(R[near_pi], -1, -2)) / 2.0 - cos[near_pi, None, None] * np.eye(3)
+        col = np.argmax(np.abs(np.diagonal(S, axis1=-2, axis2=-1)), axis=-1)
+        n = np.take_along_axis(S, col[:, None, None], axis=-1)[..., 0]
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n *= np.where(np.einsum("...i,...i->...", n, w[near_pi]) < 0, -1.0, 1.0)[:, None]
+        out[near_pi] = n * theta[near_pi, None]
     return out
 
 
@@ -62,7 +80,7 @@ def rotation_from_euler(roll, pitch, yaw) -> np.ndarray:
 def euler_from_rotation(R) -> np.ndarray:
     """(..., 3) (roll, pitch, yaw) in radians of R = Rz(roll) Ry(yaw) Rx(pitch), yaw in [-pi/2, pi/2]."""
     R = np.asarray(R, dtype=np.float64)
-    yaw = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 2, 1], R[..., 2, 2]))
     pitch = np.arctan2(R[..., 2, 1], R[..., 2, 2])
     roll = np.arctan2(R[..., 1, 0], R[..., 0, 0])
     return np.stack([roll, pitch, yaw], axis=-1)

@@ -103,6 +103,7 @@ import math
 import numpy as np
 
 from ..models.camera import Camera
+from ..models import pose
 from ..models.face import LANDMARKS, IctFace, load_ict
 
 __all__ = [
@@ -218,72 +219,36 @@ def _size(size) -> tuple[int, int]:
 # -- rotations ------------------------------------------------------------------------------------------
 def rotation_from_euler(roll, pitch, yaw) -> np.ndarray:
     """R = Rz(roll) @ Ry(yaw) @ Rx(pitch), angles in DEGREES (scalars or arrays that broadcast):
-    (..., 3, 3). Rx(a) = [[1, 0, 0], [0, c, -s], [0, s, c]], Ry(a) = [[c, 0, s], [0, 1, 0],
-    [-s, 0, c]], Rz(a) = [[c, -s, 0], [s, c, 0], [0, 0, 1]] about the camera's x (right), y (down)
-    and z (forward) axes: yaw > 0 turns the face to the image's left, pitch > 0 tilts it down,
-    roll > 0 turns it clockwise in the image."""
-    r, p, y = np.broadcast_arrays(*(np.radians(np.asarray(a, dtype=np.float64)) for a in (roll, pitch, yaw)))
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    R = np.empty(r.shape + (3, 3))
-    R[..., 0, 0] = cr * cy
-    R[..., 0, 1] = cr * sy * sp - sr * cp
-    R[..., 0, 2] = cr * sy * cp + sr * sp
-    R[..., 1, 0] = sr * cy
-    R[..., 1, 1] = sr * sy * sp + cr * cp
-    R[..., 1, 2] = sr * sy * cp - cr * sp
-    R[..., 2, 0] = -sy
-    R[..., 2, 1] = cy * sp
-    R[..., 2, 2] = cy * cp
+    (..., 3, 3), :func:`gputrack.models.pose.rotation_from_euler` in degrees. About the camera's x
+    (right), y (down) and z (forward) axes: yaw > 0 turns the face to the image's left, pitch > 0
+    tilts it down, roll > 0 turns it clockwise in the image."""
+    return pose.rotation_from_euler(*(np.radians(np.asarray(a, dtype=np.float64)) for a in (roll, pitch, yaw)))
+
+
+def _rotations(R) -> np.ndarray:
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R: expected shape (..., 3, 3), got {R.shape}")
     return R
 
 
 def euler_from_rotation(R) -> np.ndarray:
     """(..., 3) (roll, pitch, yaw) in DEGREES of rotations (..., 3, 3), the inverse of
     :func:`rotation_from_euler` for |yaw| < 90 deg (yaw in [-90, 90], roll and pitch in (-180, 180])."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"R: expected shape (..., 3, 3), got {R.shape}")
-    yaw = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 2, 1], R[..., 2, 2]))
-    pitch = np.arctan2(R[..., 2, 1], R[..., 2, 2])
-    roll = np.arctan2(R[..., 1, 0], R[..., 0, 0])
-    return np.degrees(np.stack([roll, pitch, yaw], axis=-1))
+    return np.degrees(pose.euler_from_rotation(_rotations(R)))
 
 
 def rvec_from_rotation(R) -> np.ndarray:
-    """(..., 3) Rodrigues vectors (unit axis times angle in radians, angle in [0, pi]) of (..., 3, 3)
-    rotations; the same as ``cv2.Rodrigues``."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"R: expected shape (..., 3, 3), got {R.shape}")
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos)
-    sin = np.sin(theta)
-    scale = np.where(sin > 1e-6, theta / np.maximum(2.0 * sin, 1e-300), 0.5 + theta**2 / 12.0)
-    out = w * scale[..., None]
-    near_pi = theta > np.pi - 1e-3  # the axis from the symmetric part: R + I = 2 n n^T (1 + cos) ...
-    if np.any(near_pi):
-        S = (R[near_pi] + np.swapaxes(R[near_pi], -1, -2)) / 2.0 - cos[near_pi, None, None] * np.eye(3)
-        col = np.argmax(np.abs(np.diagonal(S, axis1=-2, axis2=-1)), axis=-1)
-        n = np.take_along_axis(S, col[:, None, None], axis=-1)[..., 0]
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        n *= np.where(np.einsum("...i,...i->...", n, w[near_pi]) < 0, -1.0, 1.0)[:, None]
-        out[near_pi] = n * theta[near_pi, None]
-    return out
+    """(..., 3) Rodrigues vectors (radians, angle in [0, pi]) of (..., 3, 3) rotations, as ``cv2.Rodrigues``."""
+    return pose.rotation_vector(_rotations(R))
 
 
 def rotation_from_rvec(rvec) -> np.ndarray:
-    """(..., 3, 3) rotations of Rodrigues vectors (..., 3) (radians): R = I + sin(a) K + (1 - cos(a)) K^2."""
+    """(..., 3, 3) rotations of Rodrigues vectors (..., 3) (radians)."""
     r = np.asarray(rvec, dtype=np.float64)
     if r.shape[-1:] != (3,):
         raise ValueError(f"rvec: expected shape (..., 3), got {r.shape}")
-    a = np.linalg.norm(r, axis=-1)
-    n = r / np.where(a > 0, a, 1.0)[..., None]
-    Kx = np.zeros(r.shape[:-1] + (3, 3))
-    Kx[..., 0, 1], Kx[..., 0, 2], Kx[..., 1, 2] = -n[..., 2], n[..., 1], -n[..., 0]
-    Kx[..., 1, 0], Kx[..., 2, 0], Kx[..., 2, 1] = n[..., 2], -n[..., 1], n[..., 0]
-    s, c = np.sin(a)[..., None, None], np.cos(a)[..., None, None]
-    return np.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)
+    return pose.rodrigues(r)
 
 
 # -- mesh -----------------------------------------------------------------------------------------------

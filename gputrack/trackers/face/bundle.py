@@ -52,6 +52,7 @@ import numpy as np
 
 from ...device import per_device, to_numpy
 from ...models.camera import Camera
+from ...models.pose import rodrigues, rotation_coefficients, skew
 from ...ops.lm import LMStatus, least_squares
 
 log = logging.getLogger("gputrack")
@@ -64,7 +65,6 @@ __all__ = [
     "bundle_adjust",
     "keyframe_spread",
     "model_terms",
-    "rodrigues",
 ]
 
 #: default box half-widths of a pose (eq. 8): rotation (rad per rvec component), translation (mm)
@@ -91,38 +91,10 @@ SPREAD_RTOL = 1e-9
 # rotations
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices [v]x."""
-    K = np.zeros((*v.shape, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return K
-
-
-def _rotation_coefficients(r: np.ndarray):
-    """sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 of t = |r| (..., 3), by series near t = 0."""
-    t2 = np.einsum("...c,...c->...", r, r)
-    t = np.sqrt(t2)
-    small = t < 1e-3
-    ts = np.where(small, 1.0, t)
-    a = np.where(small, 1 - t2 / 6 + t2 * t2 / 120, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - np.cos(ts)) / ts**2)
-    c = np.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040, (ts - np.sin(ts)) / ts**3)
-    return a, b, c
-
-
-def rodrigues(rvecs) -> np.ndarray:
-    """(..., 3) Rodrigues vectors -> (..., 3, 3) rotation matrices R = I + sin t/t [r]x + (1-cos t)/t^2 [r]x^2."""
-    r = np.asarray(rvecs, dtype=np.float64)
-    a, b, _ = _rotation_coefficients(r)
-    K = _skew(r)
-    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
-
-
 def _left_jacobian(r: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3, 3) left Jacobian of SO(3): R(r + dr) = exp([J_l dr]x) R(r) + O(dr^2)."""
-    _, b, c = _rotation_coefficients(r)
-    K = _skew(r)
+    _, b, c = rotation_coefficients(r)
+    K = skew(r)
     return np.eye(3) + b[..., None, None] * K + c[..., None, None] * (K @ K)
 
 
@@ -368,7 +340,7 @@ class BundleProblem:
         du = np.stack([cam.fx / Z, zero, -cam.fx * Y[..., 0] / Z**2], axis=-1)
         dv = np.stack([zero, cam.fy / Z, -cam.fy * Y[..., 1] / Z**2], axis=-1)
         Dp = np.stack([du, dv], axis=-2) * sw[..., None, None]  # (B, n, K, 2, 3) dm/dY, weighted
-        dY_dr = -_skew(RX) @ _left_jacobian(rv)[:, :, None]  # d(RX)/dr = -[RX]x J_l(r)
+        dY_dr = -skew(RX) @ _left_jacobian(rv)[:, :, None]  # d(RX)/dr = -[RX]x J_l(r)
         dY_da = np.einsum("biac,bkcq->bikaq", R, Bs)
         dY_ds = np.einsum("biac,bikcp->bikap", R, np.einsum("kcpq,biq->bikcp", tm.G, ex))
         frame = np.concatenate([Dp @ dY_dr, Dp, Dp @ dY_da], axis=-1)  # (B, n, K, 2, F)
