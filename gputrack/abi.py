@@ -2,7 +2,8 @@
 
 The one source of every number that crosses the line between an op (gputrack/ops) and its
 kernels (gputrack/backends, kernels/*.cl): the per-track Kalman status, the LM status and stop
-reason, and the slots of the LM solver's packed arrays. The ops import these (and re-export
+reason, the slots of the LM solver's packed arrays, and the clamps every backend applies to
+extreme finite inputs (INTENSITY_MAX, ANGLE_MAX). The ops import these (and re-export
 :class:`KalmanStatus` and :class:`LMStatus`); the NumPy and Taichi backends read them as Python
 constants (Taichi folds them into the kernels at compile time); the OpenCL sources get them as
 ``-D`` build defines from :func:`cl_defines` (``GT_KF_UPDATED``, ``GT_LM_S_DEN`` ...), which
@@ -16,7 +17,19 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["KalmanStatus", "LMLayout", "LMReason", "LMStatus", "cl_defines"]
+__all__ = ["ANGLE_MAX", "INTENSITY_MAX", "KalmanStatus", "LMLayout", "LMReason", "LMStatus", "cl_defines"]
+
+#: the RGB-D cost (gputrack/ops/template.py) clamps every gray pixel it reads to
+#: [-INTENSITY_MAX, INTENSITY_MAX] (NaN stays NaN), on every backend and in the reference: eq. 17's
+#: float32 sums over N points of T_i I_i and T_i^2 (templates' values are limited to the same
+#: range) then cannot overflow, and the cost, which beta makes invariant to the image's scale, is
+#: the same as for the unclamped image whenever no pixel exceeds the limit. 2**48 (2.8e14).
+INTENSITY_MAX = 1 << 48
+#: forward kinematics clamps every finite joint angle to [-ANGLE_MAX, ANGLE_MAX] rad before sin and
+#: cos, on every backend and in the reference (non-finite angles stay non-finite): float32 sine
+#: and cosine keep their accuracy up to there (the Taichi kernels' argument reduction is exact for
+#: |a| < 2**15 pi / 2), and an angle of thousands of turns is no pose. 2**15 = 32768 rad.
+ANGLE_MAX = 1 << 15
 
 
 class KalmanStatus(enum.IntEnum):
@@ -99,8 +112,9 @@ def _layout_slots() -> dict[str, int]:
 
 def cl_defines() -> dict[str, int]:
     """Every code and slot as an OpenCL build define: ``GT_KF_<status>``, ``GT_LM_<status>``,
-    ``GT_LM_R_<reason>``, ``GT_LM_<slot>``, and ``GT_ABI = 1`` (the sources check it)."""
-    out = {"GT_ABI": 1}
+    ``GT_LM_R_<reason>``, ``GT_LM_<slot>``, ``GT_INTENSITY_MAX``, ``GT_ANGLE_MAX`` and ``GT_ABI = 1``
+    (the sources check it)."""
+    out = {"GT_ABI": 1, "GT_INTENSITY_MAX": INTENSITY_MAX, "GT_ANGLE_MAX": ANGLE_MAX}
     out.update({f"GT_KF_{s.name}": int(s) for s in KalmanStatus})
     out.update({f"GT_LM_{s.name}": int(s) for s in LMStatus})
     out.update({f"GT_LM_R_{r.name}": int(r) for r in LMReason})

@@ -9,6 +9,71 @@ import logging
 import sys
 
 
+# -- argument types: a bad value ends in argparse's usage line and exit status 2 ---------------------
+def _int_at_least(low: int):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or v < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+        return v
+
+    return parse
+
+
+def _int_in(low: int, high: int):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or not low <= v <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{low}, {high}], got {text!r}")
+        return v
+
+    return parse
+
+
+def _float_above(low: float, *, inclusive: bool = False, high: float = float("inf")):
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            v = float("nan")
+        if not (v >= low if inclusive else v > low) or not v <= high or v == float("inf"):
+            want = f"{'>=' if inclusive else '>'} {low:g}" + (f" and <= {high:g}" if high < float("inf") else "")
+            raise argparse.ArgumentTypeError(f"expected a finite number {want}, got {text!r}")
+        return v
+
+    return parse
+
+
+DEVICE_HELP = "device spec (default: GPUTRACK_DEVICE, else the best available)"
+
+
+def _device_spec(text: str) -> str:
+    """A spec of a known form (whether its device is available is found when it is opened)."""
+    from .registry import parse_spec
+
+    try:
+        parse_spec(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
+def _face_sequence(text: str) -> str:
+    from .sim.face import SEQUENCES
+
+    if text in SEQUENCES or (text.isdigit() and int(text) < len(SEQUENCES)):
+        return text
+    raise argparse.ArgumentTypeError(
+        f"expected 0-{len(SEQUENCES) - 1} or one of {', '.join(SEQUENCES)}, got {text!r}"
+    )
+
+
 def format_devices(infos) -> str:
     """The device table: spec, available or not, fp64, kind, name or reason."""
     w = max([16, *(len(d.spec) + 2 for d in infos)])
@@ -31,6 +96,15 @@ def cmd_devices(args) -> int:
     return 0
 
 
+def _per_op_json(path: str, op: str) -> str:
+    """The file of ``op``'s results when several ops write JSON: FILE.json -> FILE.<op>.json, any
+    other FILE -> FILE.<op>.json (one file per op, never the same file twice)."""
+    from pathlib import Path
+
+    p = Path(path)
+    return str(p.with_suffix(f".{op}.json") if p.suffix == ".json" else p.with_name(f"{p.name}.{op}.json"))
+
+
 def cmd_bench(args) -> int:
     import importlib
     import pkgutil
@@ -50,15 +124,19 @@ def cmd_bench(args) -> int:
         for spec in args.device or ["all"]:
             argv += ["--device", spec]
         if args.json:
-            argv += ["--json", args.json if len(ops) == 1 else args.json.replace(".json", f".{name}.json")]
+            argv += ["--json", args.json if len(ops) == 1 else _per_op_json(args.json, name)]
         status |= bench_main(importlib.import_module(f"gputrack.benchmarks.{name}"), argv)
     return status
 
 
 def cmd_demo(args) -> int:
+    from .device import DeviceUnavailable
     from .registry import device
 
-    dev = device(args.device)
+    try:
+        dev = device(args.device)
+    except DeviceUnavailable as e:
+        args.parser.error(f"--device: {e}")
     if args.what == "face":
         from .demos import face
 
@@ -277,59 +355,62 @@ def main(argv=None) -> int:
     demo = sub.add_parser("demo", help="simulate a scene and track it (papers 000-003)")
     which = demo.add_subparsers(dest="what", required=True)
     p = which.add_parser("body", help="paper 000: upper-body PF + LM on simulated RGB-D")
-    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
-    p.add_argument("--frames", type=int, default=30, help="frames to simulate (default 30)")
-    p.add_argument("--sequence", type=int, default=0, help="simulated motion sequence 0-8 (default 0)")
-    p.add_argument("--lm", type=int, default=10, help="LM iterations per frame (0: particle filter only)")
-    p.add_argument("--stages", type=int, default=3, help="coarse-to-fine particle-filter stages (default 3)")
+    p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
+    p.add_argument("--frames", type=_int_at_least(2), default=30, help="frames to simulate (default 30)")
+    p.add_argument("--sequence", type=_int_in(0, 8), default=0, help="simulated motion sequence 0-8 (default 0)")
+    p.add_argument("--lm", type=_int_at_least(0), default=10, help="LM iterations per frame (0: particle filter only)")
+    p.add_argument("--stages", type=_int_at_least(1), default=3,
+                   help="coarse-to-fine particle-filter stages (default 3)")  # fmt: skip
     p.add_argument("--shoulders", action="store_true", help="estimate the shoulder positions too (20 parameters)")
-    p.add_argument("--template-every", type=int, default=1, help="re-render the template every N frames")
+    p.add_argument("--template-every", type=_int_at_least(1), default=1, help="re-render the template every N frames")
     p.add_argument(
         "--depth-tol",
-        type=float,
+        type=_float_above(0.0, inclusive=True),
         default=0.0,
         metavar="MM",
         help="depth differences up to MM count as none (default 0; 2.5 = half the simulator's 5 mm step)",
     )
-    p.add_argument("--depth-points", type=int, default=128, metavar="N", help="depth template points N' (default 128)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--depth-points", type=_int_at_least(1), default=128, metavar="N",
+                   help="depth template points N' (default 128)")  # fmt: skip
+    p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
-    p.set_defaults(func=cmd_demo)
+    p.set_defaults(func=cmd_demo, parser=p)
     p = which.add_parser("groups", help="paper 001: groups of people from a simulated stereo camera")
-    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
+    p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
     p.add_argument("--scene", choices=["crossing", "merging", "stairs"], default="crossing",
                    help="simulated scene (default crossing)")  # fmt: skip
-    p.add_argument("--seconds", type=float, help="seconds of people in view (default: the scene's, 5-6 s)")
+    p.add_argument("--seconds", type=_float_above(0.0), help="seconds of people in view (default: the scene's, 5-6 s)")
     p.add_argument("--points", action="store_true", help="feed the simulator's observation points, not images")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--save", metavar="DIR", help="write pictures (frames with groups, top view of trajectories)")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
-    p.set_defaults(func=cmd_demo)
+    p.set_defaults(func=cmd_demo, parser=p)
 
     p = which.add_parser("pedestrians", help="paper 002: pedestrians from a simulated level depth camera")
-    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
-    p.add_argument("--people", type=int, default=5, help="most people in view at once (default 5)")
-    p.add_argument("--frames", type=int, default=851, help="frames at 5 fps (default 851, as the paper)")
-    p.add_argument("--scale", type=float, default=1.0, help="image size: 1 = 1280 x 960 (default), 0.5 = 640 x 480")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
+    p.add_argument("--people", type=_int_at_least(1), default=5, help="most people in view at once (default 5)")
+    p.add_argument("--frames", type=_int_at_least(2), default=851, help="frames at 5 fps (default 851, as the paper)")
+    p.add_argument("--scale", type=_float_above(0.0, high=4.0), default=1.0,
+                   help="image size: 1 = 1280 x 960 (default), 0.5 = 640 x 480")  # fmt: skip
+    p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--no-ablations", action="store_true", help="skip the runs without the occlusion gain / split-merge")
     p.add_argument("--save", metavar="DIR", help="write pictures (top view of the tracks, depth with segments)")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
-    p.set_defaults(func=cmd_demo)
+    p.set_defaults(func=cmd_demo, parser=p)
 
     p = which.add_parser("face", help="paper 003: head pose, deformation and identity from a simulated camera")
-    p.add_argument("--device", help="device spec (default: GPUTRACK_DEVICE, else the best available)")
-    p.add_argument("--sequence", default="turns",
+    p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
+    p.add_argument("--sequence", type=_face_sequence, default="turns",
                    help="simulated sequence: 0-4 or turns, depth, expressions, lighting, mixed (default turns)")
-    p.add_argument("--frames", type=int, default=300, help="frames at 30 fps (default 300)")
+    p.add_argument("--frames", type=_int_in(1, 1_000_000), default=300, help="frames at 30 fps (default 300)")
     p.add_argument("--init", choices=["landmarks", "haar"], default="landmarks",
                    help="start from the first 7 frames' feature points (+1 px noise) or from a Haar face box")
     p.add_argument("--no-generic", action="store_true", help="skip the generic PCA model's run")
     p.add_argument("--no-floor", action="store_true", help="skip the run with the true identity (the depth floor)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--save", metavar="DIR", help="write pictures (frames with points and axes, errors over time)")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
-    p.set_defaults(func=cmd_demo)
+    p.set_defaults(func=cmd_demo, parser=p)
 
     track = sub.add_parser("track", help="track a real recording (paper 001 groups, 002 pedestrians, 003 face)")
     which = track.add_subparsers(dest="what", required=True)

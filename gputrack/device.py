@@ -9,6 +9,11 @@ Arrays on a device are :class:`DeviceArray` objects; the ``numpy`` device's arra
 NumPy arrays. Every upload and download goes through the device, which counts the bytes
 moved (``Device.transfers``) so that :class:`gputrack.Profiler` (and the Scheduler) can report them per stage.
 
+Every allocation and upload is first checked against what the device can hold
+(:meth:`Device.check_alloc`: dimensions, elements, bytes), so that an array too large for it is a
+``MemoryError`` naming the shape and the bytes instead of a backend's crash or raw error. A closed
+device, and an array of one given to any device, raise :class:`DeviceUnavailable`.
+
 Everything a backend builds per device (compiled programs, kernel objects, scratch buffers,
 uploaded constants) is memoised with :func:`per_device`: entries live on the device and go when
 it is closed. Fresh output arrays come from the device's caching allocator (gputrack/pool.py:
@@ -19,6 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
+import os
 import threading
 import weakref
 
@@ -46,6 +53,60 @@ SUPPORTED_DTYPES = tuple(np.dtype(t) for t in ("float32", "float64", "int32", "i
 
 class DeviceUnavailable(RuntimeError):
     """The requested backend exists but cannot run on this machine."""
+
+
+@functools.lru_cache(maxsize=1)
+def host_memory_bytes() -> int | None:
+    """The machine's physical memory in bytes (None where the system does not say)."""
+    try:
+        n = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+    return n if n > 0 else None
+
+
+def _bytes(n: int) -> str:
+    """``n`` bytes in words: "549755813888 bytes (512 GiB)"."""
+    for unit, shift in (("TiB", 40), ("GiB", 30), ("MiB", 20), ("KiB", 10)):
+        if n >= 1 << shift:
+            return f"{n} bytes ({n / (1 << shift):.4g} {unit})"
+    return f"{n} bytes"
+
+
+def _shape(shape) -> tuple:
+    return tuple(int(s) for s in shape)
+
+
+def as_host_array(value, name: str = "", dtype=None) -> np.ndarray:
+    """``numpy.asarray(value, dtype)``, with a clear error for a ragged nested sequence (NumPy's
+    own message speaks of an "inhomogeneous shape")."""
+    try:
+        return np.asarray(value, dtype=dtype)
+    except ValueError as e:
+        if "inhomogeneous" not in str(e) and "sequence" not in str(e):
+            raise
+        lengths = ""
+        if isinstance(value, (list, tuple)):
+            lengths = f" (lengths {[len(v) if hasattr(v, '__len__') else 'scalar' for v in value[:8]]})"
+        prefix = f"{name}: " if name else ""
+        raise ValueError(
+            f"{prefix}expected a rectangular array (nested sequences of equal lengths), got a ragged "
+            f"{type(value).__name__}{lengths}"
+        ) from None
+
+
+def foreign_array_error(array, device, name: str = "") -> Exception:
+    """The error for ``array`` (a DeviceArray) given to ``device``, which does not hold it:
+    DeviceUnavailable when the array's device was closed (its memory is gone), else ValueError."""
+    prefix = f"{name}: " if name else ""
+    if array.device.closed:
+        return DeviceUnavailable(
+            f"{prefix}expected an array on {device.spec}, got an array of a closed {array.device.spec} device "
+            "(its memory was released by close(); upload the data to the new device)"
+        )
+    return ValueError(
+        f"{prefix}expected an array on {device.spec} or a NumPy array, got an array on {array.device.spec}"
+    )
 
 
 def unavailable(spec: str, reason: str) -> DeviceUnavailable:
@@ -99,6 +160,12 @@ class Device:
     """
 
     backend: str = ""
+    closed: bool = False  # set by close()
+    #: most dimensions an array of this device may have (None: no limit)
+    max_ndim: int | None = None
+    #: most elements one array may have (None: no limit), and why
+    max_elements: int | None = None
+    max_elements_reason: str = ""
 
     def __init__(self, info: DeviceInfo):
         self.info = info
@@ -136,6 +203,36 @@ class Device:
             raise TypeError(f"expected float32 on {self.spec}: the device has no float64 support, got float64")
         return dt
 
+    def max_array_bytes(self) -> tuple[int | None, str]:
+        """The largest array this device can hold, in bytes (None: unknown), and what sets it.
+        Default: the machine's memory (backends whose arrays live elsewhere override it)."""
+        return host_memory_bytes(), "the machine's memory"
+
+    def check_alloc(self, shape, dtype) -> None:
+        """Check that an array of ``shape`` and ``dtype`` fits this device before it is allocated:
+        ValueError past ``max_ndim`` dimensions, MemoryError past ``max_elements`` elements or
+        past :meth:`max_array_bytes` (naming the shape and the bytes). Every allocation and upload
+        goes through it, so an output too large for the device is an error, not a crash."""
+        dt = dtype if isinstance(dtype, np.dtype) else np.dtype(dtype)
+        n = math.prod(map(int, shape))  # Python ints: a product of NumPy integers could wrap around
+        if self.max_ndim is not None and len(shape) > self.max_ndim:
+            raise ValueError(
+                f"expected an array of at most {self.max_ndim} dimensions on {self.spec}, got {len(shape)}: "
+                f"{dt.name} {_shape(shape)}"
+            )
+        nbytes = n * dt.itemsize
+        if self.max_elements is not None and n > self.max_elements:
+            raise MemoryError(
+                f"expected an array of at most {self.max_elements} elements on {self.spec} "
+                f"({self.max_elements_reason}), got {dt.name} {_shape(shape)}: {n} elements, {_bytes(nbytes)}"
+            )
+        limit, what = self.max_array_bytes()
+        if limit is not None and nbytes > limit:
+            raise MemoryError(
+                f"expected an array of at most {_bytes(limit)} on {self.spec} ({what}), got {dt.name} "
+                f"{_shape(shape)}: {_bytes(nbytes)}"
+            )
+
     def asarray(self, array, dtype=None, *, out=None):
         """Upload a NumPy array (or anything ``numpy.asarray`` accepts) to this device.
 
@@ -147,7 +244,9 @@ class Device:
         """
         self._check_open()
         if out is not None:
-            host = np.ascontiguousarray(np.asarray(array, dtype=dtype))
+            host = np.ascontiguousarray(as_host_array(array, dtype=dtype))
+            if isinstance(out, DeviceArray) and out.device is not self and out.device.closed:
+                raise foreign_array_error(out, self, "out")
             if not (isinstance(out, DeviceArray) and out.device is self):
                 raise TypeError(f"out: expected a DeviceArray on {self.spec}, got {type(out).__name__}")
             if host.shape != out.shape or host.dtype != out.dtype:
@@ -159,14 +258,15 @@ class Device:
             return out
         if isinstance(array, DeviceArray):
             if array.device is not self:
-                raise ValueError(f"expected an array on {self.spec}, got one on {array.device.spec}")
+                raise foreign_array_error(array, self)
             if dtype is not None and np.dtype(dtype) != array.dtype:
                 raise TypeError(f"expected dtype {np.dtype(dtype).name}, got {array.dtype.name}")
             return array
-        host = np.asarray(array, dtype=dtype)
+        host = as_host_array(array, dtype=dtype)
         self.check_dtype(host.dtype)
         if host.ndim == 0:
             raise ValueError(f"expected an array with at least one dimension, got a scalar of shape {host.shape}")
+        self.check_alloc(host.shape, host.dtype)
         host = np.ascontiguousarray(host)
         self.transfers.h2d += host.nbytes
         return self._wrap(self._upload(host), host.shape, host.dtype)
@@ -176,6 +276,7 @@ class Device:
         self._check_open()
         shape = tuple(int(s) for s in (shape if isinstance(shape, (tuple, list)) else (shape,)))
         dt = self.check_dtype(dtype)
+        self.check_alloc(shape, dt)
         return DeviceArray._new(self, self._empty(shape, dt), shape, dt)
 
     def to_numpy(self, array) -> np.ndarray:

@@ -30,6 +30,7 @@ __all__ = [
     "device",
     "devices",
     "implementation",
+    "parse_spec",
     "register",
     "spec_forms",
     "specs",
@@ -219,6 +220,13 @@ def _parse(spec) -> tuple[Backend, str, str]:
         if arg is not None:
             return b, arg, s.lower()  # OpenCL selectors match case-insensitively
     raise ValueError(f"unknown device spec {spec!r}; expected one of: {spec_forms()}")
+
+
+def parse_spec(spec: str) -> str:
+    """``spec`` if it is of a known form (see :func:`spec_forms`), else TypeError/ValueError;
+    nothing is probed or opened."""
+    _parse(spec)
+    return spec
 
 
 def _available() -> str:

@@ -195,6 +195,7 @@ class Scheduler:
     def run(self, **inputs) -> dict:
         """Run one frame: upload ``inputs`` (NumPy arrays by name), run the stages, return the outputs
         as NumPy arrays by name. Raises :class:`SkipFrame` when a stage ends the frame early."""
+        self.device._check_open()  # DeviceUnavailable for a closed device, before any stage runs
         missing = [n for n in self.inputs if n not in inputs]
         extra = [n for n in inputs if n not in self.inputs]
         if missing or extra:

@@ -26,6 +26,15 @@
 #define CHUNK 64
 #define GT_TINY 1e-12f
 #define GT_BIG 3.0e38f
+#ifndef GT_INTENSITY_MAX
+#error "gt_template.cl needs the ABI defines (gputrack.abi.cl_defines)"
+#endif
+// A gray pixel clamped to [-GT_INTENSITY_MAX, GT_INTENSITY_MAX] (gputrack/abi.py INTENSITY_MAX); NaN stays NaN.
+inline realv gt_clamp_i(const realv x)
+{
+    const float m = (float)GT_INTENSITY_MAX;
+    return select(select(x, (realv)(-m), x < -m), (realv)m, x > m);
+}
 
 // The camera-from-part transform rows of part j for the lanes' hypotheses bl.
 typedef struct {
@@ -107,8 +116,8 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             const intv x0 = min(TO_INT(uc), w - 2), y0 = min(TO_INT(vc), h - 2);
             const intv k = y0 * w + x0;
             const realv a = uc - TO_REAL(x0), bw = vc - TO_REAL(y0);
-            const realv i00 = GATHER(gray, k), i01 = GATHER(gray, k + 1);
-            const realv i10 = GATHER(gray, k + w), i11 = GATHER(gray, k + w + 1);
+            const realv i00 = gt_clamp_i(GATHER(gray, k)), i01 = gt_clamp_i(GATHER(gray, k + 1));
+            const realv i10 = gt_clamp_i(GATHER(gray, k + w)), i11 = gt_clamp_i(GATHER(gray, k + w + 1));
             const realv top = i00 + a * (i01 - i00), bot = i10 + a * (i11 - i10);
             const realv I = top + bw * (bot - top);  // sec. 3.5: bilinear
             const realv Tv = select((realv)0.0f, (realv)T, ok);

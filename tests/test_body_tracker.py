@@ -164,6 +164,34 @@ def test_bad_frames_keep_the_last_pose(device, arm_cross):
         BodyTracker(device, np.full(14, np.nan))
 
 
+def test_frames_and_templates_are_checked_on_every_device(device, arm_cross):
+    """NaN/inf gray frames are refused on every device as on numpy (on the host copy, before the
+    upload; taichi:cpu, opencl and vulkan took them); templates that are not SparseTemplates are a
+    TypeError naming what was expected; a frame whose cost is not finite keeps the last pose with
+    confidence 0 whatever computed it."""
+    seq, frames = arm_cross
+    tracker = BodyTracker(device, seq.params[0], config=BodyTrackerConfig(lm_iterations=0, samples=100))
+    gray, depth = frames[1].gray, frames[1].depth
+    for value in (np.nan, np.inf, -np.inf):
+        bad = gray.copy()
+        bad[5, 7] = value
+        with pytest.raises(ValueError, match=rf"^gray: expected finite values, got {value} at index \(5, 7\)\Z"):
+            tracker.track(bad, depth)
+    with pytest.raises(ValueError, match=r"^gray: expected finite values, got nan at index \(0, 0\)\Z"):
+        tracker.track(np.full_like(gray, np.nan), depth)
+    want = r"^templates: expected None or a pair \(RGB, depth\) of gputrack.SparseTemplate, got tuple of str, str\Z"
+    with pytest.raises(TypeError, match=want):
+        tracker.track(gray, depth, templates=("a", "b"))
+    with pytest.raises(TypeError, match=r"got str\Z"):
+        tracker.track(gray, depth, templates="ab")
+    assert tracker.frame_index == 0  # nothing ran
+    start = tracker.params.copy()
+    tracker.scheduler.run = lambda **inputs: {"estimate": tracker.candidates.copy(), "cost": float("inf")}
+    est = tracker.track(gray, depth)
+    assert est.confidence == 0.0 and "no finite cost" in est.message
+    np.testing.assert_array_equal(est.params, start)
+
+
 def _icl_frames():
     if not ICL.is_dir():
         pytest.skip(f"real data not found at {ICL}")

@@ -39,6 +39,25 @@ def test_shoulders_off_moves_each_shoulder_30mm():
         shoulders_off(p[:14], 0)
 
 
-def test_demo_rejects_a_one_frame_sequence(capsys):
-    with pytest.raises(ValueError, match="frames: expected at least 2"):
-        main(["demo", "body", "--device", "numpy", "--frames", "1"])
+@pytest.mark.parametrize("argv, message", [
+    (["body", "--frames", "1"], "argument --frames: expected an integer >= 2, got '1'"),
+    (["body", "--sequence", "9"], "argument --sequence: expected an integer in [0, 8], got '9'"),
+    (["body", "--stages", "0"], "argument --stages: expected an integer >= 1, got '0'"),
+    (["body", "--depth-tol", "nan"], "argument --depth-tol: expected a finite number >= 0, got 'nan'"),
+    (["body", "--device", "nope"], "argument --device: unknown device spec 'nope'; expected one of: "),
+    (["body", "--device", "opencl:no-such-device"], "--device: opencl:no-such-device is not available: "),
+    (["groups", "--seconds", "0"], "argument --seconds: expected a finite number > 0, got '0'"),
+    (["pedestrians", "--scale", "5"], "argument --scale: expected a finite number > 0 and <= 4, got '5'"),
+    (["face", "--sequence", "9"], "argument --sequence: expected 0-4 or one of turns, depth, expressions, lighting, mixed, got '9'"),
+    (["face", "--frames", "0"], "argument --frames: expected an integer in [1, 1000000], got '0'"),
+])  # fmt: skip
+def test_bad_demo_arguments_end_in_a_usage_line(argv, message, capsys):
+    """argparse's usage line and exit status 2, not a traceback, for a bad demo argument."""
+    what, rest = argv[0], argv[1:]
+    if "--device" not in rest:
+        rest += ["--device", "numpy"]
+    with pytest.raises(SystemExit) as e:
+        main(["demo", what, *rest])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"usage: gputrack demo {what}") and f"gputrack demo {what}: error: {message}" in err, err

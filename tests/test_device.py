@@ -139,3 +139,98 @@ def test_per_device_memoises_per_device_and_forgets_a_closed_device():
     assert a._memo == {} and thing(b, 1) is kept
     thing.cache_clear(b)
     assert thing(b, 1) is not kept
+
+
+# -- sizes checked against the device before anything is allocated -------------------------------
+def test_an_array_too_large_for_the_device_is_a_memory_error(device, monkeypatch):
+    """512 GiB (the (2**17, 2**20) Mahalanobis table of the fuzz run, a crash on taichi:cpu) is
+    refused on every device, naming the shape and the bytes; so is anything past the device's
+    limit (here set low), for a new array, an upload and an op's output, before the op works."""
+    shape = (2**17, 2**20)
+    with pytest.raises(MemoryError, match=r"got float32 \(131072, 1048576\): .*549755813888 bytes \(512 GiB\)"):
+        device.empty(shape)
+    monkeypatch.setattr(device, "max_array_bytes", lambda: (1000, "a test limit"))
+    want = rf"^expected an array of at most 1000 bytes on {device.spec} \(a test limit\), got float32 \(251,\): 1004 bytes\Z"
+    with pytest.raises(MemoryError, match=want):
+        device.empty((251,))
+    with pytest.raises(MemoryError, match=want):  # a view to copy: an upload on every device
+        device.asarray(np.broadcast_to(np.zeros(1, np.float32), (251,)))
+    x, P = np.zeros((6, 2), np.float32), np.tile(np.eye(2, dtype=np.float32), (6, 1, 1))
+    with pytest.raises(MemoryError, match=r"got float32 \(6, 42\): 1008 bytes"):
+        gputrack.mahalanobis(device, x, P, np.eye(2, dtype=np.float32), np.eye(2, dtype=np.float32),
+                             np.zeros((42, 2), np.float32))  # fmt: skip
+    assert device.empty((250,)).shape == (250,)  # up to the limit
+
+
+def test_the_device_limits_come_from_the_backend(device):
+    limit, what = device.max_array_bytes()
+    assert limit is None or limit > 2**26, (limit, what)
+    if device.backend == "opencl":
+        assert limit == min(device.cl_device.max_mem_alloc_size, device.cl_device.global_mem_size)
+        n = limit // 4 + 1  # one float32 past the largest buffer
+        with pytest.raises(MemoryError, match=rf"on {device.spec} \(the OpenCL device's largest buffer\), got float32 \({n},\)"):
+            device.empty((n,))
+    if device.backend == "taichi":
+        assert device.max_elements == 2**31 - 1 and device.max_ndim == 12
+        with pytest.raises(MemoryError, match=r"at most 2147483647 elements on .*32-bit integers\), got uint8 \(2147483648,\)"):
+            device.empty((2**31,), np.uint8)
+
+
+def test_arrays_of_more_dimensions_than_the_device_has(device):
+    """Taichi holds at most 12 dimensions (a 20-dimensional array gave "argument not found")."""
+    if device.max_ndim is None:
+        x = np.arange(2, dtype=np.float32).reshape((2,) + (1,) * 19)
+        np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(x)), x)
+        return
+    x = np.arange(2, dtype=np.float32).reshape((2,) + (1,) * (device.max_ndim - 1))
+    np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(x)), x)
+    want = rf"^expected an array of at most 12 dimensions on {device.spec}, got 20: float32 \(1(, 1){{19}}\)\Z"
+    with pytest.raises(ValueError, match=want):
+        device.asarray(np.zeros((1,) * 20, np.float32))
+    with pytest.raises(ValueError, match=want):
+        device.empty((1,) * 20)
+
+
+def test_a_ragged_list_is_not_an_array(device):
+    want = r"expected a rectangular array \(nested sequences of equal lengths\), got a ragged list \(lengths \[2, 1\]\)"
+    with pytest.raises(ValueError, match="^" + want):
+        device.asarray([[1.0, 2.0], [3.0]])
+    with pytest.raises(ValueError, match="^scores: " + want):
+        gputrack.best_k(device, [[1.0, 2.0], [3.0]], 1)
+    with pytest.raises(ValueError, match="^x: " + want):
+        gputrack.kf_predict(device, [[1.0, 2.0], [3.0]], np.zeros((2, 2, 2)), np.eye(2), np.eye(2))
+
+
+# -- closed devices -----------------------------------------------------------------------------
+def _fresh(device):
+    """A second device object of ``device``'s backend, closed by the caller (not the session's)."""
+    if device.backend == "numpy":
+        from gputrack.backends.reference.device import NumpyDevice
+
+        return NumpyDevice()
+    from gputrack.backends.opencl.device import open_opencl
+
+    return open_opencl(device.spec.partition(":")[2])
+
+
+def test_a_closed_device_and_its_arrays_are_unavailable(device):
+    """Tracking on a closed device, or passing its array to another device: DeviceUnavailable.
+    (Taichi runs one program per process: tests/test_registry.py closes taichi:cpu in a subprocess.)"""
+    if device.backend == "taichi":
+        pytest.skip("Taichi devices are closed in a subprocess (test_registry.py)")
+    from gputrack.models import upper_body
+    from gputrack.trackers.body import BodyTracker
+
+    fresh = _fresh(device)
+    old = fresh.asarray(np.zeros(5, np.float32))
+    tracker = BodyTracker(fresh, upper_body().rest_params())
+    fresh.close()
+    with pytest.raises(gputrack.DeviceUnavailable, match="was closed"):
+        tracker.track(np.zeros((480, 640), np.float32), np.zeros((480, 640), np.float32))
+    if device.backend == "numpy":
+        return  # its arrays are NumPy arrays
+    want = rf"expected an array on {device.spec}, got an array of a closed {fresh.spec} device"
+    with pytest.raises(gputrack.DeviceUnavailable, match="^scores: " + want):
+        gputrack.best_k(device, old, 1)
+    with pytest.raises(gputrack.DeviceUnavailable, match="^" + want):
+        device.asarray(old)

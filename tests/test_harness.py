@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from gputrack.benchmarks import harness
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,6 +55,28 @@ def test_bench_json_schema(tmp_path):
 def test_cli_bench_rejects_unknown_op():
     r = subprocess.run([sys.executable, "-m", "gputrack.cli", "bench", "--op", "nope"], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "unknown --op nope" in r.stderr
+
+
+@pytest.mark.parametrize("given, files", [
+    ("out", ["out.transfer.json", "out.kalman.json"]),
+    ("out.json", ["out.transfer.json", "out.kalman.json"]),
+    ("out.txt", ["out.txt.transfer.json", "out.txt.kalman.json"]),
+])  # fmt: skip
+def test_cli_bench_json_gives_each_op_its_own_file(tmp_path, monkeypatch, given, files):
+    """--json FILE with several ops: one file per op, also when FILE does not end in .json (all
+    ops wrote the same FILE before)."""
+    from gputrack import cli
+
+    written = []
+
+    def bench_main(module, argv):
+        written.append(argv[argv.index("--json") + 1])
+        return 0
+
+    monkeypatch.setattr(harness, "bench_main", bench_main)
+    argv = ["bench", "--device", "numpy", "--op", "transfer", "--op", "kalman", "--json", str(tmp_path / given)]
+    assert cli.main(argv) == 0
+    assert written == [str(tmp_path / f) for f in files]
 
 
 def test_cli_bench_lists_the_definitions_not_the_harness(capsys):

@@ -6,6 +6,7 @@ pinned to a textbook per-track loop (np.linalg, one filter at a time, float64).
 
 import numpy as np
 import pytest
+from allocations import rejects_without_allocating
 from tolerances import assert_matches
 
 import gputrack
@@ -517,6 +518,45 @@ def test_bad_input(device):
             kf_update(device, x, P, z, H, R, out=(x.copy(), P.copy(), np.zeros(5, np.uint8)))
         with pytest.raises(TypeError, match="float64 or float32|expected dtype float32"):
             kf_predict(device, x, device.asarray(P.astype(np.float64)) if device.fp64 else P.astype(np.int32), F, Q)
+
+
+def test_shapes_are_checked_before_any_value_is_read(device):
+    """A wrong shape is rejected before anything is scanned, copied or uploaded: a wrong (1e5, 6) F
+    took 3.2 s (its zero pattern was computed first), a (2**32, 6) broadcast view never returned,
+    and broadcast x, z and detections of 2**32 rows were copied before the shapes were compared."""
+    rng = np.random.default_rng(3)
+    x, P, F, Q, z, H, R = problem(rng, 5, 6, 2)
+    rows = 2**32
+
+    def view(*shape):
+        return np.broadcast_to(np.ones(1, np.float32), shape)
+
+    wrong = np.ones((100_000, 6), np.float32)
+    rejects_without_allocating(ValueError, r"^F: expected shape \(n=6, n=6\), got \(100000, 6\)\Z",
+                               lambda: kf_predict(device, x, P, wrong, Q))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^F: expected shape \(n=6, n=6\), got \(4294967296, 6\)\Z",
+                               lambda: kf_predict(device, x, P, view(rows, 6), Q))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^Q: expected shape \(n=6, n=6\), got \(4294967296, 6\)\Z",
+                               lambda: kf_update(device, x, P, z, H, R, predict=(F, view(rows, 6))))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^P: expected shape \(T=4294967296, n=6, n=6\), got \(5, 6, 6\)\Z",
+                               lambda: kf_update(device, view(rows, 6), P, z, H, R))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^z: expected shape \(T=5, m\), got \(4294967296, 2\)\Z",
+                               lambda: kf_update(device, x, P, view(rows, 2), H, R))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^mask: expected shape \(T=5\), got \(4294967296,\)\Z",
+                               lambda: kf_update(device, x, P, z, H, R, mask=view(rows)))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^P: expected shape \(T=4294967296, n=6, n=6\), got \(5, 6, 6\)\Z",
+                               lambda: mahalanobis(device, view(rows, 6), P, H, R, z))  # fmt: skip
+    rejects_without_allocating(ValueError, r"^H: expected shape \(m=3, n=6\), got \(2, 6\)\Z",
+                               lambda: mahalanobis(device, x, P, H, R, view(rows, 3)))  # fmt: skip
+
+
+def test_a_distance_table_too_large_for_the_device_is_a_memory_error(device):
+    """2**17 tracks x 2**20 detections: a 512 GiB result (a SIGSEGV on taichi:cpu before)."""
+    T, D = 2**17, 2**20
+    x, P = np.zeros((T, 2), np.float32), np.broadcast_to(np.eye(2, dtype=np.float32), (T, 2, 2))
+    I2 = np.eye(2, dtype=np.float32)
+    with pytest.raises(MemoryError, match=r"got float32 \(131072, 1048576\): .*549755813888 bytes \(512 GiB\)"):
+        mahalanobis(device, x, P, I2, I2, np.zeros((D, 2), np.float32))
 
 
 def test_constant_velocity():

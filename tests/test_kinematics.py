@@ -3,6 +3,7 @@ import pytest
 from tolerances import assert_matches
 
 import gputrack
+from gputrack.abi import ANGLE_MAX
 from gputrack.backends.reference.kinematics import forward_kinematics as reference
 from gputrack.models import Chain, Part, Shape, rigid, upper_body
 from gputrack.ops.kinematics import forward_kinematics
@@ -118,6 +119,31 @@ def test_large_angles(device):
         assert_matches(device, got / 2000.0, want / 2000.0, dt)
 
 
+def test_angles_past_the_limit_are_clamped_on_every_backend(device):
+    """Finite angles beyond ANGLE_MAX = 2**15 rad are clamped to it everywhere (Taichi gave NaN from
+    1e20 rad, and its float32 sine was 1e-3 off at 3e4 rad: fast math undid the argument reduction);
+    angles up to the limit match the reference; inf and NaN angles still give non-finite transforms."""
+    chain = upper_body()
+    angles = [i for part in chain.parts for i in part.angles]
+    values = np.array([1e2, 3e4, -ANGLE_MAX, ANGLE_MAX, 5e4, 1e20, -3e38, 3e38])
+    p = np.repeat(random_params(chain, 1, seed=9), len(values), axis=0)
+    p[:, angles] = values[:, None] * np.linspace(1.0, 0.5, len(angles))  # every angle its own value
+    for dt in dtypes(device):
+        got = gputrack.to_numpy(forward_kinematics(device, chain, p.astype(dt)))
+        want = reference(None, chain, p.astype(dt))
+        assert np.isfinite(got).all()
+        assert_matches(device, got[..., :3], want[..., :3], dt)
+        assert_matches(device, got[..., 3] / 2000.0, want[..., 3] / 2000.0, dt)
+    clamped = p.copy()
+    clamped[:, angles] = np.clip(p[:, angles], -ANGLE_MAX, ANGLE_MAX)
+    np.testing.assert_array_equal(reference(None, chain, p), reference(None, chain, clamped))
+    if device.backend != "numpy":  # host params are checked; device params carry inf / NaN through
+        host = np.repeat(p[:1], 2, axis=0).astype(np.float32)
+        host[0, angles[0]], host[1, angles[0]] = np.inf, np.nan
+        got = gputrack.to_numpy(forward_kinematics(device, chain, device.asarray(host)))
+        assert not np.isfinite(got[0, 0]).all() and not np.isfinite(got[1, 0]).all()
+
+
 def test_device_arrays_in_and_rotations_orthonormal(device):
     chain = upper_body()
     p = device.asarray(random_params(chain, 129, seed=7).astype(np.float32))
@@ -204,9 +230,9 @@ def test_building_blocks_for_fused_kernels(device):
     if device.backend == "opencl":
         import pyopencl as cl
 
-        from gputrack.backends.opencl.program import kernel_dir
+        from gputrack.backends.opencl.program import build_options
 
-        prg = cl.Program(device.context, FUSED_CL).build(options=[f"-I{kernel_dir()}"])
+        prg = cl.Program(device.context, FUSED_CL).build(options=build_options())  # the ABI defines too
         prg.fused(device.queue, (13,), None, dp.buffer.data, table.buffer.data, offsets.buffer.data,
                   scratch.buffer.data, tips.buffer.data, np.int32(14), np.int32(5))  # fmt: skip
     else:

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from allocations import rejects_without_allocating
 from tolerances import assert_matches
 
 import gputrack
@@ -169,3 +170,10 @@ def test_bad_input(device):
         best_k(device, scores, 3, rows=np.zeros((19, 2), np.float32))
     with pytest.raises(TypeError, match="scores: expected dtype float32"):
         best_k(device, scores.astype(np.int32), 3)
+    # shapes first: broadcast views of 2**32 rows are rejected without being copied or scanned
+    rows = np.broadcast_to(np.zeros(1, np.float32), (2**32, 3))
+    rejects_without_allocating(ValueError, r"^rows: expected shape \(B=20, P\), got \(4294967296, 3\)\Z",
+                               lambda: best_k(device, scores, 3, rows=rows))  # fmt: skip
+    many = np.broadcast_to(np.zeros(1, np.float32), (2**32,))
+    rejects_without_allocating(ValueError, r"^rows: expected shape \(B=4294967296, P\), got \(20, 3\)\Z",
+                               lambda: best_k(device, many, 3, rows=np.zeros((20, 3), np.float32)))  # fmt: skip

@@ -6,6 +6,7 @@ no sampled parameter moves (cascade stages), which must not change the scores be
 """
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -105,30 +106,37 @@ def test_pf_stage_keeps_the_best_candidate(device, scene):
     assert gputrack.to_numpy(got.scores)[0] <= gputrack.to_numpy(base.total).min() * (1 + rtol) + atol
 
 
+def whole(message: str) -> str:
+    """A ``pytest.raises(match=...)`` pattern that matches ``message`` whole, nothing more or less."""
+    return "^" + re.escape(message) + r"\Z"
+
+
 def test_pf_stage_rejects_bad_input(device, scene):
     chain, frame, rgb, dep, camera, cand, groups = scene
     sigma = _sigma(chain, groups[0])
     args = (rgb, dep, frame.gray, frame.depth, camera)
-    with pytest.raises(TypeError, match="chain"):
+    with pytest.raises(TypeError, match=whole("chain: expected a gputrack.models.Chain, got str")):
         pf_stage(device, "upper body", cand, sigma, 100, 1, *args)
-    with pytest.raises(ValueError, match="candidates"):
+    with pytest.raises(ValueError, match=whole("candidates: expected shape (C=10, P=14), got (10, 5)")):
         pf_stage(device, chain, cand[:, :5], sigma, 100, 1, *args)
-    with pytest.raises(ValueError, match="sigma"):
-        pf_stage(device, chain, cand, -sigma - 1, 100, 1, *args)
-    with pytest.raises(ValueError, match="sigma"):
+    negative = -sigma - 1
+    with pytest.raises(ValueError, match=whole(f"sigma: expected finite standard deviations >= 0, got {negative}")):
+        pf_stage(device, chain, cand, negative, 100, 1, *args)
+    with pytest.raises(ValueError, match=whole("sigma: expected a real (P=14,) array, got float32 (3,)")):
         pf_stage(device, chain, cand, sigma[:3], 100, 1, *args)
     if device.backend != "numpy":
-        with pytest.raises(TypeError, match="sigma"):
+        want = "sigma: expected a NumPy array (it decides on the host which parts move), got a DeviceArray"
+        with pytest.raises(TypeError, match=whole(want)):
             pf_stage(device, chain, cand, device.asarray(sigma), 100, 1, *args)
-    with pytest.raises(ValueError, match="n:"):
+    with pytest.raises(ValueError, match=whole("n: expected C=10 <= n and n (P + C + 1) < 2**31, got 5")):
         pf_stage(device, chain, cand, sigma, 5, 1, *args)
-    with pytest.raises(ValueError, match="k:"):
+    with pytest.raises(ValueError, match=whole("k: expected an integer in [1, n=100], got 0")):
         pf_stage(device, chain, cand, sigma, 100, 1, *args, k=0)
-    with pytest.raises(ValueError, match="seed"):
+    with pytest.raises(ValueError, match=whole("seed: expected an integer in [0, 2**64), got -1")):
         pf_stage(device, chain, cand, sigma, 100, -1, *args)
     two_parts = dataclasses.replace(chain, parts=chain.parts[:2], n_params=8, param_names=chain.param_names[:8],
                                     rest=chain.rest[:8])  # fmt: skip
-    with pytest.raises(ValueError, match="part indices"):
+    with pytest.raises(ValueError, match=whole("rgb.part: expected part indices in [0, J=2), got 4")):
         pf_stage(device, two_parts, cand[:, :8], sigma[:8], 100, 1, *args)
 
 

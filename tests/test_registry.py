@@ -206,6 +206,34 @@ def test_arrays_kept_past_a_taichi_restart_leave_the_next_program_intact():
     assert "BAD []" in r.stdout, r.stdout + r.stderr
 
 
+def test_a_closed_taichi_device_and_its_arrays_are_unavailable():
+    """Tracking after close() (a Taichi-internal AttributeError before) and an array of the closed
+    device given to the reopened one (a message naming taichi:cpu twice): DeviceUnavailable."""
+    code = """
+        import numpy as np, gputrack
+        from gputrack.models import upper_body
+        from gputrack.trackers.body import BodyTracker
+        dev = gputrack.device("taichi:cpu")
+        old = dev.asarray(np.zeros(5, np.float32))
+        tracker = BodyTracker(dev, upper_body().rest_params())
+        dev.close()
+        again = gputrack.device("taichi:cpu")
+        frame = np.zeros((480, 640), np.float32)
+        for name, call in (("track", lambda: tracker.track(frame, frame)), ("sync", dev.synchronize),
+                           ("op", lambda: gputrack.best_k(again, old, 1)), ("upload", lambda: again.asarray(old))):
+            try:
+                call()
+                print(name, "no error")
+            except Exception as e:
+                print(name, type(e).__name__, e)
+    """
+    r = run_py(code)
+    closed = "DeviceUnavailable taichi:cpu was closed; get a new device with gputrack.device('taichi:cpu')"
+    assert f"track {closed}" in r.stdout and f"sync {closed}" in r.stdout, (r.stdout, r.stderr)
+    other = "expected an array on taichi:cpu, got an array of a closed taichi:cpu device"
+    assert f"op DeviceUnavailable scores: {other}" in r.stdout and f"upload DeviceUnavailable {other}" in r.stdout
+
+
 def test_taichi_cpu_thread_count_follows_the_environment():
     code = """
         import gputrack, taichi as ti
@@ -220,8 +248,11 @@ def test_taichi_cpu_thread_count_follows_the_environment():
     r = run_py(code, env={"GPUTRACK_CPU_THREADS": "3"})
     assert "THREADS 3" in r.stdout, (r.stdout, r.stderr)
     assert "DEFAULT 3" in r.stdout
-    r = run_py(code, env={"GPUTRACK_CPU_THREADS": "0"})
-    assert "GPUTRACK_CPU_THREADS: expected a positive integer, got '0'" in r.stdout, (r.stdout, r.stderr)
+    # a value that is not a positive integer: a warning naming it, and the default
+    default = 2 * len(os.sched_getaffinity(0))
+    r = run_py(code, env={"GPUTRACK_CPU_THREADS": "two"})
+    assert f"THREADS {default}" in r.stdout, (r.stdout, r.stderr)
+    assert "RuntimeWarning: GPUTRACK_CPU_THREADS: expected a positive integer, got 'two'" in r.stderr, r.stderr
     env = {k: v for k, v in os.environ.items() if k != "GPUTRACK_CPU_THREADS"}
     r = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=300,
                        cwd=ROOT, env=env)  # fmt: skip

@@ -8,12 +8,13 @@ import math
 
 import numpy as np
 import pytest
+from allocations import rejects_without_allocating
 from tolerances import assert_matches
 
 import gputrack
 from gputrack.models.camera import Camera
 from gputrack.models.chain import rotation_zyx
-from gputrack.ops.template import SparseTemplate, rgbd_cost, rgbd_residuals
+from gputrack.ops.template import MAX_PARTS, SparseTemplate, rgbd_cost, rgbd_residuals
 
 REF = gputrack.device("numpy")
 
@@ -439,6 +440,41 @@ def test_bad_templates_and_cameras():
     t = SparseTemplate(np.zeros((3, 3)), np.array([2, 0, 2], np.int64), [1, 2, 3])
     assert t.n == 3 and t.n_parts == 3 and t.xyz.dtype == np.float32 and t.part.dtype == np.int32
     assert list(t.start) == [0, 1, 1, 3] and list(t.perm) == [1, 0, 2]
+
+
+def test_part_indices_are_checked_before_anything_is_sized_by_them():
+    """A part index of 2e9 made the template size its index by it (> 15 GB touched)."""
+    xyz, part = np.zeros((1, 3)), np.array([2_000_000_000])
+    rejects_without_allocating(ValueError, r"^part: expected indices < MAX_PARTS = 65536, got 2000000000\Z",
+                               lambda: SparseTemplate(xyz, part))  # fmt: skip
+    rows = np.broadcast_to(np.zeros(1), (2**32, 3))
+    rejects_without_allocating(ValueError, r"^part: expected shape \(N=4294967296,\), got \(1,\)\Z",
+                               lambda: SparseTemplate(rows, np.zeros(1, np.int32)))  # fmt: skip
+    assert SparseTemplate(xyz, np.array([MAX_PARTS - 1])).n_parts == MAX_PARTS
+    with pytest.raises(ValueError, match=r"^value: expected \|values\| <= INTENSITY_MAX = 2\*\*48, got -3e\+38 at index \(1,\)\Z"):
+        SparseTemplate(np.zeros((2, 3)), np.zeros(2, np.int32), np.array([1.0, -3e38]))
+
+
+@pytest.mark.parametrize("image", ["3e38", "gray x 1e36", "+-3e38"])
+def test_extreme_gray_values_give_the_references_cost(device, image):
+    """Every backend clamps gray pixels to +-INTENSITY_MAX (gputrack/abi.py) as the reference does:
+    gray = 3e38 gave 23.2 on the devices against 11.1 (their float32 sums of T I overflowed). An
+    image whose pixels all exceed the limit scores as a constant image (beta: scale invariance)."""
+    rng = np.random.default_rng(21)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 13, 57, 31)
+    big = {"3e38": np.full_like(gray, 3e38), "gray x 1e36": gray * np.float32(1e36),
+           "+-3e38": np.where((np.indices(gray.shape).sum(axis=0) % 2) == 0, 3e38, -3e38).astype(np.float32)}[image]
+    want = run_cost(REF, tf, rgb, dep, big, depth, cam)
+    got = run_cost(device, tf, rgb, dep, big, depth, cam)
+    for f in ("total", "rgb", "depth"):
+        assert np.isfinite(getattr(want, f)).all()
+        assert_matches(device, getattr(got, f), getattr(want, f), err_msg=f)
+    if image == "+-3e38":
+        return  # a sample between +-2**48 pixels is ill-conditioned: single residuals differ by ~1e-3
+    res = run_res(device, tf, rgb, dep, big, depth, cam)
+    assert_matches(device, res, run_res(REF, tf, rgb, dep, big, depth, cam), scale=5.0)
+    flat = run_cost(REF, tf, rgb, dep, np.full_like(gray, 7.0), depth, cam)
+    np.testing.assert_allclose(want.rgb, flat.rgb, rtol=1e-5)
 
 
 def test_selftest(device):

@@ -27,6 +27,7 @@ import functools
 
 import numpy as np
 
+from ..abi import ANGLE_MAX
 from ..device import per_device_cache
 
 __all__ = ["AXES", "Chain", "Part", "Shape", "chain_tables", "compose", "joint_transform", "rotation"]
@@ -270,13 +271,21 @@ def rotation_zyx(th, ph, ps) -> np.ndarray:
     return rotation("z", th) @ rotation("y", ph) @ rotation("x", ps)
 
 
+def clamp_angle(a) -> np.ndarray:
+    """Finite angles clamped to [-ANGLE_MAX, ANGLE_MAX] rad (gputrack/abi.py: what every backend's
+    forward kinematics does before sin and cos); inf and NaN are kept."""
+    a = np.asarray(a)
+    return np.where(np.isfinite(a) & (np.abs(a) > ANGLE_MAX), np.copysign(ANGLE_MAX, a).astype(a.dtype), a)
+
+
 def joint_transform(part: Part, params: np.ndarray) -> np.ndarray:
-    """Parent-from-part transforms (B, 3, 4) of one joint for parameters (B, P) (eq. 6, 10, 11)."""
+    """Parent-from-part transforms (B, 3, 4) of one joint for parameters (B, P) (eq. 6, 10, 11);
+    angles past ANGLE_MAX are clamped (:func:`clamp_angle`)."""
     params = np.asarray(params)
     b = params.shape[0]
     r = np.broadcast_to(np.eye(3, dtype=params.dtype), (b, 3, 3))
     for axis, i in zip(part.axes, part.angles):
-        r = r @ rotation(axis, params[:, i])
+        r = r @ rotation(axis, clamp_angle(params[:, i]))
     t = np.broadcast_to(np.asarray(part.offset, dtype=params.dtype), (b, 3)).copy()
     for k, i in enumerate(part.translation):
         if i >= 0:

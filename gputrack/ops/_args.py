@@ -5,13 +5,18 @@ values) and returns it on the op's device: a NumPy array for the ``numpy`` devic
 DeviceArray (uploading a NumPy input, which the device counts as a transfer). Messages read
 "<name>: expected X, got Y". Finiteness is checked for host (NumPy) inputs; arrays already on a
 device are trusted, since checking them would cost a download.
+
+Checks run cheapest first and never copy more than the input holds: type and dtype, then the shape
+(before any conversion, so a wrong-shaped broadcast view of 2**32 rows is rejected at once), then
+whether the device can hold the array (:meth:`gputrack.Device.check_alloc`), then the values
+(finiteness over the memory the view really reads), then the upload.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..device import Device, DeviceArray
+from ..device import Device, DeviceArray, as_host_array, foreign_array_error
 
 FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
 
@@ -24,6 +29,44 @@ def _fmt_shape(spec, dims) -> str:
         else:
             parts.append(str(s))
     return "(" + ", ".join(parts) + ")"
+
+
+def shape_of(x, name: str) -> tuple:
+    """The shape ``x`` (an array, a DeviceArray or a nested sequence) has as an array, without
+    copying an array; a ragged sequence raises "expected a rectangular array"."""
+    shape = getattr(x, "shape", None)
+    if isinstance(shape, tuple):
+        return shape
+    if x is None:
+        raise TypeError(f"{name}: expected an array, got None")
+    return as_host_array(x, name).shape
+
+
+def check_shapes(dims: dict, *args) -> None:
+    """Check the shapes of several arguments, ``(x, name, spec)`` each, before any of them is
+    converted or its values checked, binding dimension names in ``dims`` (see match_shape). An op
+    calls it first so that a wrong shape is reported before the work of validating the others
+    (a ``None`` argument is skipped)."""
+    for x, name, spec in args:
+        if x is not None:
+            match_shape(name, shape_of(x, name), spec, dims)
+
+
+def compact(x: np.ndarray) -> np.ndarray:
+    """The part of ``x`` its memory holds: index 0 of every axis of stride 0 (a broadcast view is
+    as finite as the array it repeats), so a value check reads each element once."""
+    if x.ndim and 0 in x.strides and x.size:
+        return x[tuple(slice(0, 1) if st == 0 else slice(None) for st in x.strides)]
+    return x
+
+
+def real_array(value, name: str) -> np.ndarray:
+    """``value`` as a NumPy array of real numbers (bool, integer or float), else TypeError naming
+    its dtype (complex and object arrays are rejected, not silently converted)."""
+    a = as_host_array(value, name)
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"{name}: expected real numbers, got dtype {a.dtype.name}")
+    return a
 
 
 def check_device(device) -> Device:
@@ -88,28 +131,36 @@ def arg(
     accepted = _accepted(dtype)
     if isinstance(x, DeviceArray):
         if x.device is not device:
-            raise ValueError(f"{name}: expected an array on {device.spec} or a NumPy array, got an array on {x.device.spec}")
+            raise foreign_array_error(x, device, name)
         if x.dtype not in accepted:
             raise TypeError(f"{name}: expected dtype {_names(accepted)}, got {x.dtype.name}")
         if shape is not None:
             match_shape(name, x.shape, shape, dims if dims is not None else {})
         return x
+    want = None  # the dtype to convert to, if any
     if not isinstance(x, np.ndarray):
         if x is None:
             raise TypeError(f"{name}: expected an array, got None")
-        x = np.asarray(x)
+        x = as_host_array(x, name)
         if x.dtype.kind in "biuf":
-            x = x.astype(accepted[0])
-    if x.dtype not in accepted:
+            want = accepted[0]  # lists and scalars: the first accepted dtype
+    if want is None and x.dtype not in accepted:
         if cast and x.dtype.kind in "biuf":
-            x = x.astype(accepted[0])
+            want = accepted[0]
         else:
             raise TypeError(f"{name}: expected dtype {_names(accepted)}, got {x.dtype.name}")
     if shape is not None:
         match_shape(name, x.shape, shape, dims if dims is not None else {})
-    if finite and x.dtype.kind == "f" and not np.isfinite(x).all():
-        bad = np.argwhere(~np.isfinite(x))[0]
-        raise ValueError(f"{name}: expected finite values, got {x[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+    want = x.dtype if want is None else want
+    if want != x.dtype or not x.flags.c_contiguous:
+        device.check_alloc(x.shape, want)  # before the copy
+    if want != x.dtype:
+        x = x.astype(want)
+    if finite and x.dtype.kind == "f":
+        c = compact(x)
+        if not np.isfinite(c).all():
+            bad = tuple(int(i) for i in np.argwhere(~np.isfinite(c))[0])
+            raise ValueError(f"{name}: expected finite values, got {c[bad]} at index {bad}")
     if device.backend == "numpy":
         return np.ascontiguousarray(x)
     return device.asarray(x)
@@ -119,6 +170,8 @@ def out_array(device, out, name: str, shape: tuple, dtype=np.float32):
     """Check a caller-supplied output array of an op (written in place), or allocate one."""
     if out is None:
         return device.empty(shape, dtype)
+    if isinstance(out, DeviceArray) and out.device is not device and out.device.closed:
+        raise foreign_array_error(out, device, name)
     if device.backend == "numpy":
         ok = isinstance(out, np.ndarray) and out.flags.c_contiguous and out.flags.writeable
     else:

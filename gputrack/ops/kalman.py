@@ -65,7 +65,7 @@ import numpy as np
 from ..abi import KalmanStatus
 from ..device import DeviceArray
 from . import backend_module
-from ._args import FLOAT, arg, check_device, out_arrays
+from ._args import FLOAT, arg, check_device, check_shapes, compact, out_arrays, shape_of
 
 __all__ = [
     "KalmanState",
@@ -196,6 +196,33 @@ def _matrix(device, A, name, rows, cols, dims, dt):
     raise ValueError(f"{name}: expected shape {want} shared or (T={dims['T']}, ...) per track, got {tuple(shape)}")
 
 
+def _shapes_first(x, P, *, z=None, z_spec=("T", "m"), H=None, R=None, mask=None, gain_scale=None, predict=None,
+                  F=None, Q=None, m=None):
+    """Check every argument's shape, in the order the op validates them, before any value is read
+    or converted (a wrong-shaped argument, e.g. a broadcast view of 2**32 rows, is reported at once,
+    without validating the others first). A matrix of an unexpected rank is left to _matrix."""
+    dims: dict = {} if m is None else {"m": m}
+    check_shapes(dims, (x, "x", ("T", "n")), (P, "P", ("T", "n", "n")), (z, "z", z_spec))
+    if isinstance(predict, (tuple, list)) and len(predict) == 2:
+        F, Q = predict
+    mats = ((H, "H", "m", "n"), (R, "R", "m", "m"), (F, "F", "n", "n"), (Q, "Q", "n", "n"))
+    opts = ((mask, "mask"), (gain_scale, "gain_scale"))
+    for A, name, rows, cols in mats[:2]:
+        _shape_of_matrix(dims, A, name, rows, cols)
+    check_shapes(dims, *((a, name, ("T",)) for a, name in opts))
+    for A, name, rows, cols in mats[2:]:
+        _shape_of_matrix(dims, A, name, rows, cols)
+
+
+def _shape_of_matrix(dims, A, name, rows, cols):
+    if A is None:
+        return
+    a = A.array if isinstance(A, SharedMatrix) else A
+    nd = len(shape_of(a, name))
+    if nd in (2, 3):
+        check_shapes(dims, (a, name, ("T", rows, cols) if nd == 3 else (rows, cols)))
+
+
 def _host(a):
     """``a`` as a NumPy array if it is host data (not a DeviceArray), else None."""
     if a is None or hasattr(a, "buffer"):
@@ -206,7 +233,8 @@ def _host(a):
 
 def _observations(device, z, dims, dt):
     h = _host(z)
-    if h is not None and np.isinf(h).any():
+    if h is not None and np.isinf(compact(h)).any():
+        h = compact(h)
         bad = np.argwhere(np.isinf(h))[0]
         raise ValueError(
             f"z: expected finite values or NaN (missing), got {h[tuple(bad)]} at index {tuple(int(i) for i in bad)}"
@@ -249,16 +277,18 @@ def _pattern(A, cols):
     kernels skip the zeros); -1 where unknown (device arrays, per-track matrices, None)."""
     if isinstance(A, SharedMatrix):
         shape = tuple(A.array.shape)
+    elif isinstance(A, np.ndarray) and A.ndim == 2:
+        shape = A.shape
+    else:
+        return -1
+    if len(shape) != 2 or shape[1] != cols or shape[0] > MAX_N:
+        return -1  # a shape error is reported by _matrix (checked before the zero pattern is read)
+    if isinstance(A, SharedMatrix):
         bits = int(A.pattern)
     else:
-        if not isinstance(A, np.ndarray) or A.ndim != 2:
-            return -1
-        shape = A.shape
         bits = 0
         for i, k in zip(*np.nonzero(A)):
             bits |= 1 << (int(i) * cols + int(k))
-    if len(shape) != 2 or shape[1] != cols or shape[0] > MAX_N:
-        return -1  # a shape error is reported by _matrix
     return -1 if bits == (1 << (shape[0] * shape[1])) - 1 else bits  # dense: the same variant as a DeviceArray
 
 
@@ -352,6 +382,7 @@ def kf_predict(device, x, P, F, Q, *, out=None):
     hit = _fast(key)
     if hit is not None:
         return tuple(hit[0].kf_predict(device, x, P, _raw(F), _raw(Q), out=out, pats=hit[1]))
+    _shapes_first(x, P, F=F, Q=Q)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     pats = (_pattern(F, dims["n"]), _pattern(Q, dims["n"]), -1, -1)
@@ -385,6 +416,7 @@ def kf_update(device, x, P, z, H, R, *, mask=None, gain_scale=None, predict=None
         F, Q = (None, None) if predict is None else (_raw(predict[0]), _raw(predict[1]))
         res = hit[0].kf_update(device, x, P, z, _raw(H), _raw(R), mask, gain_scale, F, Q, out=out, pats=hit[1])
         return KalmanState(*res)
+    _shapes_first(x, P, z=z, H=H, R=R, mask=mask, gain_scale=gain_scale, predict=predict)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     z = _observations(device, z, dims, dt)
@@ -426,6 +458,7 @@ def ekf_update_stereo(
             device, x, P, z, _raw(R), f, b, cx, cy, mask, gain_scale, F, Q, out=out, pats=hit[1]
         )
         return KalmanState(*res)
+    _shapes_first(x, P, z=z, R=R, mask=mask, gain_scale=gain_scale, predict=predict, m=3)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     if dims["n"] != 6:
@@ -465,6 +498,7 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
     hit = _fast(key)
     if hit is not None:
         return hit[0].mahalanobis(device, x, P, _raw(H), _raw(R), z, out=out, pats=hit[1])
+    _shapes_first(x, P, z=z, z_spec=("D", "m"), H=H, R=R)
     dims: dict = {}
     x, P, dt = _state(device, x, P, dims)
     z = _arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
@@ -483,6 +517,8 @@ def mahalanobis(device, x, P, H, R, z, *, out=None):
                 f"out: expected a writeable array of shape ({dims['T']}, {dims['D']}) and dtype {dt.name} on "
                 f"{device.spec}, got {type(out).__name__} {tuple(getattr(out, 'shape', ()))}"
             )
+    if out is None:
+        device.check_alloc((dims["T"], dims["D"]), dt)  # the (T, D) result fits, before any work
     if dims["T"] == 0 or dims["D"] == 0:
         return out if out is not None else device.empty((dims["T"], dims["D"]), dt)
     _remember(key, device, pats)

@@ -9,7 +9,8 @@ offsets), so the kernels work for any chain, not only the upper body.
 
 For fused kernels (sample + kinematics + score in one launch) the per-pose code is reusable:
 OpenCL ``#include "gt_kinematics.clh"`` -> ``gt_fk_pose(p, table, offsets, out, J)`` with the
-tables of :func:`gputrack.models.chain.chain_tables`; Taichi
+tables of :func:`gputrack.models.chain.chain_tables` (built with :func:`gputrack.abi.cl_defines`,
+as ``Device.program`` builds); Taichi
 ``gputrack.backends.taichi.kinematics.pose_f32`` / ``pose_f64`` (``ti.func``) with the chain's
 structure as a compile-time value (``chain.structure()``, the parts unrolled) and the offsets
 of :func:`gputrack.models.chain.chain_tables`.
@@ -34,7 +35,8 @@ def forward_kinematics(device, chain: Chain, params, *, out=None):
     NumPy or on ``device``. Returns (B, J, 3, 4) of the params' dtype on ``device``:
     rows [R | t] with R a rotation and t in the chain's length unit (mm for the upper body).
     ``out``: an existing (B, J, 3, 4) array of that dtype on ``device`` to write into (saves
-    the allocation in a loop); it is returned.
+    the allocation in a loop); it is returned. Finite angles beyond ``gputrack.abi.ANGLE_MAX``
+    (2**15 rad) are clamped to it on every backend (non-finite ones give non-finite transforms).
     """
     device = check_device(device)
     if not isinstance(chain, Chain):

@@ -31,9 +31,9 @@ from typing import ClassVar
 import numpy as np
 
 from ..abi import LMLayout, LMReason, LMStatus
-from ..device import Device, DeviceArray, per_device_cache
+from ..device import Device, DeviceArray, as_host_array, foreign_array_error, per_device_cache
 from . import backend_module
-from ._args import arg, check_device, out_arrays
+from ._args import arg, check_device, check_shapes, compact, match_shape, out_arrays, real_array, shape_of
 
 log = logging.getLogger("gputrack")
 
@@ -255,6 +255,7 @@ def normal_equations(device: Device, J, r, *, out=None):
     for Taichi ndarrays, in a loop).
     """
     device = check_device(device)
+    check_shapes({}, (J, "J", ("B", "M", "P")), (r, "r", ("B", "M")))  # before any value is read
     dims: dict = {}
     J = _arg(device, J, "J", ("B", "M", "P"), dims, _float_dtypes(device))
     r = _arg(device, r, "r", ("B", "M"), dims, (J.dtype,))
@@ -274,6 +275,7 @@ def lm_step(device: Device, JtJ, Jtr, damping, *, out=None):
     arrays on the device to write into.
     """
     device = check_device(device)
+    _shapes_first(damping, (JtJ, "JtJ", ("B", "P", "P")), (Jtr, "Jtr", ("B", "P")))
     dims: dict = {}
     JtJ = _arg(device, JtJ, "JtJ", ("B", "P", "P"), dims, _float_dtypes(device))
     Jtr = _arg(device, Jtr, "Jtr", ("B", "P"), dims, (JtJ.dtype,))
@@ -289,6 +291,7 @@ def lm_solve(device: Device, J, r, damping, *, out=None):
     ``out``: a (delta (B, P), ok (B,) int32) pair of arrays on the device to write into.
     """
     device = check_device(device)
+    _shapes_first(damping, (J, "J", ("B", "M", "P")), (r, "r", ("B", "M")))
     dims: dict = {}
     J = _arg(device, J, "J", ("B", "M", "P"), dims, _float_dtypes(device))
     r = _arg(device, r, "r", ("B", "M"), dims, (J.dtype,))
@@ -304,9 +307,29 @@ def _nonempty(dims, name):
             raise ValueError(f"{name}: expected a non-empty {k} dimension, got {k}=0")
 
 
+def _shapes_first(damping, *args):
+    """The shapes of the arrays ``args`` ((x, name, spec) each) and of ``damping`` (a number or
+    (B,)), checked before any value is read or converted."""
+    dims: dict = {}
+    check_shapes(dims, *args)
+    if not isinstance(damping, DeviceArray) and shape_of(damping, "damping") == ():
+        return
+    check_shapes(dims, (damping, "damping", ("B",)))
+
+
+def _shape_in(value, name, shapes, want):
+    """Check that ``value`` has one of ``shapes`` (without converting it), else ValueError."""
+    shape = shape_of(value, name)
+    if shape not in shapes:
+        raise ValueError(f"{name}: expected {want}, got shape {shape}")
+
+
 def _damping_arg(device, damping, dims, dtype):
     if not isinstance(damping, DeviceArray):
-        d = np.asarray(damping, dtype=np.float64)
+        shape = shape_of(damping, "damping")
+        if shape != ():
+            match_shape("damping", shape, ("B",), dims)
+        d = real_array(damping, "damping").astype(np.float64)
         if d.ndim == 0:
             d = np.full(dims["B"], float(d))
         if d.ndim == 1 and d.shape[0] == dims["B"] and np.isfinite(d).all() and (d < 0).any():
@@ -332,7 +355,7 @@ def _rows_protocol(fn) -> bool:
 def _bounds(value, name, B, P, dtype, default):
     if value is None:
         return np.full((B, P), default, dtype=np.float64)
-    v = np.asarray(value, dtype=np.float64)
+    v = real_array(value, name).astype(np.float64, copy=False)
     if v.ndim == 0:
         v = np.full((B, P), float(v))
     elif v.shape == (P,):
@@ -388,7 +411,10 @@ def least_squares(
 
     **Algorithm** (per problem, every problem independently): cost F = sum r^2; J^T J and J^T r
     by eq. 22-24; delta from (J^T J + C I) delta = J^T r by Cholesky (a factorisation failure
-    raises C tenfold and retries in the same launch); trial x_t = clip(x - delta, lower, upper)
+    raises C tenfold and retries in the same step: in the same launch, or on lavapipe, whose shaders
+    may run only 65535 loop passes each, over a planned number of launches with room for 4 retries of
+    the whole factorisation, past which the problem fails as not positive definite); trial
+    x_t = clip(x - delta, lower, upper)
     (projection onto the box, paper 003 eq. 8-9). The next call evaluates the residuals at x_t
     together with the perturbed points around x_t (its Jacobian, used if x_t is accepted), so one
     call and one launch make an iteration. x_t is accepted iff its cost is lower than F; the
@@ -451,11 +477,9 @@ def least_squares(
         raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
     if isinstance(x0, DeviceArray):
         if x0.device is not device:
-            raise ValueError(
-                f"x0: expected an array on {device.spec} or a NumPy array, got an array on {x0.device.spec}"
-            )
+            raise foreign_array_error(x0, device, "x0")
         x0 = x0.numpy()  # B x P values, downloaded once (counted)
-    x0 = np.asarray(x0)
+    x0 = as_host_array(x0, "x0")
     if x0.dtype.kind not in "fiu":
         raise TypeError(f"x0: expected a float array, got dtype {x0.dtype.name}")
     if x0.ndim != 2:
@@ -463,9 +487,15 @@ def least_squares(
     B, P = x0.shape
     if P == 0:
         raise ValueError("x0: expected P >= 1 parameters, got shape (B, 0)")
-    if not np.isfinite(x0).all():
-        bad = np.argwhere(~np.isfinite(x0))[0]
-        raise ValueError(f"x0: expected finite values, got {x0[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+    # every other array argument's shape before any value is read or converted
+    _shape_in(damping, "damping", ((), (B,)), f"a finite number >= 0 or (B={B},) of them")
+    for name, v in (("lower", lower), ("upper", upper)):
+        if v is not None:
+            _shape_in(v, name, ((), (P,), (B, P)), f"shape (P={P},) or (B={B}, P={P})")
+    if step is not None:
+        _shape_in(step, "step", ((), (P,)), f"a positive number or (P={P},) positive numbers")
+    if jac_sparsity is not None and len(shape_of(jac_sparsity, "jac_sparsity")) == 2:
+        check_shapes({}, (jac_sparsity, "jac_sparsity", ("M", P)))
     want = np.dtype(dtype)
     if want not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise TypeError(f"dtype: expected float32 or float64, got {want.name}")
@@ -475,12 +505,19 @@ def least_squares(
     pdt = dt if points_dtype is None else np.dtype(points_dtype)
     if pdt not in (np.dtype(np.float32), np.dtype(np.float64)) or (pdt == np.float64 and not device.fp64):
         raise TypeError(f"points_dtype: expected float32{' or float64' if device.fp64 else ''}, got {pdt.name}")
+    # the solver's arrays fit the device (the stacked points of a central-difference call the largest)
+    device.check_alloc((B * (2 * P + 1), P), pdt)
+    if not np.isfinite(compact(x0)).all():
+        bad = np.argwhere(~np.isfinite(x0))[0]
+        raise ValueError(f"x0: expected finite values, got {x0[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
         raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
     for name, v in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
-        if not np.isscalar(v) or not np.isfinite(v) or v < 0:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise TypeError(f"{name}: expected a real number, got {type(v).__name__}")
+        if not np.isfinite(v) or v < 0:
             raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
-    c0 = np.asarray(damping, dtype=np.float64)
+    c0 = real_array(damping, "damping").astype(np.float64)
     if c0.ndim == 0:
         c0 = np.full(B, float(c0))
     if c0.shape != (B,) or not np.isfinite(c0).all() or (c0 < 0).any():
@@ -493,7 +530,7 @@ def least_squares(
     if step is None:
         h = np.zeros(P)
     else:
-        h = np.asarray(step, dtype=np.float64)
+        h = real_array(step, "step").astype(np.float64)
         if h.ndim == 0:
             h = np.full(P, float(h))
         if h.shape != (P,) or not np.isfinite(h).all() or (h <= 0).any():
@@ -552,7 +589,7 @@ class _Solver:
     def _check_out(self, out, n, what, shape):
         if isinstance(out, DeviceArray):
             if out.device is not self.device:
-                raise ValueError(f"{what}: expected an array on {self.device.spec}, got one on {out.device.spec}")
+                raise foreign_array_error(out, self.device, what)
         else:
             out = np.asarray(out)
         if out.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..device import DeviceArray
 from . import backend_module
-from ._args import arg, check_device, out_array
+from ._args import arg, check_device, check_shapes, out_array
 
 __all__ = ["BestK", "best_k", "sample_around"]
 
@@ -90,6 +90,7 @@ def best_k(device, scores, k, rows=None, *, out=None) -> BestK:
     The selection is a single pass with an ordered k-list (O(B k)): meant for k << B.
     """
     check_device(device)
+    check_shapes({}, (scores, "scores", ("B",)), (rows, "rows", ("B", "P")))  # before any value is read
     dims = {}
     s = arg(device, scores, "scores", ("B",), dims, finite=False)
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)):

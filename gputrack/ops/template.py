@@ -11,7 +11,11 @@ Conventions (every backend, exactly):
   (pixel (u, v) is the centre of column u, row v).
 - Images are sampled bilinearly from the four pixels (x0, y0), (x0+1, y0), (x0, y0+1),
   (x0+1, y0+1) with ``x0 = min(floor(u), W-2)``, ``y0 = min(floor(v), H-2)`` (so u = W-1 uses
-  columns W-2 and W-1 with weight 1 on the latter). Images are at least 2 x 2.
+  columns W-2 and W-1 with weight 1 on the latter). Images are at least 2 x 2. Gray pixels are
+  clamped to [-INTENSITY_MAX, INTENSITY_MAX] (2**48, :mod:`gputrack.abi`) before sampling, on
+  every backend: the float32 sums of eq. 17 cannot overflow, and since beta makes the cost
+  invariant to the image's scale an image of larger values (e.g. 3e38 everywhere) scores as its
+  clamped copy. Template values are limited to the same range.
 - A point is valid when Z > 0 and 0 <= u <= W-1 and 0 <= v <= H-1; a depth point also needs all
   four neighbouring depth pixels to be measurements (> 0 and finite).
 - eq. 17: alpha = 1 / sum T_i and beta = alpha sum T_i^2 / sum T_i I_i, the sums over the valid
@@ -49,10 +53,11 @@ import math
 
 import numpy as np
 
+from ..abi import INTENSITY_MAX
 from ..device import Device, DeviceArray, per_device_cache
 from ..models.camera import Camera
 from . import backend_module
-from ._args import arg, check_device, out_array
+from ._args import arg, check_device, out_array, shape_of
 
 __all__ = [
     "RgbdCost",
@@ -63,41 +68,52 @@ __all__ = [
 
 #: sums at or below this count as zero (eq. 17's alpha and beta)
 TINY = 1e-12
+#: part indices of a template are below this (a chain's parts; the kernels read one index entry per
+#: part, so the index array is sized by the largest part index)
+MAX_PARTS = 1 << 16
 
 
 class SparseTemplate:
     """A 3D sparse template (paper 000 sec. 2.3): N points, each in its part's coordinates.
 
-    ``xyz`` (N, 3) float32, ``part`` (N,) int32 (>= 0; checked against J when used), ``value``
-    (N,) float32: the intensity T_i of an RGB template (a depth template's value is not used by
-    the cost, see the module docstring; it defaults to zeros). float64 and integer coordinates
-    are converted to float32, integer parts of another width to int32. N = 0 raises.
+    ``xyz`` (N, 3) float32, ``part`` (N,) int32 (in [0, MAX_PARTS); checked against J when used),
+    ``value`` (N,) float32 with |value| <= INTENSITY_MAX: the intensity T_i of an RGB template (a
+    depth template's value is not used by the cost, see the module docstring; it defaults to
+    zeros). float64 and integer coordinates are converted to float32, integer parts of another
+    width to int32. N = 0 raises.
 
     The template is uploaded to a device the first time an op uses it there and kept (one
     upload per device); ``template.to(device)`` does that upload now and returns the template.
     """
 
     def __init__(self, xyz, part, value=None):
-        xyz = _host(xyz, "xyz", np.float32)
-        part = _host(part, "part", np.int32)
-        if xyz.ndim != 2 or xyz.shape[1] != 3:
-            raise ValueError(f"xyz: expected shape (N, 3), got {xyz.shape}")
-        n = xyz.shape[0]
+        # shapes first (nothing converted), then dtypes, then values: the work is linear in N
+        shape = _shape(xyz, "xyz")
+        if len(shape) != 2 or shape[1] != 3:
+            raise ValueError(f"xyz: expected shape (N, 3), got {shape}")
+        n = shape[0]
         if n == 0:
             raise ValueError("xyz: expected a template with at least one point, got N = 0 (an empty template)")
-        if part.shape != (n,):
-            raise ValueError(f"part: expected shape (N={n},), got {part.shape}")
-        if value is None:
-            value = np.zeros(n, np.float32)
-        value = _host(value, "value", np.float32)
-        if value.shape != (n,):
-            raise ValueError(f"value: expected shape (N={n},), got {value.shape}")
+        if _shape(part, "part") != (n,):
+            raise ValueError(f"part: expected shape (N={n},), got {_shape(part, 'part')}")
+        if value is not None and _shape(value, "value") != (n,):
+            raise ValueError(f"value: expected shape (N={n},), got {_shape(value, 'value')}")
+        xyz = _host(xyz, "xyz", np.float32)
+        part = _host(part, "part", np.int32)
+        value = np.zeros(n, np.float32) if value is None else _host(value, "value", np.float32)
         for name, a in (("xyz", xyz), ("value", value)):
             if not np.isfinite(a).all():
                 bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
                 raise ValueError(f"{name}: expected finite values, got {a[bad]} at index {bad}")
+        if np.abs(value).max() > INTENSITY_MAX:  # eq. 17's float32 sums of T_i^2 stay finite
+            i = int(np.argmax(np.abs(value)))
+            raise ValueError(
+                f"value: expected |values| <= INTENSITY_MAX = 2**48, got {float(value[i]):g} at index ({i},)"
+            )
         if part.min() < 0:
             raise ValueError(f"part: expected indices >= 0, got {int(part.min())}")
+        if part.max() >= MAX_PARTS:  # checked before anything is sized by the part index
+            raise ValueError(f"part: expected indices < MAX_PARTS = {MAX_PARTS}, got {int(part.max())}")
         self.xyz = xyz
         self.part = part
         self.value = value
@@ -149,11 +165,16 @@ class SparseTemplate:
         return found
 
 
-def _host(x, name, dtype):
+def _shape(x, name) -> tuple:
     if isinstance(x, DeviceArray):
         raise TypeError(
             f"{name}: expected a NumPy array (templates are built on the host), got an array on {x.device.spec}"
         )
+    return shape_of(x, name)
+
+
+def _host(x, name, dtype):
+    _shape(x, name)
     a = np.asarray(x)
     want = np.dtype(dtype)
     if a.dtype.kind == "b" or a.dtype.kind not in "iuf":

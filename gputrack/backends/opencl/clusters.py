@@ -57,6 +57,7 @@ def _scratch(device, N, dim):
     mf = cl.mem_flags.READ_WRITE
 
     def buf(count, itemsize=4):
+        device.check_alloc((max(1, count),), np.float32 if itemsize == 4 else np.float64)
         return cl.Buffer(device.context, mf, max(1, count) * itemsize)
 
     return {

@@ -43,6 +43,7 @@ def _scratch(device, H, W):
     G = H * ((W + CHUNK - 1) // CHUNK)
 
     def buf(nbytes):
+        device.check_alloc((max(nbytes, 4) // 4,), np.float32)  # MemoryError, not INVALID_BUFFER_SIZE
         return cl.Buffer(device.context, rw, max(nbytes, 4))
 
     return {

@@ -163,10 +163,18 @@ class OpenCLDevice(Device):
     buffer of a garbage-collected array is kept and reused for the next array of the same size
     bin. Safe on the in-order queue: the commands of the buffer's next user are enqueued after
     every command that used it before (gputrack/pool.py). Past ``pool_limit`` bytes of freed
-    buffers the pool releases them all at the next allocation.
+    buffers the pool releases them all at the next allocation. An array is at most
+    CL_DEVICE_MAX_MEM_ALLOC_SIZE bytes and 2**31 - 1 elements (:meth:`Device.check_alloc`).
     """
 
     backend = "opencl"
+    max_elements = 2**31 - 1
+    max_elements_reason = "the kernels index arrays with 32-bit integers"
+
+    def max_array_bytes(self) -> tuple[int | None, str]:
+        """CL_DEVICE_MAX_MEM_ALLOC_SIZE (never more than CL_DEVICE_GLOBAL_MEM_SIZE): the largest
+        buffer the device allocates."""
+        return self._max_alloc
 
     def __init__(self, info: DeviceInfo, cl_device):
         import pyopencl as cl
@@ -174,6 +182,8 @@ class OpenCLDevice(Device):
 
         super().__init__(info)
         self.cl_device = cl_device
+        limit = min(int(cl_device.max_mem_alloc_size), int(cl_device.global_mem_size))
+        self._max_alloc = (limit, "the OpenCL device's largest buffer")
         self.context = cl.Context([cl_device])
         self.queue = cl.CommandQueue(self.context)
         self._mem_pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue))

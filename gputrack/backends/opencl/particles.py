@@ -38,6 +38,7 @@ def _keys(device, k):
     """A scratch buffer for the k-list's keys, kept per device and k."""
     import pyopencl as cl
 
+    device.check_alloc((k,), np.uint32)
     return cl.Buffer(device.context, cl.mem_flags.READ_WRITE, 4 * k)
 
 

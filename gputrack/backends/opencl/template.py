@@ -56,7 +56,9 @@ def _tuned(device, op, tf, rgb, depth) -> dict:
 def _buffer(device, name, nbytes):
     """A scratch buffer of at least ``nbytes`` kept per device (sizes rounded up to a power of two,
     so that batches of similar sizes share one)."""
-    return _scratch(device, name, 1 << max(2, (int(nbytes) - 1).bit_length()))
+    nbytes = 1 << max(2, (int(nbytes) - 1).bit_length())
+    device.check_alloc((nbytes // 4,), np.float32)  # MemoryError naming the size, not INVALID_BUFFER_SIZE
+    return _scratch(device, name, nbytes)
 
 
 @per_device(maxsize=12)

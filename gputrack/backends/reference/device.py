@@ -6,7 +6,7 @@ import platform
 
 import numpy as np
 
-from ...device import Device, DeviceInfo
+from ...device import Device, DeviceInfo, as_host_array
 
 
 def cpu_name() -> str:
@@ -42,7 +42,7 @@ class NumpyDevice(Device):
         from ...device import DeviceArray
 
         if out is not None:
-            host = np.asarray(array, dtype=dtype)
+            host = as_host_array(array, dtype=dtype)
             if not isinstance(out, np.ndarray) or host.shape != out.shape or host.dtype != out.dtype:
                 raise ValueError(
                     f"out: expected a NumPy array {host.dtype.name} {host.shape} (the array's), got {out!r:.60}"
@@ -51,11 +51,17 @@ class NumpyDevice(Device):
             return out
         if isinstance(array, DeviceArray):
             raise ValueError(f"expected a NumPy array for numpy, got an array on {array.device.spec}")
-        host = np.asarray(array, dtype=dtype)
+        host = as_host_array(array, dtype=dtype)
         self.check_dtype(host.dtype)
         if host.ndim == 0:
             raise ValueError(f"expected an array with at least one dimension, got a scalar of shape {host.shape}")
+        if not host.flags.c_contiguous:
+            self.check_alloc(host.shape, host.dtype)  # the copy below
         return np.ascontiguousarray(host)
 
     def empty(self, shape, dtype=np.float32):
-        return np.empty(shape, dtype=self.check_dtype(dtype))
+        self._check_open()
+        shape = tuple(int(s) for s in (shape if isinstance(shape, (tuple, list)) else (shape,)))
+        dt = self.check_dtype(dtype)
+        self.check_alloc(shape, dt)
+        return np.empty(shape, dtype=dt)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...abi import INTENSITY_MAX
+
 TINY = 1e-12
 
 
@@ -59,7 +61,8 @@ def _terms(tf, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth
     pts, part = rgb["pts"], rgb["part"]
     _, u, v, ok = _project(tf, pts, part, camera, shape)
     x0, y0, a, b = _corners(u, v, ok, shape)
-    I = _bilinear(gray, x0, y0, a, b).astype(np.float64)
+    lim = np.float32(INTENSITY_MAX)
+    I = _bilinear(np.clip(gray, -lim, lim), x0, y0, a, b).astype(np.float64)  # pixels clamped (gputrack/abi.py)
     T = pts[:, 3].astype(np.float64)[None, :]
     sT = np.where(ok, T, 0).sum(axis=1, keepdims=True)
     sTT = np.where(ok, T * T, 0).sum(axis=1, keepdims=True)

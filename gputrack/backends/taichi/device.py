@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from ...device import Device, DeviceInfo, TaichiArchConflict, unavailable
+from ...device import Device, DeviceInfo, TaichiArchConflict, host_memory_bytes, unavailable
 from ..reference.device import cpu_name
 
 PROBE_TIMEOUT_S = 120
@@ -32,6 +32,24 @@ def _hardware(arch: str) -> tuple[str, str]:
         return out.stdout.strip().splitlines()[0], "gpu"
     except Exception:  # noqa: BLE001 - the name is informative only
         return "NVIDIA GPU", "gpu"
+
+
+def _memory(arch: str) -> tuple[int | None, str]:
+    """The largest array ``arch`` can hold, in bytes (None: unknown), and what sets it."""
+    if arch == "cpu":
+        return host_memory_bytes(), "the machine's memory"
+    if arch == "vulkan":
+        from .vulkan_info import vulkan_devices
+
+        found = vulkan_devices()
+        heap = found[0]["heap"] if found else 0
+        return (heap or None), "the Vulkan device's largest device-local memory heap"
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=memory.total", "--format=csv,noheader,nounits"], check=False,
+                             capture_output=True, text=True, timeout=20)  # fmt: skip
+        return int(out.stdout.split()[0]) << 20, "the GPU's memory"  # MiB
+    except Exception:  # noqa: BLE001 - unknown: Taichi's own allocation error then
+        return None, "the GPU's memory"
 
 
 def _info(arch: str, found: dict) -> DeviceInfo:
@@ -96,16 +114,31 @@ def _copy(src, dst) -> bool:
 
 
 class TaichiDevice(Device):
-    """Arrays are ``taichi.Ndarray`` objects; kernels live in this package's modules."""
+    """Arrays are ``taichi.Ndarray`` objects; kernels live in this package's modules.
+
+    Array sizes (checked before allocating, :meth:`Device.check_alloc`): at most Taichi's
+    ``max_num_indices`` (12) dimensions and 2**31 - 1 elements (Taichi sizes and indexes arrays with
+    32-bit integers), and at most the memory of the arch (the machine's memory on the CPU, the
+    largest device-local heap on Vulkan, the GPU's memory on CUDA).
+    """
 
     backend = "taichi"
+    max_elements = 2**31 - 1
+    max_elements_reason = "Taichi sizes and indexes arrays with 32-bit integers"
 
     def __init__(self, arch: str, info: DeviceInfo):
+        from taichi._lib import core
+
         from . import runtime
 
         super().__init__(info)
         self.arch = arch
+        self.max_ndim = int(core.get_max_num_indices())
+        self._memory = _memory(arch)
         runtime.set_pool_limit(self.pool_limit)
+
+    def max_array_bytes(self) -> tuple[int | None, str]:
+        return self._memory
 
     def _upload(self, host: np.ndarray):
         from .runtime import DTYPES, ndarray
@@ -139,6 +172,7 @@ class TaichiDevice(Device):
     def synchronize(self) -> None:
         from .runtime import ti
 
+        self._check_open()  # Taichi was reset: ti.sync() would fail inside Taichi
         ti.sync()
 
     def pool_stats(self):

@@ -10,6 +10,7 @@ compiles a new kernel (the upper body has two: with and without the shoulder par
 
 import numpy as np
 
+from ...abi import ANGLE_MAX
 from ...models.chain import chain_tables
 from .launch import launch
 from .runtime import current_arch, ti
@@ -18,9 +19,20 @@ from .trig import sincos32, sincos64
 
 
 def _make(real):
+    bits, exponent = (ti.u64, 0x7FF0000000000000) if real == ti.f64 else (ti.u32, 0x7F800000)
+
+    @ti.func
+    def clamp_angle(a):
+        """A finite angle clamped to [-ANGLE_MAX, ANGLE_MAX] (gputrack/abi.py); inf and NaN kept (told by
+        their bits, as fast math may assume there are none)."""
+        m = ti.cast(float(ANGLE_MAX), real)
+        finite = (ti.bit_cast(a, bits) & bits(exponent)) != bits(exponent)
+        return ti.select(finite & (ti.abs(a) > m), ti.select(a > 0, m, -m), a)
+
     @ti.func
     def rotate(c0, c1, c2, axis: ti.template(), a):
         # right-multiply R = [c0 c1 c2] (columns) by Rx/Ry/Rz(a) (eq. 7-9)
+        a = clamp_angle(a)
         s = ti.cast(0.0, real)
         c = ti.cast(1.0, real)
         if ti.static(real == ti.f64):

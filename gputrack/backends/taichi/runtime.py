@@ -22,6 +22,7 @@ import os
 import sys
 import threading
 import math
+import warnings
 
 import numpy as np
 
@@ -48,7 +49,8 @@ pool = BufferPool(limit_from_env())
 
 def cpu_threads() -> int:
     """Worker threads of Taichi's CPU thread pool: ``$GPUTRACK_CPU_THREADS``, else twice the CPUs
-    this process may run on.
+    this process may run on (a value that is not a positive integer: a RuntimeWarning naming it,
+    and the default).
 
     Taichi's workers sleep between parallel loops. Where an idle core halts (virtual machines with
     cpuidle haltpoll, power-saving hosts), a loop that follows serial work often ran at one-thread
@@ -62,9 +64,10 @@ def cpu_threads() -> int:
             n = int(env)
         except ValueError:
             n = 0
-        if n < 1:
-            raise ValueError(f"GPUTRACK_CPU_THREADS: expected a positive integer, got {env!r}")
-        return n
+        if n >= 1:
+            return n
+        warnings.warn(f"GPUTRACK_CPU_THREADS: expected a positive integer, got {env!r}; using the default "
+                      "(twice the CPUs)", RuntimeWarning, stacklevel=2)  # fmt: skip
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux

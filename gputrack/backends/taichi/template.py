@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import tuning_cache
+from ...abi import INTENSITY_MAX
 from ...tuning_cache import Tunable
 from .launch import launch
 from .runtime import scratch, ti
@@ -112,12 +113,20 @@ def _corners(img: ti.template(), u, v, w, h):
 
 
 @ti.func
+def _clamp_i(i):
+    """A gray pixel clamped to [-INTENSITY_MAX, INTENSITY_MAX] (gputrack/abi.py); NaN stays NaN."""
+    m = ti.f32(float(INTENSITY_MAX))
+    return ti.select(i > m, m, ti.select(i < -m, -m, i))
+
+
+@ti.func
 def _gray_at(P: ti.template(), x, y, z, gray: ti.template(), fx, fy, cx, cy):
     """Every lane's bilinear intensity I(M_i; D) (sec. 3.5) of one RGB point, and its validity."""
     h = gray.shape[0]
     w = gray.shape[1]
     Z, u, v, ok = _project(P, x, y, z, fx, fy, cx, cy, ti.f32(w - 1), ti.f32(h - 1))
     i00, i01, i10, i11, a, bw = _corners(gray, u, v, w, h)
+    i00, i01, i10, i11 = _clamp_i(i00), _clamp_i(i01), _clamp_i(i10), _clamp_i(i11)
     top = i00 + a * (i01 - i00)
     bot = i10 + a * (i11 - i10)
     return top + bw * (bot - top), ok  # sec. 3.5: bilinear

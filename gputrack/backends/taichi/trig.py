@@ -33,11 +33,28 @@ def _quadrant(n, s, c):
     return sin_a, cos_a
 
 
+def _reduce_in_f64() -> bool:
+    """Whether :func:`sincos32` reduces its argument in float64: on the LLVM archs (CPU, CUDA)
+    Taichi's fast math reassociates the three-piece float32 reduction into one product with a
+    rounded pi/2 (measured: sin(100) off by 1e-5, sin(32768) by 1e-3 on taichi:cpu); they have
+    float64, whose one-product reduction keeps r within ~1e-11 for |a| <= 2**15 (gputrack.abi
+    ANGLE_MAX). SPIR-V (Vulkan) keeps the float32 pieces apart."""
+    return ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64, ti.cuda)
+
+
 @ti.func
 def sincos32(a):
-    """(sin a, cos a) in float32 to ~2 ulp for |a| up to ~1e4 (any angle of a pose)."""
-    n = ti.floor(a * _TWO_OVER_PI + 0.5)
-    r = ((a - n * _PIO2_F1) - n * _PIO2_F2) - n * _PIO2_F3
+    """(sin a, cos a) in float32 to ~2 ulp for |a| up to 2**15 (any angle of a pose)."""
+    n = a * 0.0
+    r = a * 0.0
+    if ti.static(_reduce_in_f64()):
+        af = ti.cast(a, ti.f64)
+        n64 = ti.floor(af * ti.f64(_TWO_OVER_PI) + ti.f64(0.5))
+        r = ti.cast((af - n64 * ti.f64(_PIO2_HI)) - n64 * ti.f64(_PIO2_LO), ti.f32)
+        n = ti.cast(n64, ti.f32)
+    else:
+        n = ti.floor(a * _TWO_OVER_PI + 0.5)
+        r = ((a - n * _PIO2_F1) - n * _PIO2_F2) - n * _PIO2_F3
     r2 = r * r
     s = r + r * r2 * (_S[0] + r2 * (_S[1] + r2 * _S[2]))
     c = 1.0 - 0.5 * r2 + r2 * r2 * (_C[0] + r2 * (_C[1] + r2 * _C[2]))

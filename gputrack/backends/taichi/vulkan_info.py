@@ -28,8 +28,22 @@ class _InstanceCreateInfo(ctypes.Structure):
     ]
 
 
+def _largest_device_heap(lib, handle) -> int:
+    """Bytes of the device's largest device-local memory heap (vkGetPhysicalDeviceMemoryProperties:
+    memoryTypeCount, 32 memory types of 8 bytes, memoryHeapCount at byte 260, then 16 heaps of 16
+    bytes from byte 264: size (uint64), flags (uint32; bit 0 DEVICE_LOCAL)); 0 if none is reported."""
+    mem = ctypes.create_string_buffer(1024)  # VkPhysicalDeviceMemoryProperties is 520 bytes
+    lib.vkGetPhysicalDeviceMemoryProperties(ctypes.c_void_p(handle), mem)
+    raw = mem.raw
+    count = min(int.from_bytes(raw[260:264], "little"), 16)
+    sizes = [int.from_bytes(raw[264 + 16 * i : 272 + 16 * i], "little") for i in range(count)
+             if int.from_bytes(raw[272 + 16 * i : 276 + 16 * i], "little") & 1]  # fmt: skip
+    return max(sizes, default=0)
+
+
 def vulkan_devices() -> list[dict]:
-    """[{"name", "kind" ("gpu"|"cpu"|"other"), "type", "api"}] for every Vulkan device; [] if none."""
+    """[{"name", "kind" ("gpu"|"cpu"|"other"), "type", "api", "heap"}] for every Vulkan device ("heap":
+    bytes of its largest device-local memory heap, 0 if unknown); [] if none."""
     path = ctypes.util.find_library("vulkan") or "libvulkan.so.1"
     try:
         lib = ctypes.CDLL(path)
@@ -51,7 +65,8 @@ def vulkan_devices() -> list[dict]:
             words = (ctypes.c_uint32 * 5).from_buffer(props)
             name = props.raw[20 : 20 + 256].split(b"\0", 1)[0].decode("utf-8", "replace")
             api = f"{words[0] >> 22}.{(words[0] >> 12) & 0x3FF}.{words[0] & 0xFFF}"
-            found.append({"name": name, "type": int(words[4]), "kind": _TYPES.get(int(words[4]), "other"), "api": api})
+            found.append({"name": name, "type": int(words[4]), "kind": _TYPES.get(int(words[4]), "other"), "api": api,
+                          "heap": _largest_device_heap(lib, h)})  # fmt: skip
         return sorted(found, key=lambda d: _RANK.get(d["type"], 9))
     finally:
         lib.vkDestroyInstance(instance, None)

@@ -31,6 +31,7 @@ from ...models.upper_body import pf_sigma, upper_body
 from ...ops.lm import least_squares
 from ...ops.pf import pf_stage
 from ...ops.pose_residuals import pose_residuals
+from ...ops.template import SparseTemplate
 from ...scheduler import Scheduler, SkipFrame, Stage
 from .template import sparse_template
 
@@ -171,6 +172,21 @@ class BodyTracker:
                 raise ValueError(f"{name}: expected shape ({h}, {w}), got {img.shape}")
             if img.dtype != np.float32:
                 raise TypeError(f"{name}: expected float32, got {img.dtype}")
+        # the gray frame's values are checked on the host copy, before the upload, on every device
+        # (depth may hold non-finite values: no measurement)
+        if not np.isfinite(gray).all():
+            bad = tuple(int(i) for i in np.argwhere(~np.isfinite(gray))[0])
+            raise ValueError(f"gray: expected finite values, got {gray[bad]} at index {bad}")
+
+    @staticmethod
+    def _check_templates(templates):
+        if templates is None:
+            return
+        ok = isinstance(templates, (tuple, list)) and len(templates) == 2
+        if not ok or not all(isinstance(t, SparseTemplate) for t in templates):
+            got = (f"{type(templates).__name__} of {', '.join(type(t).__name__ for t in templates)}"
+                   if isinstance(templates, (tuple, list)) else type(templates).__name__)  # fmt: skip
+            raise TypeError(f"templates: expected None or a pair (RGB, depth) of gputrack.SparseTemplate, got {got}")
 
     def _update_template(self):
         cfg = self.config
@@ -263,9 +279,13 @@ class BodyTracker:
         """Estimate the pose in one frame (gray (H, W) float32, depth (H, W) float32 mm).
 
         ``templates``: (RGB, depth) SparseTemplates to use from now on instead of rendering the
-        model at the previous estimate.
+        model at the previous estimate. A gray frame with NaN or inf raises ValueError (on every
+        device); a frame that gives no finite cost (no valid depth, the model out of view) keeps the
+        last pose with ``confidence = 0``.
         """
+        self.device._check_open()
         self._check_frame(gray, depth)
+        self._check_templates(templates)
         if not (np.isfinite(depth) & (depth > 0)).any():
             return self._keep("no valid depth in the frame")
         self._given_templates = templates
@@ -278,6 +298,8 @@ class BodyTracker:
         candidates, best_cost = out["estimate"], out["cost"]
         if not np.isfinite(candidates).all():
             return self._keep("the estimate is not finite")
+        if not np.isfinite(best_cost):
+            return self._keep(f"the frame gives no finite cost ({best_cost})")
         self.candidates = candidates
         self.params = candidates[0].copy()
         self.frame_index += 1
