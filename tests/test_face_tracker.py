@@ -166,8 +166,10 @@ def test_table1_on_a_simulated_sequence(device, data):
     assert t["z"][0] < table1(generic["errors"])["z"][0]
 
 
-def test_a_lost_face_is_reported_and_found_again(data):
-    dev = gputrack.device("taichi:cpu")
+def test_a_lost_face_is_reported_and_found_again(device, data):
+    if device.spec != "taichi:cpu":
+        pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
+    dev = device
     frames = _frames(12)
     cfg = FaceConfig(particles=256, redetect_after=2)
     trk, _ = _run(dev, data, frames, cfg, 1)
@@ -182,8 +184,10 @@ def test_a_lost_face_is_reported_and_found_again(data):
     assert err[0, :2].max() < 10.0  # x, y within 10 mm after the re-detection
 
 
-def test_start_from_a_haar_face_box(data):
-    dev = gputrack.device("taichi:cpu")
+def test_start_from_a_haar_face_box(device, data):
+    if device.spec != "taichi:cpu":
+        pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
+    dev = device
     _, model, _, seq = data
     frames = _frames(10)
     trk = FaceTracker(dev, model, seq.camera, FaceConfig(particles=256))
@@ -234,7 +238,9 @@ def test_bad_input(data):
 # -- the command line ---------------------------------------------------------------------------------------
 
 
-def test_track_command_on_an_image_folder(tmp_path, data):
+def test_track_command_on_an_image_folder(device, tmp_path, data):
+    if device.spec != "taichi:cpu":
+        pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
     import json
 
     import cv2
@@ -276,7 +282,9 @@ def test_track_command_reports_bad_input(tmp_path, capsys):
     assert "expected an .npz face model, could not read it" in capsys.readouterr().err
 
 
-def test_demo_command(tmp_path, capsys, data):
+def test_demo_command(device, tmp_path, capsys, data):
+    if device.spec != "taichi:cpu":
+        pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
     import json
 
     from gputrack.cli import main
@@ -291,7 +299,7 @@ def test_demo_command(tmp_path, capsys, data):
     assert (tmp_path / "errors.png").exists() and (tmp_path / "frame_0008.png").exists()
 
 
-def test_benchmark_cases_run_and_match_the_reference(data):
+def test_benchmark_cases_run_and_match_the_reference(device, data):
     """perf/bench_face.py's cases at a small size on taichi:cpu: the frame tracks, the NCC scores equal
     the reference's, the bundle step and its scipy peer reach about the same cost."""
     import argparse
@@ -299,7 +307,9 @@ def test_benchmark_cases_run_and_match_the_reference(data):
     from gputrack.benchmarks import face as bench
     from tolerances import assert_matches
 
-    dev = gputrack.device("taichi:cpu")
+    if device.spec != "taichi:cpu":
+        pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
+    dev = device
     parser = argparse.ArgumentParser()
     bench.add_arguments(parser)
     args = parser.parse_args(["--frames", "9", "--particles", "64"])
