@@ -7,8 +7,8 @@ import json
 __all__ = ["read_camera_json"]
 
 
-def read_camera_json(path: str, keys: tuple) -> dict:
-    """The JSON object in ``path``, checked to hold every name in ``keys``. Raises
+def read_camera_json(path: str, keys: tuple, what: str = "camera file") -> dict:
+    """The JSON object in ``path`` (a ``what``, for the messages), checked to hold every name in ``keys``. Raises
     FileNotFoundError (unreadable) or ValueError (not JSON, not an object, a key missing), naming
     the file and what was expected."""
     want = ", ".join(keys)
@@ -16,7 +16,7 @@ def read_camera_json(path: str, keys: tuple) -> dict:
         with open(path) as fh:
             data = json.load(fh)
     except OSError as e:
-        raise FileNotFoundError(f"{path}: cannot read the camera file ({e.strerror})") from None
+        raise FileNotFoundError(f"{path}: cannot read the {what} ({e.strerror})") from None
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: expected JSON with {want}, got invalid JSON ({e.msg})") from None
     if not isinstance(data, dict):

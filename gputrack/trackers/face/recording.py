@@ -23,7 +23,6 @@ import os
 import numpy as np
 
 from ...models.camera import Camera
-from ...models.face import LANDMARK_NAMES
 from ...models.pose import euler_from_rotation
 from ..camera_file import read_camera_json
 from ..image_files import frames as read_frames
@@ -41,16 +40,7 @@ def read_camera(path: str) -> Camera:
 
 def read_landmarks(path: str, K: int) -> np.ndarray:
     """(K, 2) or (n, K, 2) start points from a JSON file ``{"landmarks": ...}`` (see the module docstring)."""
-    try:
-        with open(path) as fh:
-            data = json.load(fh)
-    except OSError as e:
-        raise FileNotFoundError(f"{path}: cannot read the landmarks file ({e.strerror})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: expected JSON with \"landmarks\", got invalid JSON ({e.msg})") from None
-    if not isinstance(data, dict) or "landmarks" not in data:
-        raise ValueError(f"{path}: expected a JSON object with \"landmarks\" ({K} points [u, v]: "
-                         f"{', '.join(LANDMARK_NAMES)})")  # fmt: skip
+    data = read_camera_json(path, ("landmarks",), "landmarks file")
     try:
         lm = np.array(data["landmarks"], dtype=np.float64)
     except (TypeError, ValueError):

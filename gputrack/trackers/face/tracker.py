@@ -137,12 +137,16 @@ class FaceTracker:
 
     # -- start ---------------------------------------------------------------------------------------
 
+    def _mean_shape(self):
+        """(K, 3) the current identity's shape at the model's mean deformation."""
+        mean, basis = self._basis
+        return mean + basis @ self.model.expression_mean
+
     def _pose_from_points(self, points, guess=None):
         """(rvec, tvec) of the current shape at expression mean seen at ``points`` (K, 2) (PnP)."""
         import cv2
 
-        mean, basis = self._basis
-        X = mean + basis @ self.model.expression_mean
+        X = self._mean_shape()
         ok = np.isfinite(points).all(axis=1)
         if ok.sum() < 6:
             raise ValueError(f"landmarks: expected at least 6 finite points for the start pose, got {int(ok.sum())}")
@@ -158,8 +162,7 @@ class FaceTracker:
 
     def _box_pose(self, points):
         """A frontal pose whose mean shape spans the points' extent (the start guess of PnP)."""
-        mean, basis = self._basis
-        X = mean + basis @ self.model.expression_mean
+        X = self._mean_shape()
         pts = np.asarray(points, np.float64)
         ok = np.isfinite(pts).all(axis=1)
         span = np.ptp(pts[ok, 0]) if ok.sum() >= 2 else 100.0
@@ -173,8 +176,7 @@ class FaceTracker:
         box's width, their centroid at (49 %, 53 %) of it (OpenCV's frontal cascade on simulated faces
         of 18 people at 400-900 mm: std 2.7 %, 0.8 % and 1.1 %)."""
         x, y, w, h = box
-        mean, basis = self._basis
-        X = mean + basis @ self.model.expression_mean
+        X = self._mean_shape()
         span = np.ptp(X[:, 0])
         z = self.camera.fx * span / (0.49 * w)
         t = np.array([(x + 0.49 * w - self.camera.cx) * z / self.camera.fx,
