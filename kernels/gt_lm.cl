@@ -30,6 +30,13 @@
 #error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
 #endif
 #define MAX_CHOL_TRIES 40
+// The global of S holding the damping's scaling (0 C I, 1 Marquardt's diag(J^T J), 2 its running
+// maximum as MINPACK's): a build define of gputrack/backends/opencl/lm.py (a spare global of the ABI).
+#ifndef GT_LM_G_SCALE
+#define GT_LM_G_SCALE (GT_LM_NGLOB - 2)
+#endif
+#define GT_LM_SCALE_IDENTITY 0
+#define GT_LM_SCALE_MINPACK 2
 
 // In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
 static int gt_chol_solve(__global REAL *W, __global REAL *rhs, const int P, const REAL C)
@@ -169,7 +176,7 @@ static REAL gt_dot(__global const REAL *a, __global const REAL *b, const int M)
 }
 
 #define SB_(P) (GT_LM_S_NVEC * (P) + GT_LM_NSCAL)
-#define WB_(P, M) (GT_LM_W_NSQ * (P) * (P) + (P) * (M))
+#define WB_(P, M) (GT_LM_W_NSQ * (P) * (P) + (P) * (M) + (P))
 #define IB_(b, P) (GT_LM_NIGLOB + (b) * (GT_LM_I_NFIX + (P)))
 
 // Rows of Xb (SX rows of P): the point src and, when SX > 1, its perturbed copies (eq. 24);
@@ -254,19 +261,37 @@ __kernel void gt_lm_init(__global const X0TYPE *X0, __global const REAL *K, __gl
                  Sb + GT_LM_S_H * P, X + (long)b * SX * P, SX, P, kg[GT_LM_G_REL]);
 }
 
-// 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group)
+// What the damping's limits are relative to: 1 + max diag(J^T J) for C I, 1 when scaled.
+static REAL gt_lm_cref(__global const REAL *A, const int P, const int scale)
+{
+    REAL dmax = 0;
+    for (int i = 0; i < P; ++i)
+        dmax = fmax(dmax, A[i * P + i]);
+    return scale == GT_LM_SCALE_IDENTITY ? dmax + 1 : (REAL)1;
+}
+
+// 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group).
+// D: the damping's scale of the step: 1 (C I, eq. 22), diag(J^T J) (Marquardt) or its running
+// maximum over the problem's iterations (MINPACK); 1 for a zero column.
 static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __global REAL *den,
                        __global const REAL *lo, __global const REAL *hi, __global const REAL *h,
-                       __global const REAL *A, __global REAL *L, __global REAL *sc, __global int *ib,
-                       __global XTYPE *Xb, const int SX, const int P, const REAL gtol, const REAL rel,
-                       const REAL ctiny, const REAL cmax)
+                       __global const REAL *A, __global REAL *L, __global REAL *D, __global REAL *sc,
+                       __global int *ib, __global XTYPE *Xb, const int SX, const int P, const REAL gtol,
+                       const REAL rel, const REAL ctiny, const REAL cmax, const int scale)
 {
     if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING && ib[GT_LM_I_ACCEPTED]) {
+        // projected gradient; scaled modes: MINPACK's |J_n^T r| / (||J_n|| ||r||)
         REAL gmax = 0;
         for (int i = 0; i < P; ++i) {
             const REAL gi = g[i];
-            if (!((x[i] >= hi[i] && gi < 0) || (x[i] <= lo[i] && gi > 0)))
-                gmax = fmax(gmax, fabs(gi));
+            if (!((x[i] >= hi[i] && gi < 0) || (x[i] <= lo[i] && gi > 0))) {
+                REAL v = fabs(gi);
+                if (scale != GT_LM_SCALE_IDENTITY) {
+                    const REAL nrm = sqrt(A[i * P + i] * sc[GT_LM_SC_F]);
+                    v = nrm > 0 ? v / nrm : (REAL)0;
+                }
+                gmax = fmax(gmax, v);
+            }
         }
         if (gmax <= gtol) {
             ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;
@@ -274,23 +299,32 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
         }
     }
     if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING) {
-        REAL dmax = 0;
-        for (int i = 0; i < P; ++i)
-            dmax = fmax(dmax, A[i * P + i]);
-        dmax += 1;
+        for (int i = 0; i < P; ++i) {
+            REAL d = 1;
+            if (scale != GT_LM_SCALE_IDENTITY) {
+                d = A[i * P + i];
+                if (scale == GT_LM_SCALE_MINPACK && ib[GT_LM_I_ITER] > 0)
+                    d = fmax(d, D[i]);
+                d = d > 0 ? d : (REAL)1;
+            }
+            D[i] = d;
+        }
+        const REAL dmax = gt_lm_cref(A, P, scale);
         REAL C = sc[GT_LM_SC_C];
         int ok = 0;
         for (int tries = 0; tries <= MAX_CHOL_TRIES; ++tries) {
-            // parameters held at a bound by the gradient stay there (identity rows, rhs 0)
+            // parameters held at a bound by the gradient stay there (identity rows, rhs 0); the
+            // damping C D on the diagonal
             for (int i = 0; i < P; ++i) {
                 const int ai = (x[i] >= hi[i] && g[i] < 0) || (x[i] <= lo[i] && g[i] > 0);
                 xt[i] = ai ? 0 : g[i];
-                for (int j = 0; j <= i; ++j) {
+                for (int j = 0; j < i; ++j) {
                     const int aj = (x[j] >= hi[j] && g[j] < 0) || (x[j] <= lo[j] && g[j] > 0);
-                    L[i * P + j] = (ai || aj) ? (REAL)(i == j) : A[i * P + j];
+                    L[i * P + j] = (ai || aj) ? (REAL)0 : A[i * P + j];
                 }
+                L[i * P + i] = ai ? 1 + C : A[i * P + i] + C * D[i];
             }
-            ok = gt_chol_solve(L, xt, P, C);  // eq. 22: delta into the xt slots
+            ok = gt_chol_solve(L, xt, P, 0);  // eq. 22: delta into the xt slots
             if (ok || C > cmax * dmax)
                 break;
             C = fmax(10 * C, ctiny * dmax);  // not PD: raise C tenfold and try again
@@ -340,6 +374,9 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     __global const RTYPE *rt = R + (long)b * SR * M;
     const REAL ftol = G[GT_LM_G_FTOL], xtol = G[GT_LM_G_XTOL], gtol = G[GT_LM_G_GTOL], rel = G[GT_LM_G_REL];
     const REAL ctiny = G[GT_LM_G_CTINY], cmax = G[GT_LM_G_CMAX];
+    const int scale = (int)G[GT_LM_G_SCALE];
+    __global REAL *D = Jt + (long)P * M;  // the damping's scale of the last step
+    const int weighted = scale != GT_LM_SCALE_IDENTITY && !first;  // xtol norms as MINPACK's ||D x||
     const int running = ib[GT_LM_I_STATUS] == GT_LM_RUNNING;
 
     // 1. Jacobian at the evaluated trial: eq. 24 over the stored points, or given
@@ -390,17 +427,16 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                     ok &= ib[GT_LM_I_FIN + n];
             sc[GT_LM_SC_FT] = Ft;
             int acc = 0;
-            if (!ok) {
+            if (first && !ok) {
                 ib[GT_LM_I_STATUS] = GT_LM_FAILED;
                 ib[GT_LM_I_REASON] = GT_LM_R_NONFINITE;
-                if (first)
-                    sc[GT_LM_SC_F] = INFINITY;
+                sc[GT_LM_SC_F] = INFINITY;  // no finite cost at x0
             } else if (first) {
                 acc = 1;
             } else {
                 ib[GT_LM_I_ITER] += 1;
                 const REAL F = sc[GT_LM_SC_F], pred = sc[GT_LM_SC_PRED], dF = F - Ft;
-                if (dF > 0) {
+                if (ok && dF > 0) {  // a trial with non-finite residuals or Jacobian is rejected (as MINPACK)
                     acc = 1;
                     const REAL rho = pred > 0 ? dF / pred : (REAL)1;
                     const REAL q = 2 * rho - 1;
@@ -409,16 +445,16 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                 } else {
                     sc[GT_LM_SC_C] *= sc[GT_LM_SC_NU];
                     sc[GT_LM_SC_NU] *= 2;
-                    REAL dmax = 0, sn = 0, xn = 0;
+                    REAL sn = 0, xn = 0;
                     for (int i = 0; i < P; ++i) {
-                        dmax = fmax(dmax, A[i * P + i]);
-                        sn += (xt[i] - x[i]) * (xt[i] - x[i]);
-                        xn += x[i] * x[i];
+                        const REAL w = weighted ? D[i] : (REAL)1;
+                        sn += w * (xt[i] - x[i]) * (xt[i] - x[i]);
+                        xn += w * x[i] * x[i];
                     }
                     if (sqrt(sn) <= xtol * (xtol + sqrt(xn))) {
                         ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;  // no step this small improves the cost
                         ib[GT_LM_I_REASON] = GT_LM_R_XTOL;
-                    } else if (sc[GT_LM_SC_C] > cmax * (1 + dmax)) {
+                    } else if (sc[GT_LM_SC_C] > cmax * gt_lm_cref(A, P, scale)) {
                         ib[GT_LM_I_STATUS] = GT_LM_FAILED;
                         ib[GT_LM_I_REASON] = GT_LM_R_DAMPING;
                     }
@@ -428,10 +464,11 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                 ib[GT_LM_I_ACCEPTED] = 1;
                 REAL sn = 0, xn = 0;
                 for (int i = 0; i < P; ++i) {
+                    const REAL w = weighted ? D[i] : (REAL)1;
                     const REAL d = xt[i] - x[i];
-                    sn += d * d;
+                    sn += w * d * d;
                     x[i] = xt[i];
-                    xn += x[i] * x[i];
+                    xn += w * x[i] * x[i];
                 }
                 sn = sqrt(sn);
                 sc[GT_LM_SC_SNORM] = sn;
@@ -488,7 +525,8 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     barrier(CLK_GLOBAL_MEM_FENCE);
     if (lid == 0) {
         if (!final_)
-            gt_lm_next(x, xt, g, den, lo, hi, h, A, L, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax);
+            gt_lm_next(x, xt, g, den, lo, hi, h, A, L, D, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax,
+                       scale);
         gt_lm_export(x, sc, ib, Out + (long)b * (P + 5), P);
     }
 }

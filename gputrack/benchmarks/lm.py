@@ -18,6 +18,13 @@ Cases per (P, M), each timed on the device with the NumPy reference in the same 
   N = N' = M / 2, the output array of the last call reused, on a synthetic 640x480 frame; peer:
   ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10 iterations' worth of evaluations)
   looping over the 10 problems with the NumPy residuals.
+- ``solver exp ... analytic J`` / ``... central``: a whole 10-iteration solve of B = 10 fits of a sum of
+  P / 2 exponentials to M = 256 samples (``sim.problems``-free: the model is written below), on a held
+  :class:`gputrack.LeastSquaresSolver` (``early_stop=False``, ``damping_scale="minpack"``), the
+  residuals (and the analytic Jacobian) a vectorised NumPy callable of all B problems' points; peers:
+  scipy's MINPACK (``least_squares(method="lm")``, the same callables per problem, ``max_nfev`` = 11
+  evaluations with the Jacobian, 11 (P + 1) with MINPACK's forward differences) in a loop over the
+  10 problems, and the cost each reaches (``--quality``).
 """
 
 import sys
@@ -36,6 +43,7 @@ def add_arguments(parser):
     parser.add_argument("--residuals", type=int, action="append", help="M (even, repeatable; default 256 and 1280)")
     parser.add_argument("--iterations", type=int, default=10, help="LM iterations of the whole solve (default 10)")
     parser.add_argument("--no-scipy", action="store_true", help="skip the scipy.optimize.least_squares peer")
+    parser.add_argument("--only-exp", action="store_true", help="only the exponential-fit solves (solver vs MINPACK)")
 
 
 def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
@@ -55,8 +63,107 @@ def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
     return residuals
 
 
+T_EXP = np.linspace(0.0, 1.0, 256)
+
+
+def exp_fits(B, P, M, rng):
+    """B fits of y = sum_k a_k exp(b_k t) (P / 2 terms) to M samples: (residuals, jacobian, x0, one,
+    one_jac): the first two vectorised NumPy callables over stacked points (row i belongs to problem
+    i // (n / B)), the start points 20-50 % off the truth, and the same residuals and Jacobian of
+    problem b at one point p (``one(p, b)``, for a solver called per problem)."""
+    t = np.linspace(0.0, 1.0, M)
+    K = P // 2
+    true = np.empty((B, P))
+    true[:, 0::2] = rng.uniform(0.5, 2.0, (B, K))
+    true[:, 1::2] = -np.linspace(0.5, 5.0, K) * rng.uniform(0.9, 1.1, (B, K))
+    y = np.einsum("bkm->bm", true[:, 0::2, None] * np.exp(true[:, 1::2, None] * t))
+    y += 0.01 * rng.normal(size=y.shape)
+    x0 = true * rng.uniform(0.5, 0.8, true.shape)
+
+    def rows(X):
+        Xn = np.asarray(X.numpy() if hasattr(X, "numpy") else X, np.float64)
+        return Xn, np.arange(Xn.shape[0]) // (Xn.shape[0] // B)
+
+    def residuals(X):
+        Xn, b = rows(X)
+        with np.errstate(over="ignore", invalid="ignore"):  # a far trial point: rejected by the solver
+            e = np.exp(Xn[:, 1::2, None] * t)
+            return np.einsum("nk,nkm->nm", Xn[:, 0::2], e) - y[b]
+
+    def jacobian(X):
+        Xn, _ = rows(X)
+        with np.errstate(over="ignore", invalid="ignore"):
+            e = np.exp(Xn[:, 1::2, None] * t)  # (n, K, M)
+            J = np.empty((Xn.shape[0], M, P))
+            J[:, :, 0::2] = e.transpose(0, 2, 1)
+            J[:, :, 1::2] = (Xn[:, 0::2, None] * t * e).transpose(0, 2, 1)
+        return J
+
+    def one(p, b):
+        with np.errstate(over="ignore", invalid="ignore"):
+            return p[0::2] @ np.exp(p[1::2, None] * t) - y[b]
+
+    def one_jac(p, b):
+        with np.errstate(over="ignore", invalid="ignore"):
+            e = np.exp(p[1::2, None] * t)  # (K, M)
+            J = np.empty((M, P))
+            J[:, 0::2] = e.T
+            J[:, 1::2] = (p[0::2, None] * t * e).T
+        return J
+
+    return residuals, jacobian, x0, one, one_jac
+
+
+def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
+    """The whole-solve comparison with scipy's MINPACK (see the module docstring)."""
+    from ..ops.lm import LeastSquaresSolver
+    from ..registry import device as get_device
+
+    ref = get_device("numpy")
+    rng = np.random.default_rng(1)
+    res, jac, x0, one, one_j = exp_fits(B, P, M, rng)
+    out = []
+    for kind in ("analytic J", "central"):
+        solvers = {d: LeastSquaresSolver(d, (B, P), max_iter=iterations, early_stop=False, damping_scale="minpack",
+                                         **TOL) for d in (device, ref)}  # fmt: skip
+        kw = {"jacobian": jac} if kind == "analytic J" else {}
+        peers = {}
+        if not args.no_scipy:
+            import scipy.optimize
+
+            def minpack(kind=kind):
+                costs = []
+                for b in range(B):
+                    if kind == "analytic J":
+                        o = scipy.optimize.least_squares(one, x0[b], jac=one_j, args=(b,), method="lm",
+                                                         max_nfev=iterations + 1, **TOL)  # fmt: skip
+                    else:
+                        o = scipy.optimize.least_squares(one, x0[b], args=(b,), method="lm",
+                                                         max_nfev=(iterations + 1) * (P + 1), **TOL)  # fmt: skip
+                    costs.append(2 * o.cost)
+                return np.array(costs)
+
+            peers["scipy MINPACK lm x10"] = minpack
+        name = f"solver exp B={B} M={M} P={P} {iterations} it {kind}"
+        out.append(Case(
+            name,
+            run=lambda s=solvers[device], kw=kw: s.solve(res, x0, **kw),
+            reference=lambda s=solvers[ref], kw=kw: s.solve(res, x0, **kw),
+            peers=peers,
+            params={"B": B, "M": M, "P": P, "iterations": iterations, "jacobian": kind, "damping_scale": "minpack",
+                    "residuals": "vectorised NumPy callable"},
+        ))  # fmt: skip
+    return out
+
+
+TOL = {"ftol": 1e-10, "xtol": 1e-10, "gtol": 1e-10}
+
+
 def cases(device, args):
     from ..registry import device as get_device
+
+    if args.only_exp:
+        return exp_cases(device, args)
     from ..ops import lm
     from ..ops.lm import Layout, _constants, least_squares
 
@@ -166,7 +273,7 @@ def cases(device, args):
                     },
                 )
             )
-    return out
+    return out + exp_cases(device, args)
 
 
 if __name__ == "__main__":

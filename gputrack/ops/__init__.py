@@ -41,7 +41,7 @@ from .kalman import (  # noqa: E402
 )
 from .gating import GatedPairs, gate_pairs  # noqa: E402
 from .kinematics import forward_kinematics  # noqa: E402
-from .lm import LeastSquaresResult, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
+from .lm import LeastSquaresResult, LeastSquaresSolver, LMStatus, least_squares, lm_solve, lm_step, normal_equations  # noqa: E402
 from .particles import BestK, best_k, sample_around  # noqa: E402
 from .pf import pf_stage  # noqa: E402
 from .pose_residuals import pose_residuals  # noqa: E402
@@ -60,6 +60,7 @@ __all__ = [
     "KalmanStatus",
     "LMStatus",
     "LeastSquaresResult",
+    "LeastSquaresSolver",
     "PointGroups",
     "RgbdCost",
     "SharedMatrix",

@@ -16,8 +16,10 @@ Ops (one launch each):
 
 Sign convention (eq. 22): the new point is ``x - delta``.
 
-Solver: :func:`least_squares`, see its docstring for the algorithm, the residual-function
-protocol, bounds, sparsity, precision and the bad-input policy.
+Solver: :class:`LeastSquaresSolver` (settings checked once, device buffers kept from solve to
+solve, damping C I or scale-invariant C diag(J^T J) / MINPACK's running maximum per solver), see
+its docstring for the algorithm, the residual-function protocol, bounds, sparsity, precision and
+the bad-input policy; :func:`least_squares` is its one-shot form.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import logging
+import operator
 import weakref
 from typing import ClassVar
 
@@ -40,7 +43,9 @@ log = logging.getLogger("gputrack")
 __all__ = [
     "REASONS",
     "LMStatus",
+    "DAMPING_SCALES",
     "LeastSquaresResult",
+    "LeastSquaresSolver",
     "least_squares",
     "lm_solve",
     "lm_step",
@@ -127,7 +132,8 @@ class Layout:
     K (float, solver dtype; uploaded, ``k_size()`` values): per problem b a block of
     ``KB = 2P + 1`` values at ``b*KB``: lo[P], hi[P] bounds (clamped to the dtype's finite range),
     c0 initial damping; then h[P] absolute steps (0: relative); then 8 globals ftol, xtol, gtol,
-    rel (relative step), ctiny, cmax, spare, spare; then the Jacobian mask M*P (1.0 where
+    rel (relative step), ctiny, cmax, scale (the damping's scaling: 0 C I, 1 Marquardt, 2 MINPACK;
+    ``G_SCALE`` of the backends), spare; then the Jacobian mask M*P (1.0 where
     computed) when ``has_mask``.
 
     X0 (B, P) start points (uploaded): float32 when every value is exactly a float32 (a
@@ -141,8 +147,9 @@ class Layout:
     from K); then the mask M*P when ``has_mask``.
 
     W (float; device only, ``w_size()`` values, allocated once M is known): per problem b a
-    block of ``WB = 2 P^2 + P M`` values at ``b*WB``: A[P*P] = J^T J at x (both triangles),
-    L[P*P] Cholesky factor, Jt[P*M] = J^T at the last evaluated point (rows of J^T contiguous).
+    block of ``WB = 2 P^2 + P M + P`` values at ``b*WB``: A[P*P] = J^T J at x (both triangles),
+    L[P*P] Cholesky factor, Jt[P*M] = J^T at the last evaluated point (rows of J^T contiguous),
+    D[P] the damping's scale of the last step (1 for C I; diag(J^T J) or its running maximum).
 
     I (int32; device only, downloaded whole by each ``early_stop`` check, ``i_size()`` values):
     8 globals [spare, B, has_mask, P, spare...], then per problem ``IB = 4 + P`` values: status,
@@ -177,7 +184,8 @@ class Layout:
         self.mask = self.glob + self.NGLOB
         # W
         self.A, self.L, self.Jt = L.W_A * P * P, L.W_L * P * P, L.W_NSQ * P * P
-        self.WB = L.W_NSQ * P * P + P * M
+        self.D = self.Jt + P * M
+        self.WB = L.W_NSQ * P * P + P * M + P
         # K
         self.KB = L.K_NVEC * P + 1
         self.kh = B * self.KB
@@ -367,77 +375,91 @@ def _bounds(value, name, B, P, dtype, default):
     return np.array(v, dtype=np.float64)
 
 
-def least_squares(
-    residuals,
-    x0,
-    *,
-    device: Device,
-    jacobian="central",
-    step=None,
-    lower=None,
-    upper=None,
-    damping=1e-5,
-    max_iter: int = 10,
-    ftol: float = 1e-8,
-    xtol: float = 1e-8,
-    gtol: float = 1e-8,
-    dtype=np.float64,
-    jac_sparsity=None,
-    points_dtype=None,
-    early_stop: bool = True,
-) -> LeastSquaresResult:
-    """Minimise sum_m r_m(x_b)^2 for B problems at once by Levenberg-Marquardt.
+#: the damping's scaling (``damping_scale``): the code every backend reads from the solver's globals
+DAMPING_SCALES = {"identity": 0, "marquardt": 1, "minpack": 2}
+#: the initial damping C when ``damping=None``: paper 000's 1e-5 for C I; for the scaled modes C is
+#: relative to each parameter's own diag(J^T J), and 1e-3 is Nielsen's usual tau
+DEFAULT_DAMPING = {"identity": 1e-5, "marquardt": 1e-3, "minpack": 1e-3}
+#: the global slot of the solver's packed state holding the scaling (a spare global of
+#: gputrack.abi.LMLayout; the backends name it G_SCALE too)
+G_SCALE = LMLayout.NGLOB - 2
 
-    x0: (B, P) start points, NumPy (or a DeviceArray of ``device``, downloaded once: the
-    bounds are applied on the host). Returns a :class:`LeastSquaresResult`
-    (NumPy arrays).
+
+class LeastSquaresSolver:
+    """Batched Levenberg-Marquardt for B problems of P parameters, solved again and again.
+
+    ``LeastSquaresSolver(device, (B, P), **settings)`` checks the settings once; each
+    :meth:`solve` (residual function, start points, and optionally a Jacobian callable, the
+    Jacobian's sparsity, bounds and initial damping) runs on device buffers the solver keeps between solves (its state,
+    workspace, points and constants: allocated at the first solve, the constants uploaded again
+    only when they change). A tracker holds one solver and calls ``solve`` per frame;
+    :func:`least_squares` is the one-shot form (a solver used once, its buffers handed back to the
+    device's LM pool for the next). :meth:`close` hands them back early; a solver may not be
+    re-entered from its own residual function (a nested solve uses another solver).
+
+    **Settings.** ``step`` (scalar or (P,) absolute finite-difference steps; None: relative, see
+    below), ``damping_scale``, ``max_iter``, ``ftol``, ``xtol``, ``gtol``, ``dtype``,
+    ``points_dtype``, ``early_stop``: as described below.
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
     on the ``numpy`` device, else a DeviceArray of ``device`` — in ``points_dtype`` (default: the
     solver precision) and returns (n, M) residuals (NumPy or DeviceArray, float32 or float64;
-    M is fixed by the first call, M < P is allowed since the step is damped). It must not keep or
-    modify X. With ``jacobian="central"`` each iteration makes ONE call with every problem's
-    points stacked, ``2P + 1`` rows per problem: row ``b*(2P+1)`` is problem b's point, rows
-    ``b*(2P+1) + 1 + 2n`` and ``+ 2 + 2n`` are it with parameter n moved by +eps_n and -eps_n
-    (eq. 24; the Jacobian column is their difference over the actual distance between them).
-    The last call of a solve that reaches ``max_iter`` has only the B points (n = B).
-    ``jacobian`` may instead be a callable ``jacobian(X) -> (B, M, P)`` evaluated at the same
-    (B, P) points as ``residuals`` (one call each per iteration, n = B).
+    M is fixed by each solve's first call (by ``jac_sparsity`` when given), M < P is allowed since
+    the step is damped). It must not keep or modify X. Without a ``jacobian`` callable each
+    iteration makes ONE call with every problem's points stacked, ``2P + 1`` rows per problem:
+    row ``b*(2P+1)`` is problem b's point, rows ``b*(2P+1) + 1 + 2n`` and ``+ 2 + 2n`` are it
+    with parameter n moved by +eps_n and -eps_n (eq. 24; the Jacobian column is their difference
+    over the actual distance between them). The last call of a solve that reaches ``max_iter``
+    has only the B points (n = B). ``jacobian(X) -> (B, M, P)`` (a callable given to
+    :meth:`solve`) is instead evaluated at the same (B, P) points as ``residuals`` (one call each
+    per iteration, n = B).
 
     **Steps.** ``step=None``: eps_n = rel * max(|x_n|, 1) with rel = cbrt(machine eps) of the
     lower of the solver precision and ``points_dtype`` (6.1e-6 in float64, 4.9e-3 in float32: a
-    float32 residual function needs the larger step, its rounding would swamp a small one). A scalar or (P,) ``step`` gives absolute
-    steps (paper 000's per-parameter constants).
+    float32 residual function needs the larger step, its rounding would swamp a small one). A
+    scalar or (P,) ``step`` gives absolute steps (paper 000's per-parameter constants).
 
     **Algorithm** (per problem, every problem independently): cost F = sum r^2; J^T J and J^T r
-    by eq. 22-24; delta from (J^T J + C I) delta = J^T r by Cholesky (a factorisation failure
-    raises C tenfold and retries in the same step: in the same launch, or on lavapipe, whose shaders
-    may run only 65535 loop passes each, over a planned number of launches with room for 4 retries of
-    the whole factorisation, past which the problem fails as not positive definite); trial
-    x_t = clip(x - delta, lower, upper)
-    (projection onto the box, paper 003 eq. 8-9). The next call evaluates the residuals at x_t
-    together with the perturbed points around x_t (its Jacobian, used if x_t is accepted), so one
-    call and one launch make an iteration. x_t is accepted iff its cost is lower than F; the
-    damping follows Nielsen's rule with the gain ratio rho = (F - F_t) / predicted reduction:
-    accepted: C *= max(1/3, 1 - (2 rho - 1)^3); rejected: C *= nu, nu *= 2. ``damping`` is the
-    initial C (scalar or (B,); paper 000: 1e-5), added as C I (eq. 22).
+    by eq. 22-24; delta from (J^T J + C D) delta = J^T r by Cholesky, D by ``damping_scale``:
+
+    - ``"identity"``: D = I, paper 000's C I (eq. 22; not scale-invariant: a parameter whose
+      columns of J are 1e6 times smaller than another's is barely damped, or barely moved);
+    - ``"marquardt"``: D = diag(J^T J) at the current point (Marquardt 1963);
+    - ``"minpack"``: D = the running maximum of diag(J^T J) over the problem's iterations, the
+      squares of MINPACK's column-norm scaling (More 1978); with either scaled mode the solve is
+      invariant to a rescaling of the parameters, and a column that is 0 gets 1.
+
+    A factorisation failure raises C tenfold and retries in the same step (in the same launch,
+    or on lavapipe, whose shaders may run only 65535 loop passes each, over a planned number of
+    launches with room for 4 retries of the whole factorisation, past which the problem fails as
+    not positive definite); trial x_t = clip(x - delta, lower, upper) (projection onto the box,
+    paper 003 eq. 8-9). The next call evaluates the residuals at x_t together with the perturbed
+    points around x_t (its Jacobian, used if x_t is accepted), so one call and one launch make an
+    iteration. x_t is accepted iff its cost is lower than F; the damping follows Nielsen's rule
+    with the gain ratio rho = (F - F_t) / predicted reduction: accepted: C *= max(1/3, 1 - (2 rho
+    - 1)^3); rejected: C *= nu, nu *= 2. The gain ratio, the damping update, the acceptance and
+    every stopping test run on the device. ``damping`` (per :meth:`solve`, scalar or (B,)) is the
+    initial C (None: ``DEFAULT_DAMPING``: paper 000's 1e-5 for C I, 1e-3 scaled).
 
     **Stopping**, per problem: converged when an accepted step reduced the cost by less than
-    ``ftol * F``, or moved by less than ``xtol * (xtol + |x|)``, or the projected gradient
-    (components pushing against an active bound removed) has max-norm <= ``gtol``; max_iter after
-    ``max_iter`` trial steps; failed when its residuals or Jacobian (at the start or at a trial)
-    are not finite — the problem keeps its last accepted x and cost, the batch goes on — or when
-    the damping needed exceeds 1e16 (float32: 1e10) x (1 + max diag J^T J). The batch stops when
-    every problem has stopped. ``iterations`` counts the trial steps each problem evaluated. The
-    last trial of a solve that reaches ``max_iter`` is evaluated without its Jacobian, so only
-    ftol and xtol can mark it converged.
+    ``ftol * F``, or moved by less than ``xtol * (xtol + |x|)`` (scaled modes: the norms
+    weighted by D, as MINPACK's ||D x||), or the projected gradient (components pushing against an
+    active bound removed) has max-norm <= ``gtol`` (scaled modes: MINPACK's
+    max_n |J_n^T r| / (||J_n|| ||r||)); max_iter after ``max_iter`` trial steps; failed when its
+    residuals or Jacobian (at the start or at a trial) are not finite — the problem keeps its last
+    accepted x and cost, the batch goes on — or when the damping needed exceeds 1e16 (float32:
+    1e10) x (1 + max diag J^T J) (scaled modes: x 1). The batch stops when every problem has
+    stopped. ``iterations`` counts the trial steps each problem evaluated. The last trial of a
+    solve that reaches ``max_iter`` is evaluated without its Jacobian, so only ftol and xtol can
+    mark it converged.
 
-    **Bounds**: ``lower``/``upper`` scalar, (P,) or (B, P), +-inf allowed, lower == upper fixes a
-    parameter. Perturbed points are clipped into the box too (the difference quotient then uses
-    the clipped distance: one-sided at a bound). x0 outside the box is clipped into it and
-    flagged in ``x0_clipped`` (logged at INFO). lower > upper raises ValueError.
+    **Bounds** (per :meth:`solve`): ``lower``/``upper`` scalar, (P,) or (B, P), +-inf allowed,
+    lower == upper fixes a parameter. Perturbed points are clipped into the box too (the
+    difference quotient then uses the clipped distance: one-sided at a bound). x0 outside the box
+    is clipped into it and flagged in ``x0_clipped`` (logged at INFO). lower > upper raises
+    ValueError.
 
-    **Sparsity**: ``jac_sparsity`` (M, P) bool: J[m, n] is computed only where it is True (paper
+    **Sparsity** (per :meth:`solve`): ``jac_sparsity`` (M, P) bool: J[m, n] is computed only where it is True (paper
     000 Fig. 2), 0 elsewhere. If ``residuals`` has a ``rows`` keyword parameter it is called as
     ``residuals(X, rows=need)`` with ``need`` an (n, M) uint8 array on the device (NumPy for
     numpy; uploaded like the mask: only when it differs from the previous solve's, so the
@@ -454,27 +476,173 @@ def least_squares(
     values) live only on the device and are initialised there; the first points to evaluate are
     computed there too. A solve uploads x0 (B P values, as float32 when that is exact) and the
     constants (bounds, steps, initial damping, tolerances, the Jacobian mask), the constants only
-    when they differ from those of the previous solve of the same shapes on the device (cached
-    in its buffer pool). Per iteration the residual function's output stays on the device (a
-    NumPy output is uploaded, counted) and, with ``early_stop`` (default), the small int32
-    status block (8 + B (P + 4) values) is downloaded to decide whether every problem has
-    stopped. ``early_stop=False`` downloads nothing until the end (stopped problems stay frozen
-    on the device; the batch runs ``max_iter`` iterations). The result, B (P + 5) values (x,
-    cost, damping, status, iterations, reason), is downloaded once at the end. Exact sizes:
-    :class:`Layout`.
+    when they differ from those of the previous solve in the same buffer. Per iteration the
+    residual function's output stays on the device (a NumPy output is uploaded, counted) and,
+    with ``early_stop`` (default), the small int32 status block (8 + B (P + 4) values) is
+    downloaded to decide whether every problem has stopped: with a device residual function that
+    is the iteration's one host round trip. ``early_stop=False`` downloads nothing until the end
+    (stopped problems stay frozen on the device; the batch runs ``max_iter`` iterations). The
+    result, B (P + 5) values (x, cost, damping, status, iterations, reason), is downloaded once at
+    the end. Exact sizes: :class:`Layout`.
 
-    **Bad input**: NaN/inf in x0, a non-float x0, x0 not (B, P), P = 0, a residual output of the
-    wrong shape or dtype (cannot be attributed to one problem) and invalid settings raise
-    ValueError/TypeError. B = 0 returns an empty result without calling ``residuals``.
+    **Bad input**: invalid settings raise ValueError/TypeError here; at :meth:`solve`, NaN/inf in
+    x0, a non-float x0, x0 not (B, P), a residual output of the wrong shape or dtype (cannot be
+    attributed to one problem) raise ValueError/TypeError; non-finite residuals at the start or
+    at a trial point, or a damped J^T J that stays singular, give that problem a FAILED status
+    (``reason``) and keep its last finite x. B = 0 returns an empty result without calling
+    ``residuals``.
     """
-    device = check_device(device)
-    if not callable(residuals):
-        raise TypeError(f"residuals: expected a callable, got {type(residuals).__name__}")
-    central = isinstance(jacobian, str)
-    if central and jacobian != "central":
-        raise ValueError(f"jacobian: expected 'central' or a callable, got {jacobian!r}")
-    if not central and not callable(jacobian):
-        raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
+
+    def __init__(
+        self,
+        device: Device,
+        shape,
+        *,
+        step=None,
+        damping_scale: str = "identity",
+        max_iter: int = 10,
+        ftol: float = 1e-8,
+        xtol: float = 1e-8,
+        gtol: float = 1e-8,
+        dtype=np.float64,
+        points_dtype=None,
+        early_stop: bool = True,
+    ):
+        device = check_device(device)
+        B, P = _batch_shape(shape)
+        if step is not None:
+            _shape_in(step, "step", ((), (P,)), f"a positive number or (P={P},) positive numbers")
+        if not isinstance(damping_scale, str) or damping_scale not in DAMPING_SCALES:
+            raise ValueError(f"damping_scale: expected one of {', '.join(map(repr, DAMPING_SCALES))}, got {damping_scale!r}")
+        want = np.dtype(dtype)
+        if want not in (np.dtype(np.float32), np.dtype(np.float64)):
+            raise TypeError(f"dtype: expected float32 or float64, got {want.name}")
+        dt = np.dtype(np.float64) if (want == np.float64 and device.fp64) else np.dtype(np.float32)
+        if want == np.float64 and dt != want:
+            log.info("least_squares: %s has no float64; running in float32", device.spec)
+        pdt = dt if points_dtype is None else np.dtype(points_dtype)
+        if pdt not in (np.dtype(np.float32), np.dtype(np.float64)) or (pdt == np.float64 and not device.fp64):
+            raise TypeError(f"points_dtype: expected float32{' or float64' if device.fp64 else ''}, got {pdt.name}")
+        # the solver's arrays fit the device (the stacked points of a central-difference call the largest)
+        device.check_alloc((B * (2 * P + 1), P), pdt)
+        if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
+            raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
+        for name, v in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise TypeError(f"{name}: expected a real number, got {type(v).__name__}")
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+        if step is None:
+            h = np.zeros(P)
+        else:
+            h = real_array(step, "step").astype(np.float64)
+            if h.ndim == 0:
+                h = np.full(P, float(h))
+            if h.shape != (P,) or not np.isfinite(h).all() or (h <= 0).any():
+                raise ValueError(f"step: expected a positive number or (P={P},) positive numbers, got {np.asarray(step)!r}")
+        self.device, self.B, self.P, self.shape, self.dtype, self.points_dtype = device, B, P, (B, P), dt, pdt
+        self.damping_scale, self.max_iter, self.early_stop = damping_scale, int(max_iter), bool(early_stop)
+        self.tols = (float(ftol), float(xtol), float(gtol))
+        self._h = h
+        self._be = backend_module(device, "lm")
+        self._bufs = _Buffers(device)
+        self._busy = False
+
+    def __repr__(self):
+        return (f"LeastSquaresSolver({self.device.spec}, B={self.B}, P={self.P}, {self.dtype.name}, "
+                f"damping_scale={self.damping_scale!r}, max_iter={self.max_iter})")  # fmt: skip
+
+    def close(self) -> None:
+        """Hand the solver's device buffers back to the device's LM pool (the next solve takes new ones)."""
+        if self._busy:
+            raise RuntimeError("LeastSquaresSolver.close: the solver is solving (called from its residual function)")
+        self._bufs.release()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def solve(self, residuals, x0, *, jacobian=None, jac_sparsity=None, lower=None, upper=None,
+              damping=None) -> LeastSquaresResult:  # fmt: skip
+        """Minimise sum_m r_m(x_b)^2 for the B problems from the start points x0 (B, P) (NumPy, or
+        a DeviceArray of the solver's device, downloaded once: the bounds are applied on the host).
+
+        ``jacobian``: None (central differences) or a callable ``jacobian(X) -> (B, M, P)``;
+        ``jac_sparsity``: None or the (M, P) bool mask of the Jacobian's entries (central
+        differences only; it may change from solve to solve, e.g. with a tracker's template);
+        ``lower``, ``upper``: scalar, (P,) or (B, P) bounds; ``damping``: the initial C, scalar or
+        (B,) (None: ``DEFAULT_DAMPING[damping_scale]``). Returns a :class:`LeastSquaresResult`."""
+        if self._busy:
+            raise RuntimeError("LeastSquaresSolver.solve: expected one solve at a time, got a call from the solver's "
+                               "own residual function (use another solver, e.g. least_squares, for a nested solve)")  # fmt: skip
+        device, B, P, dt = self.device, self.B, self.P, self.dtype
+        device._check_open()
+        if not callable(residuals):
+            raise TypeError(f"residuals: expected a callable, got {type(residuals).__name__}")
+        if jacobian is not None:
+            if not callable(jacobian):
+                raise TypeError(f"jacobian: expected a callable or None, got {type(jacobian).__name__}")
+            if jac_sparsity is not None:
+                raise ValueError("jac_sparsity: expected jacobian='central' (a Jacobian callable computes its own entries)")
+        x0 = _host_x0(device, x0)
+        if x0.shape != (B, P):
+            raise ValueError(f"x0: expected shape (B={B}, P={P}), got {x0.shape}")
+        _solve_shapes(B, P, damping, lower, upper, jac_sparsity)
+        mask = None
+        if jac_sparsity is not None:
+            mask = np.asarray(jac_sparsity)
+            if mask.dtype != np.bool_:
+                if mask.dtype.kind in "iu" and mask.size and set(np.unique(mask)) <= {0, 1}:
+                    mask = mask.astype(bool)
+                else:
+                    raise TypeError(f"jac_sparsity: expected a bool array, got dtype {mask.dtype.name}")
+            if mask.ndim != 2 or mask.shape[1] != P:
+                raise ValueError(f"jac_sparsity: expected shape (M, P={P}), got {mask.shape}")
+        if not np.isfinite(compact(x0)).all():
+            bad = np.argwhere(~np.isfinite(x0))[0]
+            raise ValueError(f"x0: expected finite values, got {x0[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+        if damping is None:
+            damping = DEFAULT_DAMPING[self.damping_scale]
+        c0 = real_array(damping, "damping").astype(np.float64)
+        if c0.ndim == 0:
+            c0 = np.full(B, float(c0))
+        if c0.shape != (B,) or not np.isfinite(c0).all() or (c0 < 0).any():
+            raise ValueError(f"damping: expected a finite number >= 0 or (B={B},) of them, got {np.asarray(damping)!r}")
+        lo = _bounds(lower, "lower", B, P, dt, -np.inf)
+        hi = _bounds(upper, "upper", B, P, dt, np.inf)
+        if (lo > hi).any():
+            b, n = (int(i) for i in np.argwhere(lo > hi)[0])
+            raise ValueError(f"lower/upper: expected lower <= upper, got lower={lo[b, n]} > upper={hi[b, n]} at [{b}, {n}]")
+        x0c = np.clip(x0.astype(np.float64), lo, hi)
+        clipped = (x0c != x0).any(axis=1)
+        if clipped.any():
+            log.info("least_squares: x0 of problems %s was outside the bounds and was clipped",
+                     np.flatnonzero(clipped).tolist())  # fmt: skip
+        if B == 0:
+            e = np.empty(0)
+            return LeastSquaresResult(np.empty((0, P), dt), e.astype(dt), e.astype(np.int32), e.astype(np.int8),
+                                      e.astype(np.int8), e.astype(dt), 0, 0, 0, dt, e.astype(bool))  # fmt: skip
+        self._busy = True
+        try:
+            return _Run(self, residuals, jacobian, mask).run(x0c, lo, hi, c0, clipped)
+        finally:
+            self._busy = False
+
+
+def _batch_shape(shape) -> tuple[int, int]:
+    try:
+        B, P = (operator.index(s) for s in shape)
+    except (TypeError, ValueError):
+        raise TypeError(f"shape: expected (B, P) integers, got {shape!r}") from None
+    if B < 0 or P < 1:
+        raise ValueError(f"shape: expected B >= 0 problems of P >= 1 parameters, got {(B, P)}")
+    return int(B), int(P)
+
+
+def _host_x0(device, x0) -> np.ndarray:
+    """x0 on the host (a DeviceArray of ``device`` downloaded, counted), a real (B, P) array with P >= 1."""
     if isinstance(x0, DeviceArray):
         if x0.device is not device:
             raise foreign_array_error(x0, device, "x0")
@@ -484,104 +652,79 @@ def least_squares(
         raise TypeError(f"x0: expected a float array, got dtype {x0.dtype.name}")
     if x0.ndim != 2:
         raise ValueError(f"x0: expected shape (B, P), got {x0.shape}")
-    B, P = x0.shape
-    if P == 0:
+    if x0.shape[1] == 0:
         raise ValueError("x0: expected P >= 1 parameters, got shape (B, 0)")
-    # every other array argument's shape before any value is read or converted
-    _shape_in(damping, "damping", ((), (B,)), f"a finite number >= 0 or (B={B},) of them")
+    return x0
+
+
+def _solve_shapes(B, P, damping, lower, upper, jac_sparsity=None):
+    """The shapes of a solve's array arguments, before any value is read or converted."""
+    if jac_sparsity is not None and len(shape_of(jac_sparsity, "jac_sparsity")) == 2:
+        check_shapes({}, (jac_sparsity, "jac_sparsity", ("M", P)))
+    if damping is not None:
+        _shape_in(damping, "damping", ((), (B,)), f"a finite number >= 0 or (B={B},) of them")
     for name, v in (("lower", lower), ("upper", upper)):
         if v is not None:
             _shape_in(v, name, ((), (P,), (B, P)), f"shape (P={P},) or (B={B}, P={P})")
-    if step is not None:
-        _shape_in(step, "step", ((), (P,)), f"a positive number or (P={P},) positive numbers")
-    if jac_sparsity is not None and len(shape_of(jac_sparsity, "jac_sparsity")) == 2:
-        check_shapes({}, (jac_sparsity, "jac_sparsity", ("M", P)))
-    want = np.dtype(dtype)
-    if want not in (np.dtype(np.float32), np.dtype(np.float64)):
-        raise TypeError(f"dtype: expected float32 or float64, got {want.name}")
-    dt = np.dtype(np.float64) if (want == np.float64 and device.fp64) else np.dtype(np.float32)
-    if want == np.float64 and dt != want:
-        log.info("least_squares: %s has no float64; running in float32", device.spec)
-    pdt = dt if points_dtype is None else np.dtype(points_dtype)
-    if pdt not in (np.dtype(np.float32), np.dtype(np.float64)) or (pdt == np.float64 and not device.fp64):
-        raise TypeError(f"points_dtype: expected float32{' or float64' if device.fp64 else ''}, got {pdt.name}")
-    # the solver's arrays fit the device (the stacked points of a central-difference call the largest)
-    device.check_alloc((B * (2 * P + 1), P), pdt)
-    if not np.isfinite(compact(x0)).all():
-        bad = np.argwhere(~np.isfinite(x0))[0]
-        raise ValueError(f"x0: expected finite values, got {x0[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
-        raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
-    for name, v in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
-        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise TypeError(f"{name}: expected a real number, got {type(v).__name__}")
-        if not np.isfinite(v) or v < 0:
-            raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
-    c0 = real_array(damping, "damping").astype(np.float64)
-    if c0.ndim == 0:
-        c0 = np.full(B, float(c0))
-    if c0.shape != (B,) or not np.isfinite(c0).all() or (c0 < 0).any():
-        raise ValueError(f"damping: expected a finite number >= 0 or (B={B},) of them, got {np.asarray(damping)!r}")
-    lo = _bounds(lower, "lower", B, P, dt, -np.inf)
-    hi = _bounds(upper, "upper", B, P, dt, np.inf)
-    if (lo > hi).any():
-        b, n = (int(i) for i in np.argwhere(lo > hi)[0])
-        raise ValueError(f"lower/upper: expected lower <= upper, got lower={lo[b, n]} > upper={hi[b, n]} at [{b}, {n}]")
-    if step is None:
-        h = np.zeros(P)
-    else:
-        h = real_array(step, "step").astype(np.float64)
-        if h.ndim == 0:
-            h = np.full(P, float(h))
-        if h.shape != (P,) or not np.isfinite(h).all() or (h <= 0).any():
-            raise ValueError(f"step: expected a positive number or (P={P},) positive numbers, got {np.asarray(step)!r}")
-    mask = None
-    if jac_sparsity is not None:
-        mask = np.asarray(jac_sparsity)
-        if mask.dtype != np.bool_:
-            if mask.dtype.kind in "iu" and mask.size and set(np.unique(mask)) <= {0, 1}:
-                mask = mask.astype(bool)
-            else:
-                raise TypeError(f"jac_sparsity: expected a bool array, got dtype {mask.dtype.name}")
-        if mask.ndim != 2 or mask.shape[1] != P:
-            raise ValueError(f"jac_sparsity: expected shape (M, P={P}), got {mask.shape}")
-        if not central:
-            raise ValueError("jac_sparsity: expected jacobian='central' (a Jacobian callable computes its own entries)")
-    x0c = np.clip(x0.astype(np.float64), lo, hi)
-    clipped = (x0c != x0).any(axis=1)
-    if clipped.any():
-        log.info(
-            "least_squares: x0 of problems %s was outside the bounds and was clipped", np.flatnonzero(clipped).tolist()
-        )
-
-    if B == 0:
-        e = np.empty(0)
-        return LeastSquaresResult(
-            np.empty((0, P), dt),
-            e.astype(dt),
-            e.astype(np.int32),
-            e.astype(np.int8),
-            e.astype(np.int8),
-            e.astype(dt),
-            0,
-            0,
-            0,
-            dt,
-            e.astype(bool),
-        )
-
-    solver = _Solver(device, residuals, jacobian if not central else None, B, P, dt, pdt, mask)
-    return solver.run(x0c, lo, hi, h, c0, max_iter, (ftol, xtol, gtol), early_stop, clipped)
 
 
-class _Solver:
-    """Drives one solve: residual calls on the host side, one backend launch per iteration."""
+def least_squares(
+    residuals,
+    x0,
+    *,
+    device: Device,
+    jacobian="central",
+    step=None,
+    lower=None,
+    upper=None,
+    damping=None,
+    damping_scale: str = "identity",
+    max_iter: int = 10,
+    ftol: float = 1e-8,
+    xtol: float = 1e-8,
+    gtol: float = 1e-8,
+    dtype=np.float64,
+    jac_sparsity=None,
+    points_dtype=None,
+    early_stop: bool = True,
+) -> LeastSquaresResult:
+    """Minimise sum_m r_m(x_b)^2 for B problems at once by Levenberg-Marquardt: the one-shot form of
+    :class:`LeastSquaresSolver` (its docstring has the algorithm, the residual-function protocol,
+    bounds, sparsity, precision, traffic and the bad-input policy).
 
-    def __init__(self, device, residuals, jacobian, B, P, dt, pdt, mask):
-        self.device, self.fn, self.jac = device, residuals, jacobian
-        self.B, self.P, self.dt, self.pdt, self.mask = B, P, dt, pdt, mask
-        self.be = backend_module(device, "lm")
-        self.rows_protocol = mask is not None and _rows_protocol(residuals)
+    Equivalent to ``LeastSquaresSolver(device, x0.shape, step=..., damping_scale=..., max_iter=...,
+    ftol=..., xtol=..., gtol=..., dtype=..., points_dtype=..., early_stop=...).solve(residuals, x0,
+    jacobian=..., jac_sparsity=..., lower=..., upper=..., damping=...)`` with
+    ``jacobian="central"`` (None there) or a callable. A loop of solves of one shape should hold a solver.
+    """
+    device = check_device(device)
+    if not callable(residuals):
+        raise TypeError(f"residuals: expected a callable, got {type(residuals).__name__}")
+    central = isinstance(jacobian, str)
+    if central and jacobian != "central":
+        raise ValueError(f"jacobian: expected 'central' or a callable, got {jacobian!r}")
+    if not central and not callable(jacobian):
+        raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
+    if not central and jac_sparsity is not None:
+        raise ValueError("jac_sparsity: expected jacobian='central' (a Jacobian callable computes its own entries)")
+    x0 = _host_x0(device, x0)
+    _solve_shapes(*x0.shape, damping, lower, upper, jac_sparsity)  # every array's shape before any value is read
+    solver = LeastSquaresSolver(device, x0.shape, step=step, damping_scale=damping_scale, max_iter=max_iter, ftol=ftol,
+                                xtol=xtol, gtol=gtol, dtype=dtype, points_dtype=points_dtype,
+                                early_stop=early_stop)  # fmt: skip
+    with solver:
+        return solver.solve(residuals, x0, jacobian=None if central else jacobian, jac_sparsity=jac_sparsity,
+                            lower=lower, upper=upper, damping=damping)  # fmt: skip
+
+
+class _Run:
+    """One solve of a :class:`LeastSquaresSolver`: residual calls on the host side, one backend
+    launch per iteration, on the solver's buffers."""
+
+    def __init__(self, solver, residuals, jacobian, mask):
+        self.s, self.device, self.fn, self.jac, self.mask = solver, solver.device, residuals, jacobian, mask
+        self.B, self.P, self.dt, self.pdt = solver.B, solver.P, solver.dtype, solver.points_dtype
+        self.rows_protocol = self.mask is not None and _rows_protocol(residuals)
         self.nfev = self.njev = self.npoints = 0
         self.M = None
 
@@ -628,49 +771,45 @@ class _Solver:
         return self._check_out(out, X.shape[0], "jacobian", (self.B, self.M, self.P))
 
     # -- loop ------------------------------------------------------------------------------------
-    def run(self, x0, lo, hi, h, c0, max_iter, tols, early_stop, clipped):
-        B, P, dev, be, dt = self.B, self.P, self.device, self.be, self.dt
+    def run(self, x0, lo, hi, c0, clipped):
+        s = self.s
+        B, P, be, dt, bufs = self.B, self.P, s._be, self.dt, s._bufs
+        max_iter = s.max_iter
         central = self.jac is None
         S_rows = 2 * P + 1 if central else 1
         mask = self.mask
         lay = Layout(B, P, mask.shape[0] if mask is not None else 0, mask is not None)
-        K = _constants(lay, lo, hi, h, c0, tols, dt, self.pdt, mask)
+        K = _constants(lay, lo, hi, s._h, c0, s.tols, dt, self.pdt, mask, DAMPING_SCALES[s.damping_scale])
         x0_32 = x0.astype(np.float32)
         x0_up = x0_32 if np.array_equal(x0_32, x0) else x0.astype(dt)  # float32 when exact
-        pool = _Pool(dev)
-        try:
-            K_d = pool.upload_cached(K)
-            X0_d = pool.upload(x0_up)
-            X_full = pool.empty((B * S_rows, P), self.pdt)
-            X_last = X_full if S_rows == 1 else pool.empty((B, P), self.pdt)
-            state = be.solver_state(
-                dev, lay, pool.empty((lay.s_size(),), dt), pool.empty((lay.i_size(),), np.int32),
-                pool.empty((B, lay.OB), dt),
-            )  # fmt: skip
-            need_full = need_last = None
-            if self.rows_protocol:
-                need_full, need_last = (pool.upload_cached(a) for a in self._need(S_rows))
-            # the first points: x0 (and the perturbed points around it), written on the device
-            first_X, first_need = (X_full, need_full) if max_iter > 0 else (X_last, need_last)
-            be.solver_init(state, X0_d, K_d, first_X)
-            R = self._call(first_X, first_need)  # fixes M
-            lay = Layout(B, P, self.M, mask is not None)
-            be.solver_workspace(state, lay, pool.empty((lay.w_size(),), dt))
-            Jg = self._call_jac(first_X) if not central else None
-            for it in range(max_iter + 1):
-                final = it == max_iter
-                nxt = X_last if it == max_iter - 1 else X_full
-                be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
-                if final:
-                    break
-                if early_stop and be.solver_active(state) == 0:
-                    break
-                R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
-                if not central:
-                    Jg = self._call_jac(nxt)
-            out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
-        finally:
-            pool.release()
+        K_d = bufs.upload_cached("K", K)
+        X0_d = bufs.upload("X0", x0_up)
+        X_full = bufs.empty("X", (B * S_rows, P), self.pdt)
+        X_last = X_full if S_rows == 1 else bufs.empty("X_last", (B, P), self.pdt)
+        state = be.solver_state(self.device, lay, bufs.empty("S", (lay.s_size(),), dt),
+                                bufs.empty("I", (lay.i_size(),), np.int32), bufs.empty("Out", (B, lay.OB), dt))  # fmt: skip
+        need_full = need_last = None
+        if self.rows_protocol:
+            need_full, need_last = (bufs.upload_cached(f"need{i}", a) for i, a in enumerate(self._need(S_rows)))
+        # the first points: x0 (and the perturbed points around it), written on the device
+        first_X, first_need = (X_full, need_full) if max_iter > 0 else (X_last, need_last)
+        be.solver_init(state, X0_d, K_d, first_X)
+        R = self._call(first_X, first_need)  # fixes M
+        lay = Layout(B, P, self.M, mask is not None)
+        be.solver_workspace(state, lay, bufs.empty("W", (lay.w_size(),), dt))
+        Jg = self._call_jac(first_X) if not central else None
+        for it in range(max_iter + 1):
+            final = it == max_iter
+            nxt = X_last if it == max_iter - 1 else X_full
+            be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
+            if final:
+                break
+            if s.early_stop and be.solver_active(state) == 0:
+                break
+            R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
+            if not central:
+                Jg = self._call_jac(nxt)
+        out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
         L = LMLayout
         status = out[:, P + L.O_STATUS].astype(np.int8)
         status[status == Status.RUNNING] = Status.MAX_ITER  # stopped early only when none is running
@@ -700,12 +839,14 @@ class _Solver:
         return np.tile(block, (B, 1)), np.ones((B, M), np.uint8)
 
 
-class _Pool:
-    """Device buffers of a solve, reused by the next solve of the same shapes on the same device.
+class _Buffers:
+    """The device buffers of one :class:`LeastSquaresSolver`, by role (state, workspace, points,
+    constants, ...): taken at first use from the device's LM pool (or allocated), kept between
+    solves, handed back to the pool by :meth:`release` (a one-shot :func:`least_squares` releases
+    at its end, so the next one reuses them; a nested solve takes buffers of its own).
 
-    Allocating a Taichi ndarray costs ~0.5 ms, a solve needs seven. Buffers are taken out of the
-    per-device pool for the duration of a solve (a nested solve allocates its own) and put back
-    at the end. Uploads into a reused buffer are counted in ``device.transfers`` like any other.
+    Allocating a Taichi ndarray costs ~0.5 ms, a solve needs seven. Uploads into a reused buffer
+    are counted in ``device.transfers`` like any other.
     """
 
     _free: ClassVar[weakref.WeakKeyDictionary] = per_device_cache()
@@ -713,42 +854,49 @@ class _Pool:
 
     def __init__(self, device):
         self.device = device
-        self.taken: list = []
+        self.held: dict = {}  # role -> (key, array)
 
-    def _take(self, shape, dtype, kind="work"):
+    def _take(self, role, shape, dtype, kind="work"):
         dev = self.device
         key = (kind, tuple(shape), np.dtype(dtype).name)
-        free = self._free.setdefault(dev, {}).get(key)
-        arr = free.pop() if free else dev.empty(shape, dtype)
-        self.taken.append((key, arr))
+        have = self.held.get(role)
+        if have is not None and have[0] == key:
+            return have[1]
+        free = self._free.setdefault(dev, {})
+        if have is not None:  # another size: back to the pool
+            free.setdefault(have[0], []).append(have[1])
+        avail = free.get(key)
+        arr = avail.pop() if avail else dev.empty(shape, dtype)
+        self.held[role] = (key, arr)
         return arr
 
-    def empty(self, shape, dtype):
+    def empty(self, role, shape, dtype):
         if self.device.backend == "numpy":
             return np.empty(shape, dtype)
-        return self._take(shape, dtype)
+        return self._take(role, shape, dtype)
 
-    def upload(self, host):
+    def upload(self, role, host):
         dev = self.device
         if dev.backend == "numpy":
             return host
-        arr = self._take(host.shape, host.dtype)
+        arr = self._take(role, host.shape, host.dtype)
         backend_module(dev, "lm").upload_into(dev, arr, np.ascontiguousarray(host))
         dev.transfers.h2d += host.nbytes
         return arr
 
-    def upload_cached(self, host):
-        """Like :meth:`upload`, but skips the copy when the buffer handed out already holds ``host``.
+    def upload_cached(self, role, host):
+        """Like :meth:`upload`, but skips the copy when the buffer already holds ``host``.
 
         Buffers for cached uploads come from their own free list (never written by a kernel);
         each remembers the host copy it was last given. A solve with the same shapes and the same
-        constants as an earlier one on this device then uploads nothing for them.
+        constants as an earlier one (of this solver, or of a one-shot solve before it on this
+        device) then uploads nothing for them.
         """
         dev = self.device
         if dev.backend == "numpy":
             return host
         host = np.ascontiguousarray(host)
-        arr = self._take(host.shape, host.dtype, "cached")
+        arr = self._take(role, host.shape, host.dtype, "cached")
         sent = self._sent.setdefault(dev, {})
         prev = sent.get(id(arr))
         if prev is not None and prev[0] is arr and np.array_equal(prev[1], host):
@@ -759,12 +907,12 @@ class _Pool:
         return arr
 
     def release(self):
+        held, self.held = self.held, {}
         if self.device.backend == "numpy" or self.device.closed:
             return
         free = self._free.setdefault(self.device, {})
-        for key, arr in self.taken:
+        for key, arr in held.values():
             free.setdefault(key, []).append(arr)
-        self.taken = []
 
 
 def _rel_step(dt, pdt=None) -> float:
@@ -773,7 +921,7 @@ def _rel_step(dt, pdt=None) -> float:
     return DEFAULT_REL_STEP[np.dtype(low).name]
 
 
-def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None):
+def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None, scale=0):
     """The constants array K of a solve (see :class:`Layout`), on the host."""
     L = LMLayout
     K = np.zeros(lay.k_size(), dtype=dt)
@@ -786,6 +934,7 @@ def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None):
     glob = K[lay.kglob : lay.kglob + lay.NGLOB]
     glob[[L.G_FTOL, L.G_XTOL, L.G_GTOL]] = tols
     glob[[L.G_REL, L.G_CTINY, L.G_CMAX]] = (_rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
+    glob[G_SCALE] = scale  # the damping's scaling (DAMPING_SCALES)
     if mask is not None:
         K[lay.kmask : lay.kmask + lay.M * P] = np.asarray(mask, dtype=dt).ravel()
     return K

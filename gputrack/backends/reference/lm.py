@@ -18,6 +18,13 @@ R_FTOL, R_XTOL, R_GTOL, R_MAXIT = LMReason.FTOL, LMReason.XTOL, LMReason.GTOL, L
 R_NONFINITE, R_NOTPD, R_DAMPING = LMReason.NONFINITE, LMReason.NOT_PD, LMReason.DAMPING
 
 MAX_CHOL_TRIES = 40
+#: the global slot of S (and K) holding the damping's scaling (a spare slot of gputrack/abi.py's
+#: LMLayout globals): 0 = C I (paper 000 eq. 22), 1 = C diag(J^T J) (Marquardt), 2 = C D with D the
+#: running maximum of diag(J^T J) over the iterations (MINPACK's scaling); every backend reads it
+G_SCALE = LAY.NGLOB - 2
+if G_SCALE <= max(LAY.G_FTOL, LAY.G_XTOL, LAY.G_GTOL, LAY.G_REL, LAY.G_CTINY, LAY.G_CMAX):
+    raise RuntimeError("gputrack.abi.LMLayout: the LM solver needs a spare global slot for its damping scale")
+SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = 0, 1, 2
 
 
 def normal_equations(device, J, r, out=None):
@@ -148,10 +155,12 @@ def solver_update(state, R, X, *, first, final, jac=None):
     lo, hi = lay.vec(S, lay.lo), lay.vec(S, lay.hi)
     A = lay.wmat(W, lay.A, P, P)
     Jt = lay.wmat(W, lay.Jt, P, M)
+    D = lay.wmat(W, lay.D, 1, P)[:, 0]  # the damping's scale of the last step (scaled modes)
     F, C, nu, pred, Ft, snorm = (lay.sc(S, o) for o in (lay.F, lay.C, lay.nu, lay.pred, lay.Ft, lay.snorm))
     glob = S[lay.glob : lay.glob + lay.NGLOB]
     ftol, xtol, gtol = glob[[LAY.G_FTOL, LAY.G_XTOL, LAY.G_GTOL]]
     rel, ctiny, cmax = glob[[LAY.G_REL, LAY.G_CTINY, LAY.G_CMAX]]
+    scale = int(glob[G_SCALE])
     mask = lay.maskview(S) if I[LAY.IG_HAS_MASK] else np.ones((M, P), dt)
     ib = lay.iblock(I)
     status, iters, accepted, reason = ib[:, LAY.I_STATUS], ib[:, LAY.I_ITER], ib[:, LAY.I_ACCEPTED], ib[:, LAY.I_REASON]
@@ -177,19 +186,23 @@ def solver_update(state, R, X, *, first, final, jac=None):
             fin[b] = ok_J
         else:
             ok_J = True
+        # the norms of the xtol test: plain, or weighted by the last step's damping scale D (as
+        # MINPACK's ||D x||; scale-invariant)
+        w = D[b] if (scale != SCALE_IDENTITY and not first) else None
         # acceptance of the trial (its cost Ft = sum r^2, eq. 20-21)
-        Ft[b] = rt[b] @ rt[b]
-        if not (_finite(rt[b]) and ok_J and np.isfinite(Ft[b])):
+        with np.errstate(over="ignore", invalid="ignore"):  # a far trial may overflow: rejected below
+            Ft[b] = rt[b] @ rt[b]
+        ok = _finite(rt[b]) and ok_J and np.isfinite(Ft[b])
+        if first and not ok:
             status[b], reason[b] = FAILED, R_NONFINITE
-            if first:
-                F[b] = np.inf  # no finite cost at x0
+            F[b] = np.inf  # no finite cost at x0
             continue
         if first:
             acc = True
         else:
             iters[b] += 1
             dF = F[b] - Ft[b]
-            acc = dF > 0
+            acc = ok and dF > 0  # a trial with non-finite residuals or Jacobian is rejected (as MINPACK)
             if acc:
                 rho = dF / pred[b] if pred[b] > 0 else 1.0
                 C[b] *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)  # Nielsen: lower C near the optimum
@@ -197,20 +210,20 @@ def solver_update(state, R, X, *, first, final, jac=None):
             else:
                 C[b] *= nu[b]  # rejected: raise this problem's C only
                 nu[b] *= 2.0
-                if np.linalg.norm(xt[b] - x[b]) <= xtol * (xtol + np.linalg.norm(x[b])):
+                if _norm(xt[b] - x[b], w) <= xtol * (xtol + _norm(x[b], w)):
                     status[b], reason[b] = CONVERGED, R_XTOL  # no step this small improves the cost
-                elif C[b] > cmax * (1.0 + np.max(np.diag(A[b]))):
+                elif C[b] > cmax * _cref(A[b], scale):
                     status[b], reason[b] = FAILED, R_DAMPING
                     continue
         if acc:
             accepted[b] = 1
-            snorm[b] = np.linalg.norm(xt[b] - x[b])
+            snorm[b] = _norm(xt[b] - x[b], w)
             F_old = F[b]
             x[b], F[b] = xt[b], Ft[b]
             if not first:
                 if F_old - F[b] <= ftol * F_old:
                     status[b], reason[b] = CONVERGED, R_FTOL
-                elif snorm[b] <= xtol * (xtol + np.linalg.norm(x[b])):
+                elif snorm[b] <= xtol * (xtol + _norm(x[b], w)):
                     status[b], reason[b] = CONVERGED, R_XTOL
             if have_J:
                 A[b] = Jt[b] @ Jt[b].T  # eq. 22: J^T J
@@ -219,6 +232,11 @@ def solver_update(state, R, X, *, first, final, jac=None):
                     # projected gradient: drop components pushing against an active bound (the
                     # step is x - delta, so g > 0 moves down, g < 0 moves up)
                     gp = np.where(((x[b] >= hi[b]) & (g[b] < 0)) | ((x[b] <= lo[b]) & (g[b] > 0)), 0, g[b])
+                    if scale != SCALE_IDENTITY:
+                        # scaled modes: MINPACK's measure, the cosine of the angle between r and
+                        # each column of J, |J_n^T r| / (||J_n|| ||r||) (0 for a zero column)
+                        nrm = np.sqrt(np.diag(A[b]) * F[b])
+                        gp = np.where(nrm > 0, gp / np.where(nrm > 0, nrm, 1), 0)
                     if np.max(np.abs(gp)) <= gtol:
                         status[b], reason[b] = CONVERGED, R_GTOL
         if final and status[b] == RUNNING:
@@ -227,7 +245,6 @@ def solver_update(state, R, X, *, first, final, jac=None):
     if final:
         _export(state)
         return
-    eye = np.eye(P, dtype=dt)
     for b in range(B):
         if status[b] == RUNNING:
             # parameters held at a bound by the gradient (the step is x - delta) stay there: their
@@ -235,13 +252,22 @@ def solver_update(state, R, X, *, first, final, jac=None):
             act = ((x[b] >= hi[b]) & (g[b] < 0)) | ((x[b] <= lo[b]) & (g[b] > 0))
             Ab = np.where(act[:, None] | act[None, :], 0, A[b]) + np.diag(act.astype(dt))
             gb = np.where(act, 0, g[b])
+            # the damping's scale: 1 (C I, eq. 22), diag(J^T J) (Marquardt), or its running maximum
+            # over the iterations (MINPACK); a zero column gets 1
+            dA = np.diag(A[b])
+            if scale == SCALE_IDENTITY:
+                D[b] = 1.0
+            else:
+                d = np.maximum(D[b], dA) if (scale == SCALE_MINPACK and iters[b] > 0) else dA
+                D[b] = np.where(d > 0, d, 1.0)
+            damp = np.where(act, 1.0, D[b])  # held parameters: a unit row, + C
             # damped Cholesky (eq. 22); a failure raises C tenfold and tries again
-            dmax = 1.0 + np.max(np.diag(A[b]))
-            L = cholesky(Ab + C[b] * eye)
+            cref = _cref(A[b], scale)
+            L = cholesky(Ab + C[b] * np.diag(damp))
             tries = 0
-            while L is None and tries <= MAX_CHOL_TRIES and C[b] <= cmax * dmax:
-                C[b] = max(10.0 * C[b], ctiny * dmax)
-                L = cholesky(Ab + C[b] * eye)
+            while L is None and tries <= MAX_CHOL_TRIES and C[b] <= cmax * cref:
+                C[b] = max(10.0 * C[b], ctiny * cref)
+                L = cholesky(Ab + C[b] * np.diag(damp))
                 tries += 1
             if L is None:
                 status[b], reason[b] = FAILED, R_NOTPD
@@ -253,6 +279,16 @@ def solver_update(state, R, X, *, first, final, jac=None):
         # next points: the trial and its perturbed copies (eq. 24), or the accepted x when stopped
         _points(lay, S, X, b, xt[b] if status[b] == RUNNING else x[b], SX, rel)
     _export(state)
+
+
+def _norm(v, w=None):
+    """||v||, or with weights w sqrt(sum w v^2)."""
+    return np.sqrt(v @ v) if w is None else np.sqrt((w * v) @ v)
+
+
+def _cref(A, scale):
+    """What the damping's limits are relative to: 1 + max diag(J^T J) for C I, 1 when scaled."""
+    return 1.0 + np.max(np.diag(A)) if scale == SCALE_IDENTITY else 1.0
 
 
 def _points(lay, S, X, b, p, SX, rel):

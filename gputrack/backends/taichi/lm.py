@@ -64,6 +64,9 @@ RUNNING, CONVERGED, MAX_ITER, FAILED = (int(s) for s in (LMStatus.RUNNING, LMSta
 R_FTOL, R_XTOL, R_GTOL, R_MAXIT = (int(r) for r in (LMReason.FTOL, LMReason.XTOL, LMReason.GTOL, LMReason.MAX_ITER))
 R_NONFINITE, R_NOTPD, R_DAMPING = (int(r) for r in (LMReason.NONFINITE, LMReason.NOT_PD, LMReason.DAMPING))
 MAX_CHOL_TRIES = 40
+# the damping's scaling, a global of S (see backends/reference/lm.py): C I, C diag(J^T J), C D (running max)
+G_SCALE = LAY.NGLOB - 2
+SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = 0, 1, 2
 GRAM_SEG = 8  # columns per SIMD vector of _gram_static (8 float64: one AVX-512 register)
 STATIC_P_MAX = 32  # _gram_static unrolls P (P (P / 8 + 1) / 2 vector products per row of J)
 
@@ -477,7 +480,75 @@ def _ib(b, P):
 
 @ti.func
 def _wb(P, M):
-    return LAY.W_NSQ * P * P + P * M
+    return LAY.W_NSQ * P * P + P * M + P
+
+
+@ti.func
+def _wd(b, P, M):
+    """Offset of problem b's damping scale D[P] in W (after J^T)."""
+    return b * _wb(P, M) + LAY.W_NSQ * P * P + P * M
+
+
+@ti.func
+def _cref(W: ti.template(), A, P, scale, dt: ti.template()):
+    """What the damping's limits are relative to: 1 + max diag(J^T J) for C I, 1 when scaled."""
+    dmax = ti.cast(0, dt)
+    for i in range(P):
+        dmax = ti.max(dmax, W[A + i * P + i])
+    return ti.select(scale == SCALE_IDENTITY, dmax + 1, ti.cast(1, dt))
+
+
+@ti.func
+def _step_norms(S: ti.template(), W: ti.template(), base, wd, P, weighted, xslot: ti.template(),
+                dt: ti.template()):  # fmt: skip
+    """(||xt - x||^2, ||p||^2) of a problem (p: x or xt, by ``xslot``), weighted by the last step's
+    damping scale D when ``weighted`` (as MINPACK's ||D x||: scale-invariant)."""
+    sn = ti.cast(0, dt)
+    xn = ti.cast(0, dt)
+    for i in range(P):
+        w = ti.select(weighted, W[wd + i], ti.cast(1, dt))
+        d = S[base + LAY.S_XT * P + i] - S[base + LAY.S_X * P + i]
+        p = S[base + xslot * P + i]
+        sn += w * d * d
+        xn += w * p * p
+    return sn, xn
+
+
+@ti.func
+def _gtol_test(S: ti.template(), I: ti.template(), W: ti.template(), b, A, P, G, scale, dt: ti.template()):
+    """Converged (GTOL) when the projected gradient's max-norm (scaled modes: MINPACK's
+    |J_n^T r| / (||J_n|| ||r||)) is <= gtol."""
+    base = b * _sb(P)
+    ib = _ib(b, P)
+    xo, go = base + LAY.S_X * P, base + LAY.S_G * P
+    loo, hio = base + LAY.S_LO * P, base + LAY.S_HI * P
+    F = S[base + LAY.S_NVEC * P + LAY.SC_F]
+    gmax = ti.cast(0, dt)
+    for i in range(P):
+        if not _active(S, xo, loo, hio, go, i):
+            gi = ti.abs(S[go + i])
+            if scale != SCALE_IDENTITY:
+                nrm = ti.sqrt(W[A + i * P + i] * F)
+                gi = ti.select(nrm > 0, gi / ti.select(nrm > 0, nrm, ti.cast(1, dt)), ti.cast(0, dt))
+            gmax = ti.max(gmax, gi)
+    if gmax <= S[G + LAY.G_GTOL]:
+        I[ib + LAY.I_STATUS] = CONVERGED
+        I[ib + LAY.I_REASON] = R_GTOL
+
+
+@ti.func
+def _damping_scale(I: ti.template(), W: ti.template(), b, A, wd, P, scale, dt: ti.template()):
+    """D of this step into W[wd]: 1 (C I, eq. 22), diag(J^T J) (Marquardt) or its running maximum
+    over the problem's iterations (MINPACK); 1 for a zero column."""
+    it = I[_ib(b, P) + LAY.I_ITER]
+    for i in range(P):
+        d = ti.cast(1, dt)
+        if scale != SCALE_IDENTITY:
+            d = W[A + i * P + i]
+            if scale == SCALE_MINPACK and it > 0:
+                d = ti.max(d, W[wd + i])
+            d = ti.select(d > 0, d, ti.cast(1, dt))
+        W[wd + i] = d
 
 
 @ti.func
@@ -551,6 +622,9 @@ def _phase_accept(
     ib = _ib(b, P)
     G = B * SB
     ftol, xtol, cmax = S[G + LAY.G_FTOL], S[G + LAY.G_XTOL], S[G + LAY.G_CMAX]
+    scale = ti.cast(S[G + G_SCALE], ti.i32)
+    wd = _wd(b, P, M)
+    weighted = ti.i32(scale != SCALE_IDENTITY) * ti.i32(not first)
     SR = R.shape[0] // B
     I[ib + LAY.I_ACCEPTED] = 0
     if I[ib + LAY.I_STATUS] == RUNNING:
@@ -566,64 +640,52 @@ def _phase_accept(
                 ok &= I[ib + LAY.I_FIN + n]
         S[sc + LAY.SC_FT] = Ft
         acc = 0
-        if not ok:
-            I[ib + LAY.I_STATUS] = FAILED
-            I[ib + LAY.I_REASON] = R_NONFINITE
-            if ti.static(first):
-                S[sc + LAY.SC_F] = ti.cast(np.inf, dt)
-        else:
-            if ti.static(first):
-                acc = 1
+        if ti.static(first):
+            if not ok:
+                I[ib + LAY.I_STATUS] = FAILED
+                I[ib + LAY.I_REASON] = R_NONFINITE
+                S[sc + LAY.SC_F] = ti.cast(np.inf, dt)  # no finite cost at x0
             else:
-                I[ib + LAY.I_ITER] += 1
-                F, pred = S[sc + LAY.SC_F], S[sc + LAY.SC_PRED]
-                dF = F - Ft
-                if dF > 0:
-                    acc = 1
-                    rho = ti.cast(1, dt)
-                    if pred > 0:
-                        rho = dF / pred
-                    q = 2 * rho - 1
-                    # Nielsen: lower C near the optimum
-                    S[sc + LAY.SC_C] *= ti.max(ti.cast(1.0 / 3.0, dt), 1 - q * q * q)
-                    S[sc + LAY.SC_NU] = ti.cast(2, dt)
-                else:
-                    S[sc + LAY.SC_C] *= S[sc + LAY.SC_NU]  # rejected: raise this problem's C only
-                    S[sc + LAY.SC_NU] *= 2
-                    dmax = ti.cast(0, dt)
-                    sn = ti.cast(0, dt)
-                    xn = ti.cast(0, dt)
-                    for i in range(P):
-                        dmax = ti.max(dmax, W[A + i * P + i])
-                        d = S[base + LAY.S_XT * P + i] - S[base + LAY.S_X * P + i]
-                        sn += d * d
-                        xn += S[base + LAY.S_X * P + i] * S[base + LAY.S_X * P + i]
-                    if ti.sqrt(sn) <= xtol * (xtol + ti.sqrt(xn)):
-                        I[ib + LAY.I_STATUS] = CONVERGED  # no step this small improves the cost
-                        I[ib + LAY.I_REASON] = R_XTOL
-                    elif S[sc + LAY.SC_C] > cmax * (1 + dmax):
-                        I[ib + LAY.I_STATUS] = FAILED
-                        I[ib + LAY.I_REASON] = R_DAMPING
-            if acc:
-                I[ib + LAY.I_ACCEPTED] = 1
-                sn = ti.cast(0, dt)
-                xn = ti.cast(0, dt)
-                for i in range(P):
-                    d = S[base + LAY.S_XT * P + i] - S[base + LAY.S_X * P + i]
-                    sn += d * d
-                    S[base + LAY.S_X * P + i] = S[base + LAY.S_XT * P + i]
-                    xn += S[base + LAY.S_X * P + i] * S[base + LAY.S_X * P + i]
-                sn = ti.sqrt(sn)
-                S[sc + LAY.SC_SNORM] = sn
-                F_old = S[sc + LAY.SC_F]
-                S[sc + LAY.SC_F] = Ft
-                if ti.static(not first):
-                    if F_old - Ft <= ftol * F_old:
-                        I[ib + LAY.I_STATUS] = CONVERGED
-                        I[ib + LAY.I_REASON] = R_FTOL
-                    elif sn <= xtol * (xtol + ti.sqrt(xn)):
-                        I[ib + LAY.I_STATUS] = CONVERGED
-                        I[ib + LAY.I_REASON] = R_XTOL
+                acc = 1
+        else:
+            I[ib + LAY.I_ITER] += 1
+            F, pred = S[sc + LAY.SC_F], S[sc + LAY.SC_PRED]
+            dF = F - Ft
+            if ok and dF > 0:  # a trial with non-finite residuals or Jacobian is rejected (as MINPACK)
+                acc = 1
+                rho = ti.cast(1, dt)
+                if pred > 0:
+                    rho = dF / pred
+                q = 2 * rho - 1
+                # Nielsen: lower C near the optimum
+                S[sc + LAY.SC_C] *= ti.max(ti.cast(1.0 / 3.0, dt), 1 - q * q * q)
+                S[sc + LAY.SC_NU] = ti.cast(2, dt)
+            else:
+                S[sc + LAY.SC_C] *= S[sc + LAY.SC_NU]  # rejected: raise this problem's C only
+                S[sc + LAY.SC_NU] *= 2
+                sn, xn = _step_norms(S, W, base, wd, P, weighted, LAY.S_X, dt)
+                if ti.sqrt(sn) <= xtol * (xtol + ti.sqrt(xn)):
+                    I[ib + LAY.I_STATUS] = CONVERGED  # no step this small improves the cost
+                    I[ib + LAY.I_REASON] = R_XTOL
+                elif S[sc + LAY.SC_C] > cmax * _cref(W, A, P, scale, dt):
+                    I[ib + LAY.I_STATUS] = FAILED
+                    I[ib + LAY.I_REASON] = R_DAMPING
+        if acc:
+            I[ib + LAY.I_ACCEPTED] = 1
+            sn2, xn = _step_norms(S, W, base, wd, P, weighted, LAY.S_XT, dt)  # |x| at the new x
+            for i in range(P):
+                S[base + LAY.S_X * P + i] = S[base + LAY.S_XT * P + i]
+            sn = ti.sqrt(sn2)
+            S[sc + LAY.SC_SNORM] = sn
+            F_old = S[sc + LAY.SC_F]
+            S[sc + LAY.SC_F] = Ft
+            if ti.static(not first):
+                if F_old - Ft <= ftol * F_old:
+                    I[ib + LAY.I_STATUS] = CONVERGED
+                    I[ib + LAY.I_REASON] = R_FTOL
+                elif sn <= xtol * (xtol + ti.sqrt(xn)):
+                    I[ib + LAY.I_STATUS] = CONVERGED
+                    I[ib + LAY.I_REASON] = R_XTOL
         if ti.static(final):  # noqa: SIM102 - a compile-time branch
             if I[ib + LAY.I_STATUS] == RUNNING:
                 I[ib + LAY.I_STATUS] = MAX_ITER
@@ -685,27 +747,18 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
     sc = base + LAY.S_NVEC * P
     ib = _ib(b, P)
     G = B * SB
-    gtol, rel, ctiny, cmax = S[G + LAY.G_GTOL], S[G + LAY.G_REL], S[G + LAY.G_CTINY], S[G + LAY.G_CMAX]
+    rel, ctiny, cmax = S[G + LAY.G_REL], S[G + LAY.G_CTINY], S[G + LAY.G_CMAX]
+    scale = ti.cast(S[G + G_SCALE], ti.i32)
     A = b * _wb(P, M) + LAY.W_A * P * P
     L = A + (LAY.W_L - LAY.W_A) * P * P
+    wd = _wd(b, P, M)
     xo, xto, go = base + LAY.S_X * P, base + LAY.S_XT * P, base + LAY.S_G * P
     loo, hio = base + LAY.S_LO * P, base + LAY.S_HI * P
     if I[ib + LAY.I_STATUS] == RUNNING and I[ib + LAY.I_ACCEPTED]:
-        # projected gradient (components pushing against an active bound removed)
-        gmax = ti.cast(0, dt)
-        for i in range(P):
-            gi = S[go + i]
-            x = S[xo + i]
-            if not ((x >= S[hio + i] and gi < 0) or (x <= S[loo + i] and gi > 0)):
-                gmax = ti.max(gmax, ti.abs(gi))
-        if gmax <= gtol:
-            I[ib + LAY.I_STATUS] = CONVERGED
-            I[ib + LAY.I_REASON] = R_GTOL
+        _gtol_test(S, I, W, b, A, P, G, scale, dt)  # projected gradient (active bounds removed)
     if I[ib + LAY.I_STATUS] == RUNNING:
-        dmax = ti.cast(0, dt)
-        for i in range(P):
-            dmax = ti.max(dmax, W[A + i * P + i])
-        dmax += 1
+        _damping_scale(I, W, b, A, wd, P, scale, dt)
+        dmax = _cref(W, A, P, scale, dt)
         C = S[sc + LAY.SC_C]
         ok = 0
         tries = 0
@@ -715,7 +768,7 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
             for j in range(P):
                 if ok:
                     aj = _active(S, xo, loo, hio, go, j)
-                    s = W[A + j * P + j] + C
+                    s = W[A + j * P + j] + C * W[wd + j]
                     if aj:
                         s = 1 + C
                     for k in range(j):
@@ -960,7 +1013,7 @@ def _dot_diff(W: ti.template(), a, S: ti.template(), xo, yo, n, dt: ti.template(
 
 @ti.func
 def _chol_col(W: ti.template(), A, L, j, P, C, dt: ti.template(), S: ti.template(), xo, loo, hio, go,
-              bounds: ti.template()) -> ti.i32:  # fmt: skip
+              bounds: ti.template(), wd) -> ti.i32:  # fmt: skip
     """Column j of the Cholesky factor of A + C I (the P x P matrix at W[A], lower triangle read) into
     W[L] (L may be A: in place), from its columns 0..j-1: left-looking, the operations of
     ``_chol_solve`` / ``_phase_step`` in their order. With ``bounds`` a parameter held at a bound by
@@ -981,7 +1034,10 @@ def _chol_col(W: ti.template(), A, L, j, P, C, dt: ti.template(), S: ti.template
                 if aj or _active(S, xo, loo, hio, go, row[r]):
                     v[r] = ti.cast(0, dt)
         if i == j:
-            v[0] = ti.select(aj, ti.cast(1, dt), W[A + j * P + j]) + C  # the pivot's row
+            cj = C
+            if ti.static(bounds):
+                cj = ti.select(aj, C, C * W[wd + j])  # the solver: the damping's scale D (1 for C I)
+            v[0] = ti.select(aj, ti.cast(1, dt), W[A + j * P + j]) + cj  # the pivot's row
         k = 0
         while k < j:
             for e in ti.static(range(DOT_U)):
@@ -1029,7 +1085,7 @@ def _ops_factor(W: ti.template(), a, g, C, ok: ti.template(), delta: ti.template
         j = t * ncol
         end = ti.min(P, j + ncol)
         while j < end:
-            if not _chol_col(W, a, a, j, P, C, dt, W, 0, 0, 0, 0, False):
+            if not _chol_col(W, a, a, j, P, C, dt, W, 0, 0, 0, 0, False, 0):
                 ok[b] = 0
                 j = end
             j += 1
@@ -1196,28 +1252,23 @@ def _step_factor(S: ti.template(), I: ti.template(), W: ti.template(), Out: ti.t
     L = A + (LAY.W_L - LAY.W_A) * P * P
     xo, xto, go = base + LAY.S_X * P, base + LAY.S_XT * P, base + LAY.S_G * P
     loo, hio = base + LAY.S_LO * P, base + LAY.S_HI * P
+    scale = ti.cast(S[G + G_SCALE], ti.i32)
+    wd = _wd(b, P, M)
     if first:
         if I[ib + LAY.I_STATUS] == RUNNING and I[ib + LAY.I_ACCEPTED]:
-            gmax = ti.cast(0, dt)  # projected gradient (components pushing against an active bound removed)
-            for i in range(P):
-                if not _active(S, xo, loo, hio, go, i):
-                    gmax = ti.max(gmax, ti.abs(S[go + i]))
-            if gmax <= S[G + LAY.G_GTOL]:
-                I[ib + LAY.I_STATUS] = CONVERGED
-                I[ib + LAY.I_REASON] = R_GTOL
+            _gtol_test(S, I, W, b, A, P, G, scale, dt)  # projected gradient (active bounds removed)
+        if I[ib + LAY.I_STATUS] == RUNNING:
+            _damping_scale(I, W, b, A, wd, P, scale, dt)
         S[sc + SC_COL] = ti.cast(ti.select(I[ib + LAY.I_STATUS] == RUNNING, 0, -1), dt)
         S[sc + SC_TRIES] = ti.cast(0, dt)
     col = ti.cast(S[sc + SC_COL], ti.i32)
     if col >= 0 and col < P:
         tries = ti.cast(S[sc + SC_TRIES], ti.i32)
         C = S[sc + LAY.SC_C]
-        dmax = ti.cast(0, dt)
-        for i in range(P):
-            dmax = ti.max(dmax, W[A + i * P + i])
-        dmax += 1
+        dmax = _cref(W, A, P, scale, dt)
         steps = 0
         while steps < ncol and col >= 0 and col < P:
-            if _chol_col(W, A, L, col, P, C, dt, S, xo, loo, hio, go, True):  # eq. 22: J^T J + C I
+            if _chol_col(W, A, L, col, P, C, dt, S, xo, loo, hio, go, True, wd):  # eq. 22: J^T J + C D
                 col += 1
             elif C > S[G + LAY.G_CMAX] * dmax:
                 col = -2
@@ -1425,10 +1476,10 @@ def _tasks_plan(device, B: int, P: int, M: int, kind: str) -> tuple[int, int]:
     if kind == "solver":
         # gtol test, 1 + max diag, the column loop's end; right-hand side, substitution, box,
         # predicted reduction, export
-        fixed = 2 * (P + 1) + 3 + (P + 1) + _subst_passes(P) + 2 * (P + 1) + P * (-(-P // DOT_U) + 1) + (P + 1)
+        fixed = 3 * (P + 1) + 3 + (P + 1) + _subst_passes(P) + 2 * (P + 1) + P * (-(-P // DOT_U) + 1) + (P + 1)
         need = {
             "Jacobian rows": per_item(B * P) * (M + 3),
-            "acceptance": k * (M + 3 * P + 6),
+            "acceptance": k * (M + 4 * P + 8),
             "normal equations": gram,
             "points": per_item(B * (P + 1)) * (P + 3),
         }

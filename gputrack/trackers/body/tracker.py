@@ -28,7 +28,7 @@ import numpy as np
 from ...device import Device
 from ...models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from ...models.upper_body import pf_sigma, upper_body
-from ...ops.lm import least_squares
+from ...ops.lm import LeastSquaresSolver
 from ...ops.pf import pf_stage
 from ...ops.pose_residuals import pose_residuals
 from ...ops.template import SparseTemplate
@@ -139,6 +139,9 @@ class BodyTracker:
         angle = np.zeros(self.chain.n_params, bool)
         angle[[i for part in self.chain.parts for i in part.angles]] = True
         self._lm_step = np.where(angle, LM_STEP["angle"], LM_STEP["length"])
+        # the LM of sec. 3.4 on the C candidates: one solver, its device buffers kept between frames
+        self._lm = LeastSquaresSolver(device, self.candidates.shape, max_iter=cfg.lm_iterations, step=self._lm_step,
+                                      points_dtype=np.float32, early_stop=False) if cfg.lm_iterations else None  # fmt: skip
         self._sparsity = None
         self._residual_out = {}  # pose_residuals' output arrays by shape, reused as out=
         self.scheduler = Scheduler(device, self._stages(), inputs=("gray", "depth", "start"),
@@ -264,10 +267,8 @@ class BodyTracker:
     def _lm_stage(self, b):
         """Sec. 3.4, eq. 20-24: LM on all C candidates at once; the estimate sorted by cost."""
         cfg = self.config
-        res = least_squares(self._residuals(b["gray"], b["depth"]), b["candidates"].astype(np.float64),
-                            device=self.device, max_iter=cfg.lm_iterations, step=self._lm_step,
-                            points_dtype=np.float32, jac_sparsity=self._sparsity if cfg.sparse_jacobian else None,
-                            early_stop=False)  # fmt: skip
+        res = self._lm.solve(self._residuals(b["gray"], b["depth"]), b["candidates"].astype(np.float64),
+                             jac_sparsity=self._sparsity if cfg.sparse_jacobian else None)  # fmt: skip
         order = np.argsort(res.cost, kind="stable")
         b["estimate"], b["cost"] = res.x[order], float(res.cost[order[0]])
 

@@ -35,8 +35,8 @@ The shape model is used through its public interface only: ``expression_basis(s)
 multilinear model: linear; the generic PCA model: constant, with S' = 0), so
 X = mean + (L0 + sum_p s_p G_p) a with L0 = basis(0), G_p = basis(e_p) - L0 (:func:`model_terms`).
 
-**Solve** (:func:`bundle_adjust`): :func:`gputrack.least_squares` with B = 1, the analytic Jacobian and
-the box, on any device. Residuals and Jacobian are computed on the host in float64 and written into
+**Solve** (:func:`bundle_adjust`): a :class:`gputrack.LeastSquaresSolver` with B = 1, the analytic Jacobian
+and the box, on any device (:class:`IncrementalBundle` holds its solvers from frame to frame). Residuals and Jacobian are computed on the host in float64 and written into
 two device buffers kept per device and problem size (:func:`_outputs`), so a tracker's every frame reuses
 the same device memory (and the solver's own pool reuses its state buffers).
 
@@ -53,7 +53,7 @@ import numpy as np
 from ...device import per_device, to_numpy
 from ...models.camera import Camera
 from ...models.pose import rodrigues, rotation_coefficients, skew
-from ...ops.lm import LMStatus, least_squares
+from ...ops.lm import LeastSquaresSolver, LMStatus
 
 log = logging.getLogger("gputrack")
 
@@ -361,10 +361,22 @@ class BundleProblem:
         return float(np.dot(r, r))
 
     # -- solve -----------------------------------------------------------------------------------
-    def solve(self, device, max_iter: int = 10) -> BundleResult:
-        """Minimise eq. 6 in the box by :func:`gputrack.least_squares` on ``device`` (B = 1)."""
+    def solver(self, device, max_iter: int = 10) -> LeastSquaresSolver:
+        """A :class:`gputrack.LeastSquaresSolver` for problems of this one's size (B = 1, P): hold it
+        and pass it to :meth:`solve` to solve problem after problem on the same device buffers."""
         if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
             raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
+        return LeastSquaresSolver(device, (1, self.P), max_iter=int(max_iter), early_stop=False)
+
+    def solve(self, device, max_iter: int = 10, solver: LeastSquaresSolver | None = None) -> BundleResult:
+        """Minimise eq. 6 in the box by Levenberg-Marquardt on ``device`` (B = 1): with ``solver`` (from
+        :meth:`solver`, for this ``device``, P and ``max_iter``), else with a solver used once."""
+        if solver is None:
+            with self.solver(device, max_iter) as once:
+                return self.solve(device, max_iter, once)
+        if solver.device is not device or solver.shape != (1, self.P) or solver.max_iter != max_iter:
+            raise ValueError(f"solver: expected one for {device.spec}, shape (1, {self.P}), max_iter={max_iter}, "
+                             f"got {solver!r}")  # fmt: skip
         # Jacobi scaling (as MINPACK's diag): the solver works in y = x / d with d_j = 1 / |column j of J|
         # at the start, so that its damping C I (C relative to the unit diagonal) treats radians,
         # millimetres and model coordinates alike; fixed parameters (lower == upper) keep d = 1.
@@ -373,9 +385,8 @@ class BundleProblem:
         d = np.where((self.upper > self.lower) & (norm > 1e-12 * max(norm.max(), 1e-300)), 1.0 / np.maximum(norm, 1e-300),
                      1.0)  # fmt: skip
         fns = _Callables(self, device, d)
-        res = least_squares(fns.residuals, (self.x0 / d)[None], device=device, jacobian=fns.jacobian,
-                            lower=self.lower / d, upper=self.upper / d, max_iter=int(max_iter),
-                            damping=DAMPING, early_stop=False)  # fmt: skip
+        res = solver.solve(fns.residuals, (self.x0 / d)[None], jacobian=fns.jacobian, lower=self.lower / d,
+                           upper=self.upper / d, damping=DAMPING)  # fmt: skip
         x = np.clip(res.x[0].astype(np.float64) * d, self.lower, self.upper)
         cost = self.cost(x)
         rv, tv, ex, s = self.unpack(x)
@@ -527,6 +538,7 @@ class IncrementalBundle:
         self.last: BundleResult | None = None
         self._frames = 0  # frame numbers handed out
         self._keys: dict | None = None
+        self._solvers: dict = {}  # (P, max_iter) -> LeastSquaresSolver, holding its device buffers
 
     @property
     def keyframes(self) -> np.ndarray:
@@ -543,7 +555,10 @@ class IncrementalBundle:
                                 pose_range=self.pose_range if pose_range is None else pose_range,
                                 expression_range=self.expression_range, identity_sigmas=self.identity_sigmas,
                                 weights=keys["weights"], identity_prior=self.identity_prior)  # fmt: skip
-        res = problem.solve(self.device, max_iter)
+        key = (problem.P, int(max_iter))  # the start's and the per-frame solves: a solver each, kept
+        if key not in self._solvers:
+            self._solvers[key] = problem.solver(self.device, max_iter)
+        res = problem.solve(self.device, max_iter, self._solvers[key])
         keys.update(rvecs=res.rvecs, tvecs=res.tvecs, expressions=res.expressions)
         self._keys, self.last = keys, res
         return res
