@@ -122,3 +122,97 @@ def test_bad_input(device):
         assign_points(device, y, y, m, S, 9.0, n_points=5)
     with pytest.raises(TypeError, match="points: expected dtype float32, got complex128"):
         assign_points(device, y.astype(complex), y, m, S, 9.0)
+
+
+# -- group_frame: a whole frame of the group table ------------------------------------------------
+
+from gputrack.ops import constant_velocity  # noqa: E402
+from gputrack.ops.point_groups import COLUMNS, group_constants, group_frame  # noqa: E402
+
+
+def _constants(offset=120.0):
+    F, Q = constant_velocity(3, 1.0, 1.0)
+    return group_constants(F, Q, (16.0, 16.0, 0.04), f=513.5, b=120.0, cx=320.0, cy=240.0, gamma=11.34, alpha_s=0.9,
+                           min_points=2, min_spread=(150.0, 3.0), surface_offset=offset, merge_gamma=11.34)  # fmt: skip
+
+
+def _table(rng, T, live):
+    """T slots, the first ``live`` of them live groups on a 3 m grid (a few pairs close enough to be
+    merge candidates), slot 1 free."""
+    means, S = _groups(rng, T)
+    t = np.zeros((T, COLUMNS), np.float32)
+    t[:, :6] = means
+    t[1:3, 0] = t[0, 0] + np.array([400.0, 700.0])[: T - 1]  # near slot 0: merge candidates
+    t[1:3, 2:5] = t[0, 2:5]
+    t[:, 6:42] = (np.eye(6) * rng.uniform(50, 150, (T, 1, 1))).reshape(T, 36)
+    t[:, 42:78] = S.reshape(T, 36)
+    t[:live, 78] = 1
+    t[1:2, 78] = 0
+    return t
+
+
+def _frame_points(rng, t, N, rows):
+    y, lam = _points(rng, t[:, :6], N, scale=150.0)
+    pts = np.full((rows, 6), np.nan, np.float32)
+    pts[:N, :3], pts[:N, 3:] = y, lam
+    pts[5:N:13, 2] = np.nan  # "no point" rows
+    return pts
+
+
+@pytest.mark.parametrize("N,T,live", [(1, 1, 1), (13, 3, 3), (1535, 17, 12), (129, 40, 40)])
+def test_group_frame_matches_reference(device, N, T, live):
+    rng = np.random.default_rng(7 * N + T)
+    t = _table(rng, T, live)
+    rows = max(16, 1 << (N - 1).bit_length())
+    pts = _frame_points(rng, t, N, rows)
+    c = _constants(120.0 if N != 13 else 0.0)
+    want_t, want_l = t.copy(), np.zeros(rows, np.int32)
+    ref.group_frame(None, want_t, pts, c, N, want_l)
+    td = t.copy() if device.backend == "numpy" else device.asarray(t)
+    got_t, got_l = group_frame(device, td, pts, c, n_points=N)
+    got_t, got_l = gputrack.to_numpy(got_t), gputrack.to_numpy(got_l)
+    np.testing.assert_array_equal(got_l, want_l)
+    assert (got_l[5:N:13] == -1).all() and (got_l[N:] == -1).all()
+    assert (got_l >= 0).any()
+    for cols in ((79, 80), (86, 92)):  # counts; seen and the merge candidates
+        np.testing.assert_array_equal(got_t[:, cols[0]:cols[1]], want_t[:, cols[0]:cols[1]])
+    for a, b, scale in ((0, 6, 1e4), (6, 42, 1e3), (42, 78, 1e6), (80, 86, 1e4)):  # x, P, Sigma, mean
+        np.testing.assert_allclose(got_t[:, a:b], want_t[:, a:b], rtol=2e-4, atol=1e-6 * scale)
+    assert np.isfinite(got_t[:, :92]).all()
+    if live >= 3:
+        assert want_t[0, 87] >= 1  # slots 0 and 2 overlap (slot 1 is free)
+
+
+def test_group_frame_predicts_a_group_without_points(device):
+    t = _table(np.random.default_rng(3), 4, 4)
+    pts = np.full((16, 6), np.nan, np.float32)
+    c = _constants()
+    td = t.copy() if device.backend == "numpy" else device.asarray(t)
+    got_t, got_l = group_frame(device, td, pts, c, n_points=0)
+    got_t = gputrack.to_numpy(got_t)
+    F = c[:36].reshape(6, 6)
+    np.testing.assert_allclose(got_t[:, :6], t[:, :6] @ F.T, rtol=1e-6, atol=1e-4)
+    assert (got_t[:, 79] == 0).all() and (got_t[:, 86] == 0).all()  # no points: nobody seen
+    np.testing.assert_array_equal(got_t[:, 42:78], t[:, 42:78])  # spreads kept
+    assert (gputrack.to_numpy(got_l) == -1).all()
+
+
+def test_group_frame_bad_input(device):
+    t = _table(np.random.default_rng(4), 4, 4)
+    pts = np.zeros((16, 6), np.float32)
+    c = _constants()
+    with pytest.raises(ValueError, match="table"):
+        group_frame(device, t[:, :90], pts, c)
+    with pytest.raises(ValueError, match="points"):
+        group_frame(device, t, pts[:, :3], c)
+    bad = pts.copy()
+    bad[2, 1] = np.inf
+    with pytest.raises(ValueError, match="finite values or NaN rows"):
+        group_frame(device, t, bad, c)
+    with pytest.raises(ValueError, match="n_points"):
+        group_frame(device, t, pts, c, n_points=17)
+    with pytest.raises(ValueError, match="constants"):
+        group_frame(device, t, pts, c[:80])
+    with pytest.raises(ValueError, match="finite constants"):
+        group_constants(np.eye(6), np.eye(6) * np.nan, (1, 1, 1), f=1, b=1, cx=0, cy=0, gamma=1, alpha_s=0.5,
+                        min_points=2, min_spread=(1, 1), surface_offset=0, merge_gamma=1)  # fmt: skip

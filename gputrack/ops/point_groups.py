@@ -42,7 +42,7 @@ from ..device import DeviceArray
 from . import backend_module
 from ._args import arg, check_device, out_arrays
 
-__all__ = ["PointGroups", "assign_points"]
+__all__ = ["PointGroups", "assign_points", "group_constants", "group_frame"]
 
 
 class PointGroups(NamedTuple):
@@ -105,3 +105,83 @@ def assign_points(device, points, velocities, means, spreads, gamma, *, active=N
     backend_module(device, "point_groups").assign_points(device, points, velocities, means, spreads, active, g, n,
                                                          out)  # fmt: skip
     return out
+
+
+# -- a whole frame of the group table: group_frame ------------------------------------------------
+
+#: columns of the group table of :func:`group_frame` (float32 rows, one per slot)
+X, P, SIGMA, ACTIVE = 0, 6, 42, 78  # state (6), Kalman covariance (36), spread (36, eq. 7), 1 = live
+COUNT, MEAN, SEEN, NCAND, CAND = 79, 80, 86, 87, 88  # written by each frame (see group_frame)
+MAX_CAND = 4  #: merge candidates listed per group (NCAND may be larger: then the list is cut)
+COLUMNS = 96
+#: the constants vector of :func:`group_constants`
+CONSTANTS = 88
+
+
+def group_constants(F, Q, R, *, f, b, cx, cy, gamma, alpha_s, min_points, min_spread, surface_offset,
+                    merge_gamma) -> np.ndarray:  # fmt: skip
+    """The constants of :func:`group_frame` as one (88,) float32 vector (uploaded once): the
+    motion model F, Q (6, 6), the observation variances R (3,) of (u, v, d), the camera (f px,
+    b mm, cx, cy), the gate ``gamma`` (eq. 8), the spread weight ``alpha_s`` (eq. 7), the points a
+    group needs to be updated (``min_points``), ``min_spread`` (2,) standard deviations (mm,
+    mm/frame) added to the spreads' position and velocity blocks for gating and the merge test, the
+    ``surface_offset`` (mm, along each viewing ray) and the merge regions' ``merge_gamma``."""
+    c = np.zeros(CONSTANTS, np.float64)
+    F, Q, R, ms = (np.asarray(a, np.float64) for a in (F, Q, R, min_spread))
+    if F.shape != (6, 6) or Q.shape != (6, 6) or R.shape != (3,) or ms.shape != (2,):
+        raise ValueError(f"group_constants: expected F, Q (6, 6), R (3,), min_spread (2,), got {F.shape}, {Q.shape}, "
+                         f"{R.shape}, {ms.shape}")  # fmt: skip
+    c[0:36], c[36:72], c[72:75] = F.ravel(), Q.ravel(), R
+    c[75:86] = (f, b, cx, cy, gamma, alpha_s, min_points, ms[0] ** 2, ms[1] ** 2, surface_offset, merge_gamma)
+    if not np.isfinite(c).all():
+        raise ValueError("group_constants: expected finite constants")
+    return c.astype(np.float32)
+
+
+def group_frame(device, table, points, constants, *, n_points=None, labels=None):
+    """One frame of paper 001's group table on the device, in place (the tracking core of
+    :class:`gputrack.trackers.groups.GroupTracker`; one launch on Taichi).
+
+    ``table`` (T, 96) float32, one row per slot: x (6) = [x xdot y ydot z zdot] at column 0, the
+    Kalman covariance P (6 x 6, row-major) at 6, the spread Sigma (6 x 6, eq. 7) at 42, active (1 =
+    a live group, 0 = a free slot) at 78; ``points`` (N, 6) float32 rows [x y z xdot ydot zdot]
+    (mm, mm per frame; a row with a NaN is no point; only the first ``n_points`` rows are points);
+    ``constants`` (88,) float32 from :func:`group_constants`; ``labels`` an (N,) int32 array to
+    write into. Per frame:
+
+    1. every slot predicted: x = F x, P = F P F^T + Q (eq. 2-3, as :func:`kf_predict`);
+    2. each point moved ``surface_offset`` mm further along its viewing ray, then gated and
+       assigned as :func:`assign_points` does against the live groups, with the spreads Sigma +
+       diag(min_spread^2) (eq. 8-11): ``labels``, and each group's count, mean and covariance;
+    3. a live group with at least ``min_points`` points whose mean lies in front of the camera is
+       *seen*: its spread follows eq. 7, Sigma = alpha_s Sigma + (1 - alpha_s) cov (then
+       symmetrised), and the stereo EKF updates it from its points' mean as z = [u v d] (eq. 4-6,
+       as :func:`ekf_update_stereo`: Joseph form; an innovation covariance that is not positive
+       definite, or a state behind the camera, leaves the prediction);
+    4. the merge pre-test (eq. 13): pairs of live groups whose bounding spheres of the merge
+       regions meet in position *and* in velocity (radius sqrt(merge_gamma lambda), lambda an
+       upper bound of the largest eigenvalue of the block of Sigma + diag(min_spread^2): the
+       smaller of its trace and its largest absolute row sum), centred on the updated position
+       and on the points' mean velocity (the state's where the group has fewer than min_points
+       points). The exact test of those few pairs is the caller's.
+
+    Written into the table: x, P, Sigma; the count at column 79, the points' mean (6, state order)
+    at 80, seen (0/1) at 86, the number of merge candidates j > i at 87 and the first 4 of them
+    (slots, ascending) at 88. Returns (table, labels)."""
+    device = check_device(device)
+    dims: dict = {}
+    table = arg(device, table, "table", ("T", COLUMNS), dims)
+    points = arg(device, _finite_or_nan(device, points, "points"), "points", ("N", 6), dims, finite=False, cast=True)
+    constants = arg(device, constants, "constants", (CONSTANTS,), dims)
+    N, T = dims["N"], dims["T"]
+    if n_points is None:
+        n = N
+    elif isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or not 0 <= n_points <= N:
+        raise ValueError(f"n_points: expected an integer in [0, {N}] (rows of points), got {n_points!r}")
+    else:
+        n = int(n_points)
+    labels = out_arrays(device, None if labels is None else (labels,), (("labels", (N,), np.int32),))[0]
+    if T == 0:
+        raise ValueError("table: expected at least one slot (T >= 1), got 0")
+    backend_module(device, "point_groups").group_frame(device, table, points, constants, n, labels)
+    return table, labels

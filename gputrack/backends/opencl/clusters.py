@@ -68,6 +68,9 @@ def _scratch(device, N, dim):
 
 
 def _run(device, points, n, r2, ms, out, is_dbscan):
+    """The launches over all N rows (the kernels skip the rows at or beyond n, or beyond the
+    points binned): one NDRange size per buffer size, so a driver that builds a kernel for each
+    new size (PoCL picks the work-group size from it) builds it once, not once per point count."""
     import pyopencl as cl
 
     N, dim = points.shape
@@ -84,25 +87,25 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
     pts = points.buffer.data
     cl.enqueue_fill_buffer(q, b["cnt"], np.int32(0), 0, 4 * H)
     cl.enqueue_fill_buffer(q, b["loose"], np.int32(0), 0, 4 * H)
-    k["gt_clu_bin"](q, (n,), None, pts, b["cnt"], b["key"], b["rank"], b["parent"], b["core"], n, mask, inv)
+    k["gt_clu_bin"](q, (N,), None, pts, b["cnt"], b["key"], b["rank"], b["parent"], b["core"], n, mask, inv)
     k["gt_clu_chunk_sums"](q, (chunks,), None, b["cnt"], b["csum"])
     k["gt_clu_scan_chunks"](q, (1,), None, b["csum"], b["start"], chunks, H)
     k["gt_clu_chunk_scan"](q, (chunks,), None, b["cnt"], b["csum"], b["start"])
-    k["gt_clu_place"](q, (n,), None, pts, b["key"], b["rank"], b["start"], b["order"], b["spts"], n)
+    k["gt_clu_place"](q, (N,), None, pts, b["key"], b["rank"], b["start"], b["order"], b["spts"], n)
     grid = (b["spts"], b["order"], b["start"])
     if is_dbscan:
-        k["gt_clu_count"](q, (n,), None, *grid, b["core"], mask, r2, w, inv, int(ms), H)
+        k["gt_clu_count"](q, (N,), None, *grid, b["core"], mask, r2, w, inv, int(ms), H)
     cl.enqueue_fill_buffer(q, b["heads"], np.int32(0), 4 * n, 4)  # heads[n]: the number of heads
     link = (*grid, b["core"], b["parent"], b["loose"], b["heads"], mask, r2)
-    k["gt_clu_link_cell"](q, (n,), None, *link, inv, H, n)
-    k["gt_clu_box"](q, (n,), None, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
+    k["gt_clu_link_cell"](q, (N,), None, *link, inv, H, n)
+    k["gt_clu_box"](q, (N,), None, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
     # one work-item per cell head, uneven work: on a CPU device one-item work-groups spread it over
     # the cores (the heads are the first items); a GPU keeps the driver's work-group size
     local = (1,) if device.info.kind == "cpu" else None
-    k["gt_clu_link_cells"](q, (n,), local, *link[:-2], b["box"], mask, r2, w, inv, H, n)
+    k["gt_clu_link_cells"](q, (N,), local, *link[:-2], b["box"], mask, r2, w, inv, H, n)
     k["gt_clu_label"](q, (N,), None, b["parent"], b["core"], out.buffer.data, n, N)
     if is_dbscan:
-        k["gt_clu_border"](q, (n,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
+        k["gt_clu_border"](q, (N,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
     return out
 
 

@@ -16,6 +16,11 @@ _ARGS = {
     "gt_pg_assign": [None] * 5 + [_I, _I, _I, np.float32],
     "gt_pg_order": [None, None, _I, _I, _I],
     "gt_pg_moments": [None] * 7 + [_I, _I],
+    "gt_gf_predict": [None] * 3 + [_I],
+    "gt_gf_buckets": [None, None, _I, _I, _I],
+    "gt_gf_assign": [None] * 6 + [_I, _I, _I, _I],
+    "gt_gf_update": [None] * 5 + [_I, _I],
+    "gt_gf_candidates": [None, None, _I],
 }
 G = 23
 
@@ -48,3 +53,36 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
     _kernel(device, "gt_pg_moments")(q, (T,), None, points.buffer.data, velocities.buffer.data, means.buffer.data,
                                      idx.buffer.data, counts.buffer.data, mean.buffer.data, cov.buffer.data, rows, T)  # fmt: skip
     return out
+
+
+GC = 32  # scratch floats per slot (kernels/gt_point_groups.cl)
+
+
+def group_frame(device, table, points, constants, n, labels):
+    """Six launches in order (kernels/gt_point_groups.cl, "group_frame")."""
+    T = table.shape[0]
+    rows = labels.shape[0]
+    K = max(1, min(2 * T, 16384 // T))  # as the Taichi kernel's buckets
+    g = _scratch(device, "g", T * GC, np.float32)
+    idx = _scratch(device, "idx", rows + 2 * T + 2 * K + 1 + T * K, np.int32)
+    q = device.queue
+    tab, pts, c, lab = table.buffer.data, points.buffer.data, constants.buffer.data, labels.buffer.data
+    _kernel(device, "gt_gf_predict")(q, (T,), None, tab, c, g, T)
+    _kernel(device, "gt_gf_buckets")(q, (1,), None, g, idx, rows, T, K)
+    if rows:
+        _kernel(device, "gt_gf_assign")(q, (rows,), None, pts, tab, c, g, idx, lab, rows, int(n), T, K)
+    _kernel(device, "gt_pg_order")(q, (1,), None, lab, idx, rows, int(n), T)
+    _kernel(device, "gt_gf_update")(q, (T,), None, pts, tab, c, g, idx, rows, T)
+    _kernel(device, "gt_gf_candidates")(q, (T,), None, tab, g, T)
+    return table, labels
+
+
+@per_device(maxsize=8)
+def _scratch_buffer(device, name, size, itemsize):
+    import pyopencl as cl
+
+    return cl.Buffer(device.context, cl.mem_flags.READ_WRITE, max(1, size) * itemsize)
+
+
+def _scratch(device, name, size, dtype):
+    return _scratch_buffer(device, name, int(size), np.dtype(dtype).itemsize)

@@ -64,3 +64,72 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
         d = pts - m
         cov[j] = d.T @ d / n if n else 0.0  # eq. 7: cov(C_y), the spread of the group's points (population)
     return out
+
+
+def _bound(S):
+    """An upper bound of the largest eigenvalue of each symmetric (k, 3, 3): the smaller of the
+    trace and the largest absolute row sum (Gershgorin)."""
+    tr = np.trace(S, axis1=1, axis2=2)
+    rows = np.abs(S).sum(2).max(1)
+    return np.minimum(tr, rows)
+
+
+def group_frame(device, table, points, constants, n, labels):
+    """gputrack.ops.point_groups.group_frame: the readable version, through the reference's own
+    kf_predict, assign_points and ekf_update_stereo."""
+    from .kalman import ekf_update_stereo, kf_predict
+
+    c = np.asarray(constants, np.float32)
+    F, Q, R = c[0:36].reshape(6, 6), c[36:72].reshape(6, 6), np.diag(c[72:75])
+    f, b, cx, cy, gamma, alpha, min_pts, fp, fv, offset, mgamma = (float(v) for v in c[75:86])
+    tab = table
+    T = tab.shape[0]
+    x = tab[:, 0:6].copy()
+    P = tab[:, 6:42].reshape(T, 6, 6).copy()
+    Sig = tab[:, 42:78].reshape(T, 6, 6).copy()
+    active = tab[:, 78] > 0.5
+    x, P = kf_predict(None, x, P, F, Q)  # eq. 2-3
+    floor = np.zeros((6, 6), np.float32)
+    floor[POS, POS], floor[VEL, VEL] = np.float32(fp), np.float32(fv)
+    y = np.array(points[:, 0:3], np.float32)
+    lam = np.ascontiguousarray(points[:, 3:6], np.float32)
+    if offset > 0:  # each point moved along its viewing ray, from the surface to the body's axis
+        r = np.sqrt(y[:, 0] * y[:, 0] + y[:, 1] * y[:, 1] + y[:, 2] * y[:, 2])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            y = y * (np.float32(1) + np.float32(offset) / np.where(r > 0, r, np.float32(np.nan)))[:, None]
+    cnt = np.zeros(T, np.int32)
+    mean = np.zeros((T, 6), np.float32)
+    cov = np.zeros((T, 6, 6), np.float32)
+    assign_points(device, y, lam, x, Sig + floor, active.astype(np.uint8), np.float32(gamma), n,
+                  (labels, cnt, mean, cov))  # fmt: skip  # eq. 8-11, eq. 7's cov(C_y)
+    seen = active & (cnt >= min_pts) & (mean[:, 4] > 0)
+    a = np.float32(alpha)
+    Sig = np.where(seen[:, None, None], a * Sig + (np.float32(1) - a) * cov, Sig)  # eq. 7
+    Sig = (Sig + np.swapaxes(Sig, 1, 2)) * np.float32(0.5)
+    z = np.full((T, 3), np.nan, np.float32)  # NaN row: predicted only
+    m = mean[seen]
+    z[seen] = np.stack([f * m[:, 0] / m[:, 4] + cx, f * m[:, 2] / m[:, 4] + cy, f * b / m[:, 4]], 1)  # eq. 6
+    x, P, _ = ekf_update_stereo(None, x, P, z, R, f, b, cx, cy)  # eq. 4-6
+    # the merge pre-test (eq. 13): bounding spheres of the regions in position and in velocity
+    G = Sig + floor
+    centre = x.astype(np.float64)
+    many = cnt >= min_pts
+    centre[np.ix_(many, VEL)] = mean[np.ix_(many, VEL)]
+    rp = np.sqrt(np.float64(mgamma) * _bound(G[:, POS][:, :, POS].astype(np.float64)))
+    rv = np.sqrt(np.float64(mgamma) * _bound(G[:, VEL][:, :, VEL].astype(np.float64)))
+    dp = np.linalg.norm(centre[:, None, POS] - centre[None, :, POS], axis=2)
+    dv = np.linalg.norm(centre[:, None, VEL] - centre[None, :, VEL], axis=2)
+    near = (dp <= rp[:, None] + rp[None, :]) & (dv <= rv[:, None] + rv[None, :]) & active[:, None] & active[None, :]
+    near = np.triu(near, 1)
+    tab[:, 0:6] = x
+    tab[:, 6:42] = P.reshape(T, 36)
+    tab[:, 42:78] = Sig.reshape(T, 36)
+    tab[:, 79] = cnt
+    tab[:, 80:86] = mean
+    tab[:, 86] = seen
+    tab[:, 87] = near.sum(1)
+    tab[:, 88:92] = -1
+    for i in np.flatnonzero(near.any(1)):
+        js = np.flatnonzero(near[i])[:4]
+        tab[i, 88:88 + len(js)] = js
+    return table, labels

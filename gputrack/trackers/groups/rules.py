@@ -2,8 +2,8 @@
 groups merge (eq. 13-15), when a group splits, and the moments of a set of points.
 
 These work on the few groups of a frame (T <= ~100), in NumPy; the per-point work (gating all
-points against all groups, eq. 8-11, and the groups' moments, eq. 7) runs on the device
-(:func:`gputrack.ops.assign_points`).
+points against all groups, eq. 8-11, and the groups' moments, eq. 7), the EKF update and the
+merge pre-test run on the device (:func:`gputrack.ops.point_groups.group_frame`).
 """
 
 from __future__ import annotations

@@ -1,26 +1,30 @@
 """Group tracker of paper 001 (Hoshikawa et al.): groups of people followed by the 3D points of
 their KLT tracks, one extended Kalman filter per group, all groups in one device table.
 
-A frame (:meth:`GroupTracker.update_points`, the observation-level entry point) is five stages
-of a :class:`gputrack.Scheduler`:
+A frame (:meth:`GroupTracker.update_points`, the observation-level entry point) is two stages
+of a :class:`gputrack.Scheduler` over one device table of the groups (a (C, 96) float32 row per
+slot: state, Kalman covariance, spread, live flag, this frame's moments and merge candidates):
 
 =========  ===========================================================================  ======
 stage      what                                                                         where
 =========  ===========================================================================  ======
-predict    every group, constant velocity x = [x xdot y ydot z zdot] (eq. 1-3), one     device
-           launch
-assign     all points x all groups: gate (eq. 8), tie-break m_p m_v (eq. 9-11), and     device
-           each group's point count, mean and covariance (eq. 7), one call
-           (:func:`gputrack.ops.assign_points`)
-update     every group with at least ``min_points`` points: EKF update from the mean    device
-           of its points as z = [u v d] (eq. 4-6), one :func:`ekf_update_stereo` call;
-           the others are predicted only
-groups     spreads (eq. 7), merges (eq. 13-15), splits, new groups from unassigned     host,
-           points whose search regions overlap (eq. 12), deletions                      small
+track      the points uploaded once, packed (N, 6) [x y z xdot ydot zdot]; then one     device
+           call (:func:`gputrack.ops.point_groups.group_frame`, one launch on Taichi):
+           every group predicted with constant velocity x = [x xdot y ydot z zdot]
+           (eq. 1-3); all points x all groups: gate (eq. 8), tie-break m_p m_v (eq.
+           9-11); each group's point count, mean and covariance; the spreads (eq. 7);
+           the stereo EKF update from the mean of each group's points as z = [u v d]
+           (eq. 4-6) for every group with at least ``min_points`` points (the others
+           are predicted only); the merge pre-test of every pair (bounding spheres)
+groups     the table and the labels downloaded (two reads); merges (eq. 13-15: the      host,
+           exact test of the pre-test's pairs), splits, new groups from unassigned      small
+           points whose search regions overlap (eq. 12), deletions; the table goes
+           back to the device only on a frame where a rule changed it
 =========  ===========================================================================  ======
 
-The host reads the labels (N int32), the groups' moments (T x 43 values) and, after the update,
-the groups' states (T x 42): everything per point stays on the device.
+Per frame the host moves the points (N x 24 bytes) in and the labels (N int32) and the table
+(C x 96 float32) out; nothing else, and no Python loop over points or groups runs unless a rule
+fires.
 
 Rules beyond the paper, written down:
 
@@ -46,7 +50,9 @@ Rules beyond the paper, written down:
   walking apart end as two groups.
 - **Start**: unassigned points whose ``link_radius`` regions overlap are linked (eq. 12:
   connected components of the radius graph); a component of at least ``min_new`` points starts
-  a group.
+  a group. (The device call is skipped when fewer than ``min_new`` of the
+  unassigned points have any neighbour within ``link_radius``, a necessary condition checked on
+  the host for up to 256 points: a launch costs more than that test.)
 - **End**: a group with fewer than ``min_points`` points for more than ``max_missed`` frames in a
   row is deleted. Ids are never reused.
 
@@ -67,24 +73,30 @@ import numpy as np
 
 from ...device import Device, DeviceArray
 from ...models.camera import StereoCamera
-from ...ops import (
-    assign_points,
-    constant_velocity,
-    ekf_update_stereo,
-    kf_predict,
-    radius_components,
-    shared_matrix,
+from ...ops import constant_velocity, radius_components
+from ...ops.point_groups import (
+    ACTIVE,
+    CAND,
+    COLUMNS,
+    COUNT,
+    MAX_CAND,
+    MEAN,
+    NCAND,
+    P,
+    SEEN,
+    SIGMA,
+    X,
+    group_constants,
+    group_frame,
 )
 from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
-from ...tracking._staging import Staging
 from . import rules
 from .front import FrontEndConfig, StereoFrontEnd
 from .rules import POS, VEL
 
 __all__ = ["Group", "GroupConfig", "GroupFrame", "GroupTracker"]
 
-MOMENTS = ("labels", "counts", "mean", "cov")  # assign_points' results, by buffer name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,43 +241,42 @@ class GroupTracker:
             raise TypeError(f"config: expected a GroupConfig, got {type(config).__name__}")
         self.camera, self.config = camera, config
         F, Q = constant_velocity(3, 1.0, config.q)
-        R = np.diag(np.asarray(config.R, np.float32))
-        # the model's matrices uploaded once, with their zero patterns (the kernels skip the zeros)
-        self.F, self.Q, self.R = (shared_matrix(self.device, A) for A in (F, Q, R))
-        self._floor = np.zeros((6, 6), np.float32)
+        consts = group_constants(F, Q, config.R, f=camera.f, b=camera.b, cx=camera.cx, cy=camera.cy,
+                                 gamma=config.gamma, alpha_s=config.alpha_s, min_points=config.min_points,
+                                 min_spread=config.min_spread, surface_offset=config.surface_offset,
+                                 merge_gamma=config.merge_gamma)  # fmt: skip
+        self._floor = np.zeros((6, 6))
         self._floor[POS, POS], self._floor[VEL, VEL] = config.min_spread[0] ** 2, config.min_spread[1] ** 2
         C = config.capacity
         self.ids = np.full(C, -1, np.int64)  # host mirror of the table: -1 = free slot
         self.age = np.zeros(C, np.int64)
         self.missed = np.zeros(C, np.int64)
         self.apart = np.zeros(C, np.int64)  # frames in a row a group's points stayed apart
-        self.Sigma = np.tile(np.eye(6, dtype=np.float32), (C, 1, 1))  # eq. 7 spreads (host, uploaded)
+        self._set_table(_empty_table(C))
         self.next_id = 0
-        self._staging = Staging(self.device)
-        self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))  # host copies, set each frame
+        self._host = None  # the packed points (rows, 6), reused frame after frame
         self.front = StereoFrontEnd(self.device, camera, config.front, profile=profile)
         self.scheduler = Scheduler(self.device, [
-            Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
-            Stage("assign", self._assign, reads=("x", "Sigma", "active"), writes=MOMENTS),
-            Stage("update", self._update, reads=("x", "P"), host_reads=MOMENTS, writes=("x", "P", "obs")),
-            Stage("groups", self._groups, host_reads=("x", "P"), reads=("obs",),
-                  writes=("x", "P", "Sigma", "active")),
-        ], state=("x", "P", "Sigma", "active"), profile=profile)  # fmt: skip
-        self._upload_table()
+            Stage("track", self._track, reads=("points", "table", "constants"), writes=("table", "labels")),
+            Stage("groups", self._groups, host_reads=("table", "labels"), writes=("table",)),
+        ], inputs=("points",), state=("table", "constants"), profile=profile)  # fmt: skip
+        self.scheduler.set("constants", consts)
+        self.scheduler.set("table", self._t.astype(np.float32))
         self._frame = None
 
-    # -- the table on the device ---------------------------------------------------------------
+    # -- the table on the host -------------------------------------------------------------------
     @property
     def capacity(self) -> int:
         return len(self.ids)
 
-    def _upload_table(self) -> None:
-        s = self.scheduler
-        self._active = (self.ids >= 0).astype(np.uint8)
-        s.set("x", self._x.astype(np.float32))
-        s.set("P", self._P.astype(np.float32))
-        s.set("Sigma", self._gate_spreads())
-        s.set("active", (self.ids >= 0).astype(np.uint8))
+    def _set_table(self, t: np.ndarray) -> None:
+        """The host mirror (C, 96) float64 of the device table and its views: x (C, 6), P and
+        Sigma (C, 6, 6)."""
+        C = len(t)
+        self._t = t
+        self._x = t[:, X : X + 6]
+        self._P = t[:, P : P + 36].reshape(C, 6, 6)
+        self.Sigma = t[:, SIGMA : SIGMA + 36].reshape(C, 6, 6)
 
     def _grow(self, need: int) -> None:
         C = self.capacity
@@ -274,10 +285,7 @@ class GroupTracker:
         self.ids = np.concatenate([self.ids, np.full(grow, -1, np.int64)])
         for name in ("age", "missed", "apart"):
             setattr(self, name, np.concatenate([getattr(self, name), np.zeros(grow, np.int64)]))
-        eye = np.tile(np.eye(6), (grow, 1, 1))
-        self.Sigma = np.concatenate([self.Sigma, eye.astype(np.float32)])
-        self._x = np.concatenate([self._x, np.zeros((grow, 6))])
-        self._P = np.concatenate([self._P, eye])
+        self._set_table(np.concatenate([self._t, _empty_table(grow)]))
 
     # -- one frame -----------------------------------------------------------------------------
     def update_points(self, xyz, velocity) -> GroupFrame:
@@ -285,13 +293,15 @@ class GroupTracker:
         (N, 3) mm per frame (host arrays; a NaN row is no point). Returns a :class:`GroupFrame`."""
         y = _points(xyz, "xyz")
         lam = _points(velocity, "velocity", len(y))
-        if self.config.surface_offset and len(y):
-            r = np.linalg.norm(y, axis=1, keepdims=True)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                y = (y * (1.0 + self.config.surface_offset / np.where(r > 0, r, np.nan))).astype(np.float32)
-        self._frame = {"y": y, "lam": lam}
+        N = len(y)
+        h = self._host
+        if h is None or len(h) < N or len(h) > 4 * max(N, 16):  # a power of two rows (few shapes)
+            h = self._host = np.full((max(16, 1 << max(N - 1, 0).bit_length()), 6), np.nan, np.float32)
+        h[:N, :3], h[:N, 3:] = y, lam
+        h[N:] = np.nan
+        self._frame = {"y": y, "lam": lam, "n": N}
         try:
-            self.scheduler.run()
+            self.scheduler.run(points=h)
             return self._result
         finally:
             self._frame = None
@@ -309,94 +319,104 @@ class GroupTracker:
         """The left camera's background from empty frames (F, H, W) uint8 (per-pixel median)."""
         self.front.learn_background(lefts)
 
-    def _predict(self, b) -> None:
-        b["x"], b["P"] = kf_predict(self.device, b["x"], b["P"], self.F, self.Q, out=(b["x"], b["P"]))
+    def _track(self, b) -> None:
+        """The device's part of the frame, one call: predict, gate, moments, spreads, update,
+        merge pre-test (:func:`gputrack.ops.point_groups.group_frame`)."""
+        pts = b["points"]
+        lab = b.get("labels")
+        if lab is not None and lab.shape[0] != pts.shape[0]:
+            lab = None
+        b["table"], b["labels"] = group_frame(self.device, b["table"], pts, b["constants"],
+                                              n_points=self._frame["n"], labels=lab)  # fmt: skip
 
-    def _assign(self, b) -> None:
-        f = self._frame
-        y, n = self._staging.put_rows("points", f["y"])
-        lam, _ = self._staging.put_rows("velocities", f["lam"])
-        prev = tuple(b.get(k) for k in MOMENTS)
-        fits = prev[0] is not None and prev[0].shape[0] == len(y) and prev[1].shape[0] == self.capacity
-        got = assign_points(self.device, y, lam, b["x"], b["Sigma"], self.config.gamma, active=b["active"],
-                            n_points=n, out=prev if fits else None)  # fmt: skip
-        for k, v in zip(MOMENTS, got):
-            b[k] = v
-
-    def _update(self, b) -> None:
-        N = len(self._frame["y"])
-        labels, counts, mean = b["labels"][:N].astype(np.int64), b["counts"].astype(np.int64), b["mean"]
-        seen = (counts >= self.config.min_points) & (self.ids >= 0)
-        z = np.full((self.capacity, 3), np.nan, np.float32)  # NaN row: predicted only (SKIPPED)
-        c = mean[:, POS].astype(np.float64)
-        seen &= c[:, 2] > 0
-        if seen.any():
-            z[seen] = self.camera.project(c[seen])  # eq. 4-6: the mean of the group's points as [u v d]
-        zd = self._staging.put("z", z)
-        cam = self.camera
-        ekf_update_stereo(self.device, b["x"], b["P"], zd, self.R, f=cam.f, b=cam.b, cx=cam.cx, cy=cam.cy,
-                          out=(b["x"], b["P"], self._status()))  # fmt: skip
-        b["obs"] = (labels, counts, np.asarray(b["cov"], np.float64), np.asarray(mean, np.float64), seen)
-
-    def _status(self):
-        st = getattr(self, "_status_array", None)
-        if st is None or st.shape != (self.capacity,):
-            st = self._status_array = self.device.empty((self.capacity,), np.uint8)
-        return st
+    def _offset(self, y: np.ndarray) -> np.ndarray:
+        """Points moved ``surface_offset`` mm along their viewing rays, as the device moved them."""
+        off = self.config.surface_offset
+        if not off or not len(y):
+            return y
+        r = np.sqrt(y[:, 0] * y[:, 0] + y[:, 1] * y[:, 1] + y[:, 2] * y[:, 2])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return y * (np.float32(1) + np.float32(off) / np.where(r > 0, r, np.float32(np.nan)))[:, None]
 
     def _groups(self, b) -> None:
         cfg = self.config
-        labels, counts, cov, mean, seen = b["obs"]
-        self._x, self._P = np.array(b["x"], np.float64), np.array(b["P"], np.float64)  # host working copies
-        y, lam = self._frame["y"], self._frame["lam"]
+        N = self._frame["n"]
+        self._set_table(np.array(b["table"], np.float64))  # the host mirror of this frame
+        t = self._t
+        labels = b["labels"][:N].astype(np.int64)
+        seen = (t[:, SEEN] > 0.5) & (self.ids >= 0)
         live = self.ids >= 0
-        a = cfg.alpha_s
-        self.Sigma[seen] = a * self.Sigma[seen] + (1 - a) * cov[seen]  # eq. 7
         self.age[live] += 1
         self.missed = np.where(live & ~seen, self.missed + 1, 0)
-        valid = np.isfinite(y).all(1) & np.isfinite(lam).all(1)
-        owner = np.where(valid, labels, -1)  # each point's slot, changed by the rules below
+        y, lam = self._frame["y"], self._frame["lam"]
+        owner = labels  # each point's slot (-1: none, and every point that is no point), changed by the rules
         split = self._split(owner, y, lam)
         started = self._start(owner, y, lam)
-        merged = self._merge(owner, lam, seen)
+        merged = self._merge(owner, lam, exact=bool(split or started))
         gone = np.flatnonzero((self.ids >= 0) & (self.missed > cfg.max_missed))
         ended = [int(i) for i in self.ids[gone]]
         self.ids[gone] = -1
-        self.Sigma = (self.Sigma + np.swapaxes(self.Sigma, 1, 2)) / 2
-        b["Sigma"] = self._put("Sigma", self._gate_spreads())
-        if merged or split or started or ended or len(self._x) != b["x"].shape[0]:
-            b["x"] = self._put("x", self._x.astype(np.float32))
-            b["P"] = self._put("P", self._P.astype(np.float32))
-        act = (self.ids >= 0).astype(np.uint8)
-        if not np.array_equal(act, self._active):  # uploaded only when a group started or ended
-            b["active"] = self._put("active", act)
-            self._active = act
+        t = self._t  # (a new array if a start or split grew the table)
+        changed = bool(merged or split or started or ended) or len(t) != b["table"].shape[0]
+        if changed:  # the rules changed the table: it goes back to the device, whole
+            t[:, ACTIVE] = self.ids >= 0
+            b["table"] = self._put(t.astype(np.float32))
         out = np.where(owner >= 0, self.ids[np.maximum(owner, 0)], -1)
-        counts = np.bincount(owner[out >= 0], minlength=self.capacity)
+        counts = np.bincount(owner[owner >= 0], minlength=self.capacity) if changed else t[:, COUNT].astype(np.int64)
         self._result = GroupFrame(out, self._list(self._x, self._P, counts), started, merged, split, ended)
 
-    def _put(self, name, host):
-        """``host`` on the device, into last frame's array ``name`` when the shape still fits."""
-        host = np.ascontiguousarray(host)
-        dev = self.scheduler.buffers.get(name)
+    def _put(self, host):
+        """``host`` (the table) on the device, into last frame's array when the shape still fits."""
+        dev = self.scheduler.buffers.get("table")
         if self.device.backend == "numpy":
+            if dev is not None and dev.shape == host.shape:
+                dev[...] = host
+                return dev
             return host.copy()
         if dev is not None and tuple(dev.shape) == host.shape and dev.dtype == host.dtype:
             return self.device.asarray(host, out=dev)
         return self.device.asarray(host)
 
     # the rules, on the host copies of the table --------------------------------------------------
-    def _merge(self, owner, lam, seen) -> list:
-        """Eq. 13-15: groups whose regions intersect in position and velocity become one."""
+    def _merge(self, owner, lam, *, exact: bool) -> list:
+        """Eq. 13-15: groups whose regions intersect in position and velocity become one. The
+        device listed the pairs whose bounding spheres meet (``group_frame``); only those get the
+        exact test, unless a split or a start changed the table this frame (``exact``: every
+        pair, on the host)."""
+        cfg, t = self.config, self._t
         live = np.flatnonzero(self.ids >= 0)
         if len(live) < 2:
             return []
-        counts = np.bincount(owner[owner >= 0], minlength=self.capacity).astype(np.float64)
-        vsum = np.stack([np.bincount(owner[owner >= 0], lam[owner >= 0, a], minlength=self.capacity) for a in range(3)], 1)
-        centre = self._x[live].copy()
-        has = counts[live] >= self.config.min_points
-        centre[np.ix_(np.flatnonzero(has), VEL)] = vsum[live[has]] / counts[live[has], None]
-        pairs = rules.overlapping_pairs(centre, self._gate_spreads()[live].astype(np.float64), self.config.merge_gamma)
+        ncand = t[:, NCAND].astype(np.int64)
+        if not exact and (ncand[live] > MAX_CAND).any():
+            exact = True
+        if not exact and not ncand[live].any():
+            return []
+        if exact:
+            counts = np.bincount(owner[owner >= 0], minlength=self.capacity).astype(np.float64)
+            vsum = np.stack([np.bincount(owner[owner >= 0], lam[owner >= 0, a], minlength=self.capacity)
+                             for a in range(3)], 1)  # fmt: skip
+            centre = self._x[live].copy()
+            has = counts[live] >= cfg.min_points
+            centre[np.ix_(np.flatnonzero(has), VEL)] = vsum[live[has]] / counts[live[has], None]
+            pairs = rules.overlapping_pairs(centre, self._gate_spreads()[live], cfg.merge_gamma)
+        else:  # the device's candidates: counts and mean velocities are this frame's
+            counts = t[:, COUNT]
+            i = np.repeat(live, np.minimum(ncand[live], MAX_CAND))
+            j = t[live][:, CAND : CAND + MAX_CAND][np.arange(MAX_CAND)[None, :] < ncand[live, None]].astype(np.int64)
+            if not len(i):
+                return []
+            centre = self._x.copy()
+            has = counts >= cfg.min_points
+            centre[np.ix_(np.flatnonzero(has), VEL)] = t[np.ix_(np.flatnonzero(has), MEAN + VEL)]
+            G = self._gate_spreads()
+            keep = np.ones(len(i), bool)
+            for idx in (POS, VEL):
+                keep &= rules.ellipsoids_overlap(centre[i][:, idx], G[i][:, idx][:, :, idx], centre[j][:, idx],
+                                                 G[j][:, idx][:, :, idx], cfg.merge_gamma)  # fmt: skip
+            rank = np.full(self.capacity, -1, np.int64)
+            rank[live] = np.arange(len(live))
+            pairs = np.stack([rank[i[keep]], rank[j[keep]]], 1)
         if not len(pairs):
             return []
         comp = _union(len(live), pairs)
@@ -408,9 +428,9 @@ class GroupTracker:
             order = sorted(members, key=lambda s: (-self.age[s], self.ids[s]))
             keep = order[0]  # the oldest group keeps its id
             w = counts[members]
-            xs = self._x[members]
-            self._x[keep], self.Sigma[keep] = rules.merge_states(w, xs, self.Sigma[members].astype(np.float64))
-            _, self._P[keep] = rules.merge_states(w, xs, self._P[members])
+            xs = self._x[members].copy()
+            self._x[keep], self.Sigma[keep] = rules.merge_states(w, xs, self.Sigma[members].copy())
+            _, self._P[keep] = rules.merge_states(w, xs, self._P[members].copy())
             self.missed[keep] = self.missed[members].min()
             for s in order[1:]:
                 out.append((int(self.ids[s]), int(self.ids[keep])))
@@ -426,7 +446,7 @@ class GroupTracker:
         a person along that axis (standard deviation above link_radius / 2) are examined."""
         cfg = self.config
         live = np.flatnonzero(self.ids >= 0)
-        B = self.Sigma[live][:, POS][:, :, POS].astype(np.float64)
+        B = self.Sigma[live][:, POS][:, :, POS]
         wide = np.trace(B, axis1=1, axis2=2) > (cfg.link_radius / 2) ** 2  # trace >= largest eigenvalue
         axes = np.zeros((len(live), 3))
         if wide.any():
@@ -435,12 +455,17 @@ class GroupTracker:
             wide[wide] = w[:, -1] > (cfg.link_radius / 2) ** 2
         self.apart[live[~wide]] = 0
         out = []
+        if not wide.any():
+            return out
+        order_all = np.argsort(owner, kind="stable")
+        bounds = np.searchsorted(owner[order_all], np.arange(self.capacity + 1))
         for s, axis in zip(live[wide], axes[wide]):
-            mine = np.flatnonzero(owner == s)
-            proj = y[mine] @ axis
+            mine = order_all[bounds[s] : bounds[s + 1]]
+            ym = self._offset(y[mine])
+            proj = ym @ axis
             order = np.argsort(proj, kind="stable")
             cut = np.concatenate([[0], np.flatnonzero(np.diff(proj[order]) > cfg.link_radius) + 1, [len(mine)]])
-            parts = [mine[order[a:b]] for a, b in zip(cut[:-1], cut[1:]) if b - a >= cfg.min_new]
+            parts = [order[a:b] for a, b in zip(cut[:-1], cut[1:]) if b - a >= cfg.min_new]
             if len(parts) < 2:
                 self.apart[s] = 0
                 continue
@@ -449,32 +474,37 @@ class GroupTracker:
                 continue
             self.apart[s] = 0
             parts.sort(key=len, reverse=True)
-            for i, pts in enumerate(parts):
-                m, S = rules.moments(y[pts], lam[pts])
+            for i, k in enumerate(parts):
+                m, S = rules.moments(ym[k], lam[mine[k]])
                 if i == 0:  # the largest part keeps the group
                     self._x[s, POS], self.Sigma[s] = m[POS], S
                     continue
-                new = self._add(m, S, self._P[s])
-                owner[pts] = new
+                new = self._add(m, S, self._P[s].copy())
+                owner[mine[k]] = new
                 out.append((int(self.ids[new]), int(self.ids[s])))
         return out
 
     def _start(self, owner, y, lam) -> list:
         """Eq. 12: unassigned points whose search regions overlap, linked; big sets start groups."""
         cfg = self.config
-        free = np.flatnonzero((owner < 0) & np.isfinite(y).all(1) & np.isfinite(lam).all(1))
+        free = np.flatnonzero(owner < 0)
         if len(free) < cfg.min_new:
             return []
-        comp = _components(self.device, y[free], cfg.link_radius)
+        yf = self._offset(y[free])
+        ok = np.isfinite(yf).all(1) & np.isfinite(lam[free]).all(1)
+        free, yf = free[ok], yf[ok]
+        if len(free) < cfg.min_new or not _may_link(yf, cfg.link_radius, cfg.min_new):
+            return []
+        comp = _components(self.device, yf, cfg.link_radius)
         ids, n = np.unique(comp[comp >= 0], return_counts=True)
         p0 = np.zeros(6)
         p0[POS], p0[VEL] = cfg.p0[0] ** 2, cfg.p0[1] ** 2
         out = []
         for c in ids[n >= cfg.min_new]:
-            pts = free[comp == c]
-            m, S = rules.moments(y[pts], lam[pts])
+            k = np.flatnonzero(comp == c)
+            m, S = rules.moments(yf[k], lam[free[k]])
             slot = self._add(m, S, np.diag(p0))
-            owner[pts] = slot
+            owner[free[k]] = slot
             out.append(int(self.ids[slot]))
         return out
 
@@ -499,18 +529,39 @@ class GroupTracker:
     # -- reading -------------------------------------------------------------------------------
     def groups(self) -> list:
         """The live groups (ascending id), downloaded from the device (n_points: 0)."""
-        b = self.scheduler.buffers
-        x = np.asarray(b["x"] if self.device.backend == "numpy" else b["x"].numpy())
-        P = np.asarray(b["P"] if self.device.backend == "numpy" else b["P"].numpy())
-        return self._list(x, P, np.zeros(self.capacity, np.int64))
+        t = np.asarray(self.device.to_numpy(self.scheduler.buffers["table"]), np.float64)
+        C = len(t)
+        return self._list(t[:, X : X + 6], t[:, P : P + 36].reshape(C, 6, 6), np.zeros(C, np.int64))
 
     def _list(self, x, P, counts) -> list:
         live = np.flatnonzero(self.ids >= 0)
         live = live[np.argsort(self.ids[live], kind="stable")]
-        pos, vel = x[live][:, POS].astype(np.float64), x[live][:, VEL].astype(np.float64)
-        cov, spread = P[live].astype(np.float64), self.Sigma[live].astype(np.float64)
-        return [Group(int(self.ids[s]), pos[k], vel[k], cov[k], spread[k], int(counts[s]), int(self.age[s]))
-                for k, s in enumerate(live)]
+        pos, vel = x[live][:, POS], x[live][:, VEL]
+        cov, spread = P[live].copy(), self.Sigma[live].copy()
+        ids, n, age = self.ids[live].tolist(), counts[live].tolist(), self.age[live].tolist()
+        return [Group(ids[k], pos[k], vel[k], cov[k], spread[k], n[k], age[k]) for k in range(len(live))]
+
+
+def _empty_table(C: int) -> np.ndarray:
+    """C free slots of the group table (float64 host mirror): identity P and Sigma."""
+    t = np.zeros((C, COLUMNS))
+    eye = np.eye(6).ravel()
+    t[:, P : P + 36] = eye
+    t[:, SIGMA : SIGMA + 36] = eye
+    return t
+
+
+def _may_link(points: np.ndarray, radius: float, need: int) -> bool:
+    """Whether ``need`` or more of the points have a neighbour within ``radius`` (a component of
+    ``need`` >= 2 points has): checked on the host for a few hundred points (with a margin over
+    the device's float32 test), else assumed."""
+    k = len(points)
+    if need < 2 or k > 256:
+        return True
+    p = points.astype(np.float64)
+    d2 = ((p[:, None, :] - p[None, :, :]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    return int((d2.min(1) <= (radius * (1 + 1e-5)) ** 2).sum()) >= need
 
 
 def _union(k: int, pairs: np.ndarray) -> np.ndarray:
