@@ -71,14 +71,21 @@ class LMLayout:
     at ``slot * P`` (S_X accepted point, S_XT trial point, S_G = J^T r, S_DEN finite-difference
     denominators, S_LO / S_HI bounds, S_H absolute steps), then the scalars at ``S_NVEC * P + slot``
     (SC_F cost, SC_C damping, SC_NU damping growth, SC_PRED predicted reduction, SC_FT trial cost,
-    SC_SNORM step norm). After the B blocks the NGLOB globals (G_FTOL ... G_CMAX), then the Jacobian
-    mask (M * P) when there is one.
+    SC_SNORM step norm). After the B blocks the NGLOB globals (G_FTOL ... G_CMAX; G_SCALE the
+    damping's scaling: 0 C I, 1 Marquardt's C diag(J^T J), 2 MINPACK's running maximum of it), then
+    the Jacobian mask (M * P) when there is one. The finite-difference scheme is not stored: the
+    kernels tell it from the rows per problem of the residual call (2P + 1 central, P + 1 forward,
+    1 none).
 
     K (solver dtype, uploaded): per problem ``K_NVEC * P + 1`` values: lo[P] (K_LO), hi[P] (K_HI),
     then the initial damping at ``K_NVEC * P``; then h[P]; then the NGLOB globals; then the mask.
 
-    W (solver dtype), per problem ``W_NSQ * P * P + P * M`` values: J^T J (W_A) and its Cholesky
-    factor (W_L) at ``slot * P * P``, then J^T (P rows of M) at ``W_NSQ * P * P``.
+    W (solver dtype), per problem ``W_NSQ * P * P + P * M + P`` values: J^T J (W_A) and its Cholesky
+    factor (W_L) at ``slot * P * P``, then J^T (P rows of M) at ``W_NSQ * P * P``, then the P values
+    of D, the damping's scale of the last step (1 for C I), at ``W_NSQ * P * P + P * M``. With a
+    Jacobian callable the kernels may form J^T J and J^T r at the trial straight from the given J
+    into the W_L block and the first P values of J^T (moved to W_A and S_G if it is accepted)
+    instead of storing J^T.
 
     I (int32): NIGLOB globals (IG_B batch size, IG_HAS_MASK, IG_P), then per problem ``I_NFIX + P``
     values: I_STATUS (LMStatus), I_ITER, I_ACCEPTED, I_REASON (LMReason), then P finite flags at I_FIN.
@@ -91,7 +98,7 @@ class LMLayout:
     S_NVEC = 7
     SC_F, SC_C, SC_NU, SC_PRED, SC_FT, SC_SNORM = range(6)
     NSCAL = 8
-    G_FTOL, G_XTOL, G_GTOL, G_REL, G_CTINY, G_CMAX = range(6)
+    G_FTOL, G_XTOL, G_GTOL, G_REL, G_CTINY, G_CMAX, G_SCALE = range(7)
     NGLOB = 8
     K_LO, K_HI = range(2)
     K_NVEC = 2

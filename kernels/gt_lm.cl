@@ -30,11 +30,8 @@
 #error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
 #endif
 #define MAX_CHOL_TRIES 40
-// The global of S holding the damping's scaling (0 C I, 1 Marquardt's diag(J^T J), 2 its running
-// maximum as MINPACK's): a build define of gputrack/backends/opencl/lm.py (a spare global of the ABI).
-#ifndef GT_LM_G_SCALE
-#define GT_LM_G_SCALE (GT_LM_NGLOB - 2)
-#endif
+// GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling (0 C I, 1 Marquardt's
+// diag(J^T J), 2 its running maximum as MINPACK's).
 #define GT_LM_SCALE_IDENTITY 0
 #define GT_LM_SCALE_MINPACK 2
 
@@ -175,12 +172,25 @@ static REAL gt_dot(__global const REAL *a, __global const REAL *b, const int M)
     return (s0 + s1) + (s2 + s3);
 }
 
+// Entry q of the lower triangle of a P x P matrix, row by row: (i, j) with j <= i.
+static int2 gt_pair(const int q)
+{
+    int i = (int)((sqrt(8.0f * q + 1.0f) - 1.0f) * 0.5f);
+    while (i * (i + 1) / 2 > q)
+        --i;
+    while ((i + 1) * (i + 2) / 2 <= q)
+        ++i;
+    return (int2)(i, q - i * (i + 1) / 2);
+}
+
 #define SB_(P) (GT_LM_S_NVEC * (P) + GT_LM_NSCAL)
 #define WB_(P, M) (GT_LM_W_NSQ * (P) * (P) + (P) * (M) + (P))
 #define IB_(b, P) (GT_LM_NIGLOB + (b) * (GT_LM_I_NFIX + (P)))
 
-// Rows of Xb (SX rows of P): the point src and, when SX > 1, its perturbed copies (eq. 24);
-// their denominators (over the stored, possibly rounded, points) into den.
+// Rows of Xb (SX rows of P): the point src and, when SX > 1, its perturbed copies: moved by +-eps
+// (SX = 2P + 1, central differences, eq. 24) or by +eps (SX = P + 1, forward differences; -eps where
+// +eps would leave the box); their denominators (over the stored, possibly rounded, points) into den.
+// eps: h where given, else rel |p| (rel where p = 0, as MINPACK).
 static void gt_lm_points(__global const REAL *src, __global REAL *den, __global const REAL *lo,
                          __global const REAL *hi, __global const REAL *h, __global XTYPE *Xb, const int SX,
                          const int P, const REAL rel)
@@ -193,11 +203,18 @@ static void gt_lm_points(__global const REAL *src, __global REAL *den, __global 
             const REAL p = src[n];
             REAL eps = h[n];
             if (eps <= 0)
-                eps = rel * fmax(fabs(p), (REAL)1);
-            __global XTYPE *xp = Xb + (1 + 2 * n) * P;
-            xp[n] = (XTYPE)fmin(p + eps, hi[n]);
-            xp[P + n] = (XTYPE)fmax(p - eps, lo[n]);
-            den[n] = (REAL)xp[n] - (REAL)xp[P + n];
+                eps = rel * (p != 0 ? fabs(p) : (REAL)1);
+            if (SX == 2 * P + 1) {
+                __global XTYPE *xp = Xb + (1 + 2 * n) * P;
+                xp[n] = (XTYPE)fmin(p + eps, hi[n]);
+                xp[P + n] = (XTYPE)fmax(p - eps, lo[n]);
+                den[n] = (REAL)xp[n] - (REAL)xp[P + n];
+            } else {
+                __global XTYPE *xp = Xb + (1 + n) * P;
+                const REAL up = p + eps;
+                xp[n] = (XTYPE)(up <= hi[n] ? up : fmax(p - eps, lo[n]));
+                den[n] = (REAL)xp[n] - (REAL)Xb[n];
+            }
         }
     } else {
         for (int n = 0; n < P; ++n)
@@ -380,34 +397,84 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     const int running = ib[GT_LM_I_STATUS] == GT_LM_RUNNING;
 
     // 1. Jacobian at the evaluated trial: eq. 24 over the stored points, or given
+#ifdef USE_JAC
+    // given: J^T J into L and J^T r into the first P values of Jt straight from J (M rows of P, as
+    // stored; eq. 22), moved to A and g in 3. if the trial is accepted; J is finite iff the diagonal is
+    if (running && !final_) {
+        __global const JTYPE *Jb = Jg + (long)b * M * P;
+#ifdef LM_P
+        // P a build define: row i of J^T J and J^T r per work-item, the P columns in registers (row
+        // m of J: x = J[m, i] times the contiguous row)
+        for (int i = lid; i < LM_P; i += ls) {
+            REAL acc[LM_P];
+            REAL ag = 0;
+            for (int j = 0; j < LM_P; ++j)
+                acc[j] = 0;
+            for (int m = 0; m < M; ++m) {
+                __global const JTYPE *Jm = Jb + m * LM_P;
+                const REAL x = (REAL)Jm[i];
+                ag += x * (REAL)rt[m];
+                for (int j = 0; j < LM_P; ++j)
+                    acc[j] += x * (REAL)Jm[j];
+            }
+            for (int j = 0; j < LM_P; ++j)
+                L[i * LM_P + j] = acc[j];
+            Jt[i] = ag;
+        }
+#else
+        const int npairs = P * (P + 1) / 2;
+        for (int q = lid; q < npairs + P; q += ls) {
+            if (q < npairs) {
+                const int2 ij = gt_pair(q);
+                REAL s0 = 0, s1 = 0;
+                int m = 0;
+                for (; m + 1 < M; m += 2) {
+                    s0 += (REAL)Jb[m * P + ij.x] * (REAL)Jb[m * P + ij.y];
+                    s1 += (REAL)Jb[(m + 1) * P + ij.x] * (REAL)Jb[(m + 1) * P + ij.y];
+                }
+                for (; m < M; ++m)
+                    s0 += (REAL)Jb[m * P + ij.x] * (REAL)Jb[m * P + ij.y];
+                L[ij.x * P + ij.y] = s0 + s1;
+                L[ij.y * P + ij.x] = s0 + s1;
+            } else {
+                const int i = q - npairs;
+                REAL s = 0;
+                for (int m = 0; m < M; ++m)
+                    s += (REAL)Jb[m * P + i] * (REAL)rt[m];
+                Jt[i] = s;
+            }
+        }
+#endif
+    }
+    barrier(CLK_GLOBAL_MEM_FENCE);
+    if (running && !final_)
+        for (int n = lid; n < P; n += ls)
+            ib[GT_LM_I_FIN + n] = isfinite(L[n * P + n]) ? 1 : 0;
+#else
     if (running && !final_) {
         for (int n = lid; n < P; n += ls) {
             int okn = 1;
             __global REAL *row = Jt + n * M;
-#ifdef USE_JAC
-            for (int m = 0; m < M; ++m) {
-                const REAL v = (REAL)Jg[((long)b * M + m) * P + n];
-                okn &= isfinite(v) ? 1 : 0;
-                row[m] = v;
-            }
-#else
             const REAL dn = den[n];
-            __global const RTYPE *rp = R + ((long)b * SR + 1 + 2 * n) * M;
-            __global const RTYPE *rm = rp + M;
+            // the row moved by +eps and the one it is compared with: moved by -eps (central, eq. 24)
+            // or the point's (forward)
+            const int central = SR == 2 * P + 1;
+            __global const RTYPE *rp = R + ((long)b * SR + 1 + (central ? 2 * n : n)) * M;
+            __global const RTYPE *rm = central ? rp + M : R + (long)b * SR * M;
             for (int m = 0; m < M; ++m) {
                 REAL v = 0;
                 if (!has_mask || mask[m * P + n] != 0) {
-                    const REAL d = (REAL)rp[m] - (REAL)rm[m];  // r(x + eps e_n) - r(x - eps e_n)
+                    const REAL d = (REAL)rp[m] - (REAL)rm[m];  // r(x + eps e_n) - r(x -+ eps e_n)
                     okn &= isfinite(d) ? 1 : 0;
                     if (dn != 0)
                         v = d / dn;  // eq. 24
                 }
                 row[m] = v;
             }
-#endif
             ib[GT_LM_I_FIN + n] = okn;
         }
     }
+#endif
     barrier(CLK_GLOBAL_MEM_FENCE);
 
     // 2. acceptance of the trial, damping update (Nielsen), ftol / xtol
@@ -495,15 +562,19 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     // 3. J^T J and J^T r at the accepted point (eq. 22): the P (P + 1) / 2 entries of the lower
     // triangle and the P entries of J^T r are shared out over the work-items
     if (!final_ && ib[GT_LM_I_ACCEPTED]) {
+#ifdef USE_JAC
+        for (int q = lid; q < P * P + P; q += ls) {  // computed in 1.
+            if (q < P * P)
+                A[q] = L[q];
+            else
+                g[q - P * P] = Jt[q - P * P];
+        }
+#else
         const int npairs = P * (P + 1) / 2;
         for (int q = lid; q < npairs + P; q += ls) {
             if (q < npairs) {
-                int i = (int)((sqrt(8.0f * q + 1.0f) - 1.0f) * 0.5f);
-                while (i * (i + 1) / 2 > q)
-                    --i;
-                while ((i + 1) * (i + 2) / 2 <= q)
-                    ++i;
-                const int j = q - i * (i + 1) / 2;
+                const int2 ij = gt_pair(q);
+                const int i = ij.x, j = ij.y;
                 const REAL s = gt_dot(Jt + i * M, Jt + j * M, M);
                 A[i * P + j] = s;
                 A[j * P + i] = s;
@@ -521,6 +592,7 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                 g[i] = s0 + s1;
             }
         }
+#endif
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
     if (lid == 0) {

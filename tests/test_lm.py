@@ -473,15 +473,52 @@ def test_stacked_points_are_central_differences(device):
         got.append(gputrack.to_numpy(X).copy())
         return np.zeros((X.shape[0], 1), dtype=X.dtype)
 
-    x0 = np.array([[0.5, -2000.0]])
+    x0 = np.array([[0.5, -2000.0, 0.0, 3e-6]])
     least_squares(res, x0, device=device, max_iter=0 + 1, step=None, early_stop=False)
     X = got[0]
-    eps = lm.DEFAULT_REL_STEP[X.dtype.name] * np.maximum(np.abs(x0[0]), 1)
-    np.testing.assert_array_equal(X[0], x0[0])
-    np.testing.assert_allclose(X[1], [0.5 + eps[0], -2000.0])
-    np.testing.assert_allclose(X[2], [0.5 - eps[0], -2000.0])
-    np.testing.assert_allclose(X[3], [0.5, -2000.0 + eps[1]])
-    np.testing.assert_allclose(X[4], [0.5, -2000.0 - eps[1]])
+    # steps relative to |x| (MINPACK's rule: of 1 where x = 0), so a parameter near 1e-6 gets its own
+    eps = lm.DEFAULT_REL_STEP["central"][X.dtype.name] * np.array([0.5, 2000.0, 1.0, 3e-6])
+    assert X.shape == (9, 4)
+    np.testing.assert_array_equal(X[0], x0[0].astype(X.dtype))
+    for n in range(4):
+        for row, sign in ((1 + 2 * n, 1), (2 + 2 * n, -1)):
+            want = x0[0].copy()
+            want[n] += sign * eps[n]
+            np.testing.assert_allclose(X[row], want, rtol=1e-6, atol=0)
+
+
+def test_stacked_points_are_forward_differences(device):
+    """jacobian='forward': P + 1 rows per problem (the point, then it moved by +eps in each parameter;
+    -eps where +eps would cross the upper bound), MINPACK's relative step sqrt(eps) |x|; a solve
+    with them matches the reference."""
+    got = []
+
+    def res(X):
+        Xn = gputrack.to_numpy(X)
+        got.append(Xn.copy())
+        return box3d(Xn.astype(np.float64)).astype(Xn.dtype)
+
+    x0 = np.array([[0.5, 8.0, 2e-6], [2.0, 0.0, 1.0]])
+    upper = np.array([np.inf, 8.0, np.inf])
+    least_squares(res, x0, device=device, max_iter=1, early_stop=False, jacobian="forward", upper=upper)
+    X = got[0].reshape(2, 4, 3)
+    rel = lm.DEFAULT_REL_STEP["forward"][X.dtype.name]
+    for b in range(2):
+        np.testing.assert_array_equal(X[b, 0], x0[b].astype(X.dtype))
+        for n in range(3):
+            want = x0[b].copy()
+            a = abs(want[n]) if want[n] != 0 else 1.0
+            want[n] += -rel * a if (b == 0 and n == 1) else rel * a  # at the upper bound: one step down
+            np.testing.assert_allclose(X[b, 1 + n], want, rtol=1e-6, atol=0)
+    x0 = np.array([[1.0, 2.0, 3.0], [0.5, 12.0, 1.5]])
+    got = least_squares(host_residual(box3d), x0, device=device, max_iter=6, jacobian="forward")
+    want = least_squares(host_residual(box3d), x0, device=REF, max_iter=6, jacobian="forward", dtype=got.dtype)
+    np.testing.assert_array_equal(got.status, want.status)
+    np.testing.assert_array_equal(got.iterations, want.iterations)
+    tol = 1e-6 if got.dtype == np.float64 else 2e-3  # a nearly degenerate fit (x1 -> x2) amplifies rounding
+    np.testing.assert_allclose(got.x, want.x, rtol=tol, atol=tol)
+    np.testing.assert_allclose(got.cost, want.cost, rtol=tol, atol=1e-12)
+    assert got.nfev == want.nfev and got.npoints == want.npoints
 
 
 # ------------------------------------------------------------------------------------------------
@@ -760,8 +797,8 @@ def test_solver_bad_input(device):
         least_squares(lambda X: np.zeros((3, 2)), np.zeros((1, 2)), device=device)
     with pytest.raises(TypeError, match="residuals: expected a float32 or float64"):
         least_squares(lambda X: np.zeros((X.shape[0], 2), np.int32), np.zeros((1, 2)), device=device)
-    with pytest.raises(ValueError, match="jacobian: expected 'central'"):
-        least_squares(f, np.zeros((1, 2)), device=device, jacobian="forward")
+    with pytest.raises(ValueError, match="jacobian: expected 'central', 'forward' or a callable"):
+        least_squares(f, np.zeros((1, 2)), device=device, jacobian="backward")
     with pytest.raises(ValueError, match="damping: expected"):
         least_squares(f, np.zeros((1, 2)), device=device, damping=-1)
     with pytest.raises(ValueError, match="step: expected"):

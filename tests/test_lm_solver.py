@@ -219,3 +219,44 @@ def test_solver_settings_and_solve_inputs_are_checked(device):
         solver.solve(reenter, np.ones((2, 2)))
     res = solver.solve(f, np.ones((2, 2)))  # usable after the error
     assert np.isfinite(res.cost).all()
+
+
+def test_host_callables_take_the_same_steps(device):
+    """solve(..., host=True): the callables get NumPy points (one array for the residual and the Jacobian
+    call at the same points) and return NumPy arrays; the solve is the same as with the device
+    protocol, for central and forward differences and a Jacobian callable."""
+    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
+    t = np.linspace(0, 2, 24)
+
+    def jac(X):
+        X = gputrack.to_numpy(X).astype(np.float64)
+        e = np.exp(X[:, 1:2] * t)
+        return np.stack([e, X[:, :1] * t * e], axis=2)
+
+    seen = []
+
+    def res_host(X):
+        assert type(X) is np.ndarray
+        seen.append(X)
+        return _expfit(X.astype(np.float64))
+
+    def jac_host(X):
+        assert X is seen[-1]  # the points of the residual call just before
+        return jac(X)
+
+    for diff, kw in (("central", {}), ("forward", {}), ("central", {"jacobian": jac})):
+        solver = LeastSquaresSolver(device, (3, 2), max_iter=6, damping_scale="minpack", diff=diff)
+        want = solver.solve(_host(_expfit), x0, **kw)
+        if "jacobian" in kw:
+            kw = {"jacobian": jac_host}
+        got = solver.solve(res_host, x0, host=True, **kw)
+        solver.close()
+        np.testing.assert_array_equal(got.x, want.x)
+        np.testing.assert_array_equal(got.cost, want.cost)
+        np.testing.assert_array_equal(got.iterations, want.iterations)
+        assert got.nfev == want.nfev and got.npoints == want.npoints
+        rows = {"central": 5, "forward": 3}[diff] if not kw else 1
+        assert seen[0].shape == (3 * rows, 2)
+        seen.clear()
+    with pytest.raises(ValueError, match=r"^diff: expected one of 'central', 'forward', got 'backward'\Z"):
+        LeastSquaresSolver(device, (2, 2), diff="backward")

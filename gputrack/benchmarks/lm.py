@@ -18,13 +18,20 @@ Cases per (P, M), each timed on the device with the NumPy reference in the same 
   N = N' = M / 2, the output array of the last call reused, on a synthetic 640x480 frame; peer:
   ``scipy.optimize.least_squares`` (trf, 3-point Jacobian, 10 iterations' worth of evaluations)
   looping over the 10 problems with the NumPy residuals.
-- ``solver exp ... analytic J`` / ``... central``: a whole 10-iteration solve of B = 10 fits of a sum of
-  P / 2 exponentials to M = 256 samples (``sim.problems``-free: the model is written below), on a held
-  :class:`gputrack.LeastSquaresSolver` (``early_stop=False``, ``damping_scale="minpack"``), the
-  residuals (and the analytic Jacobian) a vectorised NumPy callable of all B problems' points; peers:
+- ``solver exp ... analytic J`` / ``... central`` / ``... forward``: a whole 10-iteration solve of B = 10
+  fits of a sum of P / 2 exponentials to M = 256 samples (``sim.problems``-free: the model is written
+  below), on a held :class:`gputrack.LeastSquaresSolver` (``early_stop=False``,
+  ``damping_scale="minpack"``, ``diff`` central or forward), the residuals (and the analytic
+  Jacobian) a vectorised NumPy callable of all B problems' points (``solve(..., host=True)``); peers:
   scipy's MINPACK (``least_squares(method="lm")``, the same callables per problem, ``max_nfev`` = 11
   evaluations with the Jacobian, 11 (P + 1) with MINPACK's forward differences) in a loop over the
-  10 problems, and the cost each reaches (``--quality``).
+  10 problems; the costs each reaches are in the case's params (the solver's over MINPACK's, max
+  and median over the problems).
+- ``... central, device residuals`` / ``... forward, device residuals``: the same solves with the
+  residuals computed by a device kernel (gputrack/benchmarks/expfit_taichi.py,
+  kernels/gt_bench_expfit.cl; DeviceArray points in and out), and ``exp residuals n=410 ... device
+  kernel``: that kernel alone against the NumPy callable at the 410 stacked points of a
+  central-difference iteration (float64 devices).
 """
 
 import sys
@@ -70,8 +77,13 @@ def exp_fits(B, P, M, rng):
     """B fits of y = sum_k a_k exp(b_k t) (P / 2 terms) to M samples: (residuals, jacobian, x0, one,
     one_jac): the first two vectorised NumPy callables over stacked points (row i belongs to problem
     i // (n / B)), the start points 20-50 % off the truth, and the same residuals and Jacobian of
-    problem b at one point p (``one(p, b)``, for a solver called per problem)."""
+    problem b at one point p (``one(p, b)``, for a solver called per problem).
+
+    Each pair shares its exponentials: the Jacobian callable reuses those of the residual call just
+    before it when the points are the same (both solvers evaluate the Jacobian at the point of their
+    last residual call), as a hand-written model would; a residual call always computes them."""
     t = np.linspace(0.0, 1.0, M)
+    tc = t[None, :, None]
     K = P // 2
     true = np.empty((B, P))
     true[:, 0::2] = rng.uniform(0.5, 2.0, (B, K))
@@ -79,6 +91,18 @@ def exp_fits(B, P, M, rng):
     y = np.einsum("bkm->bm", true[:, 0::2, None] * np.exp(true[:, 1::2, None] * t))
     y += 0.01 * rng.normal(size=y.shape)
     x0 = true * rng.uniform(0.5, 0.8, true.shape)
+    memo = {}
+
+    def exps(Xn, key, reuse):
+        """exp(b_k t) of every row of Xn, (n, M, K); the last one per key is kept (and with ``reuse``
+        returned for the same points)."""
+        last = memo.get(key)
+        if reuse and last is not None and last[0].shape == Xn.shape and np.array_equal(last[0], Xn):
+            return last[1]
+        with np.errstate(over="ignore", invalid="ignore"):  # a far trial point: rejected by the solver
+            e = np.exp(Xn[:, None, 1::2] * tc)
+        memo[key] = (Xn.copy(), e)
+        return e
 
     def rows(X):
         Xn = np.asarray(X.numpy() if hasattr(X, "numpy") else X, np.float64)
@@ -86,32 +110,65 @@ def exp_fits(B, P, M, rng):
 
     def residuals(X):
         Xn, b = rows(X)
-        with np.errstate(over="ignore", invalid="ignore"):  # a far trial point: rejected by the solver
-            e = np.exp(Xn[:, 1::2, None] * t)
-            return np.einsum("nk,nkm->nm", Xn[:, 0::2], e) - y[b]
+        with np.errstate(over="ignore", invalid="ignore"):
+            return np.matmul(exps(Xn, "all", False), Xn[:, 0::2, None])[..., 0] - y[b]
 
     def jacobian(X):
         Xn, _ = rows(X)
+        e = exps(Xn, "all", True)  # (n, M, K)
+        J = np.empty((Xn.shape[0], M, K, 2))  # columns a_k, b_k interleaved
+        J[..., 0] = e
         with np.errstate(over="ignore", invalid="ignore"):
-            e = np.exp(Xn[:, 1::2, None] * t)  # (n, K, M)
-            J = np.empty((Xn.shape[0], M, P))
-            J[:, :, 0::2] = e.transpose(0, 2, 1)
-            J[:, :, 1::2] = (Xn[:, 0::2, None] * t * e).transpose(0, 2, 1)
-        return J
+            np.multiply(e, tc * Xn[:, None, 0::2], out=J[..., 1])
+        return J.reshape(Xn.shape[0], M, P)
 
     def one(p, b):
         with np.errstate(over="ignore", invalid="ignore"):
-            return p[0::2] @ np.exp(p[1::2, None] * t) - y[b]
+            return exps(p[None], b, False)[0] @ p[0::2] - y[b]
 
     def one_jac(p, b):
+        e = exps(p[None], b, True)[0]  # (M, K)
+        J = np.empty((M, K, 2))
+        J[..., 0] = e
         with np.errstate(over="ignore", invalid="ignore"):
-            e = np.exp(p[1::2, None] * t)  # (K, M)
-            J = np.empty((M, P))
-            J[:, 0::2] = e.T
-            J[:, 1::2] = (p[0::2, None] * t * e).T
-        return J
+            np.multiply(e, t[:, None] * p[0::2], out=J[..., 1])
+        return J.reshape(M, P)
 
+    residuals.data = (t, y)  # for the device version (``device_residuals``)
     return residuals, jacobian, x0, one, one_jac
+
+
+def device_residuals(device, B, t, y):
+    """The residuals of ``exp_fits`` as a device kernel (gputrack/benchmarks/expfit_taichi.py,
+    kernels/gt_bench_expfit.cl): ``residuals(X)`` takes the solver's DeviceArray points and returns a
+    DeviceArray (one output array per number of points, reused); float64 devices only."""
+    td, yd = device.asarray(t), device.asarray(y)
+    M = t.size
+    outs = {}
+    if device.backend == "taichi":
+        from .expfit_taichi import expfit
+
+        def launch(X, R, nper):
+            expfit(X.buffer, td.buffer, yd.buffer, R.buffer, nper)
+
+    else:
+        import pyopencl as cl
+
+        kernel = cl.Kernel(device.program("gt_bench_expfit.cl"), "gt_bench_expfit")
+
+        def launch(X, R, nper):
+            kernel(device.queue, (M, X.shape[0]), None, X.buffer.data, td.buffer.data, yd.buffer.data, R.buffer.data,
+                   np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
+
+    def residuals(X):
+        n = X.shape[0]
+        R = outs.get(n)
+        if R is None:
+            R = outs[n] = device.empty((n, M), np.float64)
+        launch(X, R, n // B)
+        return R
+
+    return residuals
 
 
 def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
@@ -122,36 +179,58 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
     ref = get_device("numpy")
     rng = np.random.default_rng(1)
     res, jac, x0, one, one_j = exp_fits(B, P, M, rng)
+    on_device = device.fp64 and device.backend in ("taichi", "opencl")
+    dres = device_residuals(device, B, *res.data) if on_device else None
     out = []
-    for kind in ("analytic J", "central"):
+    kinds = [("analytic J", "central", res), ("central", "central", res), ("forward", "forward", res)]
+    if dres is not None:
+        kinds += [("central, device residuals", "central", dres), ("forward, device residuals", "forward", dres)]
+    for kind, diff, fn in kinds:
         solvers = {d: LeastSquaresSolver(d, (B, P), max_iter=iterations, early_stop=False, damping_scale="minpack",
-                                         **TOL) for d in (device, ref)}  # fmt: skip
+                                         diff=diff, **TOL) for d in (device, ref)}  # fmt: skip
         kw = {"jacobian": jac} if kind == "analytic J" else {}
+        host = fn is res  # NumPy callables: NumPy points (``host=True``)
         peers = {}
         if not args.no_scipy:
             import scipy.optimize
 
-            def minpack(kind=kind):
+            def minpack(jacobian=kind == "analytic J"):
                 costs = []
                 for b in range(B):
-                    if kind == "analytic J":
+                    if jacobian:
                         o = scipy.optimize.least_squares(one, x0[b], jac=one_j, args=(b,), method="lm",
                                                          max_nfev=iterations + 1, **TOL)  # fmt: skip
-                    else:
+                    else:  # MINPACK's forward differences
                         o = scipy.optimize.least_squares(one, x0[b], args=(b,), method="lm",
                                                          max_nfev=(iterations + 1) * (P + 1), **TOL)  # fmt: skip
                     costs.append(2 * o.cost)
                 return np.array(costs)
 
             peers["scipy MINPACK lm x10"] = minpack
+        run = (lambda s=solvers[device], kw=kw, fn=fn, host=host: s.solve(fn, x0, host=host, **kw))
         name = f"solver exp B={B} M={M} P={P} {iterations} it {kind}"
+        params = {"B": B, "M": M, "P": P, "iterations": iterations, "jacobian": kind, "damping_scale": "minpack",
+                  "residuals": "device kernel" if fn is dres else "vectorised NumPy callable (host=True)"}
+        if not args.no_scipy:
+            mine, theirs = run().cost, peers["scipy MINPACK lm x10"]()
+            params["cost / MINPACK's cost, max"] = float(np.max(mine / theirs))
+            params["cost / MINPACK's cost, median"] = float(np.median(mine / theirs))
         out.append(Case(
             name,
-            run=lambda s=solvers[device], kw=kw: s.solve(res, x0, **kw),
+            run=run,
             reference=lambda s=solvers[ref], kw=kw: s.solve(res, x0, **kw),
             peers=peers,
-            params={"B": B, "M": M, "P": P, "iterations": iterations, "jacobian": kind, "damping_scale": "minpack",
-                    "residuals": "vectorised NumPy callable"},
+            params=params,
+        ))  # fmt: skip
+    if dres is not None:
+        # the residual call alone, at the 410 stacked points of a central-difference iteration
+        Xh = np.repeat(x0, 2 * P + 1, axis=0)
+        Xd = device.asarray(Xh)
+        out.append(Case(
+            f"exp residuals n={B * (2 * P + 1)} M={M} device kernel",
+            run=lambda: dres(Xd),
+            reference=lambda: res(Xh),
+            params={"n": B * (2 * P + 1), "M": M, "P": P, "reference": "the NumPy callable"},
         ))  # fmt: skip
     return out
 

@@ -52,12 +52,19 @@ __all__ = [
     "normal_equations",
 ]
 
-#: relative finite-difference step (of max(|x|, 1)) used when ``step=None``: cbrt(machine eps),
-#: the usual optimum for central differences (scipy uses the same).
+#: relative finite-difference step (of |x|; of 1 where x = 0, as MINPACK's fdjac2) used when
+#: ``step=None``, by ``diff`` and precision: cbrt(machine eps) for central differences, sqrt(machine
+#: eps) for forward ones, the usual optima (scipy and MINPACK use the same).
 DEFAULT_REL_STEP = {
-    "float64": float(np.finfo(np.float64).eps ** (1 / 3)),
-    "float32": float(np.finfo(np.float32).eps ** (1 / 3)),
-}
+    "central": {"float64": float(np.finfo(np.float64).eps ** (1 / 3)),
+                "float32": float(np.finfo(np.float32).eps ** (1 / 3))},
+    "forward": {"float64": float(np.finfo(np.float64).eps ** 0.5),
+                "float32": float(np.finfo(np.float32).eps ** 0.5)},
+}  # fmt: skip
+#: residual rows per problem of a finite-difference call, by ``diff``: the point and its copies moved
+#: by +eps_n and -eps_n (central, eq. 24), or by +eps_n only (forward). Every backend tells the two
+#: apart by the number of rows (2P + 1 > P + 1 > 1 for P >= 1).
+DIFF_ROWS = {"central": lambda P: 2 * P + 1, "forward": lambda P: P + 1}
 
 #: smallest damping tried after a failed Cholesky, relative to 1 + max diag(J^T J).
 _CTINY = {"float64": 1e-12, "float32": 1e-6}
@@ -380,9 +387,8 @@ DAMPING_SCALES = {"identity": 0, "marquardt": 1, "minpack": 2}
 #: the initial damping C when ``damping=None``: paper 000's 1e-5 for C I; for the scaled modes C is
 #: relative to each parameter's own diag(J^T J), and 1e-3 is Nielsen's usual tau
 DEFAULT_DAMPING = {"identity": 1e-5, "marquardt": 1e-3, "minpack": 1e-3}
-#: the global slot of the solver's packed state holding the scaling (a spare global of
-#: gputrack.abi.LMLayout; the backends name it G_SCALE too)
-G_SCALE = LMLayout.NGLOB - 2
+#: the global slot of the solver's packed state holding the scaling (gputrack.abi.LMLayout.G_SCALE)
+G_SCALE = LMLayout.G_SCALE
 
 
 class LeastSquaresSolver:
@@ -398,8 +404,9 @@ class LeastSquaresSolver:
     re-entered from its own residual function (a nested solve uses another solver).
 
     **Settings.** ``step`` (scalar or (P,) absolute finite-difference steps; None: relative, see
-    below), ``damping_scale``, ``max_iter``, ``ftol``, ``xtol``, ``gtol``, ``dtype``,
-    ``points_dtype``, ``early_stop``: as described below.
+    below), ``diff`` (``"central"``, default, or ``"forward"`` differences), ``damping_scale``,
+    ``max_iter``, ``ftol``, ``xtol``, ``gtol``, ``dtype``, ``points_dtype``, ``early_stop``: as
+    described below.
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
     on the ``numpy`` device, else a DeviceArray of ``device`` — in ``points_dtype`` (default: the
@@ -409,13 +416,18 @@ class LeastSquaresSolver:
     iteration makes ONE call with every problem's points stacked, ``2P + 1`` rows per problem:
     row ``b*(2P+1)`` is problem b's point, rows ``b*(2P+1) + 1 + 2n`` and ``+ 2 + 2n`` are it
     with parameter n moved by +eps_n and -eps_n (eq. 24; the Jacobian column is their difference
-    over the actual distance between them). The last call of a solve that reaches ``max_iter``
+    over the actual distance between them); with ``diff="forward"`` ``P + 1`` rows per problem:
+    the point, then row ``b*(P+1) + 1 + n`` moved by +eps_n (by -eps_n where +eps_n would cross
+    the upper bound; the column is the difference with the point's residuals over the distance,
+    MINPACK's scheme, half the points for a less accurate Jacobian). The last call of a solve that reaches ``max_iter``
     has only the B points (n = B). ``jacobian(X) -> (B, M, P)`` (a callable given to
     :meth:`solve`) is instead evaluated at the same (B, P) points as ``residuals`` (one call each
     per iteration, n = B).
 
-    **Steps.** ``step=None``: eps_n = rel * max(|x_n|, 1) with rel = cbrt(machine eps) of the
-    lower of the solver precision and ``points_dtype`` (6.1e-6 in float64, 4.9e-3 in float32: a
+    **Steps.** ``step=None``: eps_n = rel * |x_n| (rel where x_n = 0, as MINPACK's fdjac2: a
+    parameter near 1e-6 gets a step near 1e-6 rel) with rel = cbrt(machine eps) for central
+    differences, sqrt(machine eps) for forward ones, of the lower of the solver precision and
+    ``points_dtype`` (central 6.1e-6 in float64, 4.9e-3 in float32; forward 1.5e-8 and 3.5e-4: a
     float32 residual function needs the larger step, its rounding would swamp a small one). A
     scalar or (P,) ``step`` gives absolute steps (paper 000's per-parameter constants).
 
@@ -480,7 +492,13 @@ class LeastSquaresSolver:
     residual function's output stays on the device (a NumPy output is uploaded, counted) and,
     with ``early_stop`` (default), the small int32 status block (8 + B (P + 4) values) is
     downloaded to decide whether every problem has stopped: with a device residual function that
-    is the iteration's one host round trip. ``early_stop=False`` downloads nothing until the end
+    is the iteration's one host round trip. With ``solve(..., host=True)`` (NumPy callables) the
+    points are handed as NumPy: on taichi:cpu (and the reference) the kernels write them straight
+    into a NumPy array the solver holds and read the callables' NumPy results where they are (no
+    copy, no per-iteration allocation; the bytes are counted as transfers all the same); on the
+    other devices they are downloaded once per residual call (the Jacobian call reuses them) into
+    a held host array and the results are uploaded into held device buffers (asynchronously on
+    OpenCL). ``early_stop=False`` downloads nothing until the end
     (stopped problems stay frozen on the device; the batch runs ``max_iter`` iterations). The
     result, B (P + 5) values (x, cost, damping, status, iterations, reason), is downloaded once at
     the end. Exact sizes: :class:`Layout`.
@@ -507,9 +525,12 @@ class LeastSquaresSolver:
         dtype=np.float64,
         points_dtype=None,
         early_stop: bool = True,
+        diff: str = "central",
     ):
         device = check_device(device)
         B, P = _batch_shape(shape)
+        if not isinstance(diff, str) or diff not in DIFF_ROWS:
+            raise ValueError(f"diff: expected one of {', '.join(map(repr, DIFF_ROWS))}, got {diff!r}")
         if step is not None:
             _shape_in(step, "step", ((), (P,)), f"a positive number or (P={P},) positive numbers")
         if not isinstance(damping_scale, str) or damping_scale not in DAMPING_SCALES:
@@ -524,7 +545,7 @@ class LeastSquaresSolver:
         if pdt not in (np.dtype(np.float32), np.dtype(np.float64)) or (pdt == np.float64 and not device.fp64):
             raise TypeError(f"points_dtype: expected float32{' or float64' if device.fp64 else ''}, got {pdt.name}")
         # the solver's arrays fit the device (the stacked points of a central-difference call the largest)
-        device.check_alloc((B * (2 * P + 1), P), pdt)
+        device.check_alloc((B * DIFF_ROWS[diff](P), P), pdt)
         if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
             raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
         for name, v in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
@@ -542,6 +563,7 @@ class LeastSquaresSolver:
                 raise ValueError(f"step: expected a positive number or (P={P},) positive numbers, got {np.asarray(step)!r}")
         self.device, self.B, self.P, self.shape, self.dtype, self.points_dtype = device, B, P, (B, P), dt, pdt
         self.damping_scale, self.max_iter, self.early_stop = damping_scale, int(max_iter), bool(early_stop)
+        self.diff = diff
         self.tols = (float(ftol), float(xtol), float(gtol))
         self._h = h
         self._be = backend_module(device, "lm")
@@ -565,7 +587,7 @@ class LeastSquaresSolver:
         self.close()
 
     def solve(self, residuals, x0, *, jacobian=None, jac_sparsity=None, lower=None, upper=None,
-              damping=None) -> LeastSquaresResult:  # fmt: skip
+              damping=None, host: bool = False) -> LeastSquaresResult:  # fmt: skip
         """Minimise sum_m r_m(x_b)^2 for the B problems from the start points x0 (B, P) (NumPy, or
         a DeviceArray of the solver's device, downloaded once: the bounds are applied on the host).
 
@@ -573,7 +595,12 @@ class LeastSquaresSolver:
         ``jac_sparsity``: None or the (M, P) bool mask of the Jacobian's entries (central
         differences only; it may change from solve to solve, e.g. with a tracker's template);
         ``lower``, ``upper``: scalar, (P,) or (B, P) bounds; ``damping``: the initial C, scalar or
-        (B,) (None: ``DEFAULT_DAMPING[damping_scale]``). Returns a :class:`LeastSquaresResult`."""
+        (B,) (None: ``DEFAULT_DAMPING[damping_scale]``); ``host``: the callables are host (NumPy)
+        functions: they get the points as a NumPy array (the same array for the residual and the
+        Jacobian call at the same points; valid during the call only) and return NumPy arrays, which
+        the kernels read in place where the device can (taichi:cpu) or which are uploaded into
+        buffers the solver holds (see the class docstring, **Traffic**). Returns a
+        :class:`LeastSquaresResult`."""
         if self._busy:
             raise RuntimeError("LeastSquaresSolver.solve: expected one solve at a time, got a call from the solver's "
                                "own residual function (use another solver, e.g. least_squares, for a nested solve)")  # fmt: skip
@@ -626,7 +653,7 @@ class LeastSquaresSolver:
                                       e.astype(np.int8), e.astype(dt), 0, 0, 0, dt, e.astype(bool))  # fmt: skip
         self._busy = True
         try:
-            return _Run(self, residuals, jacobian, mask).run(x0c, lo, hi, c0, clipped)
+            return _Run(self, residuals, jacobian, mask, host).run(x0c, lo, hi, c0, clipped)
         finally:
             self._busy = False
 
@@ -687,70 +714,106 @@ def least_squares(
     jac_sparsity=None,
     points_dtype=None,
     early_stop: bool = True,
+    host: bool = False,
 ) -> LeastSquaresResult:
     """Minimise sum_m r_m(x_b)^2 for B problems at once by Levenberg-Marquardt: the one-shot form of
     :class:`LeastSquaresSolver` (its docstring has the algorithm, the residual-function protocol,
     bounds, sparsity, precision, traffic and the bad-input policy).
 
     Equivalent to ``LeastSquaresSolver(device, x0.shape, step=..., damping_scale=..., max_iter=...,
-    ftol=..., xtol=..., gtol=..., dtype=..., points_dtype=..., early_stop=...).solve(residuals, x0,
-    jacobian=..., jac_sparsity=..., lower=..., upper=..., damping=...)`` with
-    ``jacobian="central"`` (None there) or a callable. A loop of solves of one shape should hold a solver.
+    ftol=..., xtol=..., gtol=..., dtype=..., points_dtype=..., early_stop=..., diff=...).solve(residuals, x0,
+    jacobian=..., jac_sparsity=..., lower=..., upper=..., damping=..., host=...)`` with
+    ``jacobian="central"`` or ``"forward"`` (None there, and that ``diff``) or a callable. A loop of
+    solves of one shape should hold a solver.
     """
     device = check_device(device)
     if not callable(residuals):
         raise TypeError(f"residuals: expected a callable, got {type(residuals).__name__}")
     central = isinstance(jacobian, str)
-    if central and jacobian != "central":
-        raise ValueError(f"jacobian: expected 'central' or a callable, got {jacobian!r}")
+    if central and jacobian not in DIFF_ROWS:
+        raise ValueError(f"jacobian: expected 'central', 'forward' or a callable, got {jacobian!r}")
     if not central and not callable(jacobian):
-        raise TypeError(f"jacobian: expected 'central' or a callable, got {type(jacobian).__name__}")
+        raise TypeError(f"jacobian: expected 'central', 'forward' or a callable, got {type(jacobian).__name__}")
     if not central and jac_sparsity is not None:
         raise ValueError("jac_sparsity: expected jacobian='central' (a Jacobian callable computes its own entries)")
     x0 = _host_x0(device, x0)
     _solve_shapes(*x0.shape, damping, lower, upper, jac_sparsity)  # every array's shape before any value is read
     solver = LeastSquaresSolver(device, x0.shape, step=step, damping_scale=damping_scale, max_iter=max_iter, ftol=ftol,
                                 xtol=xtol, gtol=gtol, dtype=dtype, points_dtype=points_dtype,
-                                early_stop=early_stop)  # fmt: skip
+                                early_stop=early_stop, diff=jacobian if central else "central")  # fmt: skip
     with solver:
         return solver.solve(residuals, x0, jacobian=None if central else jacobian, jac_sparsity=jac_sparsity,
-                            lower=lower, upper=upper, damping=damping)  # fmt: skip
+                            lower=lower, upper=upper, damping=damping, host=host)  # fmt: skip
 
 
 class _Run:
     """One solve of a :class:`LeastSquaresSolver`: residual calls on the host side, one backend
-    launch per iteration, on the solver's buffers."""
+    launch per iteration, on the solver's buffers.
 
-    def __init__(self, solver, residuals, jacobian, mask):
+    With ``host`` the callables get NumPy points and give NumPy results: where the backend's
+    kernels read and write host memory in place (``reads_host``: the NumPy reference, taichi:cpu)
+    the points are written by the kernels straight into a NumPy array the solver holds, and the
+    results are read where the callable left them (nothing is copied; the bytes are counted as
+    transfers all the same); elsewhere the points are downloaded into a held host array and the
+    results uploaded into held device buffers, once each per call."""
+
+    def __init__(self, solver, residuals, jacobian, mask, host=False):
         self.s, self.device, self.fn, self.jac, self.mask = solver, solver.device, residuals, jacobian, mask
         self.B, self.P, self.dt, self.pdt = solver.B, solver.P, solver.dtype, solver.points_dtype
         self.rows_protocol = self.mask is not None and _rows_protocol(residuals)
         self.nfev = self.njev = self.npoints = 0
         self.M = None
+        numpy_dev = self.device.backend == "numpy"
+        self.host = bool(host) and not numpy_dev
+        self.direct = self.host and solver._be.reads_host(self.device)
+        self._xh = None  # (device points, host copy) of the last download (host mode, not direct)
+        self._keep = []  # host results an asynchronous upload still reads
 
     # -- user calls ------------------------------------------------------------------------------
-    def _check_out(self, out, n, what, shape):
+    def _check_out(self, out, n, what, shape, role):
+        dev = self.device
         if isinstance(out, DeviceArray):
-            if out.device is not self.device:
-                raise foreign_array_error(out, self.device, what)
-        else:
+            if out.device is not dev:
+                raise foreign_array_error(out, dev, what)
+        elif type(out) is not np.ndarray:
             out = np.asarray(out)
         if out.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
             raise TypeError(f"{what}: expected a float32 or float64 result, got dtype {out.dtype.name}")
         if tuple(out.shape) != shape:
             want = ", ".join(str(s) for s in shape)
             raise ValueError(f"{what}: expected a result of shape ({want}), got {tuple(out.shape)}")
-        if not isinstance(out, DeviceArray):
-            if out.dtype == np.float64 and not self.device.fp64:
-                out = out.astype(np.float32)
-            out = self.device.asarray(out) if self.device.backend != "numpy" else np.ascontiguousarray(out)
-        return out
+        if isinstance(out, DeviceArray):
+            return out
+        if out.dtype == np.float64 and not dev.fp64:
+            out = out.astype(np.float32)
+        if dev.backend == "numpy":
+            return np.ascontiguousarray(out)
+        if self.direct:  # the kernels read it where it is (counted as an upload)
+            out = np.ascontiguousarray(out)
+            dev.transfers.h2d += out.nbytes
+            return out
+        if self.host:  # into a buffer the solver holds, asynchronously where the backend can
+            out = np.ascontiguousarray(out)
+            self._keep.append(out)
+            return self.s._bufs.upload(role, out, asynchronous=True)
+        return dev.asarray(out)
+
+    def _points(self, X, fresh=True):
+        """The points handed to the callables: X itself, or in host mode (not direct) its host copy,
+        downloaded by each residual call (``fresh``) and reused by the Jacobian call after it."""
+        if not self.host or self.direct:
+            return X
+        if fresh or self._xh is None or self._xh[0] is not X:
+            self._keep.clear()  # the download waits for every upload before it (one in-order queue)
+            self._xh = (X, self.s._bufs.download(f"Xh{X.shape[0]}", X))
+        return self._xh[1]
 
     def _call(self, X, need):
         n = X.shape[0]
         self.nfev += 1
         self.npoints += n
-        out = self.fn(X, rows=need) if (need is not None) else self.fn(X)
+        Xc = self._points(X)
+        out = self.fn(Xc, rows=need) if (need is not None) else self.fn(Xc)
         if self.M is None:
             shp = getattr(out, "shape", None)
             if shp is None:
@@ -763,12 +826,12 @@ class _Run:
             self.M = int(shp[1])
             if self.mask is not None and self.mask.shape[0] != self.M:
                 raise ValueError(f"jac_sparsity: expected shape (M={self.M}, P={self.P}), got {self.mask.shape}")
-        return self._check_out(out, n, "residuals", (n, self.M))
+        return self._check_out(out, n, "residuals", (n, self.M), f"R{n}")
 
     def _call_jac(self, X):
         self.njev += 1
-        out = self.jac(X)
-        return self._check_out(out, X.shape[0], "jacobian", (self.B, self.M, self.P))
+        out = self.jac(self._points(X, fresh=False))
+        return self._check_out(out, X.shape[0], "jacobian", (self.B, self.M, self.P), "J")
 
     # -- loop ------------------------------------------------------------------------------------
     def run(self, x0, lo, hi, c0, clipped):
@@ -776,24 +839,32 @@ class _Run:
         B, P, be, dt, bufs = self.B, self.P, s._be, self.dt, s._bufs
         max_iter = s.max_iter
         central = self.jac is None
-        S_rows = 2 * P + 1 if central else 1
+        S_rows = (DIFF_ROWS[s.diff](P)) if central else 1
         mask = self.mask
         lay = Layout(B, P, mask.shape[0] if mask is not None else 0, mask is not None)
-        K = _constants(lay, lo, hi, s._h, c0, s.tols, dt, self.pdt, mask, DAMPING_SCALES[s.damping_scale])
+        K = _constants(lay, lo, hi, s._h, c0, s.tols, dt, self.pdt, mask, DAMPING_SCALES[s.damping_scale],
+                       s.diff if central else "central")  # fmt: skip
         x0_32 = x0.astype(np.float32)
         x0_up = x0_32 if np.array_equal(x0_32, x0) else x0.astype(dt)  # float32 when exact
         K_d = bufs.upload_cached("K", K)
         X0_d = bufs.upload("X0", x0_up)
-        X_full = bufs.empty("X", (B * S_rows, P), self.pdt)
-        X_last = X_full if S_rows == 1 else bufs.empty("X_last", (B, P), self.pdt)
+        points = bufs.host_array if self.direct else bufs.empty
+        X_full = points("X", (B * S_rows, P), self.pdt)
+        X_last = X_full if S_rows == 1 else points("X_last", (B, P), self.pdt)
         state = be.solver_state(self.device, lay, bufs.empty("S", (lay.s_size(),), dt),
                                 bufs.empty("I", (lay.i_size(),), np.int32), bufs.empty("Out", (B, lay.OB), dt))  # fmt: skip
         need_full = need_last = None
         if self.rows_protocol:
-            need_full, need_last = (bufs.upload_cached(f"need{i}", a) for i, a in enumerate(self._need(S_rows)))
+            need_host = self._need(S_rows)
+            if self.host:
+                need_full, need_last = need_host
+            else:
+                need_full, need_last = (bufs.upload_cached(f"need{i}", a) for i, a in enumerate(need_host))
         # the first points: x0 (and the perturbed points around it), written on the device
         first_X, first_need = (X_full, need_full) if max_iter > 0 else (X_last, need_last)
         be.solver_init(state, X0_d, K_d, first_X)
+        if self.direct:
+            self.device.transfers.d2h += first_X.nbytes
         R = self._call(first_X, first_need)  # fixes M
         lay = Layout(B, P, self.M, mask is not None)
         be.solver_workspace(state, lay, bufs.empty("W", (lay.w_size(),), dt))
@@ -806,10 +877,13 @@ class _Run:
                 break
             if s.early_stop and be.solver_active(state) == 0:
                 break
+            if self.direct:
+                self.device.transfers.d2h += nxt.nbytes
             R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
             if not central:
                 Jg = self._call_jac(nxt)
         out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
+        self._keep.clear()
         L = LMLayout
         status = out[:, P + L.O_STATUS].astype(np.int8)
         status[status == Status.RUNNING] = Status.MAX_ITER  # stopped early only when none is running
@@ -834,8 +908,11 @@ class _Run:
         mask = self.mask
         M, B = mask.shape[0], self.B
         block = np.ones((S_rows, M), np.uint8)
-        block[1::2] = mask.T
-        block[2::2] = mask.T
+        if S_rows == 2 * self.P + 1:  # central: the rows of parameter n are 1 + 2n and 2 + 2n
+            block[1::2] = mask.T
+            block[2::2] = mask.T
+        else:  # forward: row 1 + n
+            block[1:] = mask.T
         return np.tile(block, (B, 1)), np.ones((B, M), np.uint8)
 
 
@@ -863,7 +940,7 @@ class _Buffers:
         if have is not None and have[0] == key:
             return have[1]
         free = self._free.setdefault(dev, {})
-        if have is not None:  # another size: back to the pool
+        if have is not None and have[0][0] != "host":  # another size: back to the pool
             free.setdefault(have[0], []).append(have[1])
         avail = free.get(key)
         arr = avail.pop() if avail else dev.empty(shape, dtype)
@@ -875,14 +952,33 @@ class _Buffers:
             return np.empty(shape, dtype)
         return self._take(role, shape, dtype)
 
-    def upload(self, role, host):
+    def upload(self, role, host, asynchronous=False):
+        """``host`` into the buffer of ``role`` (counted). ``asynchronous``: the copy may still be
+        reading ``host`` when this returns (the caller keeps it until a download orders the queue)."""
         dev = self.device
         if dev.backend == "numpy":
             return host
         arr = self._take(role, host.shape, host.dtype)
-        backend_module(dev, "lm").upload_into(dev, arr, np.ascontiguousarray(host))
+        backend_module(dev, "lm").upload_into(dev, arr, np.ascontiguousarray(host), asynchronous)
         dev.transfers.h2d += host.nbytes
         return arr
+
+    def host_array(self, role, shape, dtype):
+        """A NumPy array of ``role`` kept between solves (the points on a backend whose kernels
+        write host memory in place)."""
+        key = ("host", tuple(shape), np.dtype(dtype).name)
+        have = self.held.get(role)
+        if have is None or have[0] != key:
+            have = (key, np.empty(shape, dtype))
+            self.held[role] = have
+        return have[1]
+
+    def download(self, role, arr):
+        """``arr`` (a device array) into the host array of ``role`` (counted); returns the host array."""
+        host = self.host_array(role, arr.shape, arr.dtype)
+        backend_module(self.device, "lm").download_into(self.device, arr, host)
+        self.device.transfers.d2h += host.nbytes
+        return host
 
     def upload_cached(self, role, host):
         """Like :meth:`upload`, but skips the copy when the buffer already holds ``host``.
@@ -912,16 +1008,17 @@ class _Buffers:
             return
         free = self._free.setdefault(self.device, {})
         for key, arr in held.values():
-            free.setdefault(key, []).append(arr)
+            if key[0] != "host":
+                free.setdefault(key, []).append(arr)
 
 
-def _rel_step(dt, pdt=None) -> float:
-    """Default relative step: cbrt(eps) of the lower of the solver and the points precision."""
+def _rel_step(dt, pdt=None, diff="central") -> float:
+    """Default relative step (``DEFAULT_REL_STEP``) of the lower of the solver and the points precision."""
     low = np.float32 if np.float32 in (np.dtype(dt), np.dtype(pdt or dt)) else np.float64
-    return DEFAULT_REL_STEP[np.dtype(low).name]
+    return DEFAULT_REL_STEP[diff][np.dtype(low).name]
 
 
-def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None, scale=0):
+def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None, scale=0, diff="central"):
     """The constants array K of a solve (see :class:`Layout`), on the host."""
     L = LMLayout
     K = np.zeros(lay.k_size(), dtype=dt)
@@ -933,7 +1030,7 @@ def _constants(lay, lo, hi, h, c0, tols, dt, pdt=None, mask=None, scale=0):
     K[lay.kh : lay.kh + P] = h
     glob = K[lay.kglob : lay.kglob + lay.NGLOB]
     glob[[L.G_FTOL, L.G_XTOL, L.G_GTOL]] = tols
-    glob[[L.G_REL, L.G_CTINY, L.G_CMAX]] = (_rel_step(dt, pdt), _CTINY[dt.name], _CMAX[dt.name])
+    glob[[L.G_REL, L.G_CTINY, L.G_CMAX]] = (_rel_step(dt, pdt, diff), _CTINY[dt.name], _CMAX[dt.name])
     glob[G_SCALE] = scale  # the damping's scaling (DAMPING_SCALES)
     if mask is not None:
         K[lay.kmask : lay.kmask + lay.M * P] = np.asarray(mask, dtype=dt).ravel()

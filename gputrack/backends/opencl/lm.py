@@ -15,7 +15,11 @@ RUNNING = int(LMStatus.RUNNING)
 _CTYPE = {"float32": "float", "float64": "double"}
 
 
-def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0type=None):
+#: the largest P built as a compile-time value for the solver's Jacobian-callable variant (``LM_P``)
+STATIC_P_MAX = 32
+
+
+def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0type=None, P=0):
     rtype = rtype or real
     xtype = xtype or real
     jtype = jtype or rtype
@@ -38,6 +42,8 @@ def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0
             defines[key] = 1
     if use_jac:
         defines["USE_JAC"] = 1
+        if 0 < P <= STATIC_P_MAX:
+            defines["LM_P"] = P
     return device.program("gt_lm.cl", defines)
 
 
@@ -131,11 +137,32 @@ class State:
         self.device, self.lay, self.S, self.I, self.Out = device, lay, S, I, Out
         self.W = None
         self.ls = _local_size(device, lay.P)
+        self.ls_jac = min(self.ls, lay.P)  # the Jacobian-callable variant: a work-item per row of J^T J
+        self.kernels = {}  # (residual, points, Jacobian dtypes) -> the update kernel
 
 
-def upload_into(device, arr, host):
-    """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts it."""
-    arr.buffer.set(host, queue=device.queue)
+def upload_into(device, arr, host, asynchronous=False):
+    """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts
+    it. ``asynchronous``: enqueued without waiting (the caller keeps ``host`` until a blocking
+    download of the same in-order queue)."""
+    import pyopencl as cl
+
+    buf = arr.buffer
+    cl.enqueue_copy(device.queue, buf.base_data, host, dst_offset=buf.offset, is_blocking=not asynchronous)
+
+
+def download_into(device, arr, host):
+    """Copy the device array ``arr`` into the NumPy array ``host`` (same shape and dtype), waiting for
+    it; the caller counts it."""
+    import pyopencl as cl
+
+    buf = arr.buffer
+    cl.enqueue_copy(device.queue, host, buf.base_data, src_offset=buf.offset, is_blocking=True)
+
+
+def reads_host(device) -> bool:
+    """Kernels read device buffers only: the solver's host callables' arrays are copied."""
+    return False
 
 
 def solver_state(device, lay, S, I, Out):
@@ -166,22 +193,27 @@ def solver_init(state, X0, K, X):
     )
 
 
+def _update_kernel(state, rtype, xtype, jtype):
+    """The update kernel of a variant, kept on the solve's state (building the defines and looking the
+    program up took ~50-150 us a call on a loaded 2-core machine)."""
+    key = (rtype, xtype, jtype)
+    k = state.kernels.get(key)
+    if k is None:
+        prg = _program(state.device, state.S.dtype, rtype, xtype, jtype, use_jac=jtype is not None, P=state.lay.P)
+        k = state.kernels[key] = _kernel(state.device, prg, "gt_lm_update")
+    return k
+
+
 def solver_update(state, R, X, *, first, final, jac=None):
     dev, lay = state.device, state.lay
     B = lay.B
-    prg = _program(
-        dev,
-        state.S.dtype,
-        R.dtype,
-        X.dtype,
-        jac.dtype if jac is not None else None,
-        use_jac=jac is not None,
-    )
+    kernel = _update_kernel(state, R.dtype, X.dtype, jac.dtype if jac is not None else None)
     Jg = jac if jac is not None else R
-    _kernel(dev, prg, "gt_lm_update")(
+    ls = state.ls if jac is None or lay.P > STATIC_P_MAX else state.ls_jac
+    kernel(
         dev.queue,
-        (B * state.ls,),
-        (state.ls,),
+        (B * ls,),
+        (ls,),
         state.S.buffer.data,
         state.I.buffer.data,
         state.W.buffer.data,

@@ -18,12 +18,10 @@ R_FTOL, R_XTOL, R_GTOL, R_MAXIT = LMReason.FTOL, LMReason.XTOL, LMReason.GTOL, L
 R_NONFINITE, R_NOTPD, R_DAMPING = LMReason.NONFINITE, LMReason.NOT_PD, LMReason.DAMPING
 
 MAX_CHOL_TRIES = 40
-#: the global slot of S (and K) holding the damping's scaling (a spare slot of gputrack/abi.py's
-#: LMLayout globals): 0 = C I (paper 000 eq. 22), 1 = C diag(J^T J) (Marquardt), 2 = C D with D the
-#: running maximum of diag(J^T J) over the iterations (MINPACK's scaling); every backend reads it
-G_SCALE = LAY.NGLOB - 2
-if G_SCALE <= max(LAY.G_FTOL, LAY.G_XTOL, LAY.G_GTOL, LAY.G_REL, LAY.G_CTINY, LAY.G_CMAX):
-    raise RuntimeError("gputrack.abi.LMLayout: the LM solver needs a spare global slot for its damping scale")
+#: the global slot of S (and K) holding the damping's scaling (gputrack/abi.py LMLayout.G_SCALE): 0 =
+#: C I (paper 000 eq. 22), 1 = C diag(J^T J) (Marquardt), 2 = C D with D the running maximum of
+#: diag(J^T J) over the iterations (MINPACK's scaling); every backend reads it
+G_SCALE = LAY.G_SCALE
 SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = 0, 1, 2
 
 
@@ -93,6 +91,11 @@ class State:
         self.W = None
 
 
+def reads_host(device) -> bool:
+    """The solver's callables may hand NumPy arrays straight to this backend (always)."""
+    return True
+
+
 def solver_state(device, lay, S, I, Out):
     return State(device, lay, S, I, Out)
 
@@ -142,9 +145,10 @@ def solver_update(state, R, X, *, first, final, jac=None):
     """One iteration for every running problem: accept/reject the evaluated trial, update the
     damping, normal equations at the accepted point, damped Cholesky step, next points into X.
 
-    R: residuals of the last call, (B * SR, M) with SR = 2P + 1 (trial point and its perturbed
-    copies, eq. 24) or SR = 1 (trial point only; then ``jac`` (B, M, P) is its Jacobian or the
-    call was the last one). X: (B * SX, P) receives the next points (SX = 2P + 1 or 1).
+    R: residuals of the last call, (B * SR, M) with SR = 2P + 1 (trial point and its copies moved
+    by +-eps, central differences, eq. 24), SR = P + 1 (the point and its copies moved by +eps,
+    forward differences) or SR = 1 (trial point only; then ``jac`` (B, M, P) is its Jacobian or the
+    call was the last one). X: (B * SX, P) receives the next points (SX = 2P + 1, P + 1 or 1).
     """
     lay, S, I, W = state.lay, state.S, state.I, state.W
     B, P, M = lay.B, lay.P, lay.M
@@ -178,8 +182,10 @@ def solver_update(state, R, X, *, first, final, jac=None):
                 ok_J = _finite(Jb)
                 Jt[b] = Jb.T
             else:
-                # (P, M): r(x + eps e_n) - r(x - eps e_n), only where the Jacobian mask is set
-                diff = np.where(mask.T != 0, Rb[b, 1::2] - Rb[b, 2::2], 0)
+                # (P, M): r(x + eps e_n) - r(x - eps e_n) (central) or r(x + eps e_n) - r(x) (forward),
+                # only where the Jacobian mask is set
+                minus = Rb[b, 2::2] if SR == 2 * P + 1 else Rb[b, :1]
+                diff = np.where(mask.T != 0, Rb[b, 1 : 2 * P + 1 : 2 if SR == 2 * P + 1 else 1] - minus, 0)
                 ok_J = _finite(diff)
                 safe = np.where(den[b] != 0, den[b], 1)
                 Jt[b] = np.where(den[b][:, None] != 0, diff / safe[:, None], 0)  # eq. 24
@@ -300,12 +306,18 @@ def _points(lay, S, X, b, p, SX, rel):
     p = p.copy()
     rows = X[b * SX : (b + 1) * SX]
     rows[:] = p
-    if SX > 1:
+    if SX == 2 * P + 1:  # central differences (eq. 24)
         xp, xm = _perturbed(p, lo, hi, h, rel)
         for n in range(P):
             rows[1 + 2 * n, n] = xp[n]
             rows[2 + 2 * n, n] = xm[n]
             den[n] = dt.type(rows[1 + 2 * n, n]) - dt.type(rows[2 + 2 * n, n])
+    elif SX > 1:  # forward differences: +eps, or -eps where +eps would leave the box
+        eps = _eps(p, h, rel)
+        for n in range(P):
+            up = p[n] + eps[n]
+            rows[1 + n, n] = up if up <= hi[n] else max(p[n] - eps[n], lo[n])
+            den[n] = dt.type(rows[1 + n, n]) - dt.type(rows[0, n])
     else:
         den[:] = 0
 
@@ -323,6 +335,12 @@ def _export(state):
     Out[:, P + LAY.O_REASON] = ib[:, LAY.I_REASON]
 
 
+def _eps(p, h, rel):
+    """The steps: h where given, else rel |p| (rel where p = 0, as MINPACK's fdjac2)."""
+    a = np.abs(p)
+    return np.where(h > 0, h, rel * np.where(a > 0, a, 1))
+
+
 def _perturbed(p, lo, hi, h, rel):
-    eps = np.where(h > 0, h, rel * np.maximum(np.abs(p), 1))
+    eps = _eps(p, h, rel)
     return np.minimum(p + eps, hi), np.maximum(p - eps, lo)

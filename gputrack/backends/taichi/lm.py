@@ -65,7 +65,7 @@ R_FTOL, R_XTOL, R_GTOL, R_MAXIT = (int(r) for r in (LMReason.FTOL, LMReason.XTOL
 R_NONFINITE, R_NOTPD, R_DAMPING = (int(r) for r in (LMReason.NONFINITE, LMReason.NOT_PD, LMReason.DAMPING))
 MAX_CHOL_TRIES = 40
 # the damping's scaling, a global of S (see backends/reference/lm.py): C I, C diag(J^T J), C D (running max)
-G_SCALE = LAY.NGLOB - 2
+G_SCALE = LAY.G_SCALE
 SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = 0, 1, 2
 GRAM_SEG = 8  # columns per SIMD vector of _gram_static (8 float64: one AVX-512 register)
 STATIC_P_MAX = 32  # _gram_static unrolls P (P (P / 8 + 1) / 2 vector products per row of J)
@@ -129,12 +129,15 @@ def _transpose(J: ti.template(), W: ti.template(), b, i, off, M):
 
 
 @ti.func
-def _jv(J: ti.template(), row, m, dt: ti.template(), diff: ti.template()):
-    """Entry m of a row of J^T: J[row + m] (a stored row), or with ``diff`` the unscaled central
-    difference J[row, m] - J[row + 1, m] of two stacked residual rows (eq. 24 without 1 / den)."""
+def _jv(J: ti.template(), row, m, dt: ti.template(), diff: ti.template(), rm):
+    """Entry m of a row of J^T: J[row + m] (a stored row, ``diff`` 0), or the unscaled difference of
+    stacked residual rows (eq. 24 without 1 / den): J[row, m] - J[row + 1, m] (``diff`` 1, central)
+    or J[row, m] - J[rm, m] (``diff`` 2, forward: rm the point's row)."""
     v = ti.cast(0, dt)
-    if ti.static(diff):
+    if ti.static(diff == 1):
         v = ti.cast(J[row, m], dt) - ti.cast(J[row + 1, m], dt)
+    elif ti.static(diff == 2):
+        v = ti.cast(J[row, m], dt) - ti.cast(J[rm, m], dt)
     else:
         v = J[row + m]
     return v
@@ -173,8 +176,9 @@ def _gram_pair(
 ):
     """Rows i and k = min(i + 1, P - 1) of J^T J (both triangles) into W[a + i*P + j] and J^T r into
     G[goff + i] (eq. 22), with r = R[rrow, :]. Row n of J^T starts at ``jt + n * jstep`` of J: a
-    contiguous stored row, or with ``diff`` the pair of stacked residual rows whose difference over
-    the denominators S[deno + n] is that row (eq. 24; the scale is applied to the sums).
+    contiguous stored row (``diff`` 0), or the stacked residual row whose difference with the next
+    one (``diff`` 1, central, eq. 24) or with the point's row rrow (``diff`` 2, forward) over the
+    denominators S[deno + n] is that row (the scale is applied to the sums).
 
     Two rows by four columns per pass over M (each column row is loaded once for both rows): ~25%
     faster than one row by four columns on taichi:cpu (3.9 instead of 5.2 us for P = 20, M = 256,
@@ -196,12 +200,12 @@ def _gram_pair(
         t3 = ti.cast(0, dt)
         r0 = jt + j * jstep
         for m in range(M):
-            x = _jv(J, ri, m, dt, diff)
-            y = _jv(J, rk, m, dt, diff)
-            w0 = _jv(J, r0, m, dt, diff)
-            w1 = _jv(J, r0 + jstep, m, dt, diff)
-            w2 = _jv(J, r0 + 2 * jstep, m, dt, diff)
-            w3 = _jv(J, r0 + 3 * jstep, m, dt, diff)
+            x = _jv(J, ri, m, dt, diff, rrow)
+            y = _jv(J, rk, m, dt, diff, rrow)
+            w0 = _jv(J, r0, m, dt, diff, rrow)
+            w1 = _jv(J, r0 + jstep, m, dt, diff, rrow)
+            w2 = _jv(J, r0 + 2 * jstep, m, dt, diff, rrow)
+            w3 = _jv(J, r0 + 3 * jstep, m, dt, diff, rrow)
             s0 += x * w0
             s1 += x * w1
             s2 += x * w2
@@ -222,9 +226,9 @@ def _gram_pair(
         t = ti.cast(0, dt)
         rj = jt + j * jstep
         for m in range(M):
-            w = _jv(J, rj, m, dt, diff)
-            s += _jv(J, ri, m, dt, diff) * w
-            t += _jv(J, rk, m, dt, diff) * w
+            w = _jv(J, rj, m, dt, diff, rrow)
+            s += _jv(J, ri, m, dt, diff, rrow) * w
+            t += _jv(J, rk, m, dt, diff, rrow) * w
         cj = _inv(S, deno, j, dt, diff)
         if j <= i:
             W[a + i * P + j] = s * ci * cj
@@ -236,8 +240,8 @@ def _gram_pair(
     t = ti.cast(0, dt)
     for m in range(M):
         v = ti.cast(R[rrow, m], dt)
-        s += _jv(J, ri, m, dt, diff) * v
-        t += _jv(J, rk, m, dt, diff) * v
+        s += _jv(J, ri, m, dt, diff, rrow) * v
+        t += _jv(J, rk, m, dt, diff, rrow) * v
     G[goff + i] = s * ci
     G[goff + k] = t * ck
 
@@ -312,7 +316,7 @@ def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template(), 
         for t in range(B * ((P + 1) // 2)):
             b, i = t // ((P + 1) // 2), 2 * (t % ((P + 1) // 2))
             a = b * WB
-            _gram_pair(W, a + P * P, M, W, a, r, b, W, a + P * P + P * M, i, M, P, dt, False, W, 0)  # eq. 22
+            _gram_pair(W, a + P * P, M, W, a, r, b, W, a + P * P + P * M, i, M, P, dt, 0, W, 0)  # eq. 22
     for t in range(B * P * P):
         b, k = t // (P * P), t % (P * P)
         JtJ[b, k // P, k % P] = W[b * WB + k]
@@ -403,7 +407,7 @@ def _solve_one(
         for i in range(P):
             _transpose(J, W, b, i, jt, M)
         for i2 in range((P + 1) // 2):
-            _gram_pair(W, jt, M, W, a, r, b, W, jt + P * M, 2 * i2, M, P, dt, False, W, 0)  # eq. 22: J^T J, J^T r
+            _gram_pair(W, jt, M, W, a, r, b, W, jt + P * M, 2 * i2, M, P, dt, 0, W, 0)  # eq. 22: J^T J, J^T r
     for i in range(P):
         delta[b, i] = W[jt + P * M + i]
     ok[b] = _chol_solve(W, a, delta, b, P, damping[b], dt)  # eq. 22: (J^T J + C I) delta = J^T r
@@ -583,20 +587,24 @@ def _phase_jacobian(
         inv = ti.cast(0, dt)
         if den != 0:
             inv = 1 / den
-        rp = b * SR + 1 + 2 * n
+        # the row moved by +eps in parameter n and the one it is compared with: the row moved by -eps
+        # (central, eq. 24) or the point's (forward)
+        rp, rq = b * SR + 1 + 2 * n, b * SR + 2 + 2 * n
+        if SR != 2 * P + 1:
+            rp, rq = b * SR + 1 + n, b * SR
         mbase = B * SB + LAY.NGLOB
         # a non-finite difference makes the sum of magnitudes non-finite: one test per row
         mag = ti.cast(0, dt)
         if I[LAY.IG_HAS_MASK]:
             for m in range(M):
                 d = ti.select(
-                    S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt), ti.cast(0, dt)
+                    S[mbase + m * P + n] != 0, ti.cast(R[rp, m], dt) - ti.cast(R[rq, m], dt), ti.cast(0, dt)
                 )
                 mag += ti.abs(d)
                 W[jt + m] = d * inv  # eq. 24, only where the mask is set
         else:
             for m in range(M):
-                d = ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt)  # r(x + eps e_n) - r(x - eps e_n)
+                d = ti.cast(R[rp, m], dt) - ti.cast(R[rq, m], dt)  # r(x + eps e_n) - r(x -+ eps e_n)
                 mag += ti.abs(d)
                 W[jt + m] = d * inv  # eq. 24
         ok = _finite(mag, dt)
@@ -704,7 +712,8 @@ def _phase_normal(
     fused: ti.template(),
 ):
     """Rows i and i + 1 of J^T J and J^T r at the accepted point (eq. 22): from the rows of J^T in W,
-    or with ``fused`` straight from the stacked residuals (central differences, no mask)."""
+    or with ``fused`` straight from the stacked residuals (1: central differences, 2: forward ones;
+    no mask)."""
     P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     if I[_ib(b, P) + LAY.I_ACCEPTED]:
         A = b * _wb(P, M) + LAY.W_A * P * P
@@ -712,10 +721,10 @@ def _phase_normal(
         base = b * _sb(P)
         if ti.static(fused):
             g, den = base + LAY.S_G * P, base + LAY.S_DEN * P
-            _gram_pair(R, b * SR + 1, 2, W, A, R, b * SR, S, g, i, M, P, dt, True, S, den)
+            _gram_pair(R, b * SR + 1, 3 - fused, W, A, R, b * SR, S, g, i, M, P, dt, fused, S, den)
         else:
             jt = A + (LAY.W_NSQ - LAY.W_A) * P * P
-            _gram_pair(W, jt, M, W, A, R, b * SR, S, base + LAY.S_G * P, i, M, P, dt, False, S, 0)
+            _gram_pair(W, jt, M, W, A, R, b * SR, S, base + LAY.S_G * P, i, M, P, dt, 0, S, 0)
 
 
 @ti.func
@@ -724,10 +733,12 @@ def _phase_finite(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: t
     P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     SR = R.shape[0] // B
     for n in range(P):
-        rp = b * SR + 1 + 2 * n
+        rp, rq = b * SR + 1 + 2 * n, b * SR + 2 + 2 * n  # central (eq. 24)
+        if SR != 2 * P + 1:
+            rp, rq = b * SR + 1 + n, b * SR  # forward
         mag = ti.cast(0, dt)
         for m in range(M):
-            mag += ti.abs(ti.cast(R[rp, m], dt) - ti.cast(R[rp + 1, m], dt))
+            mag += ti.abs(ti.cast(R[rp, m], dt) - ti.cast(R[rq, m], dt))
         I[_ib(b, P) + LAY.I_FIN + n] = _finite(mag, dt)
 
 
@@ -828,6 +839,13 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
 
 
 @ti.func
+def _eps(p, h, rel, dt: ti.template()):
+    """The finite-difference step: h where given (> 0), else rel |p| (rel where p = 0, as MINPACK)."""
+    a = ti.abs(p)
+    return ti.select(h > 0, h, rel * ti.select(a > 0, a, ti.cast(1, dt)))
+
+
+@ti.func
 def _points(S: ti.template(), X: ti.template(), b, src, B, P, rel, dt: ti.template()):
     """Rows b*SX .. of X: the point S[src : src + P] and, when SX > 1, its perturbed copies
     (eq. 24); their denominators (over the stored, possibly rounded, points) into den."""
@@ -840,13 +858,19 @@ def _points(S: ti.template(), X: ti.template(), b, src, B, P, rel, dt: ti.templa
     if SX > 1:
         for n in range(P):
             p = S[src + n]
-            eps = S[ho + n]
-            if eps <= 0:
-                eps = rel * ti.max(ti.abs(p), ti.cast(1, dt))
-            rp = b * SX + 1 + 2 * n
-            X[rp, n] = ti.min(p + eps, S[hio + n])
-            X[rp + 1, n] = ti.max(p - eps, S[loo + n])
-            S[deno + n] = ti.cast(X[rp, n], dt) - ti.cast(X[rp + 1, n], dt)
+            eps = _eps(p, S[ho + n], rel, dt)
+            if SX == 2 * P + 1:  # central (eq. 24)
+                rp = b * SX + 1 + 2 * n
+                X[rp, n] = ti.min(p + eps, S[hio + n])
+                X[rp + 1, n] = ti.max(p - eps, S[loo + n])
+                S[deno + n] = ti.cast(X[rp, n], dt) - ti.cast(X[rp + 1, n], dt)
+            else:  # forward: +eps, or -eps where +eps would leave the box
+                rp = b * SX + 1 + n
+                up = p + eps
+                if up > S[hio + n]:
+                    up = ti.max(p - eps, S[loo + n])
+                X[rp, n] = up
+                S[deno + n] = ti.cast(X[rp, n], dt) - ti.cast(X[b * SX, n], dt)
     else:
         for n in range(P):
             S[deno + n] = ti.cast(0, dt)
@@ -928,11 +952,15 @@ def _update(
     final: ti.template(),
     use_jac: ti.template(),
     fused: ti.template(),
+    SP: ti.template(),
 ):
     """One solver iteration on taichi:cpu (the parallel archs run ``_update_tasks``); ``Jg`` is the
     user's Jacobian when ``use_jac``, else unused (pass R). ``fused`` (central differences without a
     mask): J^T J and J^T r straight from the stacked residuals, J^T never stored (on taichi:cpu
-    storing it cost as much as the products)."""
+    storing it cost as much as the products). ``SP`` (with ``use_jac``, P <= STATIC_P_MAX): P as a
+    compile-time value: J^T J and J^T r at the trial straight from Jg as stored (``_gram_static``)
+    into the factor's block L and the first P values of J^T, J^T never stored, moved to A and g if
+    the trial is accepted (J is finite iff the diagonal of J^T J is)."""
     B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
     NPR = (P + 1) // 2  # row pairs
     ti.loop_config(serialize=True)
@@ -941,13 +969,30 @@ def _update(
             if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
                 if ti.static(fused):
                     _phase_finite(S, I, R, b, dt)
+                elif ti.static(use_jac and SP > 0):
+                    A = b * _wb(SP, M) + LAY.W_A * SP * SP
+                    L = A + (LAY.W_L - LAY.W_A) * SP * SP
+                    jt = b * _wb(SP, M) + LAY.W_NSQ * SP * SP
+                    _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
+                    for n in ti.static(range(SP)):
+                        I[_ib(b, SP) + LAY.I_FIN + n] = _finite(W[L + n * SP + n], dt)
                 else:
                     for n in range(P):
                         _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
         _phase_accept(S, I, W, R, b, dt, first, final)
         if ti.static(not final):
-            for i2 in range(NPR):
-                _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
+            if ti.static(use_jac and SP > 0):
+                if I[_ib(b, SP) + LAY.I_ACCEPTED]:
+                    A = b * _wb(SP, M) + LAY.W_A * SP * SP
+                    L = A + (LAY.W_L - LAY.W_A) * SP * SP
+                    jt = b * _wb(SP, M) + LAY.W_NSQ * SP * SP
+                    for k in range(SP * SP):
+                        W[A + k] = W[L + k]
+                    for n in range(SP):
+                        S[b * _sb(SP) + LAY.S_G * SP + n] = W[jt + n]
+            else:
+                for i2 in range(NPR):
+                    _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
             _phase_step(S, I, W, X, b, M, dt)
         _export(S, I, Out, b, P)
 
@@ -1312,19 +1357,32 @@ def _point_pair(S: ti.template(), X: ti.template(), b, n, src, B, P, rel, dt: ti
     if n == P:
         for m in range(P):
             X[b * SX, m] = S[src + m]
-    elif SX > 1:
+    elif SX == 2 * P + 1:  # central (eq. 24)
         rp = b * SX + 1 + 2 * n
         for m in range(P):
             if m != n:
                 X[rp, m] = S[src + m]
                 X[rp + 1, m] = S[src + m]
         p = S[src + n]
-        eps = S[base + LAY.S_H * P + n]
-        if eps <= 0:
-            eps = rel * ti.max(ti.abs(p), ti.cast(1, dt))
+        eps = _eps(p, S[base + LAY.S_H * P + n], rel, dt)
         X[rp, n] = ti.min(p + eps, S[base + LAY.S_HI * P + n])
         X[rp + 1, n] = ti.max(p - eps, S[base + LAY.S_LO * P + n])
         S[base + LAY.S_DEN * P + n] = ti.cast(X[rp, n], dt) - ti.cast(X[rp + 1, n], dt)
+    elif SX > 1:  # forward: +eps, or -eps where +eps would leave the box
+        rp = b * SX + 1 + n
+        for m in range(P):
+            if m != n:
+                X[rp, m] = S[src + m]
+        p = S[src + n]
+        eps = _eps(p, S[base + LAY.S_H * P + n], rel, dt)
+        up = p + eps
+        if up > S[base + LAY.S_HI * P + n]:
+            up = ti.max(p - eps, S[base + LAY.S_LO * P + n])
+        # the point's row b*SX is written by item n = P of the same launch: p as stored, read back here
+        X[rp, n] = p
+        ps = ti.cast(X[rp, n], dt)
+        X[rp, n] = up
+        S[base + LAY.S_DEN * P + n] = ti.cast(X[rp, n], dt) - ps
     else:
         S[base + LAY.S_DEN * P + n] = ti.cast(0, dt)
 
@@ -1516,12 +1574,31 @@ class State:
         self.plan = None  # (ncol, launches) of the parallel archs' step (``_tasks_plan``)
 
 
-def upload_into(device, arr, host):
+def upload_into(device, arr, host, asynchronous=False):
     """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts it."""
     if current_arch() == "cpu":
         copy(host, arr.buffer)  # ~15 us; ``from_numpy`` takes ~0.1 ms
     else:
         arr.buffer.from_numpy(host)
+
+
+def download_into(device, arr, host):
+    """Copy the device array ``arr`` into the NumPy array ``host``; the caller counts it."""
+    if current_arch() == "cpu":
+        copy(arr.buffer, host)
+    else:
+        host[...] = arr.buffer.to_numpy()
+
+
+def reads_host(device) -> bool:
+    """taichi:cpu kernels read and write NumPy arrays in place (the solver's host callables' points and
+    results are then never copied); elsewhere Taichi would copy them per launch."""
+    return current_arch() == "cpu"
+
+
+def _buf(a):
+    """What a kernel takes for an array of the solver: a DeviceArray's ndarray, or a NumPy array itself."""
+    return a if isinstance(a, np.ndarray) else a.buffer
 
 
 def solver_state(device, lay, S, I, Out):
@@ -1535,7 +1612,7 @@ def solver_workspace(state, lay, W):
 
 
 def solver_init(state, X0, K, X):
-    args = (X0.buffer, K.buffer, state.S.buffer, state.I.buffer, X.buffer)
+    args = (X0.buffer, K.buffer, state.S.buffer, state.I.buffer, _buf(X))
     if _per_problem():
         launch(_init, args, (state.dt,))
     else:
@@ -1546,10 +1623,13 @@ def solver_init(state, X0, K, X):
 def solver_update(state, R, X, *, first, final, jac=None):
     S, I, W, Out = state.S.buffer, state.I.buffer, state.W.buffer, state.Out.buffer
     Jg = R if jac is None else jac  # unused without a Jacobian callable
-    args = (S, I, W, X.buffer, R.buffer, Jg.buffer, Out)
+    args = (S, I, W, _buf(X), _buf(R), _buf(Jg), Out)
     if _per_problem():
-        fused = jac is None and not state.lay.has_mask and not final
-        launch(_update, args, (state.dt, bool(first), bool(final), jac is not None, fused))
+        fused = 0  # central / forward differences without a mask: 1 / 2 (``_phase_normal``)
+        if jac is None and not state.lay.has_mask and not final:
+            fused = 1 if R.shape[0] == state.lay.B * (2 * state.lay.P + 1) else 2
+        SP = _static_p(state.lay.P) if jac is not None else 0
+        launch(_update, args, (state.dt, bool(first), bool(final), jac is not None, fused, SP), scalarize=SP == 0)
     else:
         B, P = state.lay.B, state.lay.P
         NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))
