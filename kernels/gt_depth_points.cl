@@ -1,12 +1,12 @@
 // Foreground points of a depth image, randomly downsampled (gputrack/ops/depth_points.py; paper 002
 // sec. 4.1). Five kernels, launched in order on one queue:
-//   gt_dp_keys    NDRange (H W): every pixel's key and the levels whose bound it is below, of
-//                 GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground key);
+//   gt_dp_keys    NDRange (H W): a byte per pixel, bit q set where its key is below level q's
+//                 bound, of GT_LEVELS bounds 2^(31 - GT_STEP q) (q = 0: every foreground key);
 //   gt_dp_count   NDRange (chunks, H): per chunk of GT_CHUNK pixels of a row, the count of keys
 //                 below each bound;
 //   gt_dp_plan    one work-item: N, the tightest bound holding min(n, N) keys, chunk offsets;
 //   gt_dp_compact NDRange (chunks, H): (key, pixel) of each candidate at its chunk's offset (row
-//                 order), reading only the chunks that hold one;
+//                 order; the key hashed again), reading only the chunks that hold one;
 //   gt_dp_select  one work-item: stable LSD radix sort of the candidates by key, the first
 //                 min(n, C) points back-projected, NaN rows after them.
 // A pixel's key: pcg(pcg(i ^ a) + b) >> 1 (i = r W + c) if it is foreground, else >= 2^31.
@@ -39,11 +39,13 @@ inline uint gt_dp_key(__global const GT_PIXEL *depth, __global const float *bg, 
     return fg ? key : (key | 0x80000000u);
 }
 
-// NDRange (H W): every pixel's key and, one byte per level, whether it is below the level's bound
-// (a work-item per pixel: PoCL vectorises it across work-items)
+// NDRange (H W): one byte per pixel, bit q set where its key is below level q's bound (a
+// work-item per pixel: PoCL vectorises it across work-items; the keys themselves are not stored:
+// a byte is a quarter of the memory traffic of a key, and gt_dp_compact hashes the few candidates
+// again)
 __kernel void gt_dp_keys(__global const GT_PIXEL *depth, __global const float *bg, const int H, const int W,
                          const uint a, const uint b, const float threshold, const float max_range, const int nearer,
-                         __global uint *keys, __global uint *below)
+                         __global uchar *below)
 {
     const int i = get_global_id(0);  // launched with exactly H W work-items (a bounds test here
     // costs PoCL's vectoriser a third of the kernel's time)
@@ -52,31 +54,25 @@ __kernel void gt_dp_keys(__global const GT_PIXEL *depth, __global const float *b
     // none) or the loop form badly (1280 x 960 on one core: 3x the time of the hash)
     const int sk = (int)key;  // foreground keys are >= 0 as ints, the others < 0
     const uint bits = sk < 0 ? 0u
-                             : 1u | ((uint)(sk < (1 << (31 - GT_STEP))) << 8) | ((uint)(sk < (1 << (31 - 2 * GT_STEP))) << 16) |
-                                   ((uint)(sk < (1 << (31 - 3 * GT_STEP))) << 24);
-    keys[i] = key;
-    below[i] = bits;
+                             : 1u | ((uint)(sk < (1 << (31 - GT_STEP))) << 1) | ((uint)(sk < (1 << (31 - 2 * GT_STEP))) << 2) |
+                                   ((uint)(sk < (1 << (31 - 3 * GT_STEP))) << 3);
+    below[i] = (uchar)bits;
 }
 
 // NDRange (chunks, H), chunks = ceil(W / GT_CHUNK): hist[(r chunks + ch) GT_LEVELS + q] = the count
-// of the keys of pixels [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r below level q's bound (the sum
-// of their `below` words: a byte per level, <= 32 each)
-__kernel void gt_dp_count(__global const uint *below, const int H, const int W, __global int *hist)
+// of the keys of pixels [ch GT_CHUNK, (ch + 1) GT_CHUNK) of row r below level q's bound (bit q of
+// each pixel's byte spread to byte q of a word, summed: <= 32 per byte)
+__kernel void gt_dp_count(__global const uchar *below, const int H, const int W, __global int *hist)
 {
     const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
     if (ch >= chunks || r >= H)
         return;
     const int c0 = ch * GT_CHUNK, c1 = min(W, c0 + GT_CHUNK);
-    __global const uint *p = below + (size_t)r * W + c0;
+    __global const uchar *p = below + (size_t)r * W + c0;
     uint sum = 0;
-    if (c1 - c0 == 32) {  // a whole chunk: four 8-word loads
-        const uint8 s8 = vload8(0, p) + vload8(1, p) + vload8(2, p) + vload8(3, p);
-        const uint4 s4 = s8.lo + s8.hi;
-        const uint2 s2 = s4.lo + s4.hi;
-        sum = s2.x + s2.y;
-    } else {
-        for (int c = 0; c < c1 - c0; ++c)
-            sum += p[c];
+    for (int c = 0; c < c1 - c0; ++c) {
+        const uint v = p[c];
+        sum += (v & 1u) | ((v & 2u) << 7) | ((v & 4u) << 14) | ((v & 8u) << 21);
     }
     const int at = r * chunks + ch;
     for (int q = 0; q < GT_LEVELS; ++q)
@@ -111,9 +107,10 @@ __kernel void gt_dp_plan(__global const int *hist, const int G, const int n, __g
 }
 
 // NDRange (chunks, H): the candidates (key below the level's bound) of a chunk at its offset, in
-// order; chunks without one return at once
-__kernel void gt_dp_compact(__global const uint *keys, const int H, const int W, __global const int *hist,
-                            __global const int *offs, __global const int *info, __global uint *ck, __global int *ci)
+// order, their keys hashed again; chunks without one return at once
+__kernel void gt_dp_compact(__global const uchar *below, const int H, const int W, const uint a, const uint b,
+                            __global const int *hist, __global const int *offs, __global const int *info,
+                            __global uint *ck, __global int *ci)
 {
     const int ch = get_global_id(0), r = get_global_id(1), chunks = (W + GT_CHUNK - 1) / GT_CHUNK;
     if (ch >= chunks || r >= H)
@@ -121,14 +118,13 @@ __kernel void gt_dp_compact(__global const uint *keys, const int H, const int W,
     const int g = r * chunks + ch, k = info[2];
     if (hist[g * GT_LEVELS + k] == 0)
         return;
-    const uint t = 1u << (31 - GT_STEP * k);
     int j = offs[g];
     const int c1 = min(W, (ch + 1) * GT_CHUNK);
     for (int c = ch * GT_CHUNK; c < c1; ++c) {
-        const uint key = keys[r * W + c];
-        if (key < t) {
-            ck[j] = key;
-            ci[j] = r * W + c;
+        const int i = r * W + c;
+        if ((below[i] >> k) & 1) {  // a foreground key below the bound
+            ck[j] = gt_dp_pcg(gt_dp_pcg((uint)i ^ a) + b) >> 1u;
+            ci[j] = i;
             ++j;
         }
     }

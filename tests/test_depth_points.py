@@ -199,6 +199,10 @@ def test_bad_input(device):
         depth_points(device, depth, bg.astype(np.float64), CAM)
     with pytest.raises(ValueError, match=r"out: expected a float32 array of shape \(8, 3\)"):
         depth_points(device, depth, bg, CAM, n_points=8, out=device.empty((9, 3), np.float32))
+    if device.spec == "taichi:vulkan" and device.info.kind != "gpu":  # lavapipe's loop-pass limit
+        tall = np.zeros((13108, 2), np.uint16)  # step 2's serial task: 5 passes a row, 65540 > 65535
+        with pytest.raises(ValueError, match="depth: at most 13107 rows and 21845 columns on taichi:vulkan"):
+            depth_points(device, tall, np.zeros(tall.shape, np.float32), CAM)
 
 
 @lru_cache(maxsize=1)

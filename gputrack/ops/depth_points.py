@@ -26,7 +26,10 @@ On the devices the selection needs no sort of the image: one pass counts, per ro
 per 32-pixel chunk (OpenCL), the foreground keys below four bounds 2**31, 2**28, 2**25, 2**22 and
 keeps each chunk's smallest key; the tightest bound holding ``n_points`` keys gives about n to 8n
 candidates, which a second pass over only the chunks holding one compacts in row order, and only
-they are sorted (a stable radix sort), the first ``n_points`` back-projected.
+they are sorted (a stable radix sort), the first ``n_points`` back-projected. Taichi computes
+keys only in the 32-pixel chunks that hold a foreground pixel; OpenCL keeps a byte per pixel
+(the bounds its key is below) instead of the keys. On taichi:cpu a host (NumPy) depth image is
+read in place by the kernels, with the same checks as an upload, and not copied.
 
 :func:`floor_background` is a background for a scene without empty frames: the depth at which a
 camera at a known height sees an empty floor, so that foreground = in front of the floor
@@ -36,14 +39,15 @@ camera at a known height sees an empty floor, so that foreground = in front of t
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 
 from ..backends.reference.depth_points import streams
 from ..models.camera import Camera, DepthCamera
 from . import backend_module
-from ._args import check_device, out_array
-from .background import background_arg, pixels, real
+from ._args import check_device, match_shape, out_array
+from .background import PIXELS, background_arg, pixels, real
 
 __all__ = ["depth_points", "floor_background"]
 
@@ -95,14 +99,34 @@ def depth_points(device, depth, background, camera, *, threshold=100.0, max_rang
     a, b = streams(_word("seed", seed), _word("counter", counter))
     dims: dict = {}
     bg = background_arg(device, background, "background", dims)
-    d, pixel = pixels(device, depth, "depth", ("H", "W"), dims)
+    impl = backend_module(device, "depth_points")
+    if isinstance(depth, np.ndarray) and getattr(impl, "reads_host", None) is not None and impl.reads_host(device):
+        d, pixel = _host_pixels(depth, dims)  # read in place by the kernels: no upload
+    else:
+        d, pixel = pixels(device, depth, "depth", ("H", "W"), dims)
     if dims["H"] * dims["W"] >= 2**31:
         raise ValueError(f"depth: expected fewer than 2**31 pixels, got {dims['H']} x {dims['W']}")
     o = out_array(device, out, "out", (int(n_points), 3), np.float32)
-    count = backend_module(device, "depth_points").depth_points(
-        device, d, bg, pixel, fx, fy, cx, cy, thr, rng, bool(nearer), a, b, o
-    )
+    count = impl.depth_points(device, d, bg, pixel, fx, fy, cx, cy, thr, rng, bool(nearer), a, b, o)
     return o, count
+
+
+def _host_pixels(x: np.ndarray, dims: dict) -> tuple:
+    """A host depth image checked as :func:`gputrack.ops.background.pixels` checks it, for a
+    backend that reads host memory in place (taichi:cpu): ``(array, pixel)``, a uint16 image as
+    (H, W / 2) uint32 words of two pixels (even widths) or (H, 2 W) bytes, as uploaded."""
+    if x.dtype not in PIXELS:
+        raise TypeError(f"depth: expected dtype uint8, uint16 or float32, got {x.dtype.name}")
+    match_shape("depth", x.shape, ("H", "W"), dims)
+    if x.dtype.kind == "f" and np.isinf(x).any():
+        bad = tuple(int(i) for i in np.argwhere(np.isinf(x))[0])
+        raise ValueError(f"depth: expected finite values or NaN (a missing sample), got {x[bad]} at index {bad}")
+    pixel = x.dtype.name
+    big_endian = pixel == "uint16" and sys.byteorder != "little"  # the kernels read little-endian bytes
+    x = np.ascontiguousarray(x, dtype="<u2") if big_endian else np.ascontiguousarray(x)
+    if pixel == "uint16":
+        x = x.view(np.uint32) if x.shape[-1] % 2 == 0 else x.view(np.uint8)
+    return x, pixel
 
 
 def floor_background(camera, height, shape, *, pitch=0.0) -> np.ndarray:

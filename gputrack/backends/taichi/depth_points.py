@@ -1,8 +1,11 @@
 """Taichi kernels of :mod:`gputrack.ops.depth_points`: six launches (steps 1-3 in one kernel, a
-kernel per radix pass, the points), no host sync until the count is read.
+kernel per radix pass, the points; on the CPU arch two: steps 4-5 in one kernel, the sort on one
+thread), no host sync until the count is read. On the CPU arch a host depth image is read in
+place (:func:`reads_host`: no upload).
 
-1. one thread per image row: foreground test and key of each pixel (branch-free, so that the
-   row loop vectorises), the row's count of foreground keys below each of LEVELS bounds
+1. one thread per image row: per chunk of 32 pixels a bit mask of the foreground pixels (a cheap,
+   branch-free pass), then, only in chunks with foreground, the key of each pixel (branch-free,
+   so that the loop vectorises), the row's count of foreground keys below each of LEVELS bounds
    2**31, 2**28, 2**25, 2**22 (the first: every foreground key), and the smallest key of each
    chunk of 32 pixels;
 2. one task: the count N, the tightest bound with at least min(n, N) keys below it (C
@@ -16,10 +19,13 @@ kernel per radix pass, the points), no host sync until the count is read.
 Scratch arrays are kept per device and image size (gputrack/backends/taichi/runtime.py scratch).
 """
 
+import numpy as np
+
+from .arrays import copy
 from .launch import launch
 from .particles import _pcg
 from .pixels import is_nan, mode, pixel2
-from .runtime import scratch, ti
+from .runtime import loop_limit, scratch, ti
 
 nd1 = ti.types.ndarray(ndim=1)
 nd2 = ti.types.ndarray(ndim=2)
@@ -40,10 +46,9 @@ def _digit(key, shift):
 
 
 @ti.func
-def _key(depth: ti.template(), bg: ti.template(), r, c, W, a, b, threshold, max_range, u16: ti.template(),
-         nearer: ti.template()):  # fmt: skip
-    """The pixel's 31-bit key if it is foreground, else a key >= 2**31 (branch-free: the row loops
-    vectorise)."""
+def _fg(depth: ti.template(), bg: ti.template(), r, c, threshold, max_range, u16: ti.template(),
+        nearer: ti.template()):  # fmt: skip
+    """1 if the pixel is foreground, else 0 (branch-free: the row loops vectorise)."""
     z = pixel2(depth, r, c, u16)
     g = bg[r, c]
     d = g - z
@@ -52,8 +57,25 @@ def _key(depth: ti.template(), bg: ti.template(), r, c, W, a, b, threshold, max_
     # paper 002 sec. 4.1: a reading within range, >= threshold off a background value
     # NaN by its bits: Taichi compiles with fast math, which may assume no NaN in a compare
     fg = (not is_nan(z)) & (z > 0.0) & (z <= max_range) & (not is_nan(g)) & (g != 0.0) & (d >= threshold)
-    key = _pcg(_pcg(ti.cast(r * W + c, ti.u32) ^ a) + b) >> ti.u32(1)
-    return key | (ti.u32(0x80000000) * ti.cast(1 - ti.cast(fg, ti.i32), ti.u32))
+    return ti.cast(fg, ti.u32)
+
+
+@ti.func
+def _key(i, a, b, fg):
+    """The 31-bit key of pixel index i if ``fg`` (1), else a key >= 2**31."""
+    key = _pcg(_pcg(ti.cast(i, ti.u32) ^ a) + b) >> ti.u32(1)
+    return key | (ti.u32(0x80000000) * (ti.u32(1) - fg))
+
+
+@ti.func
+def _fg_bits(depth: ti.template(), bg: ti.template(), r, c0, m, threshold, max_range, u16: ti.template(),
+             nearer: ti.template()):  # fmt: skip
+    """Bit e set where pixel (r, c0 + e) is foreground, e < m <= 32 (one cheap pass: a chunk
+    without foreground needs no keys)."""
+    bits = ti.u32(0)
+    for e in range(m):
+        bits |= _fg(depth, bg, r, c0 + e, threshold, max_range, u16, nearer) << ti.cast(e, ti.u32)
+    return bits
 
 
 @ti.kernel
@@ -69,12 +91,15 @@ def _candidates(depth: nd2, bg: nd2, hist: nd2, lows: nd2, offs: nd1, info: nd1,
         hv = ti.Vector([0] * LEVELS, dt=ti.i32)
         for chunk in range((W + CHUNK - 1) // CHUNK):  # and each chunk's smallest key (for step 3)
             c0 = chunk * CHUNK
+            m = ti.min(CHUNK, W - c0)
             low = ti.u32(0xFFFFFFFF)
-            for e in range(ti.min(CHUNK, W - c0)):
-                key = _key(depth, bg, r, c0 + e, W, a, b, threshold, max_range, u16, nearer)
-                low = ti.min(low, key)
-                for q in ti.static(range(LEVELS)):
-                    hv[q] += ti.cast(key < ti.u32(BOUNDS[q]), ti.i32)
+            bits = _fg_bits(depth, bg, r, c0, m, threshold, max_range, u16, nearer)
+            if bits != ti.u32(0):  # keys only in chunks with foreground (most are background)
+                for e in range(m):
+                    key = _key(r * W + c0 + e, a, b, (bits >> ti.cast(e, ti.u32)) & ti.u32(1))
+                    low = ti.min(low, key)
+                    for q in ti.static(range(LEVELS)):
+                        hv[q] += ti.cast(key < ti.u32(BOUNDS[q]), ti.i32)
             lows[r, chunk] = low
         for q in ti.static(range(LEVELS)):
             hist[r, q] = hv[q]
@@ -106,18 +131,17 @@ def _candidates(depth: nd2, bg: nd2, hist: nd2, lows: nd2, offs: nd1, info: nd1,
             for chunk in range((W + CHUNK - 1) // CHUNK):  # only chunks holding a candidate
                 if lows[r, chunk] < t:
                     c0 = chunk * CHUNK
+                    m = ti.min(CHUNK, W - c0)
+                    fg = _fg_bits(depth, bg, r, c0, m, threshold, max_range, u16, nearer)
                     bits = ti.u32(0)  # a branch-free pass for a bit mask of the candidates
-                    for e in range(ti.min(CHUNK, W - c0)):
-                        key = _key(depth, bg, r, c0 + e, W, a, b, threshold, max_range, u16, nearer)
+                    for e in range(m):
+                        key = _key(r * W + c0 + e, a, b, (fg >> ti.cast(e, ti.u32)) & ti.u32(1))
                         bits |= ti.cast(key < t, ti.u32) << ti.cast(e, ti.u32)
-                    while bits != ti.u32(0):  # then the candidates, in order
-                        e = 0
-                        while (bits >> ti.cast(e, ti.u32)) & ti.u32(1) == ti.u32(0):
-                            e += 1
-                        bits ^= ti.u32(1) << ti.cast(e, ti.u32)
-                        k0[j] = _key(depth, bg, r, c0 + e, W, a, b, threshold, max_range, u16, nearer)
-                        i0[j] = r * W + c0 + e
-                        j += 1
+                    for e in range(m):  # then the candidates, in order
+                        if (bits >> ti.cast(e, ti.u32)) & ti.u32(1) != ti.u32(0):
+                            k0[j] = _key(r * W + c0 + e, a, b, ti.u32(1))
+                            i0[j] = r * W + c0 + e
+                            j += 1
 
 
 @ti.kernel
@@ -162,9 +186,55 @@ def _radix_pass(info: nd1, sk: nd1, si: nd1, dk: nd1, di: nd1, blk: nd2, starts:
                 di[at] = si[j]
 
 
+@ti.func
+def _counting_pass(sk: ti.template(), si: ti.template(), dk: ti.template(), di: ti.template(), cnt: ti.template(),
+                   C, shift):  # fmt: skip
+    """One stable counting sort of C (key, index) pairs by the 8 key bits at ``shift`` (serial)."""
+    for q in range(RADIX):
+        cnt[q] = 0
+    for j in range(C):
+        q = _digit(sk[j], shift)
+        cnt[q] = cnt[q] + 1
+    run = 0
+    for q in range(RADIX):
+        t = cnt[q]
+        cnt[q] = run
+        run += t
+    for j in range(C):
+        q = _digit(sk[j], shift)
+        at = cnt[q]
+        cnt[q] = at + 1
+        dk[at] = sk[j]
+        di[at] = si[j]
+
+
+@ti.kernel
+def _select(depth: nd2, info: nd1, k0: nd1, i0: nd1, k1: nd1, i1: nd1, cnt: nd1, out: nd2, fx: ti.f32,
+            fy: ti.f32, cx: ti.f32, cy: ti.f32, u16: ti.template()):  # fmt: skip
+    """Steps 4-5 in one launch for the CPU arch: the radix sort of the C candidates on one thread
+    (about n to 8 n of them: ~0.1 ms for n = 1024, less than the four launches of
+    :func:`_radix_pass`), then the points as :func:`_points`."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        C = info[1]
+        for p in range((31 - STEP * info[2] + 7) // 8):
+            if p % 2 == 0:
+                _counting_pass(k0, i0, k1, i1, cnt, C, 8 * p)
+            else:
+                _counting_pass(k1, i1, k0, i0, cnt, C, 8 * p)
+    _write_points(depth, info, i0, i1, out, fx, fy, cx, cy, u16)
+
+
 @ti.kernel
 def _points(depth: nd2, info: nd1, i0: nd1, i1: nd1, out: nd2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
             u16: ti.template()):  # fmt: skip
+    """The first min(n, C) sorted candidates back-projected, NaN rows after them."""
+    _write_points(depth, info, i0, i1, out, fx, fy, cx, cy, u16)
+
+
+@ti.func
+def _write_points(depth: ti.template(), info: ti.template(), i0: ti.template(), i1: ti.template(),
+                  out: ti.template(), fx, fy, cx, cy, u16: ti.template()):  # fmt: skip
     """The first min(n, C) sorted candidates back-projected, NaN rows after them."""
     W = i0.shape[0] // depth.shape[0]
     nan = ti.bit_cast(ti.u32(0x7FC00000), ti.f32)
@@ -193,8 +263,22 @@ def _i32(word: int) -> int:
     return word - (1 << 32) if word >= 1 << 31 else word
 
 
+def reads_host(device) -> bool:
+    """The kernels read a host (NumPy) depth image in place on the CPU arch (no upload)."""
+    return device.arch == "cpu"
+
+
 def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range, nearer, a, b, out):
+    """``depth``: a device array or, where :func:`reads_host`, a C-contiguous NumPy array."""
+    img = depth if isinstance(depth, np.ndarray) else depth.buffer
     H, W = bg.shape
+    limit = loop_limit(device)
+    chunks = (W + CHUNK - 1) // CHUNK
+    # the longest invocations: step 2's serial task ((LEVELS + 1) H passes) and step 3's rows (three
+    # 32-pixel passes a chunk); the radix passes run at most RADIX + BLOCK
+    if limit is not None and max((LEVELS + 1) * H, 3 * CHUNK * chunks) > limit:
+        raise ValueError(f"depth: at most {limit // (LEVELS + 1)} rows and {limit // 3} columns on {device.spec} "
+                         f"(its shader invocations run at most {limit} loop passes), got {H} x {W}")  # fmt: skip
     size = H * W
     hist = scratch(device, "dp hist", (H, LEVELS), ti.i32)
     lows = scratch(device, "dp lows", (H, (W + CHUNK - 1) // CHUNK), ti.u32)
@@ -204,11 +288,16 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     i0, i1 = scratch(device, "dp i0", (size,), ti.i32), scratch(device, "dp i1", (size,), ti.i32)
     blk = scratch(device, "dp blocks", ((size + BLOCK - 1) // BLOCK, RADIX), ti.i32)
     starts = scratch(device, "dp starts", (RADIX,), ti.i32)
-    launch(_candidates, (depth.buffer, bg.buffer, hist, lows, offs, info, k0, i0), (mode(pixel, depth), bool(nearer)),
+    launch(_candidates, (img, bg.buffer, hist, lows, offs, info, k0, i0), (mode(pixel, depth), bool(nearer)),
            scalars=(int(out.shape[0]), float(threshold), float(max_range), _i32(a), _i32(b)))  # fmt: skip
+    cam = (float(fx), float(fy), float(cx), float(cy))
+    if device.arch == "cpu":  # one thread sorts the few candidates: one launch for steps 4-5
+        launch(_select, (img, info, k0, i0, k1, i1, starts, out.buffer), (mode(pixel, depth),), scalars=cam)
+        host = np.empty(4, np.int32)
+        copy(info, host)  # a copy kernel writing host memory: a quarter of to_numpy's time
+        return int(host[0])
     for p in range(4):  # the kernel skips the passes the level's keys do not need
         src, dst = ((k0, i0), (k1, i1)) if p % 2 == 0 else ((k1, i1), (k0, i0))
         launch(_radix_pass, (info, *src, *dst, blk, starts), scalars=(p,))
-    launch(_points, (depth.buffer, info, i0, i1, out.buffer), (mode(pixel, depth),),
-           scalars=(float(fx), float(fy), float(cx), float(cy)))  # fmt: skip
+    launch(_points, (img, info, i0, i1, out.buffer), (mode(pixel, depth),), scalars=cam)
     return int(info.to_numpy()[0])

@@ -25,6 +25,12 @@ Background (sec. 4.1): the per-pixel median of empty frames ignoring missing rea
 ``background_frames`` (30) is allowed with a warning). Without empty frames the documented
 alternative is the floor: :func:`plane_background`, the depth at which the camera sees the empty
 ground plane, with foreground = at least ``foreground_threshold`` in front of it (``nearer``).
+There every static thing above the floor is foreground as well (PCL's five-people cloud: 160k of
+its 240k readings), and the random points would mostly land on it. But a ray that reaches the floor
+(n . d > 0) holds only points below the sensor, which step 2 drops, so :meth:`floor_background`
+gives those pixels no background (never foreground): the points are drawn among the readings on
+rays above the sensor's horizon, where the segments come from (the same points step 2 keeps, at
+a density that no longer depends on how much static structure stands below the horizon).
 
 Vertical: the ground plane is ``(a, b, c, d)`` in camera coordinates (mm): a x + b y + c z + d = 0
 for floor points, (a, b, c) the unit normal pointing down (away from the camera, d < 0: the camera
@@ -182,6 +188,7 @@ class DepthFrontEnd:
         if not (isinstance(shape, (tuple, list)) and len(shape) == 2 and all(int(s) >= 1 for s in shape)):
             raise ValueError(f"shape: expected (H, W), got {shape!r}")
         bg = plane_background(self.camera, self.plane, shape)
+        bg[np.isfinite(bg)] = np.nan  # rays that reach the floor hold only points below the sensor
         self.background = bg if self.device.backend == "numpy" else self.device.asarray(bg)
         self.nearer, self.shape = True, (int(shape[0]), int(shape[1]))
 
@@ -226,8 +233,10 @@ class DepthFrontEnd:
         if len(points) == 0:
             return [], np.zeros(0, np.int64)
         k = len(points)
-        xz = np.full((max(c.n_points, k), 2), np.nan, np.float32)  # one buffer size every frame:
-        xz[:k] = points.astype(np.float64) @ self.axes.T  # the device kernels compile once
+        # one buffer size and one launch size every frame, the rows after the k points NaN (no
+        # point): the device kernels compile once (PoCL builds a kernel per launch size)
+        xz = np.full((max(c.n_points, k), 2), np.nan, np.float32)
+        xz[:k] = points.astype(np.float64) @ self.axes.T
         if self.device.backend == "numpy":
             lab = dbscan(self.device, xz, c.eps, c.min_samples, n_points=k)
         else:
@@ -235,7 +244,7 @@ class DepthFrontEnd:
                 self._xz, self._labels = self.device.asarray(xz), self.device.empty((len(xz),), np.int32)
             else:
                 self.device.asarray(xz, out=self._xz)
-            lab = dbscan(self.device, self._xz, c.eps, c.min_samples, n_points=k, out=self._labels).numpy()
+            lab = dbscan(self.device, self._xz, c.eps, c.min_samples, out=self._labels).numpy()
         lab = np.asarray(lab[:k]).astype(np.int64)
         segs, keep = segments_of(points, lab, c.min_segment_points, c.min_extent, c.min_width, self.axes,
                                  self.plane, c.max_height)  # fmt: skip

@@ -30,10 +30,14 @@ Rules (sec. 4.3), written down:
   predicted only in this first frame; inside a segment nobody took, it is that pedestrian's own
   segment whose volume changed too much (a merge of one): assigned. Beyond the paper: a
   pedestrian whose prediction lies in the shadow of a nearer segment (behind it, within its
-  bearings) is hidden there, predicted only and not output, for up to ``max_hidden`` frames (a
-  depth camera's full occlusion: in the ground plane the two are apart, so DBSCAN never merges
-  them; when it reappears the assignment finds it again, with its id). Otherwise it *left*:
-  after ``max_missed`` (2) unmatched frames in a row it is deleted.
+  bearings) is hidden there, predicted only and output with status "hidden" (``report_hidden``;
+  False: kept but not output), for up to ``max_hidden`` frames (a depth camera's full occlusion:
+  in the ground plane the two are apart, so DBSCAN never merges them; when it reappears the
+  assignment finds it again, with its id). Otherwise it *left*: after ``max_missed`` (2)
+  unmatched frames in a row it is deleted; beyond the paper (``leave_view``), at once when its
+  prediction is beyond the image's left or right side (widened by ``view_margin`` mm at its
+  depth): it walked out of the view, and a track kept there would take the next person who
+  enters at that side.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, half extents at least ``person_radius`` across and
   ``person_depth`` along the view, grown by ``containment_margin``) and is no larger than
@@ -71,7 +75,7 @@ import numpy as np
 
 from ...device import Device
 from ...models.camera import Camera, DepthCamera
-from ...ops import constant_velocity, kf_predict, kf_update
+from ...ops import constant_velocity, kf_predict, kf_update, shared_matrix
 from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from . import rules
@@ -93,7 +97,8 @@ class PedestrianConfig:
     ``max_range`` (5000 mm), ``n_points`` (1024), ``seed`` (of the random subsets),
     ``camera_height`` (1000 mm, level camera) or ``ground_plane`` (a, b, c, d) mm for another
     mounting, DBSCAN ``eps`` (mm) and ``min_samples``, ``min_segment_points`` (smaller clusters
-    are no segment), ``min_width`` (mm: narrower clusters in the ground plane are no segment; 0:
+    are no segment), ``min_width`` (mm: narrower clusters in the ground plane are no segment, e.g.
+    the sliver of someone at the image's side or behind a nearer person's edge; 0:
     off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
     ``min_extent`` (mm, the least extent per axis in a volume).
     Assignment (eq. 1-3): ``alpha`` (0.8), ``max_distance`` (mm), ``max_volume_change`` (m^3).
@@ -104,8 +109,11 @@ class PedestrianConfig:
     ``containment_margin`` (mm), ``person_radius`` and ``person_depth`` (mm, the least half
     extents of a predicted pedestrian across and along the view in the containment tests),
     ``max_hidden`` (frames a pedestrian hidden behind a nearer segment is kept, predicted only;
-    0: off, the paper's plain rule), ``split_volume`` (a split part is at most this times the
-    pedestrian's largest recent volume). ``capacity``: initial table slots (it grows).
+    0: off, the paper's plain rule), ``report_hidden`` (output hidden pedestrians at their
+    prediction, status "hidden"), ``leave_view`` and ``view_margin`` (mm: a missed pedestrian
+    predicted beyond the image's side by more than this has left at once), ``split_volume`` (a
+    split part is at most this times the pedestrian's largest recent volume). ``capacity``:
+    initial table slots (it grows).
     """
 
     background_frames: int = 30
@@ -119,7 +127,7 @@ class PedestrianConfig:
     min_samples: int = 6
     min_segment_points: int = 12
     min_extent: float = 50.0
-    min_width: float = 0.0
+    min_width: float = 50.0
     max_height: float = 2300.0
     alpha: float = 0.8
     max_distance: float = 900.0
@@ -138,6 +146,9 @@ class PedestrianConfig:
     person_radius: float = 400.0
     person_depth: float = 250.0
     max_hidden: int = 5
+    report_hidden: bool = True
+    leave_view: bool = True
+    view_margin: float = 0.0
     split_volume: float = 0.5
     capacity: int = 16
 
@@ -159,6 +170,12 @@ class PedestrianConfig:
         if not (isinstance(self.containment_margin, (int, float)) and 0 <= self.containment_margin < 1e4):
             raise ValueError(f"PedestrianConfig.containment_margin: expected mm in [0, 1e4), got "
                              f"{self.containment_margin!r}")  # fmt: skip
+        v = self.view_margin
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)):
+            raise ValueError(f"PedestrianConfig.view_margin: expected a finite number of mm, got {v!r}")
+        v = self.min_width
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"PedestrianConfig.min_width: expected mm >= 0 (0: off), got {v!r}")
         for name in ("alpha", "beta"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
@@ -177,8 +194,8 @@ class Pedestrian:
     """One tracked pedestrian: ``position`` (3,) mm and ``velocity`` (3,) mm/frame (camera
     coordinates), ``volume`` (m^3, of its last observation), ``status``: "new" (entered this
     frame), "tracked" (assigned a segment), "split" (updated from its split parts), "merged"
-    (inside a segment shared with another pedestrian), "missed" (no observation this frame). A
-    pedestrian hidden behind a nearer one (see the module) is kept but not output."""
+    (inside a segment shared with another pedestrian), "missed" (no observation this frame),
+    "hidden" (behind a nearer segment, see the module; not output with ``report_hidden=False``)."""
 
     id: int
     position: np.ndarray
@@ -226,6 +243,9 @@ class PedestrianTracker:
         self.H = np.zeros((3, 6), np.float32)
         self.H[[0, 1, 2], POS] = 1.0
         self.R = np.eye(3, dtype=np.float32) * np.float32(config.r**2)
+        # the filter's matrices on the device once, with their zero patterns (not uploaded every frame)
+        self._kf = tuple(m if self.device.backend == "numpy" else shared_matrix(self.device, m)
+                         for m in (self.F, self.Q, self.H, self.R))  # fmt: skip
         C = config.capacity
         self.ids = np.full(C, -1, np.int64)
         self.kind = np.zeros(C, np.int64)
@@ -290,10 +310,12 @@ class PedestrianTracker:
         b["segments"] = segs
 
     def _predict(self, b) -> None:
-        b["x"], b["P"] = kf_predict(self.device, b["x"], b["P"], self.F, self.Q, out=(b["x"], b["P"]))
+        F, Q = self._kf[:2]
+        b["x"], b["P"] = kf_predict(self.device, b["x"], b["P"], F, Q, out=(b["x"], b["P"]))
 
     def _update(self, b) -> None:
-        res = kf_update(self.device, b["x"], b["P"], b["z"], self.H, self.R, mask=b["mask"], gain_scale=b["gain"],
+        H, R = self._kf[2:]
+        res = kf_update(self.device, b["x"], b["P"], b["z"], H, R, mask=b["mask"], gain_scale=b["gain"],
                         out=(b["x"], b["P"], self._status()))  # fmt: skip
         b["x"], b["P"] = res.x, res.P
 
@@ -408,8 +430,12 @@ class PedestrianTracker:
             self.again[s] = self.again[s] + 1 if whole else 0
             if whole and s not in self._born:
                 self.status[s] = "tracked"
+        gone = (self.ids >= 0) & (self.missed >= cfg.max_missed)
+        if cfg.leave_view:  # missed with its prediction beyond the image's side: it left the view now
+            for s in np.flatnonzero((self.ids >= 0) & (self.kind == PEDESTRIAN) & (self.missed > 0)):
+                gone[s] |= not self._in_view(self._x[s, POS])
         ended = []
-        for s in np.flatnonzero((self.ids >= 0) & (self.missed >= cfg.max_missed)):
+        for s in np.flatnonzero(gone):
             if self.kind[s] == PEDESTRIAN:
                 ended.append(int(self.ids[s]))
             self._free(s)
@@ -552,6 +578,16 @@ class PedestrianTracker:
         half = np.maximum(self.half[i], self._least_half)
         return rules.inside(position, self._x[i, POS] - half, self._x[i, POS] + half, self.config.containment_margin)
 
+    def _in_view(self, position) -> bool:
+        """Is ``position`` (mm) within the image's columns, widened by ``view_margin`` mm at its
+        depth on either side (the horizontal field of view)?"""
+        x, z = float(position[0]), float(position[2])
+        if not z > 0:
+            return False
+        cam, w = self.camera, self.front.shape[1]
+        m = self.config.view_margin
+        return (0.0 - cam.cx) * z / cam.fx - m <= x <= (w - 1 - cam.cx) * z / cam.fx + m
+
     def _children(self, parent) -> list:
         return [c for c, ps in self.parents.items() if parent in ps and self.ids[c] >= 0]
 
@@ -624,7 +660,9 @@ class PedestrianTracker:
     def _result(self, x) -> PedestrianFrame:
         if not np.isfinite(x[self.ids >= 0]).all():  # never expected: the filter is in Joseph form
             raise FloatingPointError("pedestrian tracker: a track's state became non-finite")
-        peds = np.flatnonzero((self.kind == PEDESTRIAN) & (self.status != "hidden"))  # hidden: kept, not output
+        peds = np.flatnonzero(self.kind == PEDESTRIAN)
+        if not self.config.report_hidden:
+            peds = peds[self.status[peds] != "hidden"]  # hidden: kept, not output
         peds = peds[np.argsort(self.ids[peds], kind="stable")]
         out = [Pedestrian(int(self.ids[s]), x[s, POS].copy(), x[s, VEL].copy(), float(self.volume[s]),
                           str(self.status[s])) for s in peds]  # fmt: skip
