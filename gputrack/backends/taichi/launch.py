@@ -13,8 +13,9 @@ goes through ``kernel(...)``, which compiles and checks everything, and remember
 kernel; later calls launch it directly. Only calls whose
 arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (passed by address,
 as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch
-context is not reused between launches (Taichi's LLVM launcher does not support that). A restarted
-Taichi (another program object) empties the cache; one started while arrays of the stopped program
+context is not reused between launches (Taichi's LLVM launcher does not support that). gputrack's stop of
+Taichi (runtime.stop) empties the cache before the program goes, and a program restarted elsewhere is
+noticed at the next call (another program object empties the cache). A program started while arrays of the stopped program
 are still referenced turns direct launches off for the process (``runtime.direct_off``: kernels
 launched directly then were seen to overwrite the new program's arrays; ``kernel(...)`` did not). If Taichi's internal
 interface is not what this module expects (another Taichi version), every call goes through
@@ -43,6 +44,7 @@ def _direct(a) -> bool:
 
 _cache: dict = {}  # (kernel, templates, scalarize, kinds of the arguments) -> (kernel, compiled, program)
 _enabled = True
+runtime.on_stop(_cache.clear)  # the program and its compiled kernels go with it, not in the next one's life
 
 
 def disable_direct(why: str) -> None:

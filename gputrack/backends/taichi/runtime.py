@@ -152,10 +152,28 @@ def _stale_arrays() -> bool:
     return any(n > 0 for g, n in _alive.items() if g != _generation)
 
 
+#: called by :func:`stop` before Taichi is reset: modules that keep objects of the running program
+#: (launch.py's compiled kernels and the program they belong to) drop them there
+_on_stop: list = []
+
+
+def on_stop(drop) -> None:
+    """Call ``drop()`` whenever Taichi is stopped, before the program goes."""
+    _on_stop.append(drop)
+
+
 def stop() -> None:
-    """Release Taichi (every Taichi array becomes invalid)."""
+    """Release Taichi (every Taichi array becomes invalid).
+
+    Nothing of the stopped program may outlive it: a Python reference to its program object (or to
+    a kernel compiled by it) kept past ``ti.reset()`` destroys that program later, inside the next
+    program's life, and the next program's kernels then crashed now and then (a segfault in a
+    kernel launch, depending on where memory lay). So the holders drop theirs first (``on_stop``).
+    """
     global _current, _generation
     with _lock:
+        for drop in _on_stop:
+            drop()
         empty_pool()
         _generation += 1  # arrays of the stopped program must not free memory of the next one
         if _current is not None:
