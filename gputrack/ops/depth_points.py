@@ -29,7 +29,9 @@ candidates, which a second pass over only the chunks holding one compacts in row
 they are sorted (a stable radix sort), the first ``n_points`` back-projected. Taichi computes
 keys only in the 32-pixel chunks that hold a foreground pixel; OpenCL keeps a byte per pixel
 (the bounds its key is below) instead of the keys. On taichi:cpu a host (NumPy) depth image is
-read in place by the kernels, with the same checks as an upload, and not copied.
+read in place by the kernels, with the same checks as an upload, and not copied; OpenCL copies it
+into a buffer kept per image size, enqueued without a wait, and with ``host_out`` reads the points
+back in the same wait as ``count`` (one wait per call).
 
 :func:`floor_background` is a background for a scene without empty frames: the depth at which a
 camera at a known height sees an empty floor, so that foreground = in front of the floor
@@ -70,7 +72,7 @@ def _intrinsics(camera) -> tuple[float, float, float, float]:
 
 
 def depth_points(device, depth, background, camera, *, threshold=100.0, max_range=5000.0, n_points=1024, seed=0,
-                 counter=0, nearer=False, out=None):  # fmt: skip
+                 counter=0, nearer=False, out=None, host_out=None):  # fmt: skip
     """Foreground points of a depth frame, downsampled: ``(points, count)`` (see the module).
 
     depth: (H, W) uint16 (e.g. mm; 0 = no reading), float32 (NaN or 0 = no reading) or uint8;
@@ -79,7 +81,8 @@ def depth_points(device, depth, background, camera, *, threshold=100.0, max_rang
     :class:`gputrack.models.DepthCamera` (only its intrinsics fx, fy, cx, cy are used: ``threshold``,
     ``max_range`` and the points are in the depth image's unit); threshold >= 0; max_range > 0 (inf:
     no cut); n_points >= 1; seed, counter: integers in [0, 2**32); ``out``: an (n_points, 3) float32
-    array of the device to write into.
+    array of the device to write into; ``host_out``: a C-contiguous NumPy (n_points, 3) float32
+    array the points are also downloaded into, in the same wait as ``count``.
 
     Returns points (n_points, 3) float32 on the device, in ascending key order, NaN rows after the
     min(count, n_points) points, and ``count`` (int): the number of foreground points before
@@ -101,19 +104,31 @@ def depth_points(device, depth, background, camera, *, threshold=100.0, max_rang
     bg = background_arg(device, background, "background", dims)
     impl = backend_module(device, "depth_points")
     if isinstance(depth, np.ndarray) and getattr(impl, "reads_host", None) is not None and impl.reads_host(device):
-        d, pixel = _host_pixels(depth, dims)  # read in place by the kernels: no upload
+        d, pixel = _host_pixels(depth, dims)  # taichi:cpu reads it in place, OpenCL copies it (no wait)
     else:
         d, pixel = pixels(device, depth, "depth", ("H", "W"), dims)
     if dims["H"] * dims["W"] >= 2**31:
         raise ValueError(f"depth: expected fewer than 2**31 pixels, got {dims['H']} x {dims['W']}")
     o = out_array(device, out, "out", (int(n_points), 3), np.float32)
-    count = impl.depth_points(device, d, bg, pixel, fx, fy, cx, cy, thr, rng, bool(nearer), a, b, o)
+    if host_out is None:
+        count = impl.depth_points(device, d, bg, pixel, fx, fy, cx, cy, thr, rng, bool(nearer), a, b, o)
+        return o, count
+    if not (isinstance(host_out, np.ndarray) and host_out.shape == (int(n_points), 3) and host_out.dtype == np.float32
+            and host_out.flags.c_contiguous and host_out.flags.writeable):  # fmt: skip
+        raise TypeError(f"host_out: expected a writeable C-contiguous NumPy float32 array ({int(n_points)}, 3)")
+    if device.backend == "opencl":
+        count = impl.depth_points(device, d, bg, pixel, fx, fy, cx, cy, thr, rng, bool(nearer), a, b, o,
+                                  host_out=host_out)  # fmt: skip
+    else:
+        count = impl.depth_points(device, d, bg, pixel, fx, fy, cx, cy, thr, rng, bool(nearer), a, b, o)
+        host_out[...] = o if device.backend == "numpy" else o.numpy()
     return o, count
 
 
 def _host_pixels(x: np.ndarray, dims: dict) -> tuple:
     """A host depth image checked as :func:`gputrack.ops.background.pixels` checks it, for a
-    backend that reads host memory in place (taichi:cpu): ``(array, pixel)``, a uint16 image as
+    backend that takes host memory (taichi:cpu reads it in place, OpenCL copies it into a kept
+    buffer): ``(array, pixel)``, a uint16 image as
     (H, W / 2) uint32 words of two pixels (even widths) or (H, 2 W) bytes, as uploaded."""
     if x.dtype not in PIXELS:
         raise TypeError(f"depth: expected dtype uint8, uint16 or float32, got {x.dtype.name}")

@@ -48,10 +48,58 @@ import numpy as np
 
 from ...device import DeviceArray
 from ...models.camera import Camera, DepthCamera
-from ...ops import background_median, dbscan, depth_points
+from ...ops import backend_module, background_median, dbscan, depth_points
 from ...ops.background import MAX_FRAMES
 
-__all__ = ["DepthFrontEnd", "Segment", "ground_axes", "ground_plane", "plane_background", "segments_of"]
+__all__ = ["DepthFrontEnd", "FrameCopies", "Segment", "ground_axes", "ground_plane", "plane_background",
+           "segments_of"]  # fmt: skip
+
+
+class FrameCopies:
+    """A frame's copies between host and device arrays without a wait each. On OpenCL they are
+    enqueued without blocking on the device's in-order queue, and :meth:`wait` finishes the queue
+    once for all of them (each blocking copy would wait for PoCL's threads);
+    their events, which keep the host arrays alive, are held until then. Elsewhere they are plain
+    copies (taichi:cpu: a memcpy) and :meth:`wait` does nothing. A downloaded host array holds
+    its values after the next :meth:`wait`; an uploaded one must not change before it."""
+
+    def __init__(self, device):
+        self.device = device
+        self._impl = backend_module(device, "depth_points") if device.backend == "opencl" else None
+        self._events: list = []
+
+    def upload(self, arr, host: np.ndarray):
+        """Copy ``host`` into the device array ``arr`` (same shape and dtype); returns ``arr``."""
+        host = np.ascontiguousarray(host)
+        if self._impl is None:
+            return self.device.asarray(host, out=arr)
+        if host.shape != arr.shape or host.dtype != arr.dtype:
+            raise ValueError(f"upload: expected {arr.dtype.name} {arr.shape}, got {host.dtype.name} {host.shape}")
+        self._events.append(self._impl.enqueue_upload(self.device, arr, host))
+        return arr
+
+    def download(self, arr, host: np.ndarray) -> np.ndarray:
+        """Copy the array ``arr`` (device, or NumPy on ``numpy``) into the C-contiguous NumPy
+        array ``host`` of its shape and dtype; returns ``host``."""
+        if self._impl is None:
+            host[...] = arr if isinstance(arr, np.ndarray) else arr.numpy()
+            return host
+        if host.shape != arr.shape or host.dtype != arr.dtype or not host.flags.c_contiguous:
+            raise ValueError(f"download: expected a C-contiguous {arr.dtype.name} {arr.shape}, got {host.dtype.name} "
+                             f"{host.shape}")  # fmt: skip
+        self._events.append(self._impl.enqueue_download(self.device, arr, host))
+        return host
+
+    def wait(self) -> None:
+        """Wait for every copy enqueued (one finish of the queue, none if nothing is pending)."""
+        if self._events:
+            self.device.synchronize()
+            self._events.clear()
+
+    def release(self) -> None:
+        """Forget the copies after a blocking read of the same queue (they are done; one still
+        running would be waited for)."""
+        self._events.clear()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,7 +204,11 @@ class DepthFrontEnd:
         self.nearer = False
         self.shape = None
         self.counter = 0
-        self._xz = self._labels = None  # the device buffers of the 2D points and their labels
+        self.copies = FrameCopies(device)
+        # device buffers kept between frames (and their host sides): the points, the 2D points
+        # and their labels
+        self._points = self._points_host = None
+        self._xz = self._labels = self._labels_host = None
 
     # -- background --------------------------------------------------------------------------
     def learn_background(self, frames) -> None:
@@ -213,13 +265,20 @@ class DepthFrontEnd:
         pixels before downsampling."""
         c = self.config
         d = self.check_frame(depth)
-        pts, count = depth_points(self.device, d, self.background, self.camera, threshold=c.foreground_threshold,
-                                  max_range=c.max_range, n_points=c.n_points, seed=c.seed,
-                                  counter=self.counter % 2**32, nearer=self.nearer)  # fmt: skip
+        kw = dict(threshold=c.foreground_threshold, max_range=c.max_range, n_points=c.n_points, seed=c.seed,
+                  counter=self.counter % 2**32, nearer=self.nearer)  # fmt: skip
+        if self.device.backend == "numpy":
+            host, count = depth_points(self.device, d, self.background, self.camera, **kw)
+        else:  # into kept buffers, the points read back in the wait for the count
+            if self._points is None or self._points.shape != (c.n_points, 3):
+                self._points = self.device.empty((c.n_points, 3), np.float32)
+                self._points_host = np.empty((c.n_points, 3), np.float32)
+            host = self._points_host
+            _, count = depth_points(self.device, d, self.background, self.camera, out=self._points, host_out=host,
+                                    **kw)  # fmt: skip
         self.counter += 1
         if count < c.n_points:  # sec. 4.1: no pedestrian in this frame
             return np.zeros((0, 3), np.float32), int(count)
-        host = pts if self.device.backend == "numpy" else pts.numpy()
         return np.asarray(host[np.isfinite(host).all(axis=1)], np.float32), int(count)
 
     def upper(self, points: np.ndarray) -> np.ndarray:
@@ -228,7 +287,9 @@ class DepthFrontEnd:
 
     def segments(self, points: np.ndarray) -> tuple:
         """(segments, labels): DBSCAN of the points' ground coordinates (step 3); labels (N,) of
-        the points' segment index (-1: none)."""
+        the points' segment index (-1: none). On a device the 2D points go up and the labels come
+        back through :attr:`copies`, with one wait (which also completes the copies enqueued
+        before)."""
         c = self.config
         if len(points) == 0:
             return [], np.zeros(0, np.int64)
@@ -241,10 +302,13 @@ class DepthFrontEnd:
             lab = dbscan(self.device, xz, c.eps, c.min_samples, n_points=k)
         else:
             if self._xz is None or self._xz.shape != xz.shape:
-                self._xz, self._labels = self.device.asarray(xz), self.device.empty((len(xz),), np.int32)
-            else:
-                self.device.asarray(xz, out=self._xz)
-            lab = dbscan(self.device, self._xz, c.eps, c.min_samples, out=self._labels).numpy()
+                self._xz = self.device.empty(xz.shape, np.float32)
+                self._labels = self.device.empty((len(xz),), np.int32)
+                self._labels_host = np.empty(len(xz), np.int32)
+            self.copies.upload(self._xz, xz)
+            res = dbscan(self.device, self._xz, c.eps, c.min_samples, out=self._labels)
+            lab = self.copies.download(res, self._labels_host)
+            self.copies.wait()
         lab = np.asarray(lab[:k]).astype(np.int64)
         segs, keep = segments_of(points, lab, c.min_segment_points, c.min_extent, c.min_width, self.axes,
                                  self.plane, c.max_height)  # fmt: skip

@@ -6,16 +6,23 @@ A frame (:meth:`PedestrianTracker.track`) is five stages of a :class:`gputrack.S
 =========  ===========================================================================  ======
 stage      what                                                                         where
 =========  ===========================================================================  ======
+predict    every track, constant velocity x = [x xdot y ydot z zdot], one launch         device
 points     foreground vs background, back-projection, 5 m cut, 1024 random points       device
            (:func:`gputrack.ops.depth_points`, sec. 4.1)
 segments   the points above the sensor, ground-plane DBSCAN (:func:`gputrack.ops.dbscan`),  device,
            segment positions and volumes (sec. 4.2; :mod:`.front`)                      host
-predict    every track, constant velocity x = [x xdot y ydot z zdot], one launch         device
 associate  Hungarian assignment on eq. 1-3, the causes of unassigned pedestrians and      host,
            segments (Fig. 6-7), new and deleted tracks, each track's observation and      small
            occlusion gain (eq. 4-6)
 update     every observed track, one :func:`gputrack.ops.kf_update` with ``gain_scale``    device
 =========  ===========================================================================  ======
+
+The host waits for the device three times a frame: for the count and the points (one read after
+the depth image's upload and the five kernels, enqueued without a wait on OpenCL), for the DBSCAN
+labels together with the predicted table (x, P: predicted first, so that they come back in the
+same wait; the front end's :class:`~.front.FrameCopies`), and for the updated x at the end. The
+associate stage's uploads (the table where it changed; z, mask and gain as one copy into one
+buffer on OpenCL) are enqueued without a wait, into the buffers of the last frame.
 
 Rules (sec. 4.3), written down:
 
@@ -75,7 +82,7 @@ import numpy as np
 
 from ...device import Device
 from ...models.camera import Camera, DepthCamera
-from ...ops import constant_velocity, kf_predict, kf_update, shared_matrix
+from ...ops import backend_module, constant_velocity, kf_predict, kf_update, shared_matrix
 from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from . import rules
@@ -263,16 +270,17 @@ class PedestrianTracker:
         self.next_child = 0
         self._x, self._P = np.zeros((C, 6)), np.tile(np.eye(6), (C, 1, 1))
         self.scheduler = Scheduler(self.device, [
-            Stage("points", self._points, writes=("points",)),
-            Stage("segments", self._segments, reads=("points",), writes=("segments",)),
             Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
-            Stage("associate", self._associate, host_reads=("x", "P"), reads=("segments",),
+            Stage("points", self._points, writes=("points",)),
+            Stage("segments", self._segments, reads=("points", "x", "P"), writes=("segments",)),
+            Stage("associate", self._associate, reads=("segments", "x", "P"),
                   writes=("x", "P", "z", "mask", "gain")),
             Stage("update", self._update, reads=("x", "P", "z", "mask", "gain"), writes=("x", "P")),
         ], state=("x", "P"), outputs=("x",), profile=profile)  # fmt: skip
         self.scheduler.set("x", self._x.astype(np.float32))
         self.scheduler.set("P", self._P.astype(np.float32))
         self._frame = None
+        self._inputs = None  # OpenCL: z, gain and mask in one buffer, (C, arrays, whole, host, views)
 
     # -- background ------------------------------------------------------------------------------
     def learn_background(self, frames) -> None:
@@ -298,6 +306,7 @@ class PedestrianTracker:
             return self._result(np.asarray(out["x"], np.float64))
         finally:
             self._frame = None
+            self.front.copies.release()  # done where the output's download waited (else waited for here)
 
     def _points(self, b) -> None:
         pts, count = self.front.points(self._frame["depth"])
@@ -305,7 +314,12 @@ class PedestrianTracker:
         b["points"] = self.front.upper(pts)
 
     def _segments(self, b) -> None:
+        # the predicted table comes back in the wait for the labels
+        copies = self.front.copies
+        self._frame["x"] = copies.download(b["x"], np.empty(b["x"].shape, np.float32))
+        self._frame["P"] = copies.download(b["P"], np.empty(b["P"].shape, np.float32))
         segs, labels = self.front.segments(b["points"])
+        copies.wait()  # (none left where the front end waited for the labels)
         self._frame["labels"] = labels
         b["segments"] = segs
 
@@ -330,7 +344,7 @@ class PedestrianTracker:
     def _associate(self, b) -> None:
         cfg = self.config
         segs: list[Segment] = b["segments"]
-        self._x, self._P = np.array(b["x"], np.float64), np.array(b["P"], np.float64)
+        self._x, self._P = self._frame["x"].astype(np.float64), self._frame["P"].astype(np.float64)
         C0 = self.capacity
         self._born, self._waiting = set(), set()
         M = len(segs)
@@ -447,9 +461,7 @@ class PedestrianTracker:
         mask = np.isfinite(z).all(axis=1) & (self.ids >= 0)
         z[~mask] = np.nan
         self._put_table(b, C != C0 or bool(self._born))  # new tracks (pedestrians and children) start on the host
-        b["z"] = self._put("z", z)
-        b["mask"] = self._put("mask", mask.astype(np.uint8))
-        b["gain"] = self._put("gain", gain) if cfg.occlusion_gain else None
+        self._put_inputs(b, z, mask.astype(np.uint8), gain if cfg.occlusion_gain else None)
         self._frame["started"], self._frame["ended"] = started, ended
 
     def _merges(self, peds, seg_of, owner, taken, segs, pred, merged_now) -> None:
@@ -653,8 +665,26 @@ class PedestrianTracker:
             return host.copy()
         dev = self.scheduler.buffers.get(name)
         if dev is not None and tuple(dev.shape) == host.shape and dev.dtype == host.dtype:
-            return self.device.asarray(host, out=dev)
+            return self.front.copies.upload(dev, host)  # OpenCL: enqueued, no wait
         return self.device.asarray(host)
+
+    def _put_inputs(self, b, z, mask, gain) -> None:
+        """The update's observations, mask and gains (None: no gain): on OpenCL one copy into one
+        buffer of three sub-buffers (kept while the capacity stays), enqueued without a wait."""
+        if self.device.backend != "opencl":
+            b["z"], b["mask"] = self._put("z", z), self._put("mask", mask)
+            b["gain"] = None if gain is None else self._put("gain", gain)
+            return
+        C = len(z)
+        if self._inputs is None or self._inputs[0] != C:
+            impl = backend_module(self.device, "depth_points")
+            self._inputs = (C, *impl.packed_arrays(self.device, [((C, 3), np.float32), ((C,), np.uint8),
+                                                                  ((C,), np.float32)]))  # fmt: skip
+        _, arrays, whole, host, views = self._inputs
+        views[0][...], views[1][...], views[2][...] = z, mask, 1.0 if gain is None else gain
+        self.front.copies.upload(whole, host)  # the previous frame's copy is done: its end waited
+        b["z"], b["mask"] = arrays[0], arrays[1]
+        b["gain"] = None if gain is None else arrays[2]
 
     # -- reading ---------------------------------------------------------------------------------
     def _result(self, x) -> PedestrianFrame:
