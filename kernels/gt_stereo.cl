@@ -1,20 +1,42 @@
 // Block matching of a rectified stereo pair on the runs of a mask (gputrack/ops/stereo.py; the
 // same steps as gputrack/backends/taichi/stereo.py, launched as five kernels):
-//   gt_stereo_prefilter_{u8,f32}  x-Sobel clipped to [-cap, cap] plus cap, into padded int
+//   gt_stereo_prefilter_{u8,f32}  x-Sobel clipped to [-cap, cap] plus cap, into padded GT_T
 //                                 images (GT_STEREO_LANES columns on the left, Dp + LANES on
 //                                 the right); NaN into the output. NDRange (H).
-//   gt_stereo_left_costs          one work-item per (disparity group of 8, tile of runs): window
+//   gt_stereo_left_costs          one work-item per (disparity group, tile of runs): window
 //                                 column sums carried down the tile's rows, running box sums
-//                                 along each run, 8 disparities in an int8.
+//                                 along each run, 8 disparities in an int8 (16 in a short16).
 //   gt_stereo_left_wta            one per run: winner, uniqueness, parabola vertex, marks x - d
 //                                 (and its tile's marked span, by atomic min / max).
 //   gt_stereo_right_costs         one per (group, tile): C_R(xr, d) at the marked positions.
 //   gt_stereo_right_check         one per run: the right winners and the left-right check.
 // Runs: int rows (y, x0, x1, offset, right offset); tiles: int rows (y0, y1, xa, xb, i0, i1, off, w),
-// runs[order[i0 .. i1)] (gputrack/ops/stereo.py run_tiles). Cost buffers: Dp ints per pixel (d fastest).
+// runs[order[i0 .. i1)] (gputrack/ops/stereo.py run_tiles). Cost buffers: Dp GT_T per pixel (d fastest).
 
+// Disparities a work-item: GT_STEREO_LANES = 8 (int8, the default) or 16 (short16: the host builds
+// it for uint8 input, whose costs fit in 16 bits: at most 31 * 31 * 30 = 28830). GT_T is the type
+// of the prefiltered images, the column sums and the costs; comparisons are made in int.
 #ifndef GT_STEREO_LANES
-#define GT_STEREO_LANES 8  // the int8 below: keep equal to LANES in gputrack/backends/opencl/stereo.py
+#define GT_STEREO_LANES 8
+#endif
+#if GT_STEREO_LANES == 16
+typedef short GT_T;
+typedef short16 GT_V;
+typedef int16 GT_VI;
+#define GT_VLOAD vload16
+#define GT_VSTORE vstore16
+#define GT_TO_VI convert_int16
+#define GT_REVERSE(v) (v).sfedcba9876543210
+#define GT_LANE_IDS (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+#else
+typedef int GT_T;
+typedef int8 GT_V;
+typedef int8 GT_VI;
+#define GT_VLOAD vload8
+#define GT_VSTORE vstore8
+#define GT_TO_VI(v) (v)
+#define GT_REVERSE(v) (v).s76543210
+#define GT_LANE_IDS (int8)(0, 1, 2, 3, 4, 5, 6, 7)
 #endif
 
 #pragma OPENCL FP_CONTRACT OFF
@@ -26,7 +48,7 @@ inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(f
 // one work-item per row (a CPU device streams along it): NaN into the output; the prefilter on
 // the rows [y0, y1) that the runs' windows read
 #define GT_STEREO_PREFILTER(NAME, T, Q)                                                                  \
-    __kernel void NAME(__global const T *left, __global const T *right, __global int *pl, __global int *pr, \
+    __kernel void NAME(__global const T *left, __global const T *right, __global GT_T *pl, __global GT_T *pr, \
                        __global float *out, const int H, const int W, const int Wp, const int cap,        \
                        const int y0, const int y1)                                                        \
     {                                                                                                     \
@@ -49,8 +71,8 @@ inline int gt_q_f32(const __global float *img, int i) { return (int)floor(fmin(f
                     - (Q(right, u - 1) + 2 * Q(right, c - 1) + Q(right, d - 1));                          \
                 b = min(max(s, -cap), cap) + cap;                                                         \
             }                                                                                             \
-            pl[y * Wp + xp] = a;                                                                          \
-            pr[y * Wp + xp] = b;                                                                          \
+            pl[y * Wp + xp] = (GT_T)a;                                                                    \
+            pr[y * Wp + xp] = (GT_T)b;                                                                    \
         }                                                                                                 \
     }
 
@@ -61,9 +83,9 @@ GT_STEREO_PREFILTER(gt_stereo_prefilter_f32, float, gt_q_f32)
 // V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried down its
 // rows (the row entering added, the one leaving subtracted), then running box sums along each run
 // of the row: C(x, d) = C(x - 1, d) + V(x + r) - V(x - r - 1)
-__kernel void gt_stereo_left_costs(__global const int *pl, __global const int *pr, __global const int *runs,
-                                   __global const int *tiles, __global const int *order, __global int *vsum,
-                                   __global int *cost, const int T, const int D, const int B, const int Wp)
+__kernel void gt_stereo_left_costs(__global const GT_T *pl, __global const GT_T *pr, __global const int *runs,
+                                   __global const int *tiles, __global const int *order, __global GT_T *vsum,
+                                   __global GT_T *cost, const int T, const int D, const int B, const int Wp)
 {
     const int g = get_global_id(0), b = get_global_id(1);
     const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
@@ -72,57 +94,64 @@ __kernel void gt_stereo_left_costs(__global const int *pl, __global const int *p
     const __global int *tile = tiles + 8 * b;
     const int r = B / 2, d0 = g * GT_STEREO_LANES;
     const int y0 = tile[0], y1 = tile[1], xa = tile[2], xb = tile[3], i1 = tile[5], w = tile[7];
-    __global int *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;  // this work-item's sums
+    __global GT_T *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;  // this work-item's sums
     const int first = xa - r;
     int i = tile[4];
     for (int y = y0; y <= y1; ++y) {
         for (int j = 0; j < xb - xa + 2 * r + 1; ++j) {
             const int at = (y - r) * Wp + GT_STEREO_LANES + first + j;  // the window's top row
-            int8 v;
+            GT_V v;
             if (y == y0) {
-                v = (int8)(0);
+                v = (GT_V)(0);
                 for (int k = 0; k < B; ++k) {
-                    const int8 t = (int8)(pl[at + k * Wp]) - vload8(0, pr + at + k * Wp - d0 - 7).s76543210;
+                    const int o = at + k * Wp;
+                    const GT_V t = (GT_V)(pl[o]) - GT_REVERSE(GT_VLOAD(0, pr + o - d0 - (GT_STEREO_LANES - 1)));
                     v += max(t, -t);  // lane l: |P_L(x) - P_R(x - d0 - l)|
                 }
             } else {
                 const int add = at + (B - 1) * Wp, sub = at - Wp;
-                const int8 t1 = (int8)(pl[add]) - vload8(0, pr + add - d0 - 7).s76543210;
-                const int8 t2 = (int8)(pl[sub]) - vload8(0, pr + sub - d0 - 7).s76543210;
-                v = vload8(j, vs) + max(t1, -t1) - max(t2, -t2);
+                const GT_V t1 = (GT_V)(pl[add]) - GT_REVERSE(GT_VLOAD(0, pr + add - d0 - (GT_STEREO_LANES - 1)));
+                const GT_V t2 = (GT_V)(pl[sub]) - GT_REVERSE(GT_VLOAD(0, pr + sub - d0 - (GT_STEREO_LANES - 1)));
+                v = GT_VLOAD(j, vs) + max(t1, -t1) - max(t2, -t2);
             }
-            vstore8(v, j, vs);
+            GT_VSTORE(v, j, vs);
         }
         for (; i < i1 && runs[5 * order[i]] == y; ++i) {
             const int q = 5 * order[i], x0 = runs[q + 1], x1 = runs[q + 2], off = runs[q + 3];
-            int8 c = (int8)(0);
+            GT_V c = (GT_V)(0);
             for (int k = 0; k < B; ++k)
-                c += vload8(x0 - r - first + k, vs);
-            vstore8(c, 0, cost + (size_t)off * Dp + d0);
+                c += GT_VLOAD(x0 - r - first + k, vs);
+            GT_VSTORE(c, 0, cost + (size_t)off * Dp + d0);
             for (int x = x0 + 1; x <= x1; ++x) {
-                c += vload8(x + r - first, vs) - vload8(x - r - 1 - first, vs);
-                vstore8(c, 0, cost + (size_t)(off + x - x0) * Dp + d0);
+                c += GT_VLOAD(x + r - first, vs) - GT_VLOAD(x - r - 1 - first, vs);
+                GT_VSTORE(c, 0, cost + (size_t)(off + x - x0) * Dp + d0);
             }
         }
     }
 }
 
-// the smallest cost among c[0 .. n) (Dp slots, n <= Dp) and the smallest d that has it, 8 lanes at a time
-inline int gt_stereo_argmin(const __global int *c, const int n, const int Dp, int *cost)
+// the smallest cost among c[0 .. n) (Dp slots, n <= Dp) and the smallest d that has it, a vector at a time
+inline int gt_stereo_argmin(const __global GT_T *c, const int n, const int Dp, int *cost)
 {
-    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    int8 best = (int8)(INT_MAX), at = (int8)(0);
-    for (int d0 = 0; d0 < Dp; d0 += 8) {
-        const int8 d = lane + d0;
-        const int8 v = vload8(0, c + d0);
-        const int8 take = (v < best) & (d < n);  // strict: each lane keeps its smallest d
+    const GT_VI lane = GT_LANE_IDS;
+    GT_VI best = (GT_VI)(INT_MAX), at = (GT_VI)(0);
+    for (int d0 = 0; d0 < Dp; d0 += GT_STEREO_LANES) {
+        const GT_VI d = lane + d0;
+        const GT_VI v = GT_TO_VI(GT_VLOAD(0, c + d0));
+        const GT_VI take = (v < best) & (d < n);  // strict: each lane keeps its smallest d
         best = select(best, v, take);
         at = select(at, d, take);
     }
     int cb = best.s0, db = at.s0;  // across the lanes: the smallest cost, then the smallest d
-    const int bs[8] = {best.s0, best.s1, best.s2, best.s3, best.s4, best.s5, best.s6, best.s7};
-    const int as[8] = {at.s0, at.s1, at.s2, at.s3, at.s4, at.s5, at.s6, at.s7};
-    for (int j = 1; j < 8; ++j)
+    int bs[GT_STEREO_LANES], as[GT_STEREO_LANES];
+#if GT_STEREO_LANES == 16
+    vstore16(best, 0, bs);
+    vstore16(at, 0, as);
+#else
+    vstore8(best, 0, bs);
+    vstore8(at, 0, as);
+#endif
+    for (int j = 1; j < GT_STEREO_LANES; ++j)
         if (bs[j] < cb || (bs[j] == cb && as[j] < db)) {
             cb = bs[j];
             db = as[j];
@@ -131,7 +160,7 @@ inline int gt_stereo_argmin(const __global int *c, const int n, const int Dp, in
     return db;
 }
 
-__kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const int *cost,
+__kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const GT_T *cost,
                                  __global int *ldisp, __global int *rmark, __global const int *run_tile,
                                  __global int *marked, __global float *out, const int S, const int D, const int U,
                                  const int W)
@@ -145,23 +174,23 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
     const int rlo = x0 - D + 1;  // the run's first right-image position
     for (int k = 0; k < x1 - x0 + D; ++k)
         rmark[roff + k] = 0;
-    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const GT_VI lane = GT_LANE_IDS;
     int mlo = W, mhi = -1;  // the run's marked right-image positions
     for (int x = x0; x <= x1; ++x) {
-        const __global int *c = cost + (size_t)(off + x - x0) * Dp;
+        const __global GT_T *c = cost + (size_t)(off + x - x0) * Dp;
         int ld = -1;
         if (mask[y * W + x] != 0) {
             int cb;
             const int best = gt_stereo_argmin(c, D, Dp, &cb);  // winner-take-all, the smallest d of equal costs
-            int8 rival = (int8)(0);  // uniqueness: a d more than 1 px away within (100 + U) % of the best
-            for (int d0 = 0; d0 < Dp; d0 += 8) {
-                const int8 d = lane + d0;
-                rival |= (abs(d - best) > 1) & (d < D) & (100 * vload8(0, c + d0) <= (100 + U) * cb);
+            GT_VI rival = (GT_VI)(0);  // uniqueness: a d more than 1 px away within (100 + U) % of the best
+            for (int d0 = 0; d0 < Dp; d0 += GT_STEREO_LANES) {
+                const GT_VI d = lane + d0;
+                rival |= (abs(d - best) > 1) & (d < D) & (100 * GT_TO_VI(GT_VLOAD(0, c + d0)) <= (100 + U) * cb);
             }
             if (!any(rival)) {
                 float val = (float)best;
                 if (best > 0 && best < D - 1) {  // the parabola's vertex
-                    const int cm = c[best - 1], cp = c[best + 1];
+                    const int cm = (int)c[best - 1], cp = (int)c[best + 1];
                     val += (float)(cm - cp) / (float)(2 * (cm - 2 * cb + cp));
                 }
                 out[y * W + x] = val;
@@ -182,9 +211,9 @@ __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar 
 // right costs at the marked positions, the same way: V(x) = sum over the window's rows of
 // |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds where
 // x + d >= W: such d are not candidates), C_R(xr, d) running along each run's positions in that span
-__kernel void gt_stereo_right_costs(__global const int *pl, __global const int *pr, __global const int *runs,
+__kernel void gt_stereo_right_costs(__global const GT_T *pl, __global const GT_T *pr, __global const int *runs,
                                     __global const int *tiles, __global const int *order, __global const int *marked,
-                                    __global const int *rmark, __global int *vsum, __global int *rcost, const int T,
+                                    __global const int *rmark, __global GT_T *vsum, __global GT_T *rcost, const int T,
                                     const int D, const int B, const int Wp)
 {
     const int g = get_global_id(0), b = get_global_id(1);
@@ -197,26 +226,26 @@ __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *
     const int mlo = marked[2 * b], mhi = marked[2 * b + 1];
     if (mlo > mhi)
         return;  // nothing marked in this tile
-    __global int *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;
+    __global GT_T *vs = vsum + ((size_t)tile[6] * G + (size_t)g * w) * GT_STEREO_LANES;
     const int first = xa - D + 1 - r;  // column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
     int i = tile[4];
     for (int y = y0; y <= y1; ++y) {
         for (int j = mlo - r - first; j <= mhi + r - first; ++j) {
             const int at = (y - r) * Wp + GT_STEREO_LANES + first + j;
-            int8 v;
+            GT_V v;
             if (y == y0) {
-                v = (int8)(0);
+                v = (GT_V)(0);
                 for (int k = 0; k < B; ++k) {
-                    const int8 t = vload8(0, pl + at + k * Wp + d0) - (int8)(pr[at + k * Wp]);
+                    const GT_V t = GT_VLOAD(0, pl + at + k * Wp + d0) - (GT_V)(pr[at + k * Wp]);
                     v += max(t, -t);  // lane l: |P_L(x + d0 + l) - P_R(x)|
                 }
             } else {
                 const int add = at + (B - 1) * Wp, sub = at - Wp;
-                const int8 t1 = vload8(0, pl + add + d0) - (int8)(pr[add]);
-                const int8 t2 = vload8(0, pl + sub + d0) - (int8)(pr[sub]);
-                v = vload8(j, vs) + max(t1, -t1) - max(t2, -t2);
+                const GT_V t1 = GT_VLOAD(0, pl + add + d0) - (GT_V)(pr[add]);
+                const GT_V t2 = GT_VLOAD(0, pl + sub + d0) - (GT_V)(pr[sub]);
+                v = GT_VLOAD(j, vs) + max(t1, -t1) - max(t2, -t2);
             }
-            vstore8(v, j, vs);
+            GT_VSTORE(v, j, vs);
         }
         for (; i < i1 && runs[5 * order[i]] == y; ++i) {
             const int q = 5 * order[i], x0 = runs[q + 1], x1 = runs[q + 2], roff = runs[q + 4];
@@ -224,21 +253,21 @@ __kernel void gt_stereo_right_costs(__global const int *pl, __global const int *
             const int k0 = max(0, mlo - rlo), k1 = min(x1 - x0 + D - 1, mhi - rlo);
             if (k0 > k1)
                 continue;
-            int8 c = (int8)(0);
+            GT_V c = (GT_V)(0);
             for (int k = 0; k < B; ++k)
-                c += vload8(rlo + k0 - r - first + k, vs);
+                c += GT_VLOAD(rlo + k0 - r - first + k, vs);
             for (int k = k0; k <= k1; ++k) {
                 const int xr = rlo + k;
                 if (k > k0)
-                    c += vload8(xr + r - first, vs) - vload8(xr - r - 1 - first, vs);
+                    c += GT_VLOAD(xr + r - first, vs) - GT_VLOAD(xr - r - 1 - first, vs);
                 if (rmark[roff + k] != 0)
-                    vstore8(c, 0, rcost + (size_t)(roff + k) * Dp + d0);
+                    GT_VSTORE(c, 0, rcost + (size_t)(roff + k) * Dp + d0);
             }
         }
     }
 }
 
-__kernel void gt_stereo_right_check(__global const int *runs, __global const int *ldisp, __global const int *rcost,
+__kernel void gt_stereo_right_check(__global const int *runs, __global const int *ldisp, __global const GT_T *rcost,
                                     __global float *out, const int S, const int D, const int B, const int W)
 {
     const int s = get_global_id(0);

@@ -17,7 +17,9 @@ Cases:
   formed: gate, tie-break, moments, update, spreads, merge test, split test, starts, ends.
 
 Each case prints its per-stage table (the trackers' Schedulers, time the host spent issuing
-each stage; ``--profile`` synchronises around every stage so the times are the device's).
+each stage; ``--profile`` synchronises around every stage so the times are the device's). KLT
+runs in a worker thread from the ``stereo`` stage on, beside the matching: the ``klt`` stage is
+the wait for it after the matching was issued (on taichi:cpu, after it ran).
 """
 
 from __future__ import annotations

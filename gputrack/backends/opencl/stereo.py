@@ -1,8 +1,9 @@
 """OpenCL launchers of :mod:`gputrack.ops.stereo` (kernels/gt_stereo.cl; conventions in the op):
-five launches, the steps of gputrack/backends/taichi/stereo.py (8 disparities a work-item in an
-int8; the costs one work-item per (group, tile of runs)). Work-groups of one work-item: the
-kernels vectorise explicitly, and PoCL then builds each kernel once instead of once per
-work-group size it picks for a new NDRange (3-4 s of the tests' time)."""
+five launches, the steps of gputrack/backends/taichi/stereo.py (16 disparities a work-item in a
+short16 for uint8 input, whose costs fit in 16 bits, 8 in an int8 for float32: the program is
+built once per lane count; the costs one work-item per (group, tile of runs)). Work-groups of one
+work-item: the kernels vectorise explicitly, and PoCL then builds each kernel once instead of once
+per work-group size it picks for a new NDRange (3-4 s of the tests' time)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import numpy as np
 
 from ...device import per_device
 
-#: disparities a work-item (the int8 of gt_stereo.cl)
-LANES = 8
+#: disparities a work-item (gt_stereo.cl): 16 in a short16 for uint8 input (every cost fits in
+#: 16 bits), 8 in an int8 for float32 input
+LANES_U8, LANES = 16, 8
 
 _I = np.int32
 ARG_TYPES = {
@@ -25,10 +27,10 @@ ARG_TYPES = {
 
 
 @per_device
-def _kernel(device, name):
+def _kernel(device, name, lanes=LANES):
     import pyopencl as cl
 
-    found = cl.Kernel(device.program("gt_stereo.cl"), name)
+    found = cl.Kernel(device.program("gt_stereo.cl", {"GT_STEREO_LANES": lanes}), name)
     found.set_scalar_arg_dtypes(ARG_TYPES[name])
     return found
 
@@ -42,15 +44,21 @@ def _capacity(n: int) -> int:
 def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     H, W = L.shape
     S = len(runs)
-    G = -(-D // LANES)
-    Dp = G * LANES
-    Wp = W + Dp + 2 * LANES
+    nl = LANES_U8 if L.dtype == np.uint8 else LANES
+    size = 2 if nl == LANES_U8 else 4  # bytes of the prefiltered values, sums and costs (short or int)
+
+    def ints(n):  # n of them, as a byte buffer (the device's arrays have no 16-bit dtype)
+        return device.empty((n * size,), np.uint8)
+
+    G = -(-D // nl)
+    Dp = G * nl
+    Wp = W + Dp + 2 * nl
     q = device.queue
     y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
-    pl, pr = device.empty((H * Wp,), np.int32), device.empty((H * Wp,), np.int32)
+    pl, pr = ints(H * Wp), ints(H * Wp)
     name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
-    _kernel(device, name)(q, (H,), (1,), L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
-                          out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
+    _kernel(device, name, nl)(q, (H,), (1,), L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
+                              out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
     tiles, order, run_tile = tiles
@@ -69,17 +77,15 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     runs_d, tiles_d, order_d, run_tile_d, marked_d = (
         device.asarray(a) for a in (runs_host, tiles_host, order_host, run_tile_host, marked))
     mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
-    vsum = device.empty((Vc * Dp,), np.int32)
-    cost = device.empty((Pc * Dp,), np.int32)
-    rcost = device.empty((P2c * Dp,), np.int32)
+    vsum, cost, rcost = ints(Vc * Dp), ints(Pc * Dp), ints(P2c * Dp)
     ldisp = device.empty((Pc,), np.int32)
     rmark = device.empty((P2c,), np.int32)
     b = lambda a: a.buffer.data  # noqa: E731
-    _kernel(device, "gt_stereo_left_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d), b(vsum),
-                                            b(cost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_left_wta")(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark),
-                                          b(run_tile_d), b(marked_d), b(out), S, D, U, W)  # fmt: skip
-    _kernel(device, "gt_stereo_right_costs")(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
-                                             b(marked_d), b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_right_check")(q, (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
+    _kernel(device, "gt_stereo_left_costs", nl)(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
+                                                b(vsum), b(cost), T, D, block, Wp)  # fmt: skip
+    _kernel(device, "gt_stereo_left_wta", nl)(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark),
+                                              b(run_tile_d), b(marked_d), b(out), S, D, U, W)  # fmt: skip
+    _kernel(device, "gt_stereo_right_costs", nl)(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
+                                                 b(marked_d), b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
+    _kernel(device, "gt_stereo_right_check", nl)(q, (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
     return out

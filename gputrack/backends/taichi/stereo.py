@@ -12,7 +12,8 @@
    carried down its rows (the row entering added, the one leaving subtracted: 2 absolute
    differences per column and row, not block), then running box sums along each run of the row
    (2 additions per pixel), LANES disparities at once in an integer vector (SIMD on the CPU:
-   compiled with ``scalarize=False``), into a cost buffer (pixel, d).
+   compiled with ``scalarize=False``; 16 int16 lanes for uint8 input on the CPU archs, 8 int32
+   lanes otherwise, :func:`lanes`), into a cost buffer (pixel, d).
 3. One thread per run: winner, uniqueness, parabola vertex; the right-image position x - d of
    each winner is marked.
 4. One thread per (tile, group): the right image's costs C_R(x_r, d') = C(x_r + d', d') the same
@@ -25,21 +26,33 @@ sum over the window's 9 rows): 40 ms with one scalar thread per (run, d) and 2-D
 with flat indexing, 5.1 ms with 8-lane vectors gathered by 8 scalar loads (16 lanes: 9.7 ms),
 1.7 ms with the neighbourhood vectors. Carrying the column sums down the tiles' rows then took
 the left costs of the benchmark's masked VGA pair from ~17-21 to ~12 ms (mean of 5, loaded VM).
+16 int16 lanes instead of 8 int32 (uint8 input, 2026-11-27, loaded VM, Taichi's kernel profiler
+on the group benchmark's pair with 17 % foreground): left costs 17.0 -> 7.0 ms, right costs
+18.7 -> 7.6 ms; the whole call 59 -> 40 ms of CPU time (median of 15, old and new alternating).
 """
 
+import functools
 import math
 
 import numpy as np
 
 from .launch import launch
-from .runtime import scratch, ti
+from .runtime import current_arch, scratch, ti
 
 BIG = np.iinfo(np.int32).max // 4
 
 
-#: disparities per thread (an 8 x int32 vector: one AVX2 register)
-LANES = 8
-V = ti.types.vector(LANES, ti.i32)
+#: disparities per thread and their integer type: on the CPU archs with uint8 input, 16 int16
+#: lanes (one AVX2 register; every uint8 cost fits: block <= 31 gives at most 961 x 30 = 28830);
+#: otherwise 8 int32 lanes
+LANES_U8_CPU, LANES = 16, 8
+
+
+def lanes(is_float: bool) -> tuple:
+    """(lanes, Taichi integer type) of the cost vectors for this input on the current arch."""
+    if not is_float and current_arch() == "cpu":
+        return LANES_U8_CPU, ti.i16
+    return LANES, ti.i32
 
 
 @ti.func
@@ -64,194 +77,209 @@ def _sobel(img: ti.template(), y, x, cap, is_float: ti.template()):
     return p
 
 
-@ti.func
-def _argmin(c: ti.template(), at, n, G):
-    """The smallest cost among c[at .. at + G) (vectors of LANES costs, d = LANES g + lane) over
-    d < n, and the smallest d that has it."""
-    best = V(BIG)
-    idx = V(0)
-    lane = V([j for j in range(LANES)])
-    for g in range(G):
-        v = c[at + g]
-        d = lane + g * LANES
-        take = (v < best) & (d < n)  # strict: each lane keeps its smallest d
-        best = ti.select(take, v, best)
-        idx = ti.select(take, d, idx)
-    cb, db = best[0], idx[0]
-    for j in ti.static(range(1, LANES)):
-        if best[j] < cb or (best[j] == cb and idx[j] < db):
-            cb, db = best[j], idx[j]
-    return cb, db
+@functools.lru_cache(maxsize=None)
+def _kernel(LANES: int, T):
+    """The stereo kernel with cost vectors of ``LANES`` integers of type ``T`` (module docstring)."""
+    V = ti.types.vector(LANES, T)
+    VI = ti.types.vector(LANES, ti.i32)
 
+    @ti.func
+    def _argmin(c: ti.template(), at, n, G):
+        """The smallest cost among c[at .. at + G) (vectors of LANES costs, d = LANES g + lane) over
+        d < n, and the smallest d that has it."""
+        best = VI(BIG)
+        idx = VI(0)
+        lane = VI([j for j in range(LANES)])
+        for g in range(G):
+            v = ti.cast(c[at + g], ti.i32)
+            d = lane + g * LANES
+            take = (v < best) & (d < n)  # strict: each lane keeps its smallest d
+            best = ti.select(take, v, best)
+            idx = ti.select(take, d, idx)
+        cb, db = best[0], idx[0]
+        for j in ti.static(range(1, LANES)):
+            if best[j] < cb or (best[j] == cb and idx[j] < db):
+                cb, db = best[j], idx[j]
+        return cb, db
 
-@ti.kernel
-def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
-            pl: ti.types.ndarray(dtype=ti.i32, ndim=1), pr: ti.types.ndarray(dtype=ti.i32, ndim=1),
-            plv: ti.types.ndarray(dtype=V, ndim=1), prv: ti.types.ndarray(dtype=V, ndim=1),
-            mask: ti.types.ndarray(dtype=ti.u8, ndim=2), runs: ti.types.ndarray(dtype=ti.i32, ndim=2),
-            tiles: ti.types.ndarray(dtype=ti.i32, ndim=2), order: ti.types.ndarray(dtype=ti.i32, ndim=1),
-            run_tile: ti.types.ndarray(dtype=ti.i32, ndim=1), marked: ti.types.ndarray(dtype=ti.i32, ndim=2),
-            vsum: ti.types.ndarray(dtype=V, ndim=1),
-            cost: ti.types.ndarray(dtype=V, ndim=1),
-            rcost: ti.types.ndarray(dtype=V, ndim=1), ldisp: ti.types.ndarray(dtype=ti.i32, ndim=1),
-            rmark: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=2),
-            S: ti.i32, NB: ti.i32, D: ti.i32, B: ti.i32, U: ti.i32, cap: ti.i32, Wp: ti.i32, y0: ti.i32, y1: ti.i32,
-            nan: ti.f32, is_float: ti.template()):  # fmt: skip
-    r = B // 2
-    W = out.shape[1]
-    G = (D + LANES - 1) // LANES  # disparity groups: a pixel's vectors in the cost buffers
-    # 1. NaN; the prefilter (padding: cap) of the rows the windows read; their neighbourhood vectors
-    # (parallel over rows, serial along them: a 2-D parallel loop divides per element)
-    for y in range(out.shape[0]):
-        for x in range(W):
-            out[y, x] = nan
-    for yy, xp in ti.ndrange(y1 - y0, Wp):
-        y = y0 + yy
-        x = xp - LANES
-        a, b = cap, cap
-        if x >= 0 and x < W:
-            a = _sobel(left, y, x, cap, is_float)
-            b = _sobel(right, y, x, cap, is_float)
-        pl[y * Wp + xp] = a
-        pr[y * Wp + xp] = b
-    for yy in range(y1 - y0):
-        for xp in range(Wp):
-            at = (y0 + yy) * Wp + xp
-            lv, rv = V(cap), V(cap)
-            for j in ti.static(range(LANES)):
-                if xp + j < Wp:
-                    lv[j] = pl[at + j]
-                if xp - j >= 0:
-                    rv[j] = pr[at - j]
-            plv[at] = lv
-            prv[at] = rv
-    # 2. left costs, one thread per (tile, group): the window column sums
-    #    V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried
-    #    down its rows (the row entering added, the one leaving subtracted), then running box sums
-    #    along each run of the row: C(x, d) = C(x - 1, d) + V(x + r) - V(x - r - 1)
-    for b, g in ti.ndrange(NB, G):
-        by0, by1, xa, xb, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 3], tiles[b, 4],
-                                           tiles[b, 5], tiles[b, 6], tiles[b, 7])  # fmt: skip
-        d0 = g * LANES
-        vb = voff * G + g * w  # this thread's column sums
-        first = xa - r
-        i = i0
-        for y in range(by0, by1 + 1):
-            for j in range(xb - xa + 2 * r + 1):
-                at = (y - r) * Wp + LANES + first + j  # the window's top row
-                v = V(0)
-                if y == by0:
-                    for k in range(B):
-                        t = pl[at + k * Wp] - prv[at + k * Wp - d0]  # lane l: P_L(x) - P_R(x - d0 - l)
-                        v += ti.max(t, -t)
+    @ti.kernel
+    def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
+                pl: ti.types.ndarray(dtype=T, ndim=1), pr: ti.types.ndarray(dtype=T, ndim=1),
+                plv: ti.types.ndarray(dtype=V, ndim=1), prv: ti.types.ndarray(dtype=V, ndim=1),
+                mask: ti.types.ndarray(dtype=ti.u8, ndim=2), runs: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                tiles: ti.types.ndarray(dtype=ti.i32, ndim=2), order: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                run_tile: ti.types.ndarray(dtype=ti.i32, ndim=1), marked: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                vsum: ti.types.ndarray(dtype=V, ndim=1),
+                cost: ti.types.ndarray(dtype=V, ndim=1),
+                rcost: ti.types.ndarray(dtype=V, ndim=1), ldisp: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                rmark: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                S: ti.i32, NB: ti.i32, D: ti.i32, B: ti.i32, U: ti.i32, cap: ti.i32, Wp: ti.i32, y0: ti.i32, y1: ti.i32,
+                nan: ti.f32, is_float: ti.template()):  # fmt: skip
+        r = B // 2
+        W = out.shape[1]
+        G = (D + LANES - 1) // LANES  # disparity groups: a pixel's vectors in the cost buffers
+        # 1. NaN; the prefilter (padding: cap) of the rows the windows read; their neighbourhood vectors
+        # (parallel over rows, serial along them: a 2-D parallel loop divides per element)
+        for y in range(out.shape[0]):
+            for x in range(W):
+                out[y, x] = nan
+        for yy, xp in ti.ndrange(y1 - y0, Wp):
+            y = y0 + yy
+            x = xp - LANES
+            a, b = cap, cap
+            if x >= 0 and x < W:
+                a = _sobel(left, y, x, cap, is_float)
+                b = _sobel(right, y, x, cap, is_float)
+            pl[y * Wp + xp] = ti.cast(a, T)
+            pr[y * Wp + xp] = ti.cast(b, T)
+        for yy in range(y1 - y0):
+            for xp in range(Wp):
+                at = (y0 + yy) * Wp + xp
+                lv, rv = V(0), V(0)
+                if xp >= LANES and xp < Wp - LANES:  # inside the row: no padding to fill in
+                    for j in ti.static(range(LANES)):
+                        lv[j] = pl[at + j]
+                        rv[j] = pr[at - j]
                 else:
-                    add, sub = at + (B - 1) * Wp, at - Wp
-                    t1 = pl[add] - prv[add - d0]
-                    t2 = pl[sub] - prv[sub - d0]
-                    v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
-                vsum[vb + j] = v
-            while i < i1 and runs[order[i], 0] == y:
-                q = order[i]
-                x0, x1, off = runs[q, 1], runs[q, 2], runs[q, 3]
-                c = V(0)
-                for k in range(B):
-                    c += vsum[vb + x0 - r - first + k]
-                cost[off * G + g] = c
-                for x in range(x0 + 1, x1 + 1):
-                    c += vsum[vb + x + r - first] - vsum[vb + x - r - 1 - first]
-                    cost[(off + x - x0) * G + g] = c
-                i += 1
-    # 3. left winners
-    for s in range(S):
-        y, x0, x1, off, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3], runs[s, 4]
-        rlo = x0 - D + 1  # the run's first right-image position
-        for k in range(x1 - x0 + D):
-            rmark[roff + k] = 0
-        mlo, mhi = W, -1  # the run's marked right-image positions
-        for x in range(x0, x1 + 1):
-            p = (off + x - x0) * G
-            ld = -1
-            if mask[y, x] != 0:
-                cb, best = _argmin(cost, p, D, G)  # winner-take-all, the smallest d of equal costs
-                rival = V(0)  # uniqueness: a d more than 1 px away within (100 + U) % of the best
-                lane = V([j for j in range(LANES)])
-                for g in range(G):
-                    d = lane + g * LANES
-                    rival |= ((d < best - 1) | (d > best + 1)) & (d < D) & (100 * cost[p + g] <= (100 + U) * cb)
-                unique = True
-                for j in ti.static(range(LANES)):
-                    if rival[j] != 0:
-                        unique = False
-                if unique:
-                    val = ti.cast(best, ti.f32)
-                    if best > 0 and best < D - 1:  # the parabola's vertex
-                        cm = cost[p + (best - 1) // LANES][(best - 1) % LANES]
-                        cp = cost[p + (best + 1) // LANES][(best + 1) % LANES]
-                        val += ti.cast(cm - cp, ti.f32) / ti.cast(2 * (cm - 2 * cb + cp), ti.f32)
-                    out[y, x] = val
-                    ld = best
-                    rmark[roff + x - best - rlo] = 1
-                    mlo = ti.min(mlo, x - best)
-                    mhi = ti.max(mhi, x - best)
-            ldisp[off + x - x0] = ld
-        if mlo <= mhi:  # the tile's marked span, for the right costs
-            ti.atomic_min(marked[run_tile[s], 0], mlo)
-            ti.atomic_max(marked[run_tile[s], 1], mhi)
-    # 4. right costs at the marked positions, the same way: V(x) = sum over the window's rows of
-    #    |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds
-    #    where x + d >= W: such d are not candidates), C_R(xr, d) running along each run's
-    #    positions in that span
-    for b, g in ti.ndrange(NB, G):
-        by0, by1, xa, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 4], tiles[b, 5],
-                                         tiles[b, 6], tiles[b, 7])  # fmt: skip
-        mlo, mhi = marked[b, 0], marked[b, 1]
-        d0 = g * LANES
-        vb = voff * G + g * w
-        first = xa - D + 1 - r  # column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
-        i = i0
-        for y in range(by0, by1 + 1):
-            if mlo <= mhi:
-                for j in range(mlo - r - first, mhi + r - first + 1):
-                    at = (y - r) * Wp + LANES + first + j
+                    for j in ti.static(range(LANES)):
+                        lv[j] = ti.cast(cap, T)
+                        rv[j] = ti.cast(cap, T)
+                        if xp + j < Wp:
+                            lv[j] = pl[at + j]
+                        if xp - j >= 0:
+                            rv[j] = pr[at - j]
+                plv[at] = lv
+                prv[at] = rv
+        # 2. left costs, one thread per (tile, group): the window column sums
+        #    V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried
+        #    down its rows (the row entering added, the one leaving subtracted), then running box sums
+        #    along each run of the row: C(x, d) = C(x - 1, d) + V(x + r) - V(x - r - 1)
+        for b, g in ti.ndrange(NB, G):
+            by0, by1, xa, xb, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 3], tiles[b, 4],
+                                               tiles[b, 5], tiles[b, 6], tiles[b, 7])  # fmt: skip
+            d0 = g * LANES
+            vb = voff * G + g * w  # this thread's column sums
+            first = xa - r
+            i = i0
+            for y in range(by0, by1 + 1):
+                for j in range(xb - xa + 2 * r + 1):
+                    at = (y - r) * Wp + LANES + first + j  # the window's top row
                     v = V(0)
                     if y == by0:
                         for k in range(B):
-                            t = plv[at + k * Wp + d0] - pr[at + k * Wp]  # lane l: P_L(x + d0 + l) - P_R(x)
+                            t = pl[at + k * Wp] - prv[at + k * Wp - d0]  # lane l: P_L(x) - P_R(x - d0 - l)
                             v += ti.max(t, -t)
                     else:
                         add, sub = at + (B - 1) * Wp, at - Wp
-                        t1 = plv[add + d0] - pr[add]
-                        t2 = plv[sub + d0] - pr[sub]
+                        t1 = pl[add] - prv[add - d0]
+                        t2 = pl[sub] - prv[sub - d0]
                         v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
                     vsum[vb + j] = v
-            while i < i1 and runs[order[i], 0] == y:
-                q = order[i]
-                x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
-                rlo = x0 - D + 1
-                k0, k1 = ti.max(0, mlo - rlo), ti.min(x1 - x0 + D - 1, mhi - rlo)
-                if k0 <= k1:
+                while i < i1 and runs[order[i], 0] == y:
+                    q = order[i]
+                    x0, x1, off = runs[q, 1], runs[q, 2], runs[q, 3]
                     c = V(0)
                     for k in range(B):
-                        c += vsum[vb + rlo + k0 - r - first + k]
-                    for k in range(k0, k1 + 1):
-                        xr = rlo + k
-                        if k > k0:
-                            c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
-                        if rmark[roff + k] != 0:
-                            rcost[(roff + k) * G + g] = c
-                i += 1
-    # 5. right winners (d' whose left window is inside the image, the smallest of equal costs)
-    #    and the left-right check
-    for s in range(S):
-        y, x0, x1, off, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3], runs[s, 4]
-        rlo = x0 - D + 1
-        for x in range(x0, x1 + 1):
-            ld = ldisp[off + x - x0]
-            if ld >= 0:
-                xr = x - ld
-                cb, best = _argmin(rcost, (roff + xr - rlo) * G, ti.min(D, W - r - xr), G)
-                if ti.abs(best - ld) > 1:
-                    out[y, x] = nan
+                        c += vsum[vb + x0 - r - first + k]
+                    cost[off * G + g] = c
+                    for x in range(x0 + 1, x1 + 1):
+                        c += vsum[vb + x + r - first] - vsum[vb + x - r - 1 - first]
+                        cost[(off + x - x0) * G + g] = c
+                    i += 1
+        # 3. left winners
+        for s in range(S):
+            y, x0, x1, off, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3], runs[s, 4]
+            rlo = x0 - D + 1  # the run's first right-image position
+            for k in range(x1 - x0 + D):
+                rmark[roff + k] = 0
+            mlo, mhi = W, -1  # the run's marked right-image positions
+            for x in range(x0, x1 + 1):
+                p = (off + x - x0) * G
+                ld = -1
+                if mask[y, x] != 0:
+                    cb, best = _argmin(cost, p, D, G)  # winner-take-all, the smallest d of equal costs
+                    rival = VI(0)  # uniqueness: a d more than 1 px away within (100 + U) % of the best
+                    lane = VI([j for j in range(LANES)])
+                    for g in range(G):
+                        d = lane + g * LANES
+                        c = ti.cast(cost[p + g], ti.i32)
+                        rival |= ((d < best - 1) | (d > best + 1)) & (d < D) & (100 * c <= (100 + U) * cb)
+                    unique = True
+                    for j in ti.static(range(LANES)):
+                        if rival[j] != 0:
+                            unique = False
+                    if unique:
+                        val = ti.cast(best, ti.f32)
+                        if best > 0 and best < D - 1:  # the parabola's vertex
+                            cm = ti.cast(cost[p + (best - 1) // LANES][(best - 1) % LANES], ti.i32)
+                            cp = ti.cast(cost[p + (best + 1) // LANES][(best + 1) % LANES], ti.i32)
+                            val += ti.cast(cm - cp, ti.f32) / ti.cast(2 * (cm - 2 * cb + cp), ti.f32)
+                        out[y, x] = val
+                        ld = best
+                        rmark[roff + x - best - rlo] = 1
+                        mlo = ti.min(mlo, x - best)
+                        mhi = ti.max(mhi, x - best)
+                ldisp[off + x - x0] = ld
+            if mlo <= mhi:  # the tile's marked span, for the right costs
+                ti.atomic_min(marked[run_tile[s], 0], mlo)
+                ti.atomic_max(marked[run_tile[s], 1], mhi)
+        # 4. right costs at the marked positions, the same way: V(x) = sum over the window's rows of
+        #    |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds
+        #    where x + d >= W: such d are not candidates), C_R(xr, d) running along each run's
+        #    positions in that span
+        for b, g in ti.ndrange(NB, G):
+            by0, by1, xa, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 4], tiles[b, 5],
+                                             tiles[b, 6], tiles[b, 7])  # fmt: skip
+            mlo, mhi = marked[b, 0], marked[b, 1]
+            d0 = g * LANES
+            vb = voff * G + g * w
+            first = xa - D + 1 - r  # column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
+            i = i0
+            for y in range(by0, by1 + 1):
+                if mlo <= mhi:
+                    for j in range(mlo - r - first, mhi + r - first + 1):
+                        at = (y - r) * Wp + LANES + first + j
+                        v = V(0)
+                        if y == by0:
+                            for k in range(B):
+                                t = plv[at + k * Wp + d0] - pr[at + k * Wp]  # lane l: P_L(x + d0 + l) - P_R(x)
+                                v += ti.max(t, -t)
+                        else:
+                            add, sub = at + (B - 1) * Wp, at - Wp
+                            t1 = plv[add + d0] - pr[add]
+                            t2 = plv[sub + d0] - pr[sub]
+                            v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
+                        vsum[vb + j] = v
+                while i < i1 and runs[order[i], 0] == y:
+                    q = order[i]
+                    x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
+                    rlo = x0 - D + 1
+                    k0, k1 = ti.max(0, mlo - rlo), ti.min(x1 - x0 + D - 1, mhi - rlo)
+                    if k0 <= k1:
+                        c = V(0)
+                        for k in range(B):
+                            c += vsum[vb + rlo + k0 - r - first + k]
+                        for k in range(k0, k1 + 1):
+                            xr = rlo + k
+                            if k > k0:
+                                c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
+                            if rmark[roff + k] != 0:
+                                rcost[(roff + k) * G + g] = c
+                    i += 1
+        # 5. right winners (d' whose left window is inside the image, the smallest of equal costs)
+        #    and the left-right check
+        for s in range(S):
+            y, x0, x1, off, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3], runs[s, 4]
+            rlo = x0 - D + 1
+            for x in range(x0, x1 + 1):
+                ld = ldisp[off + x - x0]
+                if ld >= 0:
+                    xr = x - ld
+                    cb, best = _argmin(rcost, (roff + xr - rlo) * G, ti.min(D, W - r - xr), G)
+                    if ti.abs(best - ld) > 1:
+                        out[y, x] = nan
+
+    return _stereo, V  # the same vector type object every call: the scratch arrays are kept by it
 
 
 def _capacity(n: int) -> int:
@@ -264,9 +292,12 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     H, W = L.shape
     tiles, order, run_tile = tiles
     S, NB = len(runs), len(tiles)
-    Dp = -(-D // LANES) * LANES
-    G = Dp // LANES
-    Wp = W + Dp + 2 * LANES
+    is_float = L.dtype == np.float32
+    nl, T = lanes(is_float)
+    kernel, V = _kernel(nl, T)
+    Dp = -(-D // nl) * nl
+    G = Dp // nl
+    Wp = W + Dp + 2 * nl
     P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3]) if S else 0
     Vn = int(tiles[-1, 6] + tiles[-1, 7]) if NB else 0  # column sums of every tile
     Sc, NBc, Pc, P2c, Vc = (_capacity(max(n, 1)) for n in (S, NB, P, P + S * (D - 1), Vn))
@@ -282,8 +313,8 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
         device.asarray(a) for a in (runs_host, tiles_host, order_host, run_tile_host, marked))  # pooled shapes
     mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
     i32 = ti.i32
-    arrays = (L.buffer, R.buffer, scratch(device, "stereo pl", (H * Wp,), i32),
-              scratch(device, "stereo pr", (H * Wp,), i32), scratch(device, "stereo plv", (H * Wp,), V),
+    arrays = (L.buffer, R.buffer, scratch(device, "stereo pl", (H * Wp,), T),
+              scratch(device, "stereo pr", (H * Wp,), T), scratch(device, "stereo plv", (H * Wp,), V),
               scratch(device, "stereo prv", (H * Wp,), V), mask_d.buffer, runs_d.buffer, tiles_d.buffer,
               order_d.buffer, run_tile_d.buffer, marked_d.buffer,
               scratch(device, "stereo vsum", (Vc * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
@@ -291,5 +322,5 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
               scratch(device, "stereo rmark", (P2c,), i32), out.buffer)  # fmt: skip
     y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
     scalars = (S, NB, int(D), int(block), int(U), int(cap), Wp, y0, y1, math.nan)
-    launch(_stereo, arrays, (L.dtype == np.float32,), scalars=scalars, scalarize=False)
+    launch(kernel, arrays, (is_float,), scalars=scalars, scalarize=False)
     return out
