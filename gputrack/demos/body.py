@@ -5,20 +5,24 @@ gray + depth quantised to 5 mm, 30 fps), the tracker starts from the true first 
 tracks the rest; the report has the mean arm-axis angle error per part (Tables 5-6), the
 shoulder-position error per axis when the shoulders are estimated (Table 7; they start 30 mm
 off, :func:`gputrack.sim.body.shoulders_off`), and the per-stage timing table (Tables 1-2
-layout, ms per frame).
+layout, ms per frame). ``save``: a directory for pictures: the first tracked frame, every 10th and the
+last, with the model's silhouette and axes at the estimate, the true arm axes and the template points
+the frame was matched with (``frame_NNNN.png``, :func:`gputrack.trackers.body.pictures.draw_estimate`),
+and the per-part arm-axis errors over the frames (``errors.png``, with matplotlib, the ``plot`` extra).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 
 import numpy as np
 
 from ..sim import SEQUENCES, sequence, shoulders_off
-from ..trackers.body import BodyTracker, BodyTrackerConfig
+from ..trackers.body import BodyTracker, BodyTrackerConfig, sparse_template
 from ..trackers.body.metrics import ARM_PARTS, arm_axis_errors, shoulder_camera_errors, shoulder_errors
 
 log = logging.getLogger("gputrack")
@@ -36,6 +40,8 @@ def run(
     template_every: int = 1,
     depth_tol: float = 0.0,
     n_depth: int = 128,
+    samples: int = 1500,
+    save: str | None = None,
     out=None,
 ) -> dict:
     """Run the body-tracking demo on ``device``; print progress and tables to ``out`` (default: stdout); return the report."""
@@ -47,14 +53,20 @@ def run(
     if shoulders:
         start = shoulders_off(start, seed)
     config = BodyTrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed,
-                           template_every=template_every, depth_tol=depth_tol, n_depth=n_depth)  # fmt: skip
+                           template_every=template_every, depth_tol=depth_tol, n_depth=n_depth,
+                               samples=samples)  # fmt: skip
     tracker = BodyTracker(device, start, config=config)
     print(f"gputrack demo body: sequence {seq.index} ({SEQUENCES[seq.index]}), {frames} frames, device "
           f"{device.spec} ({device.name}), PF {stages} stages x K={config.samples}, LM {lm} iterations, "
           f"N'={n_depth} depth points, depth tolerance {depth_tol:g} mm"
           + (", shoulders estimated (started 30 mm off)" if shoulders else ""), file=out)  # fmt: skip
+    if save:
+        os.makedirs(save, exist_ok=True)
     estimates, per_frame = [], []
+    template_pose = tracker.params.copy()
     for f in list(seq)[1:]:
+        if tracker.frame_index % template_every == 0:  # the tracker re-renders its template at this pose
+            template_pose = tracker.params.copy()
         t0 = time.perf_counter()
         est = tracker.track(f.gray, f.depth)
         dt = time.perf_counter() - t0
@@ -66,6 +78,8 @@ def run(
                           "arm_errors_deg": err.tolist()})  # fmt: skip
         print(f"  frame {f.index:4d}  {dt * 1e3:8.1f} ms  cost {est.cost:8.3f}  arm-axis error (deg) "
               + " ".join(f"{e:5.2f}" for e in err), file=out, flush=True)  # fmt: skip
+        if save and (f.index == 1 or f.index % 10 == 0 or f.index == frames - 1):
+            _picture(save, seq, f, est, template_pose, config)
     estimates = np.asarray(estimates)
     errors = arm_axis_errors(seq.chain, estimates, seq.params[1:])
     mean = dict(zip(ARM_PARTS, errors.mean(axis=0).tolist()))
@@ -111,7 +125,42 @@ def run(
     print(f"median frame time {np.median(ms[1:] if len(ms) > 1 else ms):.1f} ms", file=out)
     report["stages"] = tracker.scheduler.report()
     report["median_frame_ms"] = float(np.median(ms[1:] if len(ms) > 1 else ms))
+    if save:
+        _error_plot(save, seq, errors, out)
+        print(f"pictures written to {save}", file=out)
     return report
+
+
+def _picture(save, seq, f, est, template_pose, config) -> None:
+    """Frame ``f`` with the model at the estimate, the true arm axes and the template points (rendered
+    at ``template_pose``, where the tracker rendered the template this frame was matched with)."""
+    import cv2
+
+    from ..trackers.body.pictures import draw_estimate
+
+    try:
+        templates = sparse_template(seq.chain, template_pose, config.n_rgb, config.n_depth, camera=seq.camera,
+                                    size=seq.size)  # fmt: skip
+    except ValueError:  # the model out of view at that pose: no template points to draw
+        templates = None
+    label = f"frame {f.index}  cost {est.cost:.3f}  confidence {est.confidence:.0f}"
+    img = draw_estimate(f.gray, seq.chain, est.params, seq.camera, templates=templates, truth=f.params, label=label)
+    cv2.imwrite(os.path.join(save, f"frame_{f.index:04d}.png"), img)
+
+
+def _error_plot(save, seq, errors, out) -> None:
+    from ..trackers.body.pictures import error_plot
+
+    try:
+        fig = error_plot(np.arange(1, len(errors) + 1), errors, list(ARM_PARTS),
+                         title=f"sequence {seq.index} ({SEQUENCES[seq.index]}): arm-axis error per part")  # fmt: skip
+    except ImportError as e:
+        print(f"  (no error plot: {e})", file=out)
+        return
+    import matplotlib.pyplot as plt
+
+    fig.savefig(os.path.join(save, "errors.png"), dpi=90)
+    plt.close(fig)
 
 
 def write_json(report: dict, path: str) -> None:
