@@ -1,5 +1,5 @@
-"""The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack bench``, ``gputrack tune``,
-``gputrack demo body|groups|pedestrians|face``, ``gputrack track groups|pedestrians|face``."""
+"""The ``gputrack`` command line: ``gputrack devices [--json]``, ``gputrack doctor``, ``gputrack bench``, ``gputrack tune``,
+``gputrack demo body|groups|pedestrians|face``, ``gputrack track body|groups|pedestrians|face``."""
 
 from __future__ import annotations
 
@@ -53,6 +53,13 @@ def _float_above(low: float, *, inclusive: bool = False, high: float = float("in
 DEVICE_HELP = "device spec (default: GPUTRACK_DEVICE, else the best available)"
 
 
+def format_devices(infos) -> str:
+    """The device table (gputrack/doctor.py, which the ``doctor`` command shares)."""
+    from .doctor import format_devices as table
+
+    return table(infos)
+
+
 def _device_spec(text: str) -> str:
     """A spec of a known form (whether its device is available is found when it is opened)."""
     from .registry import parse_spec
@@ -74,15 +81,10 @@ def _face_sequence(text: str) -> str:
     )
 
 
-def format_devices(infos) -> str:
-    """The device table: spec, available or not, fp64, kind, name or reason."""
-    w = max([16, *(len(d.spec) + 2 for d in infos)])
-    head = f"{'spec':<{w}}{'available':<11}{'fp64':<6}{'kind':<6}name / reason"
-    lines = [head, "-" * (w + 80)]
-    for d in infos:
-        what = d.name if d.available else d.reason
-        lines.append(f"{d.spec:<{w}}{('yes' if d.available else 'no'):<11}{('yes' if d.fp64 else '-'):<6}{d.kind:<6}{what}")
-    return "\n".join(lines)
+def cmd_doctor(args) -> int:
+    from . import doctor
+
+    return doctor.run(args)
 
 
 def cmd_devices(args) -> int:
@@ -165,7 +167,7 @@ def cmd_demo(args) -> int:
 
     report = body.run(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
                        shoulders=args.shoulders, seed=args.seed, template_every=args.template_every,
-                       depth_tol=args.depth_tol, n_depth=args.depth_points)  # fmt: skip
+                       depth_tol=args.depth_tol, n_depth=args.depth_points, save=args.save)  # fmt: skip
     if args.json:
         body.write_json(report, args.json)
     return 0
@@ -246,7 +248,66 @@ def cmd_track_face(args) -> int:
     return 0
 
 
+def cmd_track_body(args) -> int:
+    import dataclasses
+
+    from .device import DeviceUnavailable
+    from .registry import device
+    from .trackers.body import BodyTrackerConfig
+    from .trackers.body.recording import DEPTH_SCALE, read_body_model, read_camera, read_pose, track_recording
+
+    name = "gputrack track body"
+    if args.init is None and not args.rigid:
+        args.parser.error("--init: expected the first frame's pose (a JSON file {\"params\": [...]}) unless --rigid")
+    try:
+        cam, extras = read_camera(args.camera)
+        dims = read_body_model(args.model) if args.model else None
+        start = read_pose(args.init, (6,) if args.rigid else (14, 20)) if args.init else None
+    except (FileNotFoundError, ValueError, TypeError) as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 1
+    scale = args.depth_scale or extras.get("depth_scale", DEPTH_SCALE)
+    base = BodyTrackerConfig(c_depth=50.0, lam=0.5) if args.rigid else BodyTrackerConfig()
+    changes = {k: v for k, v in (("lm_iterations", args.lm), ("stages", args.stages), ("samples", args.samples),
+                                 ("c_depth", args.c_depth), ("lam", args.lam), ("depth_tol", args.depth_tol))
+               if v is not None}  # fmt: skip
+    try:
+        config = dataclasses.replace(base, **changes)
+    except ValueError as e:
+        args.parser.error(str(e))
+    size = (extras["width"], extras["height"]) if "width" in extras and "height" in extras else None
+    try:
+        dev = device(args.device)
+    except DeviceUnavailable as e:
+        args.parser.error(f"--device: {e}")
+    try:
+        out = open(args.out, "w") if args.out else sys.stdout
+    except OSError as e:
+        print(f"{name}: {args.out}: cannot write the output ({e.strerror})", file=sys.stderr)
+        return 1
+
+    def progress(k, rec):
+        if args.out and k % 30 == 0:
+            print(f"  frame {k:5d}  confidence {rec['confidence']:.0f}" + (f"  {rec['message']}" if "message" in rec else ""),
+                  file=sys.stderr, flush=True)  # fmt: skip
+
+    try:
+        n = track_recording(dev, args.rgb, args.depth, out, camera=cam, start=start, dimensions=dims, depth_scale=scale,
+                            config=config, rigid=args.rigid, start_name=args.init or "start pose", camera_size=size,
+                            save=args.save, progress=progress)  # fmt: skip
+    except (FileNotFoundError, ValueError, TypeError) as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if args.out:
+            out.close()
+    print(f"{name}: {n} frames (depth {scale:g} mm per unit)", file=sys.stderr)
+    return 0
+
+
 def cmd_track(args) -> int:
+    if args.what == "body":
+        return cmd_track_body(args)
     if args.what == "face":
         return cmd_track_face(args)
     if args.what == "pedestrians":
@@ -373,6 +434,8 @@ def main(argv=None) -> int:
     p.add_argument("--depth-points", type=_int_at_least(1), default=128, metavar="N",
                    help="depth template points N' (default 128)")  # fmt: skip
     p.add_argument("--seed", type=_int_at_least(0), default=0)
+    p.add_argument("--save", metavar="DIR", help="write pictures (frames with the model and template points, "
+                   "the per-part errors over the frames)")  # fmt: skip
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.set_defaults(func=cmd_demo, parser=p)
     p = which.add_parser("groups", help="paper 001: groups of people from a simulated stereo camera")
@@ -412,8 +475,36 @@ def main(argv=None) -> int:
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.set_defaults(func=cmd_demo, parser=p)
 
-    track = sub.add_parser("track", help="track a real recording (paper 001 groups, 002 pedestrians, 003 face)")
+    track = sub.add_parser("track", help="track a real recording (paper 000 body, 001 groups, 002 pedestrians, 003 face)")
     which = track.add_subparsers(dest="what", required=True)
+    p = which.add_parser("body", help="an RGB-D recording (ICL-NUIM / TUM RGB-D layout) -> the upper body's pose per "
+                         "frame as JSON lines")  # fmt: skip
+    p.add_argument("--rgb", required=True, help="RGB (or gray) images: a glob pattern or a directory")
+    p.add_argument("--depth", required=True, help="depth images (16-bit PNG): a glob pattern or a directory")
+    p.add_argument("--camera", required=True, metavar="JSON",
+                   help='{"fx", "fy", "cx", "cy"} px (optional "width", "height", "depth_scale") or Open3D\'s '
+                   '{"intrinsic_matrix": [9]}')  # fmt: skip
+    p.add_argument("--init", metavar="JSON", help='the first frame\'s pose {"params": [14 or 20 numbers]} '
+                   "(radians, mm; required unless --rigid)")  # fmt: skip
+    p.add_argument("--model", metavar="JSON", help="the body's dimensions per part (mm; default: the average build)")
+    p.add_argument("--depth-scale", type=_float_above(0.0), metavar="MM",
+                   help="mm per depth unit (default: the camera file's \"depth_scale\", else 0.2: TUM RGB-D and "
+                   "ICL-NUIM's 5000 units per metre; 1 for depth in mm)")  # fmt: skip
+    p.add_argument("--rigid", action="store_true", help="track the camera's motion against a rigid scene instead "
+                   "(template from the previous frame; --init optional, 6 numbers)")  # fmt: skip
+    p.add_argument("--lm", type=_int_at_least(0), help="LM iterations per frame (default 10)")
+    p.add_argument("--stages", type=_int_at_least(1), help="coarse-to-fine particle-filter stages (default 3)")
+    p.add_argument("--samples", type=_int_at_least(1), help="particle-filter samples K per stage (default 1500)")
+    p.add_argument("--c-depth", type=_float_above(0.0), metavar="MM",
+                   help="c' of eq. 18 (default 5 mm; 50 with --rigid)")  # fmt: skip
+    p.add_argument("--lam", type=_float_above(0.0, inclusive=True, high=1.0),
+                   help="lambda of eq. 19, the depth term's weight (default 0.9; 0.5 with --rigid)")  # fmt: skip
+    p.add_argument("--depth-tol", type=_float_above(0.0, inclusive=True), metavar="MM",
+                   help="depth differences up to MM count as none (default 0)")  # fmt: skip
+    p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
+    p.add_argument("--out", metavar="FILE", help="write the JSON lines here (default stdout)")
+    p.add_argument("--save", metavar="DIR", help="write every 10th frame with the model and the template points")
+    p.set_defaults(func=cmd_track, parser=p)
     p = which.add_parser("groups", help="a rectified stereo recording -> groups per frame as JSON lines")
     p.add_argument("--left", required=True, help="left video, image directory or glob pattern")
     p.add_argument("--right", required=True, help="right video, image directory or glob pattern")
@@ -445,6 +536,14 @@ def main(argv=None) -> int:
     p.add_argument("--out", metavar="FILE", help="write the JSON lines here (default stdout)")
     p.add_argument("--save", metavar="DIR", help="write every 10th frame with the points and the head's axes")
     p.set_defaults(func=cmd_track)
+
+    p = sub.add_parser("doctor", help="check this host: probe every backend, build every kernel, self-test every device",
+                       description="Probe every backend, build every OpenCL kernel on every OpenCL device and run "
+                       "the numerical self-tests on every available device; exit status 1 on a problem.")  # fmt: skip
+    from .doctor import add_arguments as doctor_arguments
+
+    doctor_arguments(p)
+    p.set_defaults(func=cmd_doctor)
 
     p = sub.add_parser("bench", help="time the ops on every device, with ratios against NumPy")
     p.add_argument("--device", action="append", help="spec, or 'all' (default; repeatable)")

@@ -1,6 +1,6 @@
 """Tiny numerical self-tests, one per primitive, run on a device against the NumPy reference.
 
-Used by ``host/doctor.py``. Every check goes through the public API only: it runs the same
+Used by the doctor (:mod:`gputrack.doctor`, ``gputrack doctor``). Every check goes through the public API only: it runs the same
 public ops on ``device`` and on the ``numpy`` device with the same inputs (from
 :mod:`gputrack.sim.problems`) and raises (AssertionError naming the largest error, or any
 exception) when they disagree. A primitive's check is listed in :data:`CHECKS` when the
@@ -244,10 +244,107 @@ def check_clusters(device: Device) -> None:
     assert np.array_equal(got, want), f"dbscan labels differ from the reference at {np.flatnonzero(got != want)[:5]}"
 
 
+def _body_scene(rng, n=48, m=40, h=120, w=160):
+    """(chain, params (1, 14) float32, rgb and depth templates, gray, depth, camera): the upper
+    body of simulated sequence 0 at frame 0 before a small camera, template points scattered
+    around its parts' origins, and a smooth gray frame with a depth frame 2 m away (a few
+    missing readings), so that every hypothesis reads pixels of its own."""
+    from .models import Camera, upper_body
+    from .ops.template import SparseTemplate
+    from .sim.body import sequence_params
+
+    chain = upper_body()
+    params = sequence_params(0, frames=1)[:1].astype(np.float32)
+    cam = Camera(60.0, 60.0, (w - 1) / 2, (h - 1) / 2)
+    rgb = SparseTemplate(rng.uniform(-80, 80, (n, 3)), rng.integers(0, chain.n_parts, n), rng.uniform(30, 220, n))
+    dep = SparseTemplate(rng.uniform(-80, 80, (m, 3)), rng.integers(0, chain.n_parts, m))
+    yy, xx = np.mgrid[0:h, 0:w]
+    gray = (110 + 60 * np.sin(xx / 3.0) * np.cos(yy / 4.0) + rng.normal(0, 3, (h, w))).astype(np.float32)
+    depth = (2000 + 40 * np.sin(xx / 5.0) + rng.normal(0, 2, (h, w))).astype(np.float32)
+    depth[rng.random((h, w)) < 0.02] = 0
+    return chain, params, rgb, dep, gray, depth, cam
+
+
+def check_particles(device: Device) -> None:
+    """sample_around (per-parameter and per-candidate sigma) and best_k with rows: the same
+    samples, indices, scores and rows as the reference."""
+    from .ops.particles import best_k, sample_around
+
+    rng = np.random.default_rng(6)
+    ref = get_device("numpy")
+    cand = rng.normal(0, 1, (3, 7)).astype(np.float32)
+    sig = rng.uniform(0.01, 0.3, 7).astype(np.float32)
+    per = rng.uniform(0.01, 0.3, (3, 7)).astype(np.float32)
+    for s, keep in ((sig, True), (per, False)):
+        want = sample_around(ref, cand, s, 61, 12345, keep_candidates=keep)
+        got = to_numpy(sample_around(device, cand, s, 61, 12345, keep_candidates=keep))
+        err = float(np.max(np.abs(got - want)))
+        assert err <= 1e-5, f"sample_around differs from the reference by {err:g} (keep_candidates={keep})"
+    scores = rng.normal(0, 1, 203).astype(np.float32)
+    scores[[5, 77]] = scores[9]  # ties keep the lower index first
+    scores[11] = np.nan  # NaN ranks after every number
+    rows = rng.normal(0, 1, (203, 5)).astype(np.float32)
+    want = best_k(ref, scores, 13, rows)
+    got = best_k(device, scores, 13, rows)
+    assert np.array_equal(to_numpy(got.indices), want.indices), "best_k indices differ from the reference"
+    assert np.array_equal(to_numpy(got.scores), want.scores), "best_k scores differ from the reference"
+    assert np.array_equal(to_numpy(got.rows), want.rows), "best_k rows differ from the reference"
+
+
+def check_pf_stage(device: Device) -> None:
+    """pf_stage (sample, pose, score, best k as one op) of the upper body: the same kept samples as
+    the reference, their scores to float32 rounding."""
+    from .models.upper_body import pf_sigma
+    from .ops.pf import pf_stage
+
+    rng = np.random.default_rng(8)
+    chain, params, rgb, dep, gray, depth, cam = _body_scene(rng)
+    cand = (params + rng.normal(0, 0.01, (4, chain.n_params))).astype(np.float32)
+    sigma = pf_sigma(chain).astype(np.float32)
+    ref = get_device("numpy")
+    want = pf_stage(ref, chain, cand, sigma, 64, 99, rgb, dep, gray, depth, cam, k=5)
+    got = pf_stage(device, chain, cand, sigma, 64, 99, rgb, dep, gray, depth, cam, k=5)
+    assert np.array_equal(to_numpy(got.indices), want.indices), (
+        f"pf_stage keeps samples {to_numpy(got.indices)}, the reference {want.indices}"
+    )
+    err = float(np.max(np.abs(to_numpy(got.scores) - want.scores) / (1 + np.abs(want.scores))))
+    err = max(err, float(np.max(np.abs(to_numpy(got.rows) - want.rows))))
+    assert err <= 1e-4, f"pf_stage differs from the reference by {err:.3g}"
+
+
+def check_pose_residuals(device: Device) -> None:
+    """pose_residuals of a few poses of the upper body, and of the central-difference stack the LM
+    evaluates (the rows it reads): against the reference to float32 rounding."""
+    from .ops.pose_residuals import pose_residuals
+
+    rng = np.random.default_rng(9)
+    chain, params, rgb, dep, gray, depth, cam = _body_scene(rng)
+    P = chain.n_params
+    poses = (params + rng.normal(0, 0.02, (3, P))).astype(np.float32)
+    ref = get_device("numpy")
+    want = pose_residuals(ref, chain, poses, rgb, dep, gray, depth, cam)
+    got = to_numpy(pose_residuals(device, chain, poses, rgb, dep, gray, depth, cam))
+    err = float(np.max(np.abs(got - want)))
+    assert err <= 1e-4, f"pose_residuals differs from the reference by {err:.3g}"
+    h = np.float32(1e-3)
+    stack = np.repeat(poses[:1], 2 * P + 1, axis=0)
+    stack[1 : P + 1] += h * np.eye(P, dtype=np.float32)
+    stack[P + 1 :] -= h * np.eye(P, dtype=np.float32)
+    want = pose_residuals(ref, chain, stack, rgb, dep, gray, depth, cam)
+    got = to_numpy(pose_residuals(device, chain, stack, rgb, dep, gray, depth, cam, central=True))
+    read = np.vstack([np.ones((1, want.shape[1]), bool), np.tile(chain.jacobian_sparsity(
+        np.concatenate([rgb.part, dep.part])).T, (2, 1))])  # fmt: skip
+    err = float(np.max(np.abs(got - want)[read]))
+    assert err <= 1e-4, f"pose_residuals (central differences) differs from the reference by {err:.3g}"
+
+
 CHECKS = [
     ("arrays", check_arrays),
     ("kinematics", check_kinematics),
     ("template", check_template),
+    ("particles", check_particles),
+    ("pf_stage", check_pf_stage),
+    ("pose_residuals", check_pose_residuals),
     ("lm", check_lm),
     ("kalman", check_kalman),
     ("gating", check_gating),

@@ -1,18 +1,30 @@
 // Zero-mean NCC of a template with the bilinear image patch at a point (paper 003 eq. 13).
 // Conventions: gputrack/ops/ncc.py.
 #define GT_FLAT 1e-6f
+#ifndef GT_INTENSITY_MAX
+#error "gt_ncc.cl needs the ABI defines (gputrack.abi.cl_defines)"
+#endif
+
+// A pixel or template value clamped to [-GT_INTENSITY_MAX, GT_INTENSITY_MAX] (gputrack/abi.py
+// INTENSITY_MAX; gputrack/ops/ncc.py); NaN stays NaN.
+inline float gt_ncc_clamp(const float x)
+{
+    const float m = (float)GT_INTENSITY_MAX;
+    return x > m ? m : (x < -m ? -m : x);
+}
 
 // The NCC of the shifted sums (see gt_ncc_one): 0 for a flat patch or template.
 inline float gt_ncc_finish(const float n, const float p0, const float t0, const float sp, const float st,
                            const float spp, const float stt, const float spt)
 {
-    const float vp = spp - sp * sp / n, vt = stt - st * st / n, cv = spt - sp * st / n;  // centred sums
+    // centred sums (each product of a sum with a mean: no float32 overflow below 2**48 per value)
+    const float vp = spp - sp * (sp / n), vt = stt - st * (st / n), cv = spt - sp * (st / n);
     const float mp = p0 + sp / n, mt = t0 + st / n;
     // a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
     const float fp = GT_FLAT * (fabs(mp) + 1.0f), ft = GT_FLAT * (fabs(mt) + 1.0f);
     if (!(vp > n * fp * fp && vt > n * ft * ft))
         return 0.0f;
-    return clamp(cv / sqrt(vp * vt), -1.0f, 1.0f);
+    return clamp(cv / (sqrt(vp) * sqrt(vt)), -1.0f, 1.0f);
 }
 
 inline float gt_ncc_one(const float u, const float v, __global const float *t, const int s,
@@ -27,7 +39,7 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
     // one pass over the patch; sums of values shifted by the first patch and template values
     // (so the centred sums below do not cancel), accumulated per row then over the rows
     float p0 = 0.0f;
-    const float t0 = t[0];
+    const float t0 = gt_ncc_clamp(t[0]);
     float sp = 0.0f, st = 0.0f, spp = 0.0f, stt = 0.0f, spt = 0.0f;
     if (s < w && s < h) {
         // inside the image every patch pixel has the same bilinear weights: one base pixel (the
@@ -38,17 +50,17 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
         for (int i = 0; i < s; ++i) {
             __global const float *top = img + (size_t)(yb + i) * (size_t)w + xb;
             __global const float *bot = top + w;
-            float lt = top[0], lb = bot[0];
+            float lt = gt_ncc_clamp(top[0]), lb = gt_ncc_clamp(bot[0]);
             float rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
             for (int jj = 0; jj < s; ++jj) {
-                const float nt = top[jj + 1], nb = bot[jj + 1];
+                const float nt = gt_ncc_clamp(top[jj + 1]), nb = gt_ncc_clamp(bot[jj + 1]);
                 const float tp = lt + a * (nt - lt), bt = lb + a * (nb - lb);
                 const float P0 = tp + bw * (bt - tp);  // patch pixel (i, jj), bilinear
                 lt = nt;
                 lb = nb;
                 if (i == 0 && jj == 0)
                     p0 = P0;
-                const float P = P0 - p0, T = t[i * s + jj] - t0;
+                const float P = P0 - p0, T = gt_ncc_clamp(t[i * s + jj]) - t0;
                 rp += P;
                 rt += T;
                 rpp += P * P;
@@ -73,12 +85,13 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
             const int x0 = min((int)uu, w - 2);
             const float a = uu - (float)x0;
             const int k = y0 * w + x0;
-            const float top = img[k] + a * (img[k + 1] - img[k]);
-            const float bot = img[k + w] + a * (img[k + w + 1] - img[k + w]);
+            const float i00 = gt_ncc_clamp(img[k]), i01 = gt_ncc_clamp(img[k + 1]);
+            const float i10 = gt_ncc_clamp(img[k + w]), i11 = gt_ncc_clamp(img[k + w + 1]);
+            const float top = i00 + a * (i01 - i00), bot = i10 + a * (i11 - i10);
             const float P0 = top + bw * (bot - top);  // patch pixel (i, jj), bilinear
             if (i == 0 && jj == 0)
                 p0 = P0;
-            const float P = P0 - p0, T = t[i * s + jj] - t0;
+            const float P = P0 - p0, T = gt_ncc_clamp(t[i * s + jj]) - t0;
             rp += P;
             rt += T;
             rpp += P * P;

@@ -85,3 +85,45 @@ def test_bad_input(device):
         patch_ncc(device, pts[:0], tpl, img)
     with pytest.raises(TypeError, match="image: expected dtype float32"):
         patch_ncc_per_point(device, pts, tpl, img.astype(np.float64))
+
+
+def test_extreme_finite_values_are_clamped_alike_on_every_backend(device):
+    """Pixels and template values beyond +-INTENSITY_MAX (2**48) are clamped to it on every backend
+    and in the reference (gputrack/ops/ncc.py): an image of +-3e38 scores as one of +-2**48, not 0
+    or NaN; values up to the limit score as the unscaled input (NCC is scale invariant); a template
+    scaled past the limit is clamped to one value and scores as flat (0)."""
+    from gputrack.abi import INTENSITY_MAX
+
+    lim = np.float32(INTENSITY_MAX)
+    rng = np.random.default_rng(21)
+    h, w, s = 20, 24, 5
+    img = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    tpl = rng.uniform(0, 1, (3, s, s)).astype(np.float32)
+    tpl[0] = img[3:8, 4:9]
+    pts = np.array([[[6, 5], [10, 10], [12, 8]], [[15.5, 9.25], [3, 13], [19, 15]]], np.float32)
+    signs = np.where(img > 0.5, 3e38, -3e38).astype(np.float32)
+    plain = patch_ncc_per_point(REF, pts, tpl, img)
+    cases = {
+        "image of +-3e38": (signs, tpl),
+        "image x 3e38": ((img * 3e38).astype(np.float32), tpl),
+        "image x 2**47": ((img * 2.0**47).astype(np.float32), tpl),
+        "template x 1e30": (img, (tpl * 1e30).astype(np.float32)),
+        "template x -2**47": (img, (tpl * -(2.0**47)).astype(np.float32)),
+        "both x 2**47": ((img * 2.0**47).astype(np.float32), (tpl * 2.0**47).astype(np.float32)),
+    }
+    for name, (im, tp) in cases.items():
+        want = patch_ncc_per_point(REF, pts, tp, im)
+        assert np.isfinite(want).all(), name
+        # the reference's answer is the clamped input's
+        clamped = patch_ncc_per_point(REF, pts, np.clip(tp, -lim, lim), np.clip(im, -lim, lim))
+        np.testing.assert_array_equal(want, clamped, err_msg=name)
+        assert_matches(device, patch_ncc_per_point(device, pts, tp, im), want, scale=10.0, err_msg=name)
+        assert_matches(device, patch_ncc(device, pts, tp, im), want.astype(np.float64).sum(axis=1), scale=30.0,
+                       err_msg=name)  # fmt: skip
+    # within the limit the score is the unscaled input's; past it the values are clamped
+    np.testing.assert_allclose(patch_ncc_per_point(REF, pts, tpl, cases["image x 2**47"][0]), plain, atol=1e-5)
+    np.testing.assert_allclose(patch_ncc_per_point(REF, pts, cases["both x 2**47"][1], cases["both x 2**47"][0]),
+                               plain, atol=1e-5)  # fmt: skip
+    np.testing.assert_allclose(patch_ncc_per_point(REF, pts, cases["template x -2**47"][1], img), -plain, atol=1e-5)
+    assert np.abs(patch_ncc_per_point(REF, pts, tpl, signs)).max() > 0.1  # a real score, not 0
+    np.testing.assert_array_equal(patch_ncc_per_point(REF, pts, cases["template x 1e30"][1], img), 0.0)

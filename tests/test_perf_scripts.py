@@ -143,3 +143,57 @@ def test_sweep_script_end_to_end_json(tmp_path):
     for r in run["results"]:
         assert {"median_ms", "p10_ms", "p90_ms", "reps"} <= set(r["device"])
         assert r["device"]["p10_ms"] <= r["device"]["median_ms"] <= r["device"]["p90_ms"]
+
+
+# -- every benchmark script, on numpy at a tiny size --------------------------------------------------
+#: each perf/bench_*.py with the options that make its cases tiny (None: not run here, with the reason)
+TINY = {
+    "bench_alloc.py": ["--tracks", "100", "--batch", "8", "--memory-calls", "0"],
+    "bench_background.py": ["--frames", "3", "--size", "32x24"],
+    "bench_body.py": ["--samples", "20", "--lm", "1", "--points", "16"],
+    "bench_clusters.py": ["--dbscan-points", "64", "--components-points", "64"],
+    "bench_face.py": ["--frames", "9", "--particles", "16", "--no-scipy"],
+    "bench_groups.py": None,  # its smallest run (--frames 2) takes ~90 s on numpy: needs a tiny-size option
+    "bench_kalman.py": ["--tracks", "100", "--loop-max-tracks", "100", "--reference-max-tracks", "100"],
+    "bench_lm.py": None,  # its smallest run (P 14, M 16, 2 iterations, no scipy) takes ~25 s on numpy
+    "bench_pedestrians.py": ["--people", "2", "--frames", "2", "--scale", "0.25", "--no-sklearn"],
+    "bench_stereo.py": ["--size", "64x48", "--no-accuracy"],
+    "bench_template.py": ["--batch", "8", "--points", "16", "--lm-batch", "4", "--ncc-batch", "4"],
+    "bench_tracking.py": ["--tracks", "10", "--frames", "40", "--no-stonesoup", "--no-kdtree"],
+    "bench_transfer.py": [],
+}
+
+
+def test_every_benchmark_script_has_a_smoke_entry():
+    scripts = sorted(p.name for p in (ROOT / "perf").glob("bench_*.py"))
+    assert scripts == sorted(TINY), f"perf scripts without a TINY entry: {sorted(set(scripts) - set(TINY))}"
+
+
+@pytest.mark.parametrize("script", sorted(TINY))
+def test_benchmark_script_runs_on_numpy_at_a_tiny_size(script, monkeypatch, capsys):
+    """The script as users run it, in its per-device child mode on numpy (the harness's one process
+    per device), with tiny sizes: every case is timed and reported with its medians."""
+    import runpy
+
+    if TINY[script] is None:
+        pytest.skip(f"{script}: no tiny size yet (see TINY)")
+    if script == "bench_face.py":
+        try:
+            from gputrack.models.face import load_ict
+
+            load_ict()
+        except FileNotFoundError as e:
+            pytest.skip(f"the ICT face data is absent: {e}")
+    path = ROOT / "perf" / script
+    monkeypatch.setattr(sys, "argv", [str(path), "--child", "numpy", "--min-time", "0.001", *TINY[script]])
+    with pytest.raises(SystemExit) as e:
+        runpy.run_path(str(path), run_name="__main__")
+    out = capsys.readouterr().out
+    assert e.value.code in (0, None), out
+    line = next((ln for ln in out.splitlines() if ln.startswith("GPUTRACK_BENCH ")), None)
+    assert line is not None, out[-2000:]
+    doc = json.loads(line.split(" ", 1)[1])
+    assert doc["device"]["spec"] == "numpy" and doc["results"], doc
+    for r in doc["results"]:
+        t = r["device"]
+        assert t["reps"] >= 1 and 0 < t["p10_ms"] <= t["median_ms"] <= t["p90_ms"], r

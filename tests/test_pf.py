@@ -170,7 +170,13 @@ def test_opencl_partial_evaluation_with_other_lane_counts(device, scene, lanes, 
         pytest.skip("OpenCL's lane count (the other backends fix their own)")
     from gputrack.backends.opencl import template as cl_template
 
-    monkeypatch.setattr(cl_template, "CPU_LANES", lanes)
+    # forced through the stage's launch parameters (a GPU's own choice is 1 whatever CPU_LANES is)
+    default = cl_template.default_params(device)
+    monkeypatch.setattr(cl_template, "default_params", lambda dev: {**default, "lanes": lanes})
+    used = []
+    real = cl_template._kernel
+    monkeypatch.setattr(cl_template, "_kernel", lambda dev, name, **defines: used.append(defines["LANES"])
+                        or real(dev, name, **defines))  # fmt: skip
     chain, frame, rgb, dep, camera, cand, groups = scene
     for group in groups:
         sigma = _sigma(chain, group)
@@ -179,3 +185,4 @@ def test_opencl_partial_evaluation_with_other_lane_counts(device, scene, lanes, 
         assert_matches(device, got.scores, gputrack.to_numpy(want.scores), scale=50)
         idx = gputrack.to_numpy(got.indices)
         assert_matches(device, got.scores, gputrack.to_numpy(cost.total)[idx], scale=50)
+    assert lanes in used, used  # the stage ran the variant asked for

@@ -186,18 +186,59 @@ def test_rgbd_matches_reference_template_sizes(device, n):
     assert res.shape == (11, n + max(n // 2, 1))
 
 
-@pytest.mark.parametrize("lanes", [1, 4, 16])
-def test_rgbd_other_lane_counts(device, monkeypatch, lanes):
-    """The kernels' other hypotheses-per-thread variants (GPUs build LANES = 1) agree too."""
+def _lane_spy(module, monkeypatch) -> list:
+    """The lane counts the rgbd kernels of ``module`` (gputrack.backends.<backend>.template) are
+    launched with, recorded as they are built or launched."""
+    used = []
+    if module.__name__.endswith("opencl.template"):
+        real = module._kernel
+
+        def kernel(device, name, **defines):
+            used.append(defines["LANES"])
+            return real(device, name, **defines)
+
+        monkeypatch.setattr(module, "_kernel", kernel)
+    else:
+        real = module._common
+
+        def common(*args):
+            used.append(int(args[-1]["lanes"]))
+            return real(*args)
+
+        monkeypatch.setattr(module, "_common", common)
+    return used
+
+
+def test_rgbd_default_lanes_are_the_devices_choice(device, monkeypatch):
+    """Without a tuning-cache entry the kernels run the device's own lane count (CPU_LANES on a CPU,
+    1 on a GPU: ``lanes(device)``), whatever kind of device this is."""
     if device.backend == "numpy":
         pytest.skip("the reference has no lanes")
-    module = __import__(f"gputrack.backends.{device.backend}.template", fromlist=["CPU_LANES"])
+    module = __import__(f"gputrack.backends.{device.backend}.template", fromlist=["lanes"])
+    want = 1 if device.info.kind == "gpu" else module.lanes(device)
+    assert module.default_params(device)["lanes"] == module.lanes(device) == want
+    used = _lane_spy(module, monkeypatch)
+    rng = np.random.default_rng(3)
+    _compare(device, *make_scene(rng, 37, 29, 31))
+    assert used and set(used) == {want}, used
+
+
+@pytest.mark.parametrize("lanes", [1, 4, 16])
+def test_rgbd_other_lane_counts(device, monkeypatch, lanes):
+    """The kernels' other hypotheses-per-thread variants agree too: each variant is forced through
+    the launch parameters (as ``gputrack tune`` would choose it), so that it runs on a GPU as on a
+    CPU, and the launches are checked to use it."""
+    if device.backend == "numpy":
+        pytest.skip("the reference has no lanes")
+    module = __import__(f"gputrack.backends.{device.backend}.template", fromlist=["lanes"])
     if device.backend == "taichi" and module.lanes(device) == 1:
         pytest.skip("this Taichi arch always runs one hypothesis per thread")
-    monkeypatch.setattr(module, "CPU_LANES", lanes)
-    assert module.lanes(device) == lanes
+    default = module.default_params(device)
+    monkeypatch.setattr(module, "_tuned", lambda *args: {**default, "lanes": lanes})
+    used = _lane_spy(module, monkeypatch)
     rng = np.random.default_rng(lanes)
     _compare(device, *make_scene(rng, 37, 29, 31))
+    assert used and set(used) == {lanes}, used
 
 
 def test_rgbd_depth_tolerance(device):

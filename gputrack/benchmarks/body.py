@@ -17,6 +17,8 @@ NAME = "body"
 def add_arguments(parser):
     parser.add_argument("--sequence", type=int, default=0, help="simulated sequence (default 0)")
     parser.add_argument("--samples", type=int, default=1500, help="K, samples per PF stage (default 1500)")
+    parser.add_argument("--lm", type=int, default=10, help="LM iterations of the PF + LM frame (default 10)")
+    parser.add_argument("--points", type=int, default=128, help="N = N' template points (default 128)")
 
 
 def cases(device, args):
@@ -29,8 +31,9 @@ def cases(device, args):
     frame = seq[1]
     reference = get_device("numpy")
     out = []
-    for lm in (0, 10):
-        cfg = BodyTrackerConfig(lm_iterations=lm, samples=args.samples, template_every=10**9)
+    n = args.points
+    for lm in (0, args.lm):
+        cfg = BodyTrackerConfig(lm_iterations=lm, samples=args.samples, template_every=10**9, n_rgb=n, n_depth=n)
         tracker = BodyTracker(device, seq.params[0], config=cfg)
         ref = BodyTracker(reference, seq.params[0], config=cfg)
         label = "PF 3 stages" + (f" + LM {lm}" if lm else "")
@@ -39,14 +42,14 @@ def cases(device, args):
                 f"body frame, {label}",
                 run=lambda t=tracker: t.track(frame.gray, frame.depth),
                 reference=lambda t=ref: t.track(frame.gray, frame.depth),
-                params={"K": args.samples, "N": 128, "N_depth": 128, "stages": 3, "lm": lm, "cascade": cfg.cascade,
+                params={"K": args.samples, "N": n, "N_depth": n, "stages": 3, "lm": lm, "cascade": cfg.cascade,
                         "width": 640, "height": 480},  # fmt: skip
             )
         )
     from ..models.upper_body import pf_sigma
     from ..ops.pf import pf_stage
 
-    rgb, dep = sparse_template(seq.chain, seq.params[0], 128, 128)
+    rgb, dep = sparse_template(seq.chain, seq.params[0], n, n)
     cand = tracker.candidates.astype("float32")
     g, d = device.asarray(frame.gray), device.asarray(frame.depth)
     d_cand = device.asarray(cand)
@@ -59,14 +62,14 @@ def cases(device, args):
                                              tracker.camera),  # fmt: skip
                 reference=lambda s=sigma: pf_stage(reference, seq.chain, cand, s, args.samples, 7, rgb, dep,
                                                    frame.gray, frame.depth, tracker.camera),  # fmt: skip
-                params={"K": args.samples, "C": 10, "N": 128, "N_depth": 128, "group": name},
+                params={"K": args.samples, "C": 10, "N": n, "N_depth": n, "group": name},
             )
         )
     out.append(
         Case(
             "template (host render + pick)",
-            run=lambda: sparse_template(seq.chain, seq.params[0], 128, 128),
-            params={"N": 128, "N_depth": 128},
+            run=lambda: sparse_template(seq.chain, seq.params[0], n, n),
+            params={"N": n, "N_depth": n},
         )
     )
     return out

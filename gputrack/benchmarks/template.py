@@ -20,6 +20,9 @@ NAME = "template"
 def add_arguments(parser):
     parser.add_argument("--batch", type=int, default=1500, help="hypotheses per rgbd_cost call (default 1500)")
     parser.add_argument("--points", type=int, default=128, help="N = N' template points (default 128)")
+    parser.add_argument("--lm-batch", type=int, action="append",
+                        help="B of the rgbd_residuals cases (repeatable; default 280 and 400)")  # fmt: skip
+    parser.add_argument("--ncc-batch", type=int, default=1000, help="hypotheses of the patch_ncc case (default 1000)")
 
 
 def cases(device, args):
@@ -57,7 +60,9 @@ def cases(device, args):
             params={**params, "out": True},
         ),
     ]
-    for lm_b in (280, 400):
+    for lm_b in args.lm_batch or (280, 400):
+        if lm_b > b:
+            raise SystemExit(f"--lm-batch: expected at most --batch={b} hypotheses, got {lm_b}")
         d_lm = device.asarray(tf[:lm_b])
         res = rgbd_residuals(device, d_lm, rgb, dep, d_gray, d_depth, cam)
         out.append(
@@ -69,7 +74,7 @@ def cases(device, args):
             )
         )
     # NCC (paper 003): 1000 hypotheses x 10 points x 16x16 templates
-    k, s, nb = 10, 16, 1000
+    k, s, nb = 10, 16, args.ncc_batch
     centres = rng.uniform([40, 40], [600, 440], (k, 2))
     pts = (centres[None] + rng.normal(0, 3, (nb, k, 2))).astype(np.float32)
     tpl = np.stack([gray[int(v) - 8 : int(v) + 8, int(u) - 8 : int(u) + 8] for u, v in centres]).astype(np.float32)
@@ -98,12 +103,13 @@ def cases(device, args):
             params={"C": 10, "P": 14, "K": b},
         )
     )
+    kk = min(10, b)
     out.append(
         Case(
-            f"best_k k=10 of B={b} with rows",
-            run=lambda: best_k(device, d_scores, 10, rows=d_samples),
-            reference=lambda: best_k(ref, scores, 10, rows=samples),
-            params={"B": b, "k": 10, "P": 14},
+            f"best_k k={kk} of B={b} with rows",
+            run=lambda: best_k(device, d_scores, kk, rows=d_samples),
+            reference=lambda: best_k(ref, scores, kk, rows=samples),
+            params={"B": b, "k": kk, "P": 14},
         )
     )
     return out

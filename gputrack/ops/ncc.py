@@ -10,7 +10,12 @@ bilinearly at (u + j - (S-1)/2, v + i - (S-1)/2), from the four pixels (x0, y0),
 (x0, y0+1), (x0+1, y0+1) with ``x0 = min(floor(u), W-2)``, ``y0 = min(floor(v), H-2)`` (as the
 template ops sample, gputrack/ops/template.py). A patch that does not lie wholly inside
 [0, W-1] x [0, H-1] scores 0, and so does a flat patch or template (standard deviation
-<= 1e-6 (|mean| + 1)).
+<= 1e-6 (|mean| + 1)). Every image pixel and template value read is first clamped to
+[-INTENSITY_MAX, INTENSITY_MAX] = +-2**48 (gputrack/abi.py, as the RGB-D cost clamps gray pixels;
+NaN stays NaN), on every backend and in the reference: the bilinear differences and the float32
+sums of squares of S x S values then cannot overflow, and the score is that of the unclamped input
+whenever no value exceeds the limit (an image of +-3e38 scores as one of +-2**48; a template
+scaled by 1e30 is clamped, mostly to one value, and scores as flat).
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ def patch_ncc_per_point(device, points2d, templates, image):
     float32. Patch pixel (i, j) samples the image bilinearly at (u + j - (S-1)/2, v + i - (S-1)/2).
     A patch that does not lie wholly inside [0, W-1] x [0, H-1] scores 0, and so does a flat patch
     or template (standard deviation <= 1e-6 (|mean| + 1): zero variance to float32 rounding).
+    Values beyond +-2**48 are clamped to it first (gputrack.abi.INTENSITY_MAX; module docstring).
     """
     pts, tpl, img = _ncc_args(device, points2d, templates, image)
     return backend_module(device, "ncc").patch_ncc(device, pts, tpl, img, per_point=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...abi import INTENSITY_MAX
 from .template import _bilinear, _corners
 
 FLAT = 1e-6
@@ -22,8 +23,9 @@ def patch_ncc(device, pts, tpl, img, *, per_point):
     inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
     whole = inside.all(axis=(2, 3))
     x0, y0, a, bb = _corners(u, v, inside, (h, w))
-    P = _bilinear(img, x0, y0, a, bb).astype(np.float64)
-    T = tpl.astype(np.float64)[None]
+    lim = np.float32(INTENSITY_MAX)  # pixels and template values clamped (gputrack/ops/ncc.py)
+    P = _bilinear(np.clip(img, -lim, lim), x0, y0, a, bb).astype(np.float64)
+    T = np.clip(tpl, -lim, lim).astype(np.float64)[None]
     n = s * s
     Pm = P.mean(axis=(2, 3), keepdims=True)
     Tm = T.mean(axis=(2, 3), keepdims=True)

@@ -6,10 +6,24 @@ hypothesis for their sum N(u). Conventions: gputrack/ops/ncc.py.
 
 import numpy as np
 
+from ...abi import INTENSITY_MAX
 from .runtime import ti
 
 #: a patch or template whose standard deviation is at most FLAT (|mean| + 1) is flat (scores 0)
 FLAT = 1e-6
+
+
+@ti.func
+def _clamp(x):
+    """A pixel or template value clamped to [-INTENSITY_MAX, INTENSITY_MAX] (gputrack/abi.py;
+    gputrack/ops/ncc.py); NaN stays NaN."""
+    m = ti.f32(float(INTENSITY_MAX))
+    return ti.select(x > m, m, ti.select(x < -m, -m, x))
+
+
+@ti.func
+def _px(img: ti.template(), y, x):
+    return _clamp(img[y, x])
 
 
 @ti.func
@@ -18,8 +32,10 @@ def _sample(img: ti.template(), uu, vv, h, w):
     y0 = ti.min(ti.cast(vv, ti.i32), h - 2)
     a = uu - ti.cast(x0, ti.f32)
     bw = vv - ti.cast(y0, ti.f32)
-    top = img[y0, x0] + a * (img[y0, x0 + 1] - img[y0, x0])
-    bot = img[y0 + 1, x0] + a * (img[y0 + 1, x0 + 1] - img[y0 + 1, x0])
+    i00 = _px(img, y0, x0)
+    i10 = _px(img, y0 + 1, x0)
+    top = i00 + a * (_px(img, y0, x0 + 1) - i00)
+    bot = i10 + a * (_px(img, y0 + 1, x0 + 1) - i10)
     return top + bw * (bot - top)  # bilinear
 
 
@@ -27,16 +43,17 @@ def _sample(img: ti.template(), uu, vv, h, w):
 def _finish(n, p0, t0, sp, st, spp, stt, spt):
     """The NCC of the shifted sums (see _ncc_one): 0 for a flat patch or template."""
     out = ti.f32(0.0)
-    vp = spp - sp * sp / n  # centred sums
-    vt = stt - st * st / n
-    cv = spt - sp * st / n
+    # centred sums (each product of a sum with a mean: no float32 overflow below 2**48 per value)
+    vp = spp - sp * (sp / n)
+    vt = stt - st * (st / n)
+    cv = spt - sp * (st / n)
     mp = p0 + sp / n
     mt = t0 + st / n
     # a flat patch or template (standard deviation <= 1e-6 (|mean| + 1)) scores 0
     fp = FLAT * (ti.abs(mp) + 1.0)
     ft = FLAT * (ti.abs(mt) + 1.0)
     if vp > n * fp * fp and vt > n * ft * ft:
-        out = ti.min(ti.max(cv / ti.sqrt(vp * vt), -1.0), 1.0)
+        out = ti.min(ti.max(cv / (ti.sqrt(vp) * ti.sqrt(vt)), -1.0), 1.0)
     return out
 
 
@@ -54,7 +71,7 @@ def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
         n = ti.cast(s * s, ti.f32)
         # one pass; sums of values shifted by the first patch and template values (so the centred
         # sums do not cancel), accumulated per row then over the rows
-        t0 = tpl[k, 0, 0]
+        t0 = _clamp(tpl[k, 0, 0])
         p0 = ti.f32(0.0)
         sp = ti.f32(0.0)
         st = ti.f32(0.0)
@@ -74,22 +91,22 @@ def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
             p0 = _sample(img, u0, v0, h, w)
             for i in range(s):
                 y = yb + i
-                lt = img[y, xb]
-                lb = img[y + 1, xb]
+                lt = _px(img, y, xb)
+                lb = _px(img, y + 1, xb)
                 rp = ti.f32(0.0)
                 rt = ti.f32(0.0)
                 rpp = ti.f32(0.0)
                 rtt = ti.f32(0.0)
                 rpt = ti.f32(0.0)
                 for jj in range(s):
-                    nt = img[y, xb + jj + 1]
-                    nb = img[y + 1, xb + jj + 1]
+                    nt = _px(img, y, xb + jj + 1)
+                    nb = _px(img, y + 1, xb + jj + 1)
                     tp = lt + a * (nt - lt)
                     bt = lb + a * (nb - lb)
                     p = tp + bw * (bt - tp) - p0  # patch pixel (i, jj), bilinear
                     lt = nt
                     lb = nb
-                    t = tpl[k, i, jj] - t0
+                    t = _clamp(tpl[k, i, jj]) - t0
                     rp += p
                     rt += t
                     rpp += p * p
@@ -112,7 +129,7 @@ def _ncc_one(pts: ti.template(), tpl: ti.template(), img: ti.template(), b, k):
                 for jj in range(s):
                     uu = u + (ti.cast(jj, ti.f32) - ctr)
                     p = _sample(img, uu, vv, h, w) - p0  # patch pixel (i, jj), bilinear
-                    t = tpl[k, i, jj] - t0
+                    t = _clamp(tpl[k, i, jj]) - t0
                     rp += p
                     rt += t
                     rpp += p * p
