@@ -35,10 +35,7 @@ def limit() -> None:
 
 #: cases that fail for a known reason in an op this suite does not own: reported, not hidden (the
 #: parent marks the test xfail naming them, and fails when one of them passes: drop it here then)
-KNOWN = {
-    "dbscan of 2**34 broadcast points": "gputrack/ops/clusters.py _points runs np.isinf over the whole input before "
-    "the size check: a (2**34, 2) broadcast view allocates a 32 GiB mask (compact() and check_alloc first)",
-}
+KNOWN: dict = {}
 
 #: returned by a case that ran the fuzz oracle itself (tests/fuzzing.py judge) and passed
 JUDGED = object()

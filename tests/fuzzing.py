@@ -489,60 +489,13 @@ def huge_count(clean, value) -> bool:
     return is_int(clean) and is_int(value) and abs(int(value)) >= 2**31
 
 
-_RAGGED = ("np.asarray of the raw argument before gputrack.device.as_host_array: NumPy's 'inhomogeneous shape' "
-           "ValueError instead of 'expected a rectangular array'")
 #: failures with a known cause in an op this suite's authors do not own: (case, mutation) -> the
 #: cause. test_fuzz.py marks the test xfail naming them; a new failure still fails it.
-KNOWN_DEFECTS = {
-    (op, f"{arg} ragged"): f"{module}: {_RAGGED}"
-    for op, arg, module in [
-        ("sample_around", "sigma", "gputrack/ops/particles.py sample_around"),
-        ("pf_stage", "sigma", "gputrack/ops/pf.py pf_stage"),
-        ("gate_pairs", "z", "gputrack/ops/gating.py gate_pairs"),
-        ("assign_points", "points", "gputrack/ops/point_groups.py _finite_or_nan"),
-        ("assign_points", "velocities", "gputrack/ops/point_groups.py _finite_or_nan"),
-        ("scatter_rows", "index", "gputrack/ops/rows.py scatter_rows"),
-        ("scatter_rows", "src", "gputrack/ops/rows.py scatter_rows"),
-        ("stereo_match", "left", "gputrack/ops/stereo.py stereo_match"),
-        ("stereo_match", "right", "gputrack/ops/stereo.py stereo_match"),
-        ("background_median", "frames", "gputrack/ops/background.py pixels"),
-        ("update_background", "background", "gputrack/ops/background.py pixels"),
-        ("update_background", "frame", "gputrack/ops/background.py pixels"),
-        ("foreground_mask", "frame", "gputrack/ops/background.py pixels"),
-        ("foreground_mask", "background", "gputrack/ops/background.py pixels"),
-        ("depth_points", "depth", "gputrack/ops/depth_points.py"),
-        ("depth_points", "background", "gputrack/ops/depth_points.py"),
-        ("dbscan", "points", "gputrack/ops/clusters.py _points"),
-        ("radius_components", "points", "gputrack/ops/clusters.py _points"),
-    ]
-}
-
-
-KNOWN_DEFECTS.update({
-    ("GroupTracker.update_points", "xyz ragged"): f"gputrack/trackers/groups/tracker.py _points: {_RAGGED}",
-    ("GroupTracker.update_points", "velocity ragged"): f"gputrack/trackers/groups/tracker.py _points: {_RAGGED}",
-    ("GroupTracker.track", "left ragged"): f"gputrack/trackers/groups/front.py (the stereo front end): {_RAGGED}",
-    ("GroupTracker.track", "right ragged"): f"gputrack/trackers/groups/front.py (the stereo front end): {_RAGGED}",
-    ("PedestrianTracker.track", "depth ragged"): f"gputrack/trackers/pedestrians/front.py check_frame: {_RAGGED}",
-    ("FaceTracker.start", "frames None"): "gputrack/trackers/face/tracker.py start iterates frames unchecked: "
-    "TypeError \"'NoneType' object is not iterable\"",
-    ("FaceTracker.start", "landmarks string"): "gputrack/trackers/face/tracker.py start: np.asarray(landmarks, "
-    "np.float64) unchecked: NumPy's \"could not convert string to float\"",
-    ("FaceTracker.start", "landmarks ragged"): f"gputrack/trackers/face/tracker.py start: {_RAGGED}",
-    ("FaceTracker.start", "landmarks complex"): "gputrack/trackers/face/tracker.py start: complex landmarks are "
-    "accepted, np.asarray(landmarks, np.float64) drops the imaginary part (a ComplexWarning)",
-    ("FaceTracker.start", "landmarks object"): "gputrack/trackers/face/tracker.py start: object landmarks are "
-    "accepted (np.asarray(landmarks, np.float64) converts them)",
-})
+KNOWN_DEFECTS: dict = {}
 
 
 #: (case, mutation prefix) -> cause: the mutations of arrays on a device (the device's own, another's)
-KNOWN_PREFIXES = {
-    ("FaceTracker.start", "frames on "): "gputrack/trackers/face/tracker.py start iterates frames unchecked: a "
-    "DeviceArray gives TypeError \"'DeviceArray' object is not iterable\"",
-    ("FaceTracker.start", "frames foreign"): "gputrack/trackers/face/tracker.py start iterates frames unchecked: a "
-    "DeviceArray gives TypeError \"'DeviceArray' object is not iterable\"",
-}
+KNOWN_PREFIXES: dict = {}
 
 
 def known_defect(case: str, what: str) -> str | None:

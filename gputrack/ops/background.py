@@ -33,7 +33,7 @@ import sys
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
 from ._args import arg, check_device, match_shape, out_array
 
@@ -77,7 +77,7 @@ def pixels(device, x, name: str, shape: tuple, dims: dict):
     if not isinstance(x, np.ndarray):
         if x is None:
             raise TypeError(f"{name}: expected an image, got None")
-        x = np.asarray(x)
+        x = as_host_array(x, name)
     if x.dtype not in PIXELS:
         raise TypeError(f"{name}: expected dtype uint8, uint16 or float32, got {x.dtype.name}")
     match_shape(name, x.shape, shape, dims)
@@ -106,7 +106,7 @@ def background_arg(device, bg, name: str, dims: dict):
     """A background (H, W) float32 argument (NaN = no background, +inf = nothing in range;
     -inf rejected)."""
     if not isinstance(bg, DeviceArray):
-        host = np.asarray(bg)
+        host = as_host_array(bg, name)
         if host.dtype == np.float32 and np.isneginf(host).any():
             bad = tuple(int(i) for i in np.argwhere(np.isneginf(host))[0])
             raise ValueError(f"{name}: expected finite values, NaN or +inf, got {host[bad]} at index {bad}")
@@ -132,7 +132,9 @@ def background_median(device, frames, *, missing=None, out=None):
     """
     device = check_device(device)
     miss = missing_value(missing)
-    shape = tuple(getattr(frames, "shape", np.shape(frames)))
+    if frames is not None and not isinstance(frames, (DeviceArray, np.ndarray)):
+        frames = as_host_array(frames, "frames")
+    shape = tuple(getattr(frames, "shape", ()))
     if len(shape) == 3:  # before any upload
         if shape[0] == 0:
             raise ValueError(f"frames: expected at least one frame (F >= 1), got shape {shape}")

@@ -63,22 +63,22 @@ import numbers
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
-from ._args import arg, check_device, out_array
+from ._args import arg, check_device, compact, out_array, shape_of
 
 __all__ = ["compact_labels", "dbscan", "radius_components"]
 
 
 def _points(device, points):
-    if isinstance(points, DeviceArray) or isinstance(points, np.ndarray):
-        shape = tuple(points.shape)
-    else:
-        shape = np.shape(points)
+    shape = tuple(shape_of(points, "points"))
     if len(shape) != 2 or shape[1] not in (2, 3):
         raise ValueError(f"points: expected shape (N, 2) or (N, 3), got {shape}")
+    if shape[0] >= 2**31:
+        raise ValueError(f"points: expected fewer than 2**31 rows (int32 labels), got {shape[0]}")
     if not isinstance(points, DeviceArray):
-        host = np.asarray(points)
+        device.check_alloc(shape, np.float32)  # before any value check reads the whole input
+        host = compact(as_host_array(points, "points"))  # a broadcast view: each element once
         if host.dtype.kind == "f" and np.isinf(host).any():
             bad = tuple(int(i) for i in np.argwhere(np.isinf(host))[0])
             raise ValueError(f"points: expected finite coordinates or NaN rows (not a point), got {host[bad]} at {bad}")

@@ -44,7 +44,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
 from ..uploads import constant
 from ._args import FLOAT, arg, check_device, out_arrays
@@ -85,7 +85,7 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
     if not 1 <= dims["n"] <= MAX_N:
         raise ValueError(f"x: expected a state size n between 1 and {MAX_N}, got n={dims['n']}")
     P = arg(device, P, "P", ("T", "n", "n"), dims, dtype=dt, cast=True)
-    z_host = None if isinstance(z, DeviceArray) else np.asarray(z)
+    z_host = None if isinstance(z, DeviceArray) else as_host_array(z, "z")
     z = arg(device, z, "z", ("D", "m"), dims, dtype=dt, cast=True)
     if not 1 <= dims["m"] <= MAX_M:
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
@@ -97,8 +97,8 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
     if not (np.isfinite(thr) and thr > 0):
         raise ValueError(f"threshold: expected a positive finite number, got {threshold!r}")
     if active is not None:
-        if not isinstance(active, DeviceArray) and np.asarray(active).dtype == np.bool_:
-            active = np.asarray(active).astype(np.uint8)
+        if not isinstance(active, DeviceArray) and as_host_array(active, "active").dtype == np.bool_:
+            active = as_host_array(active, "active").astype(np.uint8)
         active = arg(device, active, "active", ("T",), dims, dtype=np.uint8)
     D = dims["D"]
     if n_z is not None:

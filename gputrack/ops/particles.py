@@ -20,7 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
 from ._args import arg, check_device, check_shapes, out_array
 
@@ -54,7 +54,7 @@ def sample_around(device, candidates, sigma, n, seed, *, keep_candidates=False):
         raise ValueError(f"n: expected at least one sample, got {n}")
     lo, hi = _seed(seed)
     if not isinstance(sigma, DeviceArray):
-        host = np.asarray(sigma)
+        host = as_host_array(sigma, "sigma")
         if host.dtype.kind in "biuf" and (host < 0).any():
             raise ValueError(f"sigma: expected standard deviations >= 0, got {host.min()}")
     dims = {}

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from ..models.chain import Chain
 from ..uploads import constant
 from . import backend_module
@@ -60,7 +60,7 @@ def pf_stage(
         raise ValueError("candidates: expected at least one candidate, got C = 0")
     if isinstance(sigma, DeviceArray):
         raise TypeError("sigma: expected a NumPy array (it decides on the host which parts move), got a DeviceArray")
-    sig = np.asarray(sigma)
+    sig = as_host_array(sigma, "sigma")
     if sig.dtype.kind not in "iuf" or sig.shape != (dims["P"],):
         raise ValueError(f"sigma: expected a real (P={dims['P']},) array, got {sig.dtype.name} {sig.shape}")
     if not np.isfinite(sig).all() or (sig < 0).any():

@@ -38,7 +38,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
 from ._args import arg, check_device, out_arrays
 
@@ -67,7 +67,7 @@ def _finite_or_nan(device, a, name):
     """Host points may hold NaN rows ("no point"), never +-inf."""
     if isinstance(a, DeviceArray):
         return a
-    h = np.asarray(a)
+    h = as_host_array(a, name)
     if h.dtype.kind == "f" and np.isinf(h).any():
         bad = tuple(int(i) for i in np.argwhere(np.isinf(h))[0])
         raise ValueError(f"{name}: expected finite values or NaN rows (no point), got {h[bad]} at index {bad}")

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
-from ._args import arg, check_device
+from ._args import arg, check_device, shape_of
 
 __all__ = ["scatter_rows"]
 
@@ -56,12 +56,12 @@ def scatter_rows(device, dst, index, src, *, n_rows=None):
     dims: dict = {}
     host = None
     if not isinstance(index, DeviceArray):
-        host = np.asarray(index)
+        host = as_host_array(index, "index")
         if host.dtype.kind not in "iu":
             raise TypeError(f"index: expected integer row indices (int32), got dtype {host.dtype.name}")
         index = host.astype(np.int32, copy=False)
     index = arg(device, index, "index", ("K",), dims, dtype=np.int32)
-    rows = 1 if tuple(getattr(src, "shape", np.shape(src)))[:1] == (1,) else "K"  # one row for every index
+    rows = 1 if tuple(shape_of(src, "src"))[:1] == (1,) else "K"  # one row for every index
     src = arg(device, src, "src", (rows, *dst.shape[1:]), dims, dtype=dst.dtype)
     K = dims["K"]
     if n_rows is not None:

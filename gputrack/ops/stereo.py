@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import DeviceArray
+from ..device import DeviceArray, as_host_array
 from . import backend_module
 from ._args import arg, check_device, out_array
 
@@ -86,7 +86,7 @@ def _image(device, x, name, dims):
         got = x.dtype
     else:
         if not isinstance(x, np.ndarray):
-            x = np.asarray(x)
+            x = as_host_array(x, name)
         got = x.dtype
     if got not in (np.dtype(np.uint8), np.dtype(np.float32)):
         raise TypeError(f"{name}: expected a uint8 or float32 gray image, got dtype {got.name}")

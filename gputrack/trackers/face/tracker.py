@@ -31,7 +31,7 @@ import logging
 
 import numpy as np
 
-from ...device import Device
+from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
 from ...models.pose import project, rodrigues
 from ...ops.ncc import patch_ncc
@@ -85,8 +85,14 @@ def detect_face(gray) -> tuple[int, int, int, int] | None:
     return max(boxes, key=lambda b: b[2] * b[3]) if boxes else None
 
 
+def _host(image, name: str) -> np.ndarray:
+    if isinstance(image, DeviceArray):
+        raise TypeError(f"{name}: expected a host (NumPy) (H, W) image, got a DeviceArray (download it with .numpy())")
+    return as_host_array(image, name)
+
+
 def _gray(image, name: str, shape=None) -> np.ndarray:
-    a = np.asarray(image)
+    a = _host(image, name)
     if a.dtype.kind not in "uif" or a.ndim != 2:
         raise ValueError(f"{name}: expected a (H, W) gray image of uint8 or float, got {a.dtype.name} {a.shape}")
     if shape is not None and a.shape != shape:
@@ -190,13 +196,24 @@ class FaceTracker:
         Returns the estimates of the n frames. Raises ValueError for fewer or more frames than n, or
         when no face is found."""
         n, K = self.config.keyframes, self.model.K
-        frames = [np.asarray(f) for f in frames] if not isinstance(frames, np.ndarray) else list(frames)
+        if frames is None or isinstance(frames, (DeviceArray, str, bytes)) or not hasattr(frames, "__iter__"):
+            got = type(frames).__name__
+            if isinstance(frames, DeviceArray):
+                got = "a DeviceArray (download it with .numpy())"
+            raise TypeError(f"frames: expected a sequence of (H, W) uint8 images, got {got}")
+        if not isinstance(frames, np.ndarray):
+            frames = [_host(f, f"frames[{i}]") for i, f in enumerate(frames)]
+        frames = list(frames)
         if len(frames) != n:
             raise ValueError(f"frames: expected the first n={n} frames (FaceConfig.keyframes), got {len(frames)}")
         frames = [_gray(f, f"frames[{i}]", None if i == 0 else frames[0].shape) for i, f in enumerate(frames)]
+        if landmarks is not None:
+            landmarks = as_host_array(landmarks, "landmarks")
+            if landmarks.dtype.kind not in "iuf":
+                raise TypeError(f"landmarks: expected real points (px), got dtype {landmarks.dtype.name}")
         if landmarks is None:
             landmarks = self._follow(frames, self._detected_points(frames[0]))
-        elif np.ndim(landmarks) == 2:
+        elif landmarks.ndim == 2:
             first = np.asarray(landmarks, np.float64)
             if first.shape != (K, 2) or not np.isfinite(first).all():
                 raise ValueError(f"landmarks: expected the first frame's K={K} finite points (K, 2), got {first.shape}")

@@ -33,7 +33,7 @@ import functools
 
 import numpy as np
 
-from ...device import Device
+from ...device import Device, as_host_array
 from ...models.camera import StereoCamera
 from ...ops.background import background_median, foreground_mask, update_background
 from ...ops.stereo import stereo_match
@@ -99,7 +99,7 @@ class StereoPoints:
 
 
 def _gray(a, name: str, shape=None) -> np.ndarray:
-    h = np.asarray(a)
+    h = as_host_array(a, name)
     if h.dtype != np.uint8:
         raise TypeError(f"{name}: expected a uint8 grey image (H, W), got dtype {h.dtype.name}")
     if h.ndim != 2 or min(h.shape) < 16:
@@ -149,7 +149,7 @@ class StereoFrontEnd:
 
     def learn_background(self, lefts) -> None:
         """The left camera's background from empty frames (F, H, W) uint8 (per-pixel median)."""
-        frames = np.asarray(lefts)
+        frames = as_host_array(lefts, "lefts")
         if frames.ndim != 3 or len(frames) == 0:
             raise ValueError(f"lefts: expected empty frames (F, H, W) with F >= 1, got shape {frames.shape}")
         for k, f in enumerate(frames):

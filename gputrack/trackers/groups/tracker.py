@@ -71,7 +71,7 @@ import math
 
 import numpy as np
 
-from ...device import Device, DeviceArray
+from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import StereoCamera
 from ...ops import constant_velocity, radius_components
 from ...ops.point_groups import (
@@ -195,7 +195,7 @@ class GroupFrame:
 def _points(a, name: str, N=None) -> np.ndarray:
     if isinstance(a, DeviceArray):
         raise TypeError(f"{name}: expected host (NumPy) points (N, 3), got a DeviceArray")
-    h = np.asarray(a)
+    h = as_host_array(a, name)
     if h.dtype.kind not in "iuf":
         raise TypeError(f"{name}: expected real values, got dtype {h.dtype.name}")
     if h.size == 0 and h.ndim <= 2:

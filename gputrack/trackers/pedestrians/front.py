@@ -46,7 +46,7 @@ import warnings
 
 import numpy as np
 
-from ...device import DeviceArray
+from ...device import DeviceArray, as_host_array
 from ...models.camera import Camera, DepthCamera
 from ...ops import backend_module, background_median, dbscan, depth_points
 from ...ops.background import MAX_FRAMES
@@ -248,7 +248,7 @@ class DepthFrontEnd:
     def check_frame(self, depth) -> np.ndarray:
         if isinstance(depth, DeviceArray):
             raise TypeError("depth: expected a host (NumPy) depth frame (H, W), got a DeviceArray")
-        d = np.asarray(depth)
+        d = as_host_array(depth, "depth")
         if d.dtype not in (np.uint16, np.float32):
             raise TypeError(f"depth: expected a depth frame of dtype uint16 or float32 (mm), got {d.dtype.name}")
         if self.background is None:
