@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["ANGLE_MAX", "INTENSITY_MAX", "KalmanStatus", "LMLayout", "LMReason", "LMStatus", "cl_defines"]
+__all__ = ["ANGLE_MAX", "INTENSITY_MAX", "KalmanStatus", "LMLayout", "LMReason", "LMScale", "LMStatus", "cl_defines"]
 
 #: the RGB-D cost (gputrack/ops/template.py) clamps every gray pixel it reads to
 #: [-INTENSITY_MAX, INTENSITY_MAX] (NaN stays NaN), on every backend and in the reference: eq. 17's
@@ -30,6 +30,15 @@ INTENSITY_MAX = 1 << 48
 #: and cosine keep their accuracy up to there (the Taichi kernels' argument reduction is exact for
 #: |a| < 2**15 pi / 2), and an angle of thousands of turns is no pose. 2**15 = 32768 rad.
 ANGLE_MAX = 1 << 15
+
+
+class LMScale(enum.IntEnum):
+    """The LM damping's scaling D (the global G_SCALE of the solver's state): C I, Marquardt's
+    C diag(J^T J), or C times MINPACK's running maximum of diag(J^T J)."""
+
+    IDENTITY = 0
+    MARQUARDT = 1
+    MINPACK = 2
 
 
 class KalmanStatus(enum.IntEnum):
@@ -125,5 +134,6 @@ def cl_defines() -> dict[str, int]:
     out.update({f"GT_KF_{s.name}": int(s) for s in KalmanStatus})
     out.update({f"GT_LM_{s.name}": int(s) for s in LMStatus})
     out.update({f"GT_LM_R_{r.name}": int(r) for r in LMReason})
+    out.update({f"GT_LM_SCALE_{m.name}": int(m) for m in LMScale})
     out.update({f"GT_LM_{k}": v for k, v in _layout_slots().items()})
     return out

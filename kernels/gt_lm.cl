@@ -30,10 +30,8 @@
 #error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
 #endif
 #define MAX_CHOL_TRIES 40
-// GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling (0 C I, 1 Marquardt's
-// diag(J^T J), 2 its running maximum as MINPACK's).
-#define GT_LM_SCALE_IDENTITY 0
-#define GT_LM_SCALE_MINPACK 2
+// GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling, one of
+// GT_LM_SCALE_IDENTITY / _MARQUARDT / _MINPACK (gputrack.abi.LMScale).
 
 // In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
 static int gt_chol_solve(__global REAL *W, __global REAL *rhs, const int P, const REAL C)

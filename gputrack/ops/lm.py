@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..abi import LMLayout, LMReason, LMStatus
+from ..abi import LMLayout, LMReason, LMScale, LMStatus
 from ..device import Device, DeviceArray, as_host_array, foreign_array_error, per_device_cache
 from . import backend_module
 from ._args import arg, check_device, check_shapes, compact, match_shape, out_arrays, real_array, shape_of
@@ -383,7 +383,7 @@ def _bounds(value, name, B, P, dtype, default):
 
 
 #: the damping's scaling (``damping_scale``): the code every backend reads from the solver's globals
-DAMPING_SCALES = {"identity": 0, "marquardt": 1, "minpack": 2}
+DAMPING_SCALES = {m.name.lower(): int(m) for m in LMScale}  # "identity", "marquardt", "minpack"
 #: the initial damping C when ``damping=None``: paper 000's 1e-5 for C I; for the scaled modes C is
 #: relative to each parameter's own diag(J^T J), and 1e-3 is Nielsen's usual tau
 DEFAULT_DAMPING = {"identity": 1e-5, "marquardt": 1e-3, "minpack": 1e-3}

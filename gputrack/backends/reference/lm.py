@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...abi import LMLayout as LAY
-from ...abi import LMReason, LMStatus
+from ...abi import LMReason, LMScale, LMStatus
 
 # status / reason codes (gputrack/abi.py)
 RUNNING, CONVERGED, MAX_ITER, FAILED = LMStatus.RUNNING, LMStatus.CONVERGED, LMStatus.MAX_ITER, LMStatus.FAILED
@@ -22,7 +22,7 @@ MAX_CHOL_TRIES = 40
 #: C I (paper 000 eq. 22), 1 = C diag(J^T J) (Marquardt), 2 = C D with D the running maximum of
 #: diag(J^T J) over the iterations (MINPACK's scaling); every backend reads it
 G_SCALE = LAY.G_SCALE
-SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = 0, 1, 2
+SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = (int(m) for m in LMScale)  # gputrack.abi
 
 
 def normal_equations(device, J, r, out=None):

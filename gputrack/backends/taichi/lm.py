@@ -51,7 +51,7 @@ folded away).
 import numpy as np
 
 from ...abi import LMLayout as LAY
-from ...abi import LMReason, LMStatus
+from ...abi import LMReason, LMScale, LMStatus
 from .arrays import copy
 from .launch import launch
 from .runtime import SPIRV_GRID_ITEMS, current_arch, loop_limit, scratch, ti
@@ -66,7 +66,7 @@ R_NONFINITE, R_NOTPD, R_DAMPING = (int(r) for r in (LMReason.NONFINITE, LMReason
 MAX_CHOL_TRIES = 40
 # the damping's scaling, a global of S (see backends/reference/lm.py): C I, C diag(J^T J), C D (running max)
 G_SCALE = LAY.G_SCALE
-SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = 0, 1, 2
+SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = (int(m) for m in LMScale)  # gputrack.abi
 GRAM_SEG = 8  # columns per SIMD vector of _gram_static (8 float64: one AVX-512 register)
 STATIC_P_MAX = 32  # _gram_static unrolls P (P (P / 8 + 1) / 2 vector products per row of J)
 
