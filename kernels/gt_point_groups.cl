@@ -12,10 +12,11 @@
 #define G 23  // [W_p (6), logdet, pd, W_v (6), logdet, pd, x, y, z, cull r^2, sorted x, its slot, max r]
 #define CULL 1.0001f  // as gputrack/backends/taichi/point_groups.py
 
-static void gt_pg_factor(__global const float *S, int j, int i0, int i1, int i2, __global float *g)
+// Inverse Cholesky factor W (lower, 6 values), log det and a positive-definite flag of the 3x3 block
+// A[i, i] (+ fl on the diagonal) of a row-major 6x6 matrix, written to g[0..7].
+static void gt_gf_factor(__global const float *A, int i0, int i1, int i2, float fl, __global float *g)
 {
-    __global const float *A = S + (size_t)j * 36;
-    const float a00 = A[i0 * 6 + i0], a11 = A[i1 * 6 + i1], a22 = A[i2 * 6 + i2];
+    const float a00 = A[i0 * 7] + fl, a11 = A[i1 * 7] + fl, a22 = A[i2 * 7] + fl;
     const float a10 = 0.5f * (A[i1 * 6 + i0] + A[i0 * 6 + i1]);
     const float a20 = 0.5f * (A[i2 * 6 + i0] + A[i0 * 6 + i2]);
     const float a21 = 0.5f * (A[i2 * 6 + i1] + A[i1 * 6 + i2]);
@@ -44,6 +45,11 @@ static void gt_pg_factor(__global const float *S, int j, int i0, int i1, int i2,
         g[k] = w[k];
     g[6] = ld;
     g[7] = ok;
+}
+
+static void gt_pg_factor(__global const float *S, int j, int i0, int i1, int i2, __global float *g)
+{
+    gt_gf_factor(S + (size_t)j * 36, i0, i1, i2, 0.f, g);
 }
 
 __kernel void gt_pg_factors(__global const float *S, __global const float *xi, __global const uchar *active,
@@ -218,39 +224,6 @@ __kernel void gt_pg_moments(__global const float *y, __global const float *lam, 
 #define TC 96
 #define GC 32
 #define GT_PD_EPS (4.0f * FLT_EPSILON)
-
-static void gt_gf_factor(__global const float *A, int i0, int i1, int i2, float fl, __global float *g)
-{
-    const float a00 = A[i0 * 7] + fl, a11 = A[i1 * 7] + fl, a22 = A[i2 * 7] + fl;
-    const float a10 = 0.5f * (A[i1 * 6 + i0] + A[i0 * 6 + i1]);
-    const float a20 = 0.5f * (A[i2 * 6 + i0] + A[i0 * 6 + i2]);
-    const float a21 = 0.5f * (A[i2 * 6 + i1] + A[i1 * 6 + i2]);
-    float w[6] = {0.f, 0.f, 0.f, 0.f, 0.f, 0.f};
-    float ld = 0.f, ok = 0.f;
-    if (a00 > 0.f) {
-        const float l00 = sqrt(a00), l10 = a10 / l00, l20 = a20 / l00;
-        const float r11 = a11 - l10 * l10;
-        if (r11 > 0.f) {
-            const float l11 = sqrt(r11), l21 = (a21 - l20 * l10) / l11;
-            const float r22 = a22 - l20 * l20 - l21 * l21;
-            if (r22 > 0.f) {
-                const float l22 = sqrt(r22);
-                w[0] = 1.f / l00;
-                w[2] = 1.f / l11;
-                w[5] = 1.f / l22;
-                w[1] = -l10 * w[0] / l11;
-                w[4] = -l21 * w[2] / l22;
-                w[3] = -(l20 * w[0] + l21 * w[1]) / l22;
-                ld = 2.f * (log(l00) + log(l11) + log(l22));
-                ok = 1.f;
-            }
-        }
-    }
-    for (int k = 0; k < 6; ++k)
-        g[k] = w[k];
-    g[6] = ld;
-    g[7] = ok;
-}
 
 __kernel void gt_gf_predict(__global float *tab, __global const float *c, __global float *g, const int T)
 {

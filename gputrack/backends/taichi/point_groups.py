@@ -40,33 +40,7 @@ def _factor(S: ti.template(), j, idx: ti.template(), g: ti.template(), base: ti.
     a20 = 0.5 * (S[j, idx[2], idx[0]] + S[j, idx[0], idx[2]])
     a21 = 0.5 * (S[j, idx[2], idx[1]] + S[j, idx[1], idx[2]])
     a22 = S[j, idx[2], idx[2]]
-    ok = 0
-    w = ti.Vector.zero(ti.f32, 6)
-    ld = 0.0
-    if a00 > 0:
-        l00 = ti.sqrt(a00)
-        l10 = a10 / l00
-        l20 = a20 / l00
-        r11 = a11 - l10 * l10
-        if r11 > 0:
-            l11 = ti.sqrt(r11)
-            l21 = (a21 - l20 * l10) / l11
-            r22 = a22 - l20 * l20 - l21 * l21
-            if r22 > 0:
-                l22 = ti.sqrt(r22)
-                w00 = 1.0 / l00
-                w11 = 1.0 / l11
-                w22 = 1.0 / l22
-                w10 = -l10 * w00 / l11
-                w21 = -l21 * w11 / l22
-                w20 = -(l20 * w00 + l21 * w10) / l22
-                w = ti.Vector([w00, w10, w11, w20, w21, w22])
-                ld = 2.0 * (ti.log(l00) + ti.log(l11) + ti.log(l22))
-                ok = 1
-    for k in ti.static(range(6)):
-        g[j, base + k] = w[k]
-    g[j, base + 6] = ld
-    g[j, base + 7] = ti.cast(ok, ti.f32)
+    _factor_values(a00, a10, a11, a20, a21, a22, g, j, base)
 
 
 @ti.func
