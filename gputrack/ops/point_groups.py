@@ -88,12 +88,7 @@ def assign_points(device, points, velocities, means, spreads, gamma, *, active=N
     if active is not None:
         active = arg(device, active, "active", ("T",), dims, dtype=np.uint8, cast=True)
     N, T = dims["N"], dims["T"]
-    if n_points is None:
-        n = N
-    elif isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or not 0 <= n_points <= N:
-        raise ValueError(f"n_points: expected an integer in [0, {N}] (rows of points), got {n_points!r}")
-    else:
-        n = int(n_points)
+    n = _rows_used(n_points, N)
     out = PointGroups(*out_arrays(device, out, (("labels", (N,), np.int32), ("counts", (T,), np.int32),
                                                 ("mean", (T, 6), np.float32), ("cov", (T, 6, 6), np.float32))))  # fmt: skip
     if T == 0:  # no group: every point unassigned
@@ -174,14 +169,18 @@ def group_frame(device, table, points, constants, *, n_points=None, labels=None)
     points = arg(device, _finite_or_nan(device, points, "points"), "points", ("N", 6), dims, finite=False, cast=True)
     constants = arg(device, constants, "constants", (CONSTANTS,), dims)
     N, T = dims["N"], dims["T"]
-    if n_points is None:
-        n = N
-    elif isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or not 0 <= n_points <= N:
-        raise ValueError(f"n_points: expected an integer in [0, {N}] (rows of points), got {n_points!r}")
-    else:
-        n = int(n_points)
+    n = _rows_used(n_points, N)
     labels = out_arrays(device, None if labels is None else (labels,), (("labels", (N,), np.int32),))[0]
     if T == 0:
         raise ValueError("table: expected at least one slot (T >= 1), got 0")
     backend_module(device, "point_groups").group_frame(device, table, points, constants, n, labels)
     return table, labels
+
+
+def _rows_used(n_points, N: int) -> int:
+    """The rows of ``points`` in use: ``n_points`` (an integer in [0, N]), all N when None."""
+    if n_points is None:
+        return N
+    if isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or not 0 <= n_points <= N:
+        raise ValueError(f"n_points: expected an integer in [0, {N}] (rows of points), got {n_points!r}")
+    return int(n_points)
