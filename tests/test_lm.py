@@ -704,20 +704,23 @@ def test_a_solve_moves_its_inputs_and_results_only_independent_of_M(device, earl
         _moved(device, fn, own, x0, damping=1e-3, **kw)  # other constants in the pooled buffer
         first, out = _moved(device, fn, own, x0, **kw)
         again, out2 = _moved(device, fn, own, x0, **kw)  # same constants: not uploaded again
-        as32, _ = _moved(device, fn, own, x0_32, **kw)
+        as32, out32 = _moved(device, fn, own, x0_32, **kw)
         np.testing.assert_array_equal(out.x, out2.x)
         if device.backend == "numpy":
             assert first == again == as32 == {"h2d": 0, "d2h": 0}
             continue
         dt = np.dtype(out.dtype)
         lay = Layout(B, P, M)
-        checks = 0
-        if early_stop:  # one int-block download per iteration that did not end the loop
-            checks = out.nfev if out.nfev - 1 < kw["max_iter"] else out.nfev - 1
-        down = B * lay.OB * dt.itemsize + checks * lay.i_size() * 4
-        assert first == {"h2d": B * P * dt.itemsize + lay.k_size() * dt.itemsize, "d2h": down}
-        assert again == {"h2d": B * P * dt.itemsize, "d2h": down}
-        assert as32 == {"h2d": B * P * 4, "d2h": down}
+
+        def down(res):  # the results, and with early_stop one int-block download per iteration that did
+            checks = 0  # not end the loop (each solve's own count: x0_32 may converge sooner)
+            if early_stop:
+                checks = res.nfev if res.nfev - 1 < kw["max_iter"] else res.nfev - 1
+            return B * lay.OB * dt.itemsize + checks * lay.i_size() * 4
+
+        assert first == {"h2d": B * P * dt.itemsize + lay.k_size() * dt.itemsize, "d2h": down(out)}
+        assert again == {"h2d": B * P * dt.itemsize, "d2h": down(out2)}
+        assert as32 == {"h2d": B * P * 4, "d2h": down(out32)}
         moved[M] = (first, again, as32)
     if device.backend != "numpy" and not early_stop:
         assert moved[256] == moved[1280]

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from tolerances import fuses
 from allocations import rejects_without_allocating
 from tolerances import assert_matches
 
@@ -68,7 +69,12 @@ def test_sample_around_distribution_and_layout(device):
     first = np.searchsorted(owner, np.arange(c))
     np.testing.assert_array_equal(kept[first], cand)
     rest = np.setdiff1d(np.arange(n), first)
-    np.testing.assert_array_equal(kept[rest], s[rest])
+    if fuses(device):  # the two variants may contract mu + sigma z differently (tests/tolerances.py):
+        # a few roundings (z's own formula, the product, the sum) of the largest term
+        rounding = 4 * np.spacing(np.abs(cand).max(axis=0) + 6 * sigma)
+        assert (np.abs(kept[rest] - s[rest]) <= rounding).all()
+    else:
+        np.testing.assert_array_equal(kept[rest], s[rest])
     # zero sigma: every sample is its candidate
     z = gputrack.to_numpy(sample_around(device, cand, np.zeros(p, np.float32), 37, 9))
     np.testing.assert_array_equal(z, cand[np.arange(37) * c // 37])

@@ -8,6 +8,7 @@ to float rounding, whatever rows it is given.
 
 import numpy as np
 import pytest
+from tolerances import assert_close
 
 import gputrack
 from gputrack.ops.kinematics import forward_kinematics
@@ -62,7 +63,7 @@ def test_plain_call_equals_composition_and_reference(device, scene):
     cam = CAM
     got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam))
     assert got.shape == (50, rgb.n + dep.n) and got.dtype == np.float32
-    np.testing.assert_allclose(got, _composed(device, chain, X, frame, rgb, dep), rtol=0, atol=1e-6)
+    assert_close(device, got, _composed(device, chain, X, frame, rgb, dep), atol=1e-6)
     # the reference at the device's poses, per row as the cost the LM sees (sum r^2, eq. 19): a
     # rendered frame has depth edges at the silhouette, where the float32 rounding of a projection
     # moves single residuals by up to ~1e-2 (rgbd_residuals is pinned entry by entry on smooth
@@ -83,7 +84,7 @@ def test_central_computes_the_block_sparse_entries(device, scene, problems):
     got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, central=True,
                                            out=out))  # fmt: skip
     need = _needed(chain, rgb, dep, problems)
-    np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
+    assert_close(device, got[need], want[need], atol=5e-5)
     if device.backend == "taichi":  # the one backend that skips: it writes nothing else
         assert (got[~need] == SENTINEL).all()
 
@@ -98,7 +99,7 @@ def test_depth_tolerance_reaches_every_path(device, scene):
         got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, CAM,
                                                depth_tol=2.0, central=central))  # fmt: skip
         need = _needed(chain, rgb, dep, 2) if central else np.ones(want.shape, bool)
-        np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
+        assert_close(device, got[need], want[need], atol=5e-5)
 
 
 def test_central_with_a_broken_layout_is_still_exact(device, scene):
@@ -112,7 +113,7 @@ def test_central_with_a_broken_layout_is_still_exact(device, scene):
     got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, central=True))
     need = _needed(chain, rgb, dep, 2)
     need[3] = True
-    np.testing.assert_allclose(got[need], want[need], rtol=0, atol=5e-5)
+    assert_close(device, got[need], want[need], atol=5e-5)
 
 
 def test_plan_groups_rows_that_move_the_same_parts():

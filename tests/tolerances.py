@@ -19,6 +19,32 @@ TOLERANCES = {
 }
 
 
+#: devices whose compiler contracts a * b + c into one fused multiply-add whatever the build asks:
+#: Taichi's CUDA code generator marks every function "unsafe-fp-math", which LLVM's NVPTX backend
+#: takes as leave to fuse (fast_math=False does not change it). One formula can then round
+#: differently in two kernels, and a value on a discontinuity (a pixel edge, a depth gate, a radius)
+#: can land on the other side of it: FLIPS elements may differ by up to FLIP_SCALE x atol there.
+FUSES = ("taichi:cuda",)
+FLIPS = 1e-4  # share of the elements (at least 2)
+FLIP_SCALE = 50.0
+
+
+def fuses(device) -> bool:
+    """Whether ``device`` contracts multiply-adds (see FUSES)."""
+    return device.spec in FUSES
+
+
+def assert_close(device, got, want, atol: float, rtol: float = 0.0, err_msg: str = ""):
+    """assert_allclose(got, want, rtol, atol), allowing FLIPS on a device that fuses (see FUSES)."""
+    got, want = np.asarray(got), np.asarray(want)
+    if fuses(device):
+        off = ~np.isclose(got, want, rtol=rtol, atol=atol, equal_nan=True)
+        if 0 < off.sum() <= max(2, FLIPS * off.size):
+            np.testing.assert_allclose(got[off], want[off], rtol=rtol, atol=FLIP_SCALE * atol, err_msg=err_msg)
+            return
+    np.testing.assert_allclose(got, want, rtol=rtol, atol=atol, err_msg=err_msg)
+
+
 def tolerance(device, dtype=np.float32, scale: float = 1.0) -> tuple[float, float]:
     rtol, atol = TOLERANCES[(np.dtype(dtype).name, device.backend)]
     return rtol * max(scale, 1.0), atol * max(scale, 1.0)
@@ -30,4 +56,4 @@ def assert_matches(device, actual, expected, dtype=np.float32, scale: float = 1.
     want = np.asarray(expected)
     assert got.shape == want.shape, f"shape {got.shape} != reference {want.shape}"
     rtol, atol = tolerance(device, dtype, scale)
-    np.testing.assert_allclose(got, want, rtol=rtol, atol=atol, err_msg=err_msg)
+    assert_close(device, got, want, atol, rtol, err_msg=err_msg)

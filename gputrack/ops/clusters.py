@@ -17,7 +17,9 @@ and get label -1. ``out``: an (N,) int32 array of the device to write into.
 Neighbours: points i and j are neighbours when d2 <= r2, with d = p_i - p_j, d2 = (d_0 d_0 +
 d_1 d_1) + d_2 d_2 in float32 and r2 = float32(r)**2, on every backend, with no fused multiply-add
 (OpenCL builds with FP_CONTRACT OFF; tests/test_clusters.py pins every backend on pairs exactly
-on the radius, where a fused multiply-add would round d2 to the other side of r2).
+on the radius, where a fused multiply-add would round d2 to the other side of r2). The exception is
+taichi:cuda: Taichi's CUDA code generator lets LLVM contract every multiply-add, so there a pair
+exactly on the radius is linked by the fused rounding of d2 (the test pins that too).
 
 Labels are canonical, the same on every backend, so results compare exactly:
 

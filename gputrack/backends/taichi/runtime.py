@@ -120,7 +120,12 @@ def start(arch: str) -> None:
             # launches were not
             direct_off = "arrays of a stopped Taichi program are still alive"
             log.debug("taichi: direct kernel launches off (%s)", direct_off)
-        threads = {"cpu_max_num_threads": cpu_threads()} if arch == "cpu" else {}
+        options = {"cpu_max_num_threads": cpu_threads()} if arch == "cpu" else {}
+        if arch == "cuda":
+            # fast math on CUDA lets LLVM assume no NaN or inf (the kernels' finiteness checks would
+            # fold away) and use approximate sqrt and division; multiply-adds are still contracted
+            # (Taichi marks every CUDA function unsafe-fp-math), see tests/tolerances.py FUSES
+            options["fast_math"] = False
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
             ti.init(
@@ -130,7 +135,7 @@ def start(arch: str) -> None:
                 offline_cache=True,
                 log_level=ti.ERROR,
                 enable_fallback=False,
-                **threads,
+                **options,
             )
         log.debug("taichi: %s", out.getvalue().strip())
         got = ti.lang.impl.current_cfg().arch
