@@ -173,86 +173,88 @@ def cmd_demo(args) -> int:
     return 0
 
 
+#: errors of a recording, its camera or its start files: reported as one line "gputrack track X: ..."
+INPUT_ERRORS = (FileNotFoundError, ValueError, TypeError)
+
+
+def _fail(name: str, error) -> int:
+    print(f"{name}: {error}", file=sys.stderr)
+    return 1
+
+
+def _track_into(args, name: str, run, done: str = "") -> int:
+    """Open --device and --out, ``run(device, out) -> frames``; bad input ends in one line, not a traceback."""
+    from .device import DeviceUnavailable
+    from .registry import device
+
+    try:
+        dev = device(args.device)
+    except DeviceUnavailable as e:
+        args.parser.error(f"--device: {e}")
+    try:
+        out = open(args.out, "w") if args.out else sys.stdout
+    except OSError as e:
+        return _fail(name, f"{args.out}: cannot write the output ({e.strerror})")
+    try:
+        n = run(dev, out)
+    except INPUT_ERRORS as e:
+        return _fail(name, e)
+    finally:
+        if args.out:
+            out.close()
+    print(f"{name}: {n} frames{done}", file=sys.stderr)
+    return 0
+
+
 def cmd_track_pedestrians(args) -> int:
     import dataclasses
 
-    from .registry import device
     from .trackers.pedestrians import PedestrianConfig
     from .trackers.pedestrians.recording import read_camera, track_recording
 
+    name = "gputrack track pedestrians"
     try:
         cam, mounting = read_camera(args.camera)
         config = dataclasses.replace(PedestrianConfig(), **mounting)
-    except (FileNotFoundError, ValueError, TypeError) as e:
-        print(f"gputrack track pedestrians: {e}", file=sys.stderr)
-        return 1
-    dev = device(args.device)
-    out = open(args.out, "w") if args.out else sys.stdout
+    except INPUT_ERRORS as e:
+        return _fail(name, e)
 
     def progress(k, fr):
         if args.out:
             print(f"  frame {k + 1:5d}  {len(fr.segments)} segments  pedestrians "
                   + " ".join(str(p.id) for p in fr.pedestrians), file=sys.stderr, flush=True)  # fmt: skip
 
-    try:
-        n = track_recording(dev, args.depth, cam, out, config=config, background=args.background, save=args.save,
-                            progress=progress)  # fmt: skip
-    except (FileNotFoundError, ValueError, TypeError) as e:
-        print(f"gputrack track pedestrians: {e}", file=sys.stderr)
-        return 1
-    finally:
-        if args.out:
-            out.close()
-    print(f"gputrack track pedestrians: {n} frames", file=sys.stderr)
-    return 0
+    return _track_into(args, name, lambda dev, out: track_recording(
+        dev, args.depth, cam, out, config=config, background=args.background, save=args.save, progress=progress))
 
 
 def cmd_track_face(args) -> int:
-    from .models.face import load_face_model
-    from .registry import device
+    from .models.face import FaceModel, load_face_model
     from .trackers.face.recording import read_camera, read_landmarks, track_recording
 
     name = "gputrack track face"
     try:
         cam = read_camera(args.camera) if args.camera else None
-        model = load_face_model(args.model) if args.model else None
-        if model is None:
-            from .models.face import FaceModel
-
-            model = FaceModel.from_ict()
+        model = load_face_model(args.model) if args.model else FaceModel.from_ict()
         lm = read_landmarks(args.landmarks, model.K) if args.landmarks else None
-    except (FileNotFoundError, ValueError, TypeError) as e:
-        print(f"{name}: {e}", file=sys.stderr)
-        return 1
+    except INPUT_ERRORS as e:
+        return _fail(name, e)
     if cam is None:
         print(f"{name}: no --camera: assuming fx = fy = the image width, the principal point at the centre",
               file=sys.stderr)  # fmt: skip
-    dev = device(args.device)
-    out = open(args.out, "w") if args.out else sys.stdout
 
     def progress(k, est):
         if args.out and k % 30 == 0:
             print(f"  frame {k:5d}  confidence {est.confidence:.2f}{'  LOST' if est.lost else ''}", file=sys.stderr,
                   flush=True)  # fmt: skip
 
-    try:
-        n = track_recording(dev, args.video, out, camera=cam, landmarks=lm, model=model, save=args.save,
-                            progress=progress)  # fmt: skip
-    except (FileNotFoundError, ValueError, TypeError) as e:
-        print(f"{name}: {e}", file=sys.stderr)
-        return 1
-    finally:
-        if args.out:
-            out.close()
-    print(f"{name}: {n} frames", file=sys.stderr)
-    return 0
+    return _track_into(args, name, lambda dev, out: track_recording(
+        dev, args.video, out, camera=cam, landmarks=lm, model=model, save=args.save, progress=progress))
 
 
 def cmd_track_body(args) -> int:
     import dataclasses
 
-    from .device import DeviceUnavailable
-    from .registry import device
     from .trackers.body import BodyTrackerConfig
     from .trackers.body.recording import DEPTH_SCALE, read_body_model, read_camera, read_pose, track_recording
 
@@ -263,9 +265,8 @@ def cmd_track_body(args) -> int:
         cam, extras = read_camera(args.camera)
         dims = read_body_model(args.model) if args.model else None
         start = read_pose(args.init, (6,) if args.rigid else (14, 20)) if args.init else None
-    except (FileNotFoundError, ValueError, TypeError) as e:
-        print(f"{name}: {e}", file=sys.stderr)
-        return 1
+    except INPUT_ERRORS as e:
+        return _fail(name, e)
     scale = args.depth_scale or extras.get("depth_scale", DEPTH_SCALE)
     base = BodyTrackerConfig(c_depth=50.0, lam=0.5) if args.rigid else BodyTrackerConfig()
     changes = {k: v for k, v in (("lm_iterations", args.lm), ("stages", args.stages), ("samples", args.samples),
@@ -276,72 +277,50 @@ def cmd_track_body(args) -> int:
     except ValueError as e:
         args.parser.error(str(e))
     size = (extras["width"], extras["height"]) if "width" in extras and "height" in extras else None
-    try:
-        dev = device(args.device)
-    except DeviceUnavailable as e:
-        args.parser.error(f"--device: {e}")
-    try:
-        out = open(args.out, "w") if args.out else sys.stdout
-    except OSError as e:
-        print(f"{name}: {args.out}: cannot write the output ({e.strerror})", file=sys.stderr)
-        return 1
 
     def progress(k, rec):
         if args.out and k % 30 == 0:
             print(f"  frame {k:5d}  confidence {rec['confidence']:.0f}" + (f"  {rec['message']}" if "message" in rec else ""),
                   file=sys.stderr, flush=True)  # fmt: skip
 
-    try:
-        n = track_recording(dev, args.rgb, args.depth, out, camera=cam, start=start, dimensions=dims, depth_scale=scale,
-                            config=config, rigid=args.rigid, start_name=args.init or "start pose", camera_size=size,
-                            save=args.save, progress=progress)  # fmt: skip
-    except (FileNotFoundError, ValueError, TypeError) as e:
-        print(f"{name}: {e}", file=sys.stderr)
-        return 1
-    finally:
-        if args.out:
-            out.close()
-    print(f"{name}: {n} frames (depth {scale:g} mm per unit)", file=sys.stderr)
-    return 0
+    return _track_into(args, name, lambda dev, out: track_recording(
+        dev, args.rgb, args.depth, out, camera=cam, start=start, dimensions=dims, depth_scale=scale, config=config,
+        rigid=args.rigid, start_name=args.init or "start pose", camera_size=size, save=args.save, progress=progress),
+        done=f" (depth {scale:g} mm per unit)")
 
 
-def cmd_track(args) -> int:
-    if args.what == "body":
-        return cmd_track_body(args)
-    if args.what == "face":
-        return cmd_track_face(args)
-    if args.what == "pedestrians":
-        return cmd_track_pedestrians(args)
+def cmd_track_groups(args) -> int:
     from .models import StereoCamera
-    from .registry import device
     from .trackers.groups.recording import read_camera, track_recording
 
+    name = "gputrack track groups"
     if args.camera:
-        cam = read_camera(args.camera)
+        try:
+            cam = read_camera(args.camera)
+        except INPUT_ERRORS as e:
+            return _fail(name, e)
     elif None in (args.f, args.b, args.cx, args.cy):
-        print("gputrack track groups: expected --camera FILE or all of --f --b --cx --cy", file=sys.stderr)
+        print(f"{name}: expected --camera FILE or all of --f --b --cx --cy", file=sys.stderr)
         return 2
     else:
         cam = StereoCamera(f=args.f, b=args.b, cx=args.cx, cy=args.cy)
-    dev = device(args.device)
-    out = open(args.out, "w") if args.out else sys.stdout
 
     def progress(k, fr):
         if args.out:
             print(f"  frame {k:5d}  {len(fr.labels):4d} points  groups " + " ".join(f"{g.id}:{g.n_points}" for g in fr.groups),
                   file=sys.stderr, flush=True)  # fmt: skip
 
-    try:
-        n = track_recording(dev, args.left, args.right, cam, out, background=args.background,
-                            background_left=args.background_left, progress=progress)  # fmt: skip
-    except (FileNotFoundError, ValueError) as e:
-        print(f"gputrack track groups: {e}", file=sys.stderr)
-        return 1
-    finally:
-        if args.out:
-            out.close()
-    print(f"gputrack track groups: {n} frames", file=sys.stderr)
-    return 0
+    return _track_into(args, name, lambda dev, out: track_recording(
+        dev, args.left, args.right, cam, out, background=args.background, background_left=args.background_left,
+        progress=progress))
+
+
+TRACKS = {"body": cmd_track_body, "face": cmd_track_face, "pedestrians": cmd_track_pedestrians,
+          "groups": cmd_track_groups}  # fmt: skip
+
+
+def cmd_track(args) -> int:
+    return TRACKS[args.what](args)
 
 
 def format_trials(tunable, size, trials, best, default) -> str:

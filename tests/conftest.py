@@ -69,3 +69,13 @@ def device(request):
     yield dev
     if dev.backend == "taichi":
         dev.close()  # lets the next Taichi arch start in this process
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (``-n 2 --dist loadgroup``, the README's test command) every test of one
+    device runs in one worker, in order, so each worker starts each Taichi arch at most once; the
+    tests that take no device form the group "host"."""
+    for item in items:
+        callspec = getattr(item, "callspec", None)
+        spec = callspec.params.get("device") if callspec is not None else None
+        item.add_marker(pytest.mark.xdist_group(spec or "host"))

@@ -4,7 +4,11 @@
   filter + batched Levenberg-Marquardt on the device, run per frame by the scheduler;
 - :mod:`.template` — its 3D sparse template (from a rendering of the model, or from a real RGB-D
   frame for rigid scenes);
-- :mod:`.metrics` — the paper's accuracy measures (Tables 5-7).
+- :mod:`.metrics` — the paper's accuracy measures (Tables 5-7);
+- :mod:`.pictures` — the frames with silhouette, axes and template points, and the error plot
+  (``gputrack demo body --save DIR``);
+- :mod:`.recording` — reading a recorded RGB-D sequence, its camera, first pose and body model
+  (``gputrack track body``).
 
 Its synthetic sequences are in :mod:`gputrack.sim.body`, its demo in :mod:`gputrack.demos.body`.
 """
