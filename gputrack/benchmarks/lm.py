@@ -156,9 +156,9 @@ def device_residuals(device, B, t, y):
 
         kernel = cl.Kernel(device.program("gt_bench_expfit.cl"), "gt_bench_expfit")
 
-        def launch(X, R, nper):
-            kernel(device.queue, (M, X.shape[0]), None, X.buffer.data, td.buffer.data, yd.buffer.data, R.buffer.data,
-                   np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
+        def launch(X, R, nper):  # one work-item per (group of 8 samples, point): gt_bench_expfit.cl
+            kernel(device.queue, ((M + 7) // 8, X.shape[0]), None, X.buffer.data, td.buffer.data, yd.buffer.data,
+                   R.buffer.data, np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
 
     def residuals(X):
         n = X.shape[0]
