@@ -59,6 +59,13 @@ class Tunable:
             combos = [{**c, name: v} for c in combos for v in values]
         return combos
 
+    def cover(self) -> list[dict]:
+        """A few combinations that try every candidate value of every parameter at least once
+        (value i of each parameter together, cycling the shorter lists): a check of each value that
+        costs max(len(values)) builds and launches instead of the grid's product."""
+        n = max(len(v) for v in self.candidates.values())
+        return [{name: values[i % len(values)] for name, values in self.candidates.items()} for i in range(n)]
+
     def default_for(self, device) -> dict:
         """The parameters used on ``device`` without a cache entry."""
         return dict(self.default(device) if callable(self.default) else self.default)

@@ -22,6 +22,12 @@ ALL_SPECS = registry_specs()
 FULL_PROTOCOL = ("taichi:cpu", "opencl")
 
 
+def deep() -> bool:
+    """The deep profile (``GPUTRACK_TESTS=deep``): every tuning candidate's combination and the fuzz
+    suite's every mutation, beyond the default profile that keeps the suite within its budget."""
+    return os.environ.get("GPUTRACK_TESTS", "").strip().lower() == "deep"
+
+
 def full_protocol(device) -> bool:
     """Whether ``device`` runs the long accuracy protocols in full (see FULL_PROTOCOL)."""
     return device.spec in FULL_PROTOCOL
@@ -72,10 +78,12 @@ def device(request):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Under pytest-xdist (``-n 2 --dist loadgroup``, the README's test command) every test of one
-    device runs in one worker, in order, so each worker starts each Taichi arch at most once; the
-    tests that take no device form the group "host"."""
+    """Groups for pytest-xdist's ``--dist loadgroup`` (the README's test command ``-n 2``): every test
+    of one Taichi arch runs in one worker, in order, so that a worker starts each arch at most once
+    (Taichi runs one arch per process); the other devices' tests and those that take no device
+    ("host") are grouped per module, which lets the workers share them out."""
     for item in items:
         callspec = getattr(item, "callspec", None)
-        spec = callspec.params.get("device") if callspec is not None else None
-        item.add_marker(pytest.mark.xdist_group(spec or "host"))
+        spec = (callspec.params.get("device") if callspec is not None else None) or "host"
+        group = spec if spec.startswith("taichi:") else f"{spec}:{item.module.__name__}"
+        item.add_marker(pytest.mark.xdist_group(group))

@@ -36,6 +36,8 @@ REF = gputrack.device("numpy")
 
 
 def profile() -> str:
+    if os.environ.get("GPUTRACK_TESTS", "").strip().lower() == "deep":  # the suite's deep profile
+        return "deep"
     return os.environ.get("GPUTRACK_FUZZ", "fast").strip().lower() or "fast"
 
 

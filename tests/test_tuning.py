@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import deep
 from tolerances import assert_matches
 
 import gputrack
@@ -177,6 +178,19 @@ def test_every_backend_has_tunables_with_the_default_among_the_candidates(device
         assert t.fingerprint() == t.fingerprint() and len(t.fingerprint()) == 16
 
 
+def _candidates(tunable) -> list[dict]:
+    """Every combination in the deep profile; by default each candidate value at least once
+    (Tunable.cover: each value changes the build or the launch on its own)."""
+    return tunable.grid() if deep() else tunable.cover()
+
+
+def test_cover_tries_every_value():
+    t = tuning_cache.Tunable("op", "opencl", {"lanes": [1, 4, 8, 16], "work_group": [None, 16]}, {}, ())
+    assert t.cover() == [{"lanes": 1, "work_group": None}, {"lanes": 4, "work_group": 16},
+                         {"lanes": 8, "work_group": None}, {"lanes": 16, "work_group": 16}]  # fmt: skip
+    assert len(t.grid()) == 8
+
+
 def test_every_candidate_matches_the_reference(device, monkeypatch):
     """Results do not depend on the launch parameters: every candidate, through the public ops."""
     if device.backend == "numpy":
@@ -188,7 +202,7 @@ def test_every_candidate_matches_the_reference(device, monkeypatch):
     launched = spy_launches(monkeypatch, backend, device.backend)
     asked = []
     for op in ("rgbd_cost", "rgbd_residuals"):
-        for params in backend.TUNABLES[op].grid():
+        for params in _candidates(backend.TUNABLES[op]):
             force_choice(monkeypatch, params, asked)
             launched.clear()
             asked.clear()
@@ -356,7 +370,7 @@ def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):
     want_s = kalman.ekf_update_stereo(REF, x, P, zs + 0.3, R, f=400.0, b=0.1)
     (tunable,) = found
     asked = []
-    for params in tunable.grid():
+    for params in _candidates(tunable):
         force_choice(monkeypatch, params, asked)
         asked.clear()
         got = kalman.kf_update(device, x, P, z, H, R, mask=mask, predict=(F, Q))
