@@ -265,12 +265,14 @@ def test_taichi_cpu_thread_count_follows_the_environment():
             print("DEFAULT", cpu_threads())
             gputrack.device("taichi:cpu")
             print("THREADS", ti.lang.impl.current_cfg().cpu_max_num_threads)
+            print("CACHE", ti.lang.impl.current_cfg().offline_cache_max_size_of_files)
         except Exception as e:
             print("ERROR", type(e).__name__, e)
     """
     r = run_py(code, env={"GPUTRACK_CPU_THREADS": "3"})
     assert "THREADS 3" in r.stdout, (r.stdout, r.stderr)
     assert "DEFAULT 3" in r.stdout
+    assert f"CACHE {1 << 30}" in r.stdout  # not Taichi's 100 MB, which the kernels outgrow
     # a value that is not a positive integer: a warning naming it, and the default
     default = 2 * len(os.sched_getaffinity(0))
     r = run_py(code, env={"GPUTRACK_CPU_THREADS": "two"})

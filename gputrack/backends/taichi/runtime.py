@@ -36,6 +36,9 @@ log = logging.getLogger("gputrack")
 
 ARCHS = {"cpu": ti.cpu, "vulkan": ti.vulkan, "cuda": ti.cuda}
 
+#: the size of Taichi's offline cache of compiled kernels (~/.cache/taichi), above which it evicts
+OFFLINE_CACHE_BYTES = 1 << 30  # Taichi holds it in a 32-bit int
+
 _lock = threading.Lock()
 _current: str | None = None
 #: why every kernel goes through Taichi's public launch path in this process (read by launch.py), or None
@@ -121,6 +124,9 @@ def start(arch: str) -> None:
             direct_off = "arrays of a stopped Taichi program are still alive"
             log.debug("taichi: direct kernel launches off (%s)", direct_off)
         options = {"cpu_max_num_threads": cpu_threads()} if arch == "cpu" else {}
+        # Taichi's default 100 MB offline cache holds fewer kernels than the package and its tests
+        # compile: past it a quarter is evicted (LRU) and compiled again at the next start
+        options["offline_cache_max_size_of_files"] = OFFLINE_CACHE_BYTES
         if arch == "cuda":
             # fast math on CUDA lets LLVM assume no NaN or inf (the kernels' finiteness checks would
             # fold away) and use approximate sqrt and division; multiply-adds are still contracted
