@@ -63,7 +63,10 @@ def sincos32(a):
 
 @ti.func
 def sincos64(a):
-    """(sin a, cos a) in float64 to ~1 ulp for |a| up to ~1e6: reduce to |r| <= pi/4, Taylor to r^19."""
+    """(sin a, cos a) in float64: reduce to |r| <= pi/4 (a - n pi/2 with pi/2 in two doubles), Taylor
+    to r^19. The reduction's error grows with n: measured on taichi:cpu against np.sin / np.cos
+    (2e5 uniform angles), max absolute error 2.2e-16 on |a| <= 3, 1.1e-14 on |a| <= 100, 3.1e-12 on
+    |a| <= 2**15 (gputrack.abi ANGLE_MAX, where the kinematics clamp)."""
     f64 = ti.f64  # typed constants: a bare Python float would be a float32 literal
     n = ti.floor(a * f64(_TWO_OVER_PI) + f64(0.5))
     r = (a - n * f64(_PIO2_HI)) - n * f64(_PIO2_LO)
