@@ -153,9 +153,10 @@ TINY = {
     "bench_body.py": ["--samples", "20", "--lm", "1", "--points", "16"],
     "bench_clusters.py": ["--dbscan-points", "64", "--components-points", "64"],
     "bench_face.py": ["--frames", "9", "--particles", "16", "--no-scipy"],
-    "bench_groups.py": None,  # its smallest run (--frames 2) takes ~90 s on numpy: needs a tiny-size option
+    # VGA frames only (the simulator's rig): ~30 s on numpy, most of it the reference stereo matching
+    "bench_groups.py": ["--frames", "2", "--core-groups", "4", "--core-points", "10"],
     "bench_kalman.py": ["--tracks", "100", "--loop-max-tracks", "100", "--reference-max-tracks", "100"],
-    "bench_lm.py": None,  # its smallest run (P 14, M 16, 2 iterations, no scipy) takes ~25 s on numpy
+    "bench_lm.py": ["--params", "14", "--residuals", "16", "--iterations", "2", "--no-scipy"],
     "bench_pedestrians.py": ["--people", "2", "--frames", "2", "--scale", "0.25", "--no-sklearn"],
     "bench_stereo.py": ["--size", "64x48", "--no-accuracy"],
     "bench_template.py": ["--batch", "8", "--points", "16", "--lm-batch", "4", "--ncc-batch", "4"],
@@ -175,8 +176,6 @@ def test_benchmark_script_runs_on_numpy_at_a_tiny_size(script, monkeypatch, caps
     per device), with tiny sizes: every case is timed and reported with its medians."""
     import runpy
 
-    if TINY[script] is None:
-        pytest.skip(f"{script}: no tiny size yet (see TINY)")
     if script == "bench_face.py":
         try:
             from gputrack.models.face import load_ict

@@ -38,6 +38,8 @@ BAND = 0.15  # share of the image rows forced to foreground in the "fg 15%" case
 def add_arguments(parser):
     parser.add_argument("--profile", action="store_true", help="synchronise around every stage (device times)")
     parser.add_argument("--frames", type=int, default=48, help="rendered pairs cycled per frame case (default 48)")
+    parser.add_argument("--core-groups", type=int, default=100, help="groups of the tracking-core case (default 100)")
+    parser.add_argument("--core-points", type=int, default=100, help="points per group of that case (default 100)")
 
 
 def _scene(frames: int):
@@ -146,11 +148,14 @@ def cases(device, args):
         run = make(device)
         out.append(Case(name, run=run, reference=make(ref), peers={"cv2.StereoBM full image": _stereo_bm(pairs)},
                         params={"size": [640, 480], "band": BAND if band else 0.0}, details=_details(run, True)))  # fmt: skip
-    frames = _core_frames()
+    G, per = args.core_groups, args.core_points
+    if G < 1 or per < 1:
+        raise SystemExit(f"--core-groups and --core-points: expected positive counts, got {G} and {per}")
+    frames = _core_frames(G, per)
     make = _core_case(device, camera, frames, profile=args.profile)
     run = make(device)
-    out.append(Case("groups core 10000 points x 100 groups", run=run, reference=make(ref),
-                    params={"points": 10000, "groups": 100}, details=_details(run, False)))  # fmt: skip
+    out.append(Case(f"groups core {G * per} points x {G} groups", run=run, reference=make(ref),
+                    params={"points": G * per, "groups": G}, details=_details(run, False)))  # fmt: skip
     return out
 
 
