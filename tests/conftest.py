@@ -53,6 +53,9 @@ def pytest_report_header(config):
 
 
 def pytest_configure(config):
+    # the groups of pytest-xdist's --dist loadgroup (pytest_collection_modifyitems); registered here
+    # too, for a plain `pytest` where pytest-xdist is not installed
+    config.addinivalue_line("markers", "xdist_group(name): tests that one pytest-xdist worker runs in order")
     # tests use the default launch parameters, not a tuning cache the user may have
     if "GPUTRACK_TUNING_CACHE" not in os.environ:
         import tempfile
