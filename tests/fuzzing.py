@@ -25,6 +25,7 @@ import re
 from typing import Any, Callable
 
 import numpy as np
+from conftest import deep
 
 import gputrack
 from gputrack.device import DeviceArray, DeviceUnavailable
@@ -36,7 +37,7 @@ REF = gputrack.device("numpy")
 
 
 def profile() -> str:
-    if os.environ.get("GPUTRACK_TESTS", "").strip().lower() == "deep":  # the suite's deep profile
+    if deep():  # the suite's deep profile
         return "deep"
     return os.environ.get("GPUTRACK_FUZZ", "fast").strip().lower() or "fast"
 

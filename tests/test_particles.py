@@ -2,9 +2,8 @@
 
 import numpy as np
 import pytest
-from tolerances import fuses
 from allocations import rejects_without_allocating
-from tolerances import assert_matches
+from tolerances import assert_matches, fuses
 
 import gputrack
 from gputrack.backends.reference.particles import sortable_key

@@ -272,7 +272,7 @@ def test_taichi_cpu_thread_count_follows_the_environment():
     r = run_py(code, env={"GPUTRACK_CPU_THREADS": "3"})
     assert "THREADS 3" in r.stdout, (r.stdout, r.stderr)
     assert "DEFAULT 3" in r.stdout
-    assert f"CACHE {1 << 30}" in r.stdout  # not Taichi's 100 MB, which the kernels outgrow
+    assert f"CACHE {1 << 30}" in r.stdout  # not Taichi's default 100 MB
     # a value that is not a positive integer: a warning naming it, and the default
     default = 2 * len(os.sched_getaffinity(0))
     r = run_py(code, env={"GPUTRACK_CPU_THREADS": "two"})

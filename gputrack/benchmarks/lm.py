@@ -156,8 +156,10 @@ def device_residuals(device, B, t, y):
 
         kernel = cl.Kernel(device.program("gt_bench_expfit.cl"), "gt_bench_expfit")
 
-        def launch(X, R, nper):  # one work-item per (group of 8 samples, point): gt_bench_expfit.cl
-            kernel(device.queue, ((M + 7) // 8, X.shape[0]), None, X.buffer.data, td.buffer.data, yd.buffer.data,
+        lanes = 8  # GT_EXPFIT_LANES of gt_bench_expfit.cl (its double8): one work-item per (group, point)
+
+        def launch(X, R, nper):
+            kernel(device.queue, ((M + lanes - 1) // lanes, X.shape[0]), None, X.buffer.data, td.buffer.data, yd.buffer.data,
                    R.buffer.data, np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
 
     def residuals(X):

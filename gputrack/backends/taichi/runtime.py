@@ -124,8 +124,9 @@ def start(arch: str) -> None:
             direct_off = "arrays of a stopped Taichi program are still alive"
             log.debug("taichi: direct kernel launches off (%s)", direct_off)
         options = {"cpu_max_num_threads": cpu_threads()} if arch == "cpu" else {}
-        # Taichi's default 100 MB offline cache holds fewer kernels than the package and its tests
-        # compile: past it a quarter is evicted (LRU) and compiled again at the next start
+        # Taichi's default cap of 100 MB is near what the package and its tests compile (68 MB for
+        # one suite run from an empty cache, more as kernels change): past the cap its LRU policy
+        # evicts a quarter, which the next start compiles again
         options["offline_cache_max_size_of_files"] = OFFLINE_CACHE_BYTES
         if arch == "cuda":
             # fast math on CUDA lets LLVM assume no NaN or inf (the kernels' finiteness checks would
