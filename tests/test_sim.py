@@ -11,7 +11,9 @@ from gputrack.ops.template import SparseTemplate
 from gputrack.models.camera import DEFAULT_CAMERA
 from gputrack.models.render import intersect, render
 from gputrack.sim import SEQUENCES, sequence, sequence_params
-from gputrack.trackers import select_pixels, sparse_template
+from gputrack.ops.model_template import model_images, select_template
+from gputrack.trackers import sparse_template
+REF = gputrack.device("numpy")
 
 DEG = np.pi / 180
 CHAIN = upper_body()
@@ -185,6 +187,16 @@ def test_template_reprojects_onto_its_part(index, frame):
             np.testing.assert_allclose(tmpl.value, cam[:, 2], rtol=1e-5)  # Z_i
 
 
+def _pick(values, part, n, k=0, n_parts=None, **select):
+    """select_template on given images whose part-local point is (row, column, 0): the picked
+    pixels of template k (0: RGB from ``values``, 1: depth from ``values``) as (rows, cols)."""
+    rows, cols = np.indices(part.shape)
+    local = np.stack([rows, cols, np.zeros_like(rows)], -1).astype(np.float32)
+    images = model_images(REF, part, np.stack([values, values]), local, n_parts)
+    t = select_template(REF, images, n, n, **select)[k]
+    return t.xyz[:, 0].astype(int), t.xyz[:, 1].astype(int), t.part
+
+
 def test_template_points_are_extrema_spread_and_deterministic():
     p = crossed_pose()
     a = sparse_template(CHAIN, p, n=128, n_depth=96)
@@ -195,27 +207,28 @@ def test_template_points_are_extrema_spread_and_deterministic():
         np.testing.assert_array_equal(x.value, y.value)
     assert a[1].n == 96
     r = render(CHAIN, p, background=None, depth_step=0)
-    px = select_pixels(r.gray, r.part, 128, n_parts=5)
+    rows, cols, part = _pick(r.gray, r.part, 128, n_parts=5)
     # intensity points are 5x5 same-part extrema (all of them on the torso, which has plenty;
     # the narrow forearms may need filling)
     from scipy import ndimage
 
-    ext = np.zeros(len(px), bool)
+    ext = np.zeros(len(rows), bool)
     for j in range(5):
         m = r.part == j
-        hi = ndimage.maximum_filter(np.where(m, r.gray, -np.inf), size=5)[px.rows, px.cols]
-        lo = ndimage.minimum_filter(np.where(m, r.gray, np.inf), size=5)[px.rows, px.cols]
-        g = r.gray[px.rows, px.cols]
-        ext |= (px.part == j) & ((g >= hi) | (g <= lo))
-    assert ext[px.part == 0].all()
+        hi = ndimage.maximum_filter(np.where(m, r.gray, -np.inf), size=5)[rows, cols]
+        lo = ndimage.minimum_filter(np.where(m, r.gray, np.inf), size=5)[rows, cols]
+        g = r.gray[rows, cols]
+        ext |= (part == j) & ((g >= hi) | (g <= lo))
+    assert ext[part == 0].all()
     assert ext.mean() > 0.75
-    # at least 2 px inside their part, no two closer than 4 px
+    # at least 2 px inside their part, no two closer than 4 px (measured on this pose: the rule
+    # promises it between extrema and between an extremum and a fill point)
     for dy in (-2, 0, 2):
         for dx in (-2, 0, 2):
-            np.testing.assert_array_equal(r.part[px.rows + dy, px.cols + dx], px.part)
-    d2 = (px.rows[:, None] - px.rows[None]) ** 2 + (px.cols[:, None] - px.cols[None]) ** 2
-    same = px.part[:, None] == px.part[None]
-    assert d2[same & ~np.eye(len(px), dtype=bool)].min() >= 16
+            np.testing.assert_array_equal(r.part[rows + dy, cols + dx], part)
+    d2 = (rows[:, None] - rows[None]) ** 2 + (cols[:, None] - cols[None]) ** 2
+    same = part[:, None] == part[None]
+    assert d2[same & ~np.eye(len(rows), dtype=bool)].min() >= 16
     # a part hidden entirely gets no points, the others share N
     hidden = CHAIN.rest_params()
     hidden[1] = 90 * DEG  # side view: the right arm hangs behind the torso
@@ -227,32 +240,32 @@ def test_template_points_are_extrema_spread_and_deterministic():
     assert set(rgb.part.tolist()) == set(dep.part.tolist()) == {0, 2, 4}
 
 
-def test_select_pixels_takes_the_strongest_extrema():
-    """Isolated peaks of known height on a flat part: picked strongest first, then spread."""
+def test_selection_takes_the_strongest_extrema_then_fills():
+    """Isolated peaks of known height on a flat part: picked strongest first; then the fill."""
     part = np.full((60, 80), -1, np.int32)
     part[5:55, 5:75] = 0
     values = np.zeros((60, 80))
     peaks = [(10, 10, 5.0), (30, 40, 9.0), (30, 43, 8.0), (50, 70, 7.0), (20, 60, -6.0)]
     for r, c, h in peaks:
         values[r, c] = h
-    px = select_pixels(values, part, 4, window=5, border=2, spacing=4.0)
+    rows, cols, _ = _pick(values, part, 4, window=5, border=2, spacing=4.0)
     # 9 (30,40), 7 (50,70), -6 (20,60), 5 (10,10); (30,43) is within 4 px of (30,40)
-    assert list(zip(px.rows.tolist(), px.cols.tolist())) == [(30, 40), (50, 70), (20, 60), (10, 10)]
+    assert list(zip(rows.tolist(), cols.tolist())) == [(30, 40), (50, 70), (20, 60), (10, 10)]
     # with no extrema (a flat part), farthest-point sampling still spreads the points
-    px = select_pixels(np.zeros((60, 80)), part, 5)
-    d2 = (px.rows[:, None] - px.rows[None]) ** 2 + (px.cols[:, None] - px.cols[None]) ** 2
-    assert len(px) == 5 and d2[~np.eye(5, dtype=bool)].min() > 20**2
+    rows, cols, _ = _pick(np.zeros((60, 80)), part, 5)
+    d2 = (rows[:, None] - rows[None]) ** 2 + (cols[:, None] - cols[None]) ** 2
+    assert len(rows) == 5 and d2[~np.eye(5, dtype=bool)].min() > 20**2
     # the fill is rook-spread: a row and a column of its own for every point while there are any
     # (the pool is 46 rows x 66 columns), still spread out
-    px = select_pixels(np.zeros((60, 80)), part, 60)
-    d2 = (px.rows[:, None] - px.rows[None]) ** 2 + (px.cols[:, None] - px.cols[None]) ** 2
-    assert len(set(px.rows.tolist())) == 46 and len(set(px.cols.tolist())) == 60
+    rows, cols, _ = _pick(np.zeros((60, 80)), part, 60)
+    d2 = (rows[:, None] - rows[None]) ** 2 + (cols[:, None] - cols[None]) ** 2
+    assert len(set(rows.tolist())) == 46 and len(set(cols.tolist())) == 60
     assert d2[~np.eye(60, dtype=bool)].min() >= 4**2
     # a surface whose value changes along the columns only (an upright cylinder's depth): as many
     # distinct values as points
     z = np.tile(np.linspace(0.0, 1.0, 80) ** 2, (60, 1))
-    px = select_pixels(z, part, 30)
-    assert len(np.unique(z[px.rows, px.cols])) == 30
+    rows, cols, _ = _pick(z, part, 30)
+    assert len(np.unique(z[rows, cols])) == 30
 
 
 def test_template_bad_input():
@@ -261,15 +274,18 @@ def test_template_bad_input():
     with pytest.raises(ValueError, match="no visible model surface"):
         sparse_template(CHAIN, far)
     r = render(CHAIN, CHAIN.rest_params(), background=None)
+    images = model_images(REF, r.part, np.stack([r.gray, r.depth]), r.local)
     with pytest.raises(ValueError, match="window: expected an odd size"):
-        select_pixels(r.gray, r.part, 10, window=4)
-    with pytest.raises(ValueError, match="same"):
-        select_pixels(r.gray[1:], r.part, 10)
+        select_template(REF, images, 10, window=4)
+    with pytest.raises(ValueError, match=r"expected \(H, W\), \(2, H, W\)"):
+        model_images(REF, r.part[1:], np.stack([r.gray, r.depth]), r.local)
+    with pytest.raises(TypeError, match="images: expected gputrack ModelImages"):
+        select_template(REF, r.part, 10)
     # more points than visible pixels: all of them, no more
     tiny = np.full((20, 20), -1, np.int32)
     tiny[5:8, 5:9] = 0
-    px = select_pixels(np.random.default_rng(0).random((20, 20)), tiny, 50)
-    assert len(px) == 12 and len(set(zip(px.rows.tolist(), px.cols.tolist()))) == 12
+    rows, cols, _ = _pick(np.random.default_rng(0).random((20, 20)), tiny, 50)
+    assert len(rows) == 12 and len(set(zip(rows.tolist(), cols.tolist()))) == 12
 
 
 def test_template_cost_is_lowest_at_the_true_pose():

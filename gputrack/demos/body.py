@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from ..sim import SEQUENCES, sequence, shoulders_off
-from ..trackers.body import BodyTracker, BodyTrackerConfig, sparse_template
+from ..trackers.body import BodyTracker, BodyTrackerConfig
 from ..trackers.body.metrics import ARM_PARTS, arm_axis_errors, shoulder_camera_errors, shoulder_errors
 
 log = logging.getLogger("gputrack")
@@ -63,10 +63,7 @@ def run(
     if save:
         os.makedirs(save, exist_ok=True)
     estimates, per_frame = [], []
-    template_pose = tracker.params.copy()
     for f in list(seq)[1:]:
-        if tracker.frame_index % template_every == 0:  # the tracker re-renders its template at this pose
-            template_pose = tracker.params.copy()
         t0 = time.perf_counter()
         est = tracker.track(f.gray, f.depth)
         dt = time.perf_counter() - t0
@@ -79,7 +76,7 @@ def run(
         print(f"  frame {f.index:4d}  {dt * 1e3:8.1f} ms  cost {est.cost:8.3f}  arm-axis error (deg) "
               + " ".join(f"{e:5.2f}" for e in err), file=out, flush=True)  # fmt: skip
         if save and (f.index == 1 or f.index % 10 == 0 or f.index == frames - 1):
-            _picture(save, seq, f, est, template_pose, config)
+            _picture(save, seq, f, est, tracker.templates)
     estimates = np.asarray(estimates)
     errors = arm_axis_errors(seq.chain, estimates, seq.params[1:])
     mean = dict(zip(ARM_PARTS, errors.mean(axis=0).tolist()))
@@ -131,18 +128,13 @@ def run(
     return report
 
 
-def _picture(save, seq, f, est, template_pose, config) -> None:
-    """Frame ``f`` with the model at the estimate, the true arm axes and the template points (rendered
-    at ``template_pose``, where the tracker rendered the template this frame was matched with)."""
+def _picture(save, seq, f, est, templates) -> None:
+    """Frame ``f`` with the model at the estimate, the true arm axes and the template points (the
+    templates this frame was matched with, at the estimate)."""
     import cv2
 
     from ..trackers.body.pictures import draw_estimate
 
-    try:
-        templates = sparse_template(seq.chain, template_pose, config.n_rgb, config.n_depth, camera=seq.camera,
-                                    size=seq.size)  # fmt: skip
-    except ValueError:  # the model out of view at that pose: no template points to draw
-        templates = None
     label = f"frame {f.index}  cost {est.cost:.3f}  confidence {est.confidence:.0f}"
     img = draw_estimate(f.gray, seq.chain, est.params, seq.camera, templates=templates, truth=f.params, label=label)
     cv2.imwrite(os.path.join(save, f"frame_{f.index:04d}.png"), img)

@@ -23,7 +23,7 @@ import numpy as np
 from .camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from .chain import Chain, Shape
 
-__all__ = ["Rendering", "Texture", "Wall", "render"]
+__all__ = ["Rendering", "Texture", "Wall", "part_boxes", "render"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,6 +182,20 @@ def _pixel_box(transform, shape: Shape, camera: Camera, width: int, height: int)
     if u0 >= u1 or v0 >= v1:
         return None
     return u0, u1, v0, v1
+
+
+def part_boxes(chain: Chain, transforms, camera: Camera, width: int, height: int) -> tuple[list, float]:
+    """Per part the half-open pixel box (u0, u1, v0, v1) that holds its projection (None: out of
+    view or no shape), and the largest camera depth of the parts' bounding spheres (mm)."""
+    boxes, zmax = [], 0.0
+    for j, pt in enumerate(chain.parts):
+        if pt.shape is None:
+            boxes.append(None)
+            continue
+        boxes.append(_pixel_box(transforms[j], pt.shape, camera, width, height))
+        centre, radius = pt.shape.bounding_sphere()
+        zmax = max(zmax, float(transforms[j, 2, :3] @ centre + transforms[j, 2, 3]) + radius)
+    return boxes, zmax
 
 
 def render(

@@ -11,9 +11,7 @@ from .body import (
     BodyEstimate,
     BodyTracker,
     BodyTrackerConfig,
-    TemplatePixels,
     frame_template,
-    select_pixels,
     sparse_template,
 )
 
@@ -21,8 +19,6 @@ __all__ = [
     "BodyEstimate",
     "BodyTracker",
     "BodyTrackerConfig",
-    "TemplatePixels",
     "frame_template",
-    "select_pixels",
     "sparse_template",
 ]

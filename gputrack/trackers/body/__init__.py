@@ -14,7 +14,7 @@ Its synthetic sequences are in :mod:`gputrack.sim.body`, its demo in :mod:`gputr
 """
 
 from .metrics import ARM_PARTS, arm_axis_errors, axis_angle, mean_arm_errors, shoulder_camera_errors, shoulder_errors
-from .template import TemplatePixels, frame_template, select_pixels, sparse_template
+from .template import frame_template, sparse_template
 from .tracker import BodyEstimate, BodyTracker, BodyTrackerConfig
 
 __all__ = [
@@ -22,12 +22,10 @@ __all__ = [
     "BodyEstimate",
     "BodyTracker",
     "BodyTrackerConfig",
-    "TemplatePixels",
     "arm_axis_errors",
     "axis_angle",
     "frame_template",
     "mean_arm_errors",
-    "select_pixels",
     "shoulder_camera_errors",
     "shoulder_errors",
     "sparse_template",

@@ -399,7 +399,6 @@ def track_recording(device, rgb: str, depth: str, out, *, camera: Camera | None 
     for k, (rgb_name, depth_name) in enumerate(pairs):
         gray, dep = (gray0, depth0) if k == 0 else _frame(rgb_name, depth_name, depth_scale, size)
         rec = {"frame": k, "rgb": os.path.basename(rgb_name), "depth": os.path.basename(depth_name)}
-        template_pose = trk.params.copy()
         if rigid:
             if previous is None:
                 rec.update(params=[0.0] * 6, pose=pose.tolist(), cost=None, confidence=1.0)
@@ -429,7 +428,7 @@ def track_recording(device, rgb: str, depth: str, out, *, camera: Camera | None 
                 kept += 1
         out.write(json.dumps(rec) + "\n")
         if save and k % max(1, every) == 0 and not rigid:
-            _picture(save, k, gray, chain, trk, template_pose, camera, size)
+            _picture(save, k, gray, chain, trk, camera)
         if progress is not None:
             progress(k, rec)
         n = k + 1
@@ -437,16 +436,10 @@ def track_recording(device, rgb: str, depth: str, out, *, camera: Camera | None 
     return n
 
 
-def _picture(save, k, gray, chain, trk, template_pose, camera, size) -> None:
+def _picture(save, k, gray, chain, trk, camera) -> None:
     import cv2
 
     from .pictures import draw_estimate
-    from .template import sparse_template
 
-    cfg = trk.config
-    try:
-        templates = sparse_template(chain, template_pose, cfg.n_rgb, cfg.n_depth, camera=camera, size=size)
-    except ValueError:
-        templates = None
-    img = draw_estimate(gray, chain, trk.params, camera, templates=templates, label=f"frame {k}")
+    img = draw_estimate(gray, chain, trk.params, camera, templates=trk.templates, label=f"frame {k}")
     cv2.imwrite(os.path.join(save, f"frame_{k:05d}.png"), img)

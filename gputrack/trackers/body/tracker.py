@@ -3,7 +3,9 @@
 Per frame (Alg. 1-2 of the paper):
 
 1. upload the gray and depth images (the only per-frame inputs);
-2. when due, re-render the 3D sparse template at the previous estimate (sec. 2.3) and upload it;
+2. when due, render the 3D sparse template at the previous estimate and pick its points (sec. 2.3),
+   on the device (:func:`gputrack.ops.model_template.model_template`: the host sends the part
+   transforms and receives a few counts per part);
 3. particle filter, ``stages`` times with sigma halved each stage (sec. 3.1, eq. 12): draw K samples
    around the C candidates, forward kinematics, score eq. 17-19, keep the best C as the next
    candidates — all on the device (optionally in cascade order: torso, right arm, left arm,
@@ -29,11 +31,11 @@ from ...device import Device
 from ...models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from ...models.upper_body import pf_sigma, upper_body
 from ...ops.lm import LeastSquaresSolver
+from ...ops.model_template import model_template
 from ...ops.pf import pf_stage
 from ...ops.pose_residuals import pose_residuals
 from ...ops.template import SparseTemplate
 from ...scheduler import Scheduler, SkipFrame, Stage
-from .template import sparse_template
 
 log = logging.getLogger("gputrack")
 
@@ -191,10 +193,16 @@ class BodyTracker:
                    if isinstance(templates, (tuple, list)) else type(templates).__name__)  # fmt: skip
             raise TypeError(f"templates: expected None or a pair (RGB, depth) of gputrack.SparseTemplate, got {got}")
 
+    @property
+    def templates(self) -> tuple[SparseTemplate, SparseTemplate] | None:
+        """The (RGB, depth) templates the last frame was matched with (None before the first frame).
+        Made on the device, their points are downloaded the first time ``xyz`` or ``value`` is read."""
+        return self._templates
+
     def _update_template(self):
         cfg = self.config
-        self._set_templates(*sparse_template(self.chain, self.params, cfg.n_rgb, cfg.n_depth, camera=self.camera,
-                                             size=self.size))  # fmt: skip
+        self._set_templates(*model_template(self.device, self.chain, self.params, self.camera, self.size, cfg.n_rgb,
+                                            cfg.n_depth))  # fmt: skip
 
     def _set_templates(self, rgb, dep):
         rgb.to(self.device)

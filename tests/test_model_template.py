@@ -1,0 +1,85 @@
+"""gputrack.ops.model_template (paper 000 sec. 2.3 on the device): the render against the NumPy
+reference (float32 against float64: equal up to a few silhouette pixels), the selection on the same
+images exactly equal on every backend, the whole template close to the reference's, and the rule's
+promises on the reference (strongest extrema first, spread fill, hidden parts, small pools)."""
+
+import numpy as np
+import pytest
+
+import gputrack
+from gputrack.models import upper_body
+from gputrack.models.render import render
+from gputrack.ops.model_template import (
+    DeviceTemplate,
+    model_images,
+    model_template,
+    render_model,
+    select_template,
+)
+
+REF = gputrack.device("numpy")
+CHAIN = upper_body()
+DEG = np.pi / 180
+
+
+def _poses():
+    rest = CHAIN.rest_params()
+    crossed = rest.copy()
+    crossed[[6, 7, 9, 10]] = (-40 * DEG, 60 * DEG, 30 * DEG, -70 * DEG)  # arms across the torso
+    side = rest.copy()
+    side[1] = 90 * DEG  # side view: the right arm hangs behind the torso
+    side[[11, 13]] = 0.0
+    return {"rest": rest, "crossed": crossed, "side": side}
+
+
+POSES = _poses()
+
+
+@pytest.mark.parametrize("pose", sorted(POSES))
+def test_render_matches_reference(device, pose):
+    want = render_model(REF, CHAIN, POSES[pose])
+    wp, wv, wl = (np.array(a) for a in (want.part, want.values, want.local))
+    got = render_model(device, CHAIN, POSES[pose])
+    assert got.crop == want.crop
+    r0, r1, c0, c1 = want.crop
+    gp = device.to_numpy(got.part)[r0:r1, c0:c1]
+    gv = device.to_numpy(got.values)[:, r0:r1, c0:c1]
+    gl = device.to_numpy(got.local)[r0:r1, c0:c1]
+    wp, wv, wl = wp[r0:r1, c0:c1], wv[:, r0:r1, c0:c1], wl[r0:r1, c0:c1]
+    differ = gp != wp
+    assert differ.mean() < 0.002, f"{differ.sum()} of {differ.size} pixels differ in their part"
+    both = ~differ & (wp >= 0)
+    assert both.sum() > 5000
+    np.testing.assert_allclose(gv[1][both], wv[1][both], atol=0.02)  # depth Z, mm
+    np.testing.assert_allclose(gl[both], wl[both], atol=0.02)  # part-local point, mm
+    np.testing.assert_allclose(gv[0][both], wv[0][both], atol=2e-4)  # gray
+
+
+@pytest.mark.parametrize("pose", sorted(POSES))
+@pytest.mark.parametrize("n, n_depth, window, border, spacing", [(128, 128, 5, 2, 4.0), (200, 60, 3, 1, 2.5),
+                                                                  (64, 300, 7, 0, 6.0)])  # fmt: skip
+def test_selection_matches_reference_exactly(device, pose, n, n_depth, window, border, spacing):
+    """The same images (the reference's rendering) give the same points on every backend."""
+    r = render(CHAIN, POSES[pose], background=None, depth_step=0)
+    values = np.stack([r.gray, r.depth])
+    opts = dict(window=window, border=border, spacing=spacing)
+    want = select_template(REF, model_images(REF, r.part, values, r.local, 5), n, n_depth, **opts)
+    got = select_template(device, model_images(device, r.part, values, r.local, 5), n, n_depth, **opts)
+    for w, g in zip(want, got):
+        assert isinstance(g, DeviceTemplate)
+        np.testing.assert_array_equal(g.part, w.part)
+        np.testing.assert_array_equal(g.packed, w.packed)
+
+
+@pytest.mark.parametrize("pose", sorted(POSES))
+def test_template_close_to_reference(device, pose):
+    """Rendered and picked on the device: nearly every point is the reference's (a float32 render
+    moves a few silhouette pixels and near-equal strengths)."""
+    want = model_template(REF, CHAIN, POSES[pose])
+    got = model_template(device, CHAIN, POSES[pose])
+    for w, g in zip(want, got):
+        np.testing.assert_array_equal(g.part, w.part)
+        d = np.linalg.norm(g.xyz[:, None] - w.xyz[None], axis=2)
+        same_part = g.part[:, None] == w.part[None]
+        near = (np.where(same_part, d, np.inf).min(axis=1) < 0.5).mean()
+        assert near > 0.9, f"{near:.2%} of the points are the reference's"
