@@ -1,10 +1,12 @@
 """Paper 000's body tracker, per frame: PF 3 stages (K = 1500) with and without LM 10, N = N' = 128, 640x480.
 
-The template is rendered once (``template_every`` large) so that the figure is the device work of
-a steady-state frame: upload of the frame, the particle filter and the LM. Rendering and picking
-the template on the host is timed as its own case ("template (host)"). One particle-filter stage
-(``pf_stage``: sample, pose, score, best 10) is timed for the torso group (every part moves) and
-for the right-arm group of the cascade (the torso and left arm do not move), inputs on the device.
+The frame as the tracker runs it by default: the template rendered and picked at the previous
+estimate on the device every frame (``template_every=1``), the particle filter and the LM; and the
+same frame with the template kept (``template_every`` large: the upload of the frame, the particle
+filter and the LM only). The template alone (``model_template``: render + pick on the device) is
+its own case. One particle-filter stage (``pf_stage``: sample, pose, score, best 10) is timed for
+the torso group (every part moves) and for the right-arm group of the cascade (the torso and left
+arm do not move), inputs on the device.
 """
 
 import sys
@@ -25,6 +27,7 @@ def cases(device, args):
     from ..registry import device as get_device
     from ..sim import sequence
     from ..trackers.body import BodyTracker, BodyTrackerConfig
+    from ..ops.model_template import model_template
     from ..trackers.body.template import sparse_template
 
     seq = sequence(args.sequence, frames=3, seed=0)
@@ -32,18 +35,18 @@ def cases(device, args):
     reference = get_device("numpy")
     out = []
     n = args.points
-    for lm in (0, args.lm):
-        cfg = BodyTrackerConfig(lm_iterations=lm, samples=args.samples, template_every=10**9, n_rgb=n, n_depth=n)
+    for lm, every in ((0, 1), (args.lm, 1), (args.lm, 10**9)):
+        cfg = BodyTrackerConfig(lm_iterations=lm, samples=args.samples, template_every=every, n_rgb=n, n_depth=n)
         tracker = BodyTracker(device, seq.params[0], config=cfg)
         ref = BodyTracker(reference, seq.params[0], config=cfg)
-        label = "PF 3 stages" + (f" + LM {lm}" if lm else "")
+        label = "PF 3 stages" + (f" + LM {lm}" if lm else "") + (", template kept" if every > 1 else "")
         out.append(
             Case(
                 f"body frame, {label}",
                 run=lambda t=tracker: t.track(frame.gray, frame.depth),
                 reference=lambda t=ref: t.track(frame.gray, frame.depth),
                 params={"K": args.samples, "N": n, "N_depth": n, "stages": 3, "lm": lm, "cascade": cfg.cascade,
-                        "width": 640, "height": 480},  # fmt: skip
+                        "template_every": every, "width": 640, "height": 480},  # fmt: skip
             )
         )
     from ..models.upper_body import pf_sigma
@@ -67,8 +70,9 @@ def cases(device, args):
         )
     out.append(
         Case(
-            "template (host render + pick)",
-            run=lambda: sparse_template(seq.chain, seq.params[0], n, n),
+            "template (render + pick)",
+            run=lambda: model_template(device, seq.chain, seq.params[0], n=n, n_depth=n),
+            reference=lambda: model_template(reference, seq.chain, seq.params[0], n=n, n_depth=n),
             params={"N": n, "N_depth": n},
         )
     )

@@ -64,6 +64,7 @@ own candidates and pool (a few thousand pixels).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -247,12 +248,15 @@ def _scratch(device, H, W, J) -> _Scratch:
 
 
 # -- the op -------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=16)
 def _texture_table(texture: Texture, n_parts: int) -> np.ndarray:
-    """(J, waves, 4) float32: each part's plane waves (k_x, k_y, k_z, phase) of Texture.sample."""
+    """(J, waves, 4) float32: each part's plane waves (k_x, k_y, k_z, phase) of Texture.sample (made
+    once per texture and J; read-only)."""
     table = np.zeros((n_parts, texture.waves, 4), np.float32)
     for j in range(n_parts):
         k, phase = texture._waves(j)
         table[j, :, :3], table[j, :, 3] = k, phase
+    table.setflags(write=False)
     return table
 
 

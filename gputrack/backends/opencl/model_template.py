@@ -1,14 +1,22 @@
 """OpenCL launchers of :mod:`gputrack.ops.model_template` (kernels/gt_model_template.cl).
 
 ``render``: one launch over the crop (the part table copied into a buffer kept per device, enqueued
-without a wait). ``classify``: three launches over the crop (classes and the reset of the counts;
-the per-part statistics a run of a row at a time; the suppression into the bins) and one over its
-rows. ``emit``: the ranks of the survivors with the extrema and their spacing stamps, then the fill.
-No host wait in any of them (one in-order queue); the op downloads the counts after ``classify``.
+without a wait). ``classify``: a launch over the crop (classes, and the reset of the counts), one over
+its rows (the per-part statistics, a run of a row at a time) and one over its rows (every candidate
+into its part's bin). ``render`` and the classes take GT_MT_LANES pixels of a row per work-item
+(explicit vectors on CPU devices; the classes stage each window row's part ids and q once). The
+render computes in double on devices with fp64 (GT_MT_DOUBLE=1: the part table, the texture's
+waves and the constants sent in float64, as the reference's float64 render), in float otherwise; it
+stores float32 either way.
+``emit``: one launch of a work-group of one per part and kind: the greedy extrema from a heap of
+the part's bin, the farthest-point fill over the compacted pool (GT_MT_LANES pixels per step), the
+points. No host wait in any of them (one in-order queue); the op downloads the counts after
+``classify``.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -23,10 +31,8 @@ ARG_TYPES = {
     "gt_mt_render": [None, None, None, _I, _I, _I, _I, _I, _I, _I, None, None, None],
     "gt_mt_classify": [None, None, _I, _I, _I, _I, _I, _I, _F, _F, _I, _I, _I, None, None, None, None],
     "gt_mt_stats": [None, None, _I, _I, _I, _I, None],
-    "gt_mt_suppress": [None, None, None, None, _I, _I, _I, _I, _I, _I, _I, _I, _I, None, None],
-    "gt_mt_extrema": [None, None, None, _I, _I, _I, _I, _I, _I, None, None, None, None, None, None, None, _I, _I,
-                      _I, _I, None, None],  # fmt: skip
-    "gt_mt_fill": [None, None, None, _I, _I, None, None, None, None, _I, _I, _I, _I, None, None],
+    "gt_mt_bin": [None, None, None, _I, _I, _I, _I, _I, None, None, _I],
+    "gt_mt_emit": [None, None, None, _I, _I, None, None, None, None, None, None, None, None, _I, _I, None, None],
 }
 
 
@@ -39,11 +45,17 @@ def lanes(device) -> int:
     return CPU_LANES if device.info.kind == "cpu" else 1
 
 
+def double(device) -> bool:
+    """Whether the render computes in double (GT_MT_DOUBLE): on devices with fp64."""
+    return bool(device.fp64)
+
+
 @per_device
 def _kernel(device, name):
     import pyopencl as cl
 
-    found = cl.Kernel(device.program("gt_model_template.cl", {"GT_MT_LANES": lanes(device)}), name)
+    defines = {"GT_MT_LANES": lanes(device), "GT_MT_DOUBLE": int(double(device))}  # one program for every kernel
+    found = cl.Kernel(device.program("gt_model_template.cl", defines), name)
     found.set_scalar_arg_dtypes(ARG_TYPES[name])
     return found
 
@@ -56,10 +68,10 @@ _TABLE = per_device_cache()
 def _upload_table(device, table: np.ndarray):
     import pyopencl as cl
 
-    host = np.ascontiguousarray(table, np.float32)
+    host = np.ascontiguousarray(table)
     kept = _TABLE.get(device)
     if kept is None or kept["nbytes"] < host.nbytes:
-        device.check_alloc((max(host.size, 1),), np.float32)
+        device.check_alloc((max(host.size, 1),), host.dtype)
         kept = _TABLE[device] = {"buffer": cl.Buffer(device.context, cl.mem_flags.READ_ONLY, max(host.nbytes, 4)),
                                  "nbytes": max(host.nbytes, 4), "event": None}  # fmt: skip
     device.transfers.h2d += host.nbytes
@@ -72,24 +84,60 @@ def _lim(s2) -> int:
     return int(math.ceil(float(s2))) - 1
 
 
+@functools.lru_cache(maxsize=8)
+def _waves64(texture, n_parts: int) -> np.ndarray:
+    """(J, waves, 4) float64: the op's texture table (k_x, k_y, k_z, phase) unrounded (read-only)."""
+    table = np.zeros((n_parts, texture.waves, 4), np.float64)
+    for j in range(n_parts):
+        k, phase = texture._waves(j)
+        table[j, :, :3], table[j, :, 3] = k, phase
+    table.setflags(write=False)
+    return table
+
+
+def _inputs64(chain, transforms, texture, table, waves, consts):
+    """The op's float32 part table, waves and constants in float64 as the reference computes them:
+    R^T and o = -R^T t from the float64 transforms, the shapes' extents, the texture's waves and
+    amplitude unrounded; the boxes, kinds and axes (exact in float32), the camera and the shading
+    as sent (the reference reads those from the float32 constants too)."""
+    tf = np.asarray(transforms, np.float64)
+    t64 = np.array(table, np.float64)
+    for j, pt in enumerate(chain.parts):
+        r, t = tf[j, :, :3], tf[j, :, 3]
+        t64[j, 0:9] = r.T.ravel()
+        t64[j, 9:12] = -(r.T @ t)
+        if pt.shape is not None:
+            t64[j, 18:22] = (pt.shape.start, pt.shape.end, *pt.shape.radii)
+    w64 = _waves64(texture, int(waves.shape[0]))
+    if w64.shape != waves.shape:
+        raise ValueError(f"waves: expected the texture's table of shape {w64.shape}, got {waves.shape}")
+    c64 = np.array(consts, np.float64)
+    c64[4] = texture.contrast * np.sqrt(2.0 / texture.waves)  # as Texture.sample
+    return t64, w64, c64
+
+
 def render(device, chain, transforms, texture, table, waves, consts, crop, part, values, local):
-    """Step 1 over the crop: part, gray and depth Z, the part-local point (float32)."""
+    """Step 1 over the crop: part, gray and depth Z, the part-local point (computed in double on
+    devices with fp64, else float; stored float32)."""
     r0, r1, c0, c1 = (int(v) for v in crop)
     if r1 <= r0 or c1 <= c0:
         return
     H, W = part.shape
     J, Wv = int(waves.shape[0]), int(waves.shape[1])
-    tb = _upload_table(device, table)
-    wv = constant(device, np.ascontiguousarray(waves, np.float32))
-    cs = constant(device, np.ascontiguousarray(consts, np.float32))
+    if double(device):
+        table, waves, consts = _inputs64(chain, transforms, texture, table, waves, consts)
+    dt = np.float64 if double(device) else np.float32
+    tb = _upload_table(device, np.ascontiguousarray(table, dt))
+    wv = constant(device, np.ascontiguousarray(waves, dt))
+    cs = constant(device, np.ascontiguousarray(consts, dt))
     L = lanes(device)
     _kernel(device, "gt_mt_render")(device.queue, (-(-(c1 - c0) // L), r1 - r0), None, tb, wv.buffer.data,
                                     cs.buffer.data, J, Wv, H, W, r0, c0, c1, part.buffer.data, values.buffer.data,
                                     local.buffer.data)  # fmt: skip
 
 
-def classify(device, part, values, crop, scales, window, border, rad, s2, cls, cnt, bins, stats, surv):
-    """Steps 2-5: classes, per-part statistics, the survivors binned per part (see the reference)."""
+def classify(device, part, values, crop, scales, window, border, cls, cnt, bins, stats, surv):
+    """Steps 2-4: classes, per-part statistics, every candidate binned per part (see the reference)."""
     r0, r1, c0, c1 = (int(v) for v in crop)
     H, W = part.shape
     J = int(stats.shape[0])
@@ -106,32 +154,25 @@ def classify(device, part, values, crop, scales, window, border, rad, s2, cls, c
         cl.enqueue_copy(q, stb, init)
         cl.enqueue_copy(q, svb, np.zeros((2, J), np.int32))
         return
-    _kernel(device, "gt_mt_classify")(q, (-(-(c1 - c0) // lanes(device)), r1 - r0), None, pb, vb, H, W, r0, r1, c0, c1, float(sc[0]), float(sc[1]),
-                                      int(window) // 2, int(border), J, clb, cnb, stb, svb)  # fmt: skip
+    _kernel(device, "gt_mt_classify")(q, (-(-(c1 - c0) // lanes(device)), r1 - r0), None, pb, vb, H, W, r0, r1, c0,
+                                      c1, float(sc[0]), float(sc[1]), int(window) // 2, int(border), J, clb, cnb, stb,
+                                      svb)  # fmt: skip
     _kernel(device, "gt_mt_stats")(q, (r1 - r0,), None, pb, clb, W, r0, c0, c1, stb)
-    _kernel(device, "gt_mt_suppress")(q, (c1 - c0, r1 - r0), None, pb, clb, cnb, stb, H, W, r0, r1, c0, c1, int(rad), _lim(s2), J,
-                                      bins.buffer.data, svb)  # fmt: skip
+    _kernel(device, "gt_mt_bin")(q, (r1 - r0,), None, pb, clb, stb, H, W, r0, c0, c1, bins.buffer.data, svb, J)
 
 
-def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, mask, stamp, rad, s2, n0, n1,
-         total_area, out0, out1):  # fmt: skip
-    """Steps 7-9: the strongest survivors (ranked on the device), then the fill, into out0 / out1."""
-    r0, r1, c0, c1 = (int(v) for v in crop)
+def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, dist, used, s2, out0, out1):
+    """Steps 6-8: per kind and part (a work-group of one each) the greedy extrema, the farthest-point
+    fill and the points, into out0 (RGB) and out1 (depth). ``dist`` holds the fill's distances with
+    each pool pixel's row / column flags; ``used`` the seeds' rows and columns."""
     H, W = part.shape
     J = int(stats.shape[0])
-    n0, n1, total_area = int(n0), int(n1), int(total_area)
-    if n0 + n1 == 0:
+    if out0.shape[0] + out1.shape[0] == 0:
         return
-    q = device.queue
-    dummy = out0 if n0 else out1
-    o0 = (out0 if n0 else dummy).buffer.data
-    o1 = (out1 if n1 else dummy).buffer.data
-    pb, vb, lb = part.buffer.data, values.buffer.data, local.buffer.data
-    plb, stb, clb, cnb, mb = plan.buffer.data, stats.buffer.data, cls.buffer.data, cnt.buffer.data, mask.buffer.data
-    lim = _lim(s2)
-    if total_area > 0:
-        _kernel(device, "gt_mt_extrema")(q, (total_area, 2), None, pb, vb, lb, H, W, r0, r1, c0, c1, plb, stb,
-                                         surv.buffer.data, bins.buffer.data, clb, cnb, mb, int(stamp), int(rad), lim,
-                                         J, o0, o1)  # fmt: skip
-    _kernel(device, "gt_mt_fill")(q, (max(n0, n1), 2), None, pb, vb, lb, H, W, plb, stb, clb, mb, int(stamp), J, n0,
-                                  n1, o0, o1)  # fmt: skip
+    dummy = out0 if out0.shape[0] else out1
+    o0 = (out0 if out0.shape[0] else dummy).buffer.data
+    o1 = (out1 if out1.shape[0] else dummy).buffer.data
+    _kernel(device, "gt_mt_emit")(device.queue, (J, 2), (1, 1), part.buffer.data, values.buffer.data,
+                                  local.buffer.data, H, W, plan.buffer.data, stats.buffer.data, surv.buffer.data,
+                                  bins.buffer.data, cls.buffer.data, cnt.buffer.data, dist.buffer.data,
+                                  used.buffer.data, _lim(s2), J, o0, o1)  # fmt: skip

@@ -1,20 +1,32 @@
-"""Taichi kernels of :mod:`gputrack.ops.model_template`: three launches (the rule: the op's docstring;
-the NumPy reference: gputrack/backends/reference/model_template.py).
+"""Taichi kernels of :mod:`gputrack.ops.model_template` (the rule: the op's docstring; the NumPy
+reference: gputrack/backends/reference/model_template.py).
 
-* :func:`render` (step 1): one thread per pixel of the crop; every part whose box holds the pixel is
-  intersected in float32 (the shapes of :func:`gputrack.models.render.intersect`; the
-  discriminants in the cross-product form |d|^2 r^2 - |o x d|^2, which keeps float32's accuracy
-  for a camera far from the part), the nearest hit wins (strict ``<``: ties to the lower part).
-* :func:`classify` (steps 2-5), one kernel of three top-level loops (Taichi's barrier between
-  them): the statistics zeroed; one thread per crop pixel: interior flag, q = floor(v s) (integers
-  from here on), the window's count, sum, extremes, the extremum strength numerator, the per-part
-  counts and ranges by atomics; one thread per crop pixel: the suppression (exact 64-bit
-  cross-multiplied strengths, ties by pixel index) and the survivors binned per part by an atomic
-  counter (bin order is the atomics' order: only the set matters).
-* :func:`emit` (steps 7-9), one kernel of two loops: one thread per survivor ranks it among its
-  part's survivors (counting stronger ones, stopping at the part's extrema count), writes it if it
-  ranks below that count and stamps the fill mask around it; then one thread per fill point runs
-  step 8 (rows t, t + 1, t - 1, ...; the golden in-row rank; a second pass without the mask).
+* :func:`render` (step 1), one launch: a thread per pixel of the crop; every part whose box holds
+  the pixel is intersected in float32 (the shapes of :func:`gputrack.models.render.intersect`; the
+  discriminants in the cross-product form a - (o x d)^2, which keeps float32's accuracy for a
+  camera far from the part; a ray missing the infinite cylinder is rejected before any division),
+  the nearest hit wins (strict ``<``: ties to the lower part). The texture's sines are a
+  polynomial (:func:`_sin`, ~1e-7 off plus the argument's own float32 rounding).
+* :func:`classify` (steps 2-4), one launch of four top-level loops (Taichi's barrier between
+  them): the statistics zeroed (serial); a thread per crop pixel: interior flag, q = floor(v s)
+  (integers from here on), the window's count, sum and extremes (unrolled: ``window`` and
+  ``border`` are template values; an interior pixel with border >= window // 2 skips the same-part
+  tests), the extremum strength numerator, and on a GPU the per-part counts and ranges by atomics;
+  on the CPU arch instead a thread per crop row flushes each run of a part's pixels by atomics
+  (per-pixel atomics on the few shared statistics cost ~2 ms there; on lavapipe Vulkan this row
+  loop lost every row past the 128th, cause not found, hence the split); a thread per crop pixel:
+  the candidates (pool extrema) binned per part by an atomic counter (bin order is the atomics'
+  order: only the set matters).
+* :func:`emit` (steps 6-7). On the CPU arch one launch of a thread per kind and part, as the op's
+  docstring describes: the greedy extrema by a partial heap sort of the part's bin, then the
+  farthest-point fill over the part's pool (listed in the bin, the candidates being done with),
+  row by row: a row whose bound on its distances cannot beat the best so far is skipped and
+  brought up to date only when it can (exact: distances only shrink; ~2x faster than full passes).
+  Elsewhere (Vulkan, CUDA) one thread's loops must stay bounded (lavapipe's llvmpipe runs at most
+  65535 loop passes per invocation and then silently goes on with wrong numbers): one launch for
+  the extrema, the fill's first point and the pool's distances (a thread per pixel), then one
+  launch per fill point (the largest tier-and-distance key by atomic max, the first pixel holding
+  it by atomic min), as many as the most fill points of a kind and part (one small download).
 
 Every comparison after q is integer arithmetic, so the picks equal the reference's on the same
 images (Taichi's CPU backend compiles with fast math: no float tie-breaking is relied on; misses
@@ -32,7 +44,6 @@ from .runtime import scratch, ti
 nd1 = ti.types.ndarray(ndim=1)
 nd2 = ti.types.ndarray(ndim=2)
 nd3 = ti.types.ndarray(ndim=3)
-BIG = 3.0e38
 NO_ROW = 1 << 30
 
 
@@ -43,17 +54,25 @@ SIN_TAYLOR = [(-1) ** m / math.factorial(2 * m + 1) for m in range(1, 6)]  # x^3
 
 
 @ti.func
+def _ifloor(x):
+    """floor(x) as an int32 (|x| < 2**31; one instruction on the CPU, faster than a truncation
+    with a correction, measured)."""
+    return ti.cast(ti.floor(x), ti.i32)
+
+
+@ti.func
 def _sin(x):
     """sin(x) in float32 to ~1e-7 (+ |x| eps of the reduction): x - n pi in [-pi/2, pi/2], its
     Taylor polynomial to x^11; ~3x faster than libm's sinf on the CPU arch."""
-    n = ti.floor(x * (1.0 / math.pi) + 0.5)
+    ni = _ifloor(x * (1.0 / math.pi) + 0.5)
+    n = ti.cast(ni, ti.f32)
     r = (x - n * PI_A) - n * PI_B
     r2 = r * r
     poly = ti.f32(SIN_TAYLOR[4])
     for m in ti.static(range(3, -1, -1)):
         poly = poly * r2 + ti.f32(SIN_TAYLOR[m])
     y = r + r * r2 * poly
-    return ti.select((ti.cast(n, ti.i32) & 1) != 0, -y, y)
+    return ti.select((ni & 1) != 0, -y, y)
 
 
 @ti.func
@@ -80,23 +99,28 @@ def _intersect(table: ti.template(), j, o, d):
     k = ti.cast(table[j, 17], ti.i32)
     s0 = table[j, 18]
     s1 = table[j, 19]
-    ia = 1.0 / table[j, 20]
-    ib = 1.0 / table[j, 21]
     ok, ou, ov = _axes(k, o)
     dk, du, dv = _axes(k, d)
-    # the side, in the coordinates scaled to a unit circle (a capsule: ra = rb = r); the
-    # discriminant as a - (o x d)^2 (no cancellation of the large |o|^2 |d|^2 terms in float32)
-    ua = ou * ia
-    va = ov * ib
-    ea = du * ia
-    eb = dv * ib
-    a = ea * ea + eb * eb
-    cr = ua * eb - va * ea
-    disc = a - cr * cr
     hit = False
     t = 0.0
     which = 0
-    if disc >= 0.0:
+    ra = table[j, 20]
+    rb = table[j, 21]
+    # a ray that misses the infinite cylinder misses the shape: tested without a division first
+    # (the discriminant below times ra^2 rb^2)
+    x0 = ou * dv - ov * du
+    if du * du * rb * rb + dv * dv * ra * ra - x0 * x0 >= 0.0:
+        ia = 1.0 / ra
+        ib = 1.0 / rb
+        # the side, in the coordinates scaled to a unit circle (a capsule: ra = rb = r); the
+        # discriminant as a - (o x d)^2 (no cancellation of the large |o|^2 |d|^2 terms in float32)
+        ua = ou * ia
+        va = ov * ib
+        ea = du * ia
+        eb = dv * ib
+        a = ea * ea + eb * eb
+        cr = ua * eb - va * ea
+        disc = ti.max(a - cr * cr, 0.0)
         inside = False
         if a > 0.0:
             t0 = _first_root(a, ua * ea + va * eb, disc)
@@ -171,10 +195,12 @@ def _normal(table: ti.template(), j, p, which):
 def _render(table: nd2, waves: nd3, part: nd2, values: nd3, local: nd3, r0: ti.i32, c0: ti.i32, w: ti.i32,
             n: ti.i32, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, amp: ti.f32, shading: ti.f32):  # fmt: skip
     J = table.shape[0]
+    ifx = 1.0 / fx
+    ify = 1.0 / fy
     for i in range(n):
         r = r0 + i // w
         c = c0 + i % w
-        dc = ti.Vector([(ti.cast(c, ti.f32) - cx) / fx, (ti.cast(r, ti.f32) - cy) / fy, 1.0])
+        dc = ti.Vector([(ti.cast(c, ti.f32) - cx) * ifx, (ti.cast(r, ti.f32) - cy) * ify, 1.0])
         best = -1
         bt = 0.0
         bwhich = 0
@@ -232,15 +258,6 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
 
 # -- steps 2-5: classify ----------------------------------------------------------------------------
 @ti.func
-def _part_at(part: ti.template(), r, c, r0, r1, c0, c1):
-    """The part of pixel (r, c); -1 outside the crop."""
-    p = -1
-    if (r >= r0) & (r < r1) & (c >= c0) & (c < c1):
-        p = part[r, c]
-    return p
-
-
-@ti.func
 def _stronger(num_a, cnt_a, idx_a, num_b, cnt_b, idx_b):
     """a stronger than b: |c q - S| / c larger (cross-multiplied in 64 bits), ties by pixel index."""
     lhs = ti.cast(num_a, ti.i64) * ti.cast(cnt_b, ti.i64)
@@ -255,9 +272,23 @@ def _at(r, c, r0, r1, c0, c1):
     return inside, ti.min(ti.max(r, r0), r1 - 1), ti.min(ti.max(c, c0), c1 - 1)
 
 
+@ti.func
+def _flush(stats: ti.template(), j, count, base, r, a, b):
+    """A run of part j's pixels (or interior pixels) in row r, columns a .. b, into the statistics."""
+    ti.atomic_add(stats[j, count], b - a + 1)
+    if r < stats[j, base]:
+        ti.atomic_min(stats[j, base], r)
+    if r > stats[j, base + 1]:
+        ti.atomic_max(stats[j, base + 1], r)
+    if a < stats[j, base + 2]:
+        ti.atomic_min(stats[j, base + 2], a)
+    if b > stats[j, base + 3]:
+        ti.atomic_max(stats[j, base + 3], b)
+
+
 @ti.kernel
 def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2, surv: nd2, r0: ti.i32, r1: ti.i32,
-              c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, rad: ti.i32, d2max: ti.i32, half: ti.template(),
+              c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, half: ti.template(),
               border: ti.template()):  # fmt: skip
     J = stats.shape[0]
     W = part.shape[1]
@@ -289,8 +320,8 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
                         inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
                         same_all = same_all & inside & (part[y, x] == p)
             inner = ti.cast(same_all, ti.i32)
-            q0 = ti.cast(ti.floor(values[0, r, c] * s0), ti.i32)
-            q1 = ti.cast(ti.floor(values[1, r, c] * s1), ti.i32)
+            q0 = _ifloor(values[0, r, c] * s0)
+            q1 = _ifloor(values[1, r, c] * s1)
             count = 1
             S0 = q0
             S1 = q1
@@ -298,217 +329,463 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
             lo0 = q0
             hi1 = q1
             lo1 = q1
-            for dy in ti.static(range(-half, half + 1)):
-                for dx in ti.static(range(-half, half + 1)):
-                    if ti.static(dy != 0 or dx != 0):
-                        inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
-                        same = inside & (part[y, x] == p)
-                        a0 = ti.cast(ti.floor(values[0, y, x] * s0), ti.i32)
-                        a1 = ti.cast(ti.floor(values[1, y, x] * s1), ti.i32)
-                        count += ti.cast(same, ti.i32)
-                        S0 += ti.select(same, a0, 0)
-                        S1 += ti.select(same, a1, 0)
-                        hi0 = ti.select(same, ti.max(hi0, a0), hi0)
-                        lo0 = ti.select(same, ti.min(lo0, a0), lo0)
-                        hi1 = ti.select(same, ti.max(hi1, a1), hi1)
-                        lo1 = ti.select(same, ti.min(lo1, a1), lo1)
+            if ti.static(border >= half):  # noqa: SIM102 - a compile-time branch
+                if same_all:  # an interior pixel: its whole window is of its part
+                    count = (2 * half + 1) * (2 * half + 1)
+                    for dy in ti.static(range(-half, half + 1)):
+                        for dx in ti.static(range(-half, half + 1)):
+                            if ti.static(dy != 0 or dx != 0):
+                                a0 = _ifloor(values[0, r + dy, c + dx] * s0)
+                                a1 = _ifloor(values[1, r + dy, c + dx] * s1)
+                                S0 += a0
+                                S1 += a1
+                                hi0 = ti.max(hi0, a0)
+                                lo0 = ti.min(lo0, a0)
+                                hi1 = ti.max(hi1, a1)
+                                lo1 = ti.min(lo1, a1)
+            if (not ti.static(border >= half)) or (not same_all):
+                for dy in ti.static(range(-half, half + 1)):
+                    for dx in ti.static(range(-half, half + 1)):
+                        if ti.static(dy != 0 or dx != 0):
+                            inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
+                            same = inside & (part[y, x] == p)
+                            a0 = _ifloor(values[0, y, x] * s0)
+                            a1 = _ifloor(values[1, y, x] * s1)
+                            count += ti.cast(same, ti.i32)
+                            S0 += ti.select(same, a0, 0)
+                            S1 += ti.select(same, a1, 0)
+                            hi0 = ti.select(same, ti.max(hi0, a0), hi0)
+                            lo0 = ti.select(same, ti.min(lo0, a0), lo0)
+                            hi1 = ti.select(same, ti.max(hi1, a1), hi1)
+                            lo1 = ti.select(same, ti.min(lo1, a1), lo1)
             num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.abs(count * q0 - S0), -1)
             num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.abs(count * q1 - S1), -1)
         cls[0, r, c] = inner
         cls[1, r, c] = num0
         cls[2, r, c] = num1
         cnt[r, c] = count
-    for e in range(J * h):  # 4. per part and row: the counts and ranges (few atomics, no contention per pixel)
-        j = e // h
-        r = r0 + e - j * h
-        na = 0
-        ni = 0
-        a_lo = c1
-        a_hi = -1
-        i_lo = c1
-        i_hi = -1
-        for c in range(c0, c1):
-            mine = part[r, c] == j
-            inner = mine & (cls[0, r, c] != 0)
-            na += ti.cast(mine, ti.i32)
-            ni += ti.cast(inner, ti.i32)
-            a_lo = ti.select(mine, ti.min(a_lo, c), a_lo)
-            a_hi = ti.select(mine, c, a_hi)
-            i_lo = ti.select(inner, ti.min(i_lo, c), i_lo)
-            i_hi = ti.select(inner, c, i_hi)
-        if na > 0:
-            ti.atomic_add(stats[j, 0], na)
-            ti.atomic_min(stats[j, 6], r)
-            ti.atomic_max(stats[j, 7], r)
-            ti.atomic_min(stats[j, 8], a_lo)
-            ti.atomic_max(stats[j, 9], a_hi)
-        if ni > 0:
-            ti.atomic_add(stats[j, 1], ni)
-            ti.atomic_min(stats[j, 2], r)
-            ti.atomic_max(stats[j, 3], r)
-            ti.atomic_min(stats[j, 4], i_lo)
-            ti.atomic_max(stats[j, 5], i_hi)
-    for i in range(n):  # 5. suppression; the survivors binned per part
+    for i in range(n):  # 4. a thread per start of a run of a part's (interior) pixels in a row flushes it
         r = r0 + i // w
         c = c0 + i % w
         p = part[r, c]
         if p >= 0:
-            every = stats[p, 1] == 0  # the pool: every pixel of a part without interior
-            if every | (cls[0, r, c] != 0):
-                me = r * W + c
-                mc = cnt[r, c]
+            q = ti.select(cls[0, r, c] != 0, p, -1)
+            before = -1
+            qbefore = -1
+            if c > c0:
+                before = part[r, c - 1]
+                qbefore = ti.select(cls[0, r, c - 1] != 0, before, -1)
+            if before != p:
+                e = c + 1
+                while (e < c1) and (part[r, e] == p):
+                    e += 1
+                _flush(stats, p, 0, 6, r, c, e - 1)
+            if (q >= 0) & (qbefore != q):
+                e = c + 1
+                while (e < c1) and (part[r, e] == p) and (cls[0, r, e] != 0):
+                    e += 1
+                _flush(stats, p, 1, 2, r, c, e - 1)
+    for i in range(n):  # the candidates (pool extrema) binned per part
+        r = r0 + i // w
+        c = c0 + i % w
+        p = part[r, c]
+        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
+            if (stats[p, 1] == 0) | (cls[0, r, c] != 0):  # the pool: every pixel of a part without interior
                 for k in ti.static(range(2)):
-                    num = cls[1 + k, r, c]
-                    if num >= 0:
-                        alive = True
-                        for dy in range(-rad, rad + 1):
-                            for dx in range(-rad, rad + 1):
-                                d2 = dy * dy + dx * dx
-                                if alive & (d2 > 0) & (d2 <= d2max):
-                                    y = r + dy
-                                    x = c + dx
-                                    if _part_at(part, y, x, r0, r1, c0, c1) == p:
-                                        if every | (cls[0, y, x] != 0):
-                                            nb = cls[1 + k, y, x]
-                                            if nb >= 0:
-                                                if _stronger(nb, cnt[y, x], y * W + x, num, mc, me):
-                                                    alive = False
-                        if alive:
-                            start = 0
-                            for jj in range(p):
-                                start += stats[jj, 0]
-                            bins[k, start + ti.atomic_add(surv[k, p], 1)] = me
+                    if cls[1 + k, r, c] >= 0:
+                        start = 0
+                        for jj in range(p):
+                            start += stats[jj, 0]
+                        bins[k, start + ti.atomic_add(surv[k, p], 1)] = r * W + c
 
 
-def classify(device, part, values, crop, scales, window, border, rad, s2, cls, cnt, bins, stats, surv):
-    """Steps 2-5: stats (J, 10), surv (2, J), bins, cls, cnt (as the reference, bins unordered)."""
+def classify(device, part, values, crop, scales, window, border, cls, cnt, bins, stats, surv):
+    """Steps 2-4: stats (J, 10), surv (2, J) candidates per kind and part, bins (unordered), cls, cnt."""
     r0, r1, c0, c1 = (int(x) for x in crop)
     sc = np.asarray(scales, np.float32)
-    d2max = int(math.ceil(float(s2))) - 1  # d^2 < s2 for an integer d^2
     launch(_classify, (part.buffer, values.buffer, cls.buffer, cnt.buffer, bins.buffer, stats.buffer, surv.buffer),
-           (int(window) // 2, int(border)),
-           scalars=(r0, r1, c0, c1, float(sc[0]), float(sc[1]), int(rad), d2max))  # fmt: skip
+           (int(window) // 2, int(border)), scalars=(r0, r1, c0, c1, float(sc[0]), float(sc[1])))  # fmt: skip
 
 
-# -- steps 7-9: emit --------------------------------------------------------------------------------
+# -- steps 6-7: emit --------------------------------------------------------------------------------
 @ti.func
-def _write(out: ti.template(), o, local: ti.template(), values: ti.template(), k, r, c):
-    for m in ti.static(range(3)):
-        out[o, m] = local[r, c, m]
-    out[o, 3] = values[k, r, c]
+def _stronger_px(cls: ti.template(), cnt: ti.template(), k, W, a, b):
+    """Candidate pixel a (index r W + c) stronger than b for value k."""
+    ra = a // W
+    ca = a - ra * W
+    rb = b // W
+    cb = b - rb * W
+    return _stronger(cls[1 + k, ra, ca], cnt[ra, ca], a, cls[1 + k, rb, cb], cnt[rb, cb], b)
 
 
 @ti.func
-def _pool(part: ti.template(), cls: ti.template(), r, c, j, every):
-    return (part[r, c] == j) & (every | (cls[0, r, c] != 0))
+def _sift(bins: ti.template(), cls: ti.template(), cnt: ti.template(), k, W, start, i0, size):
+    """Sift bins[k, start + i0] down the max-heap (by strength) of ``size`` entries at ``start``."""
+    i = i0
+    while True:
+        l = 2 * i + 1
+        if l >= size:
+            break
+        m = l
+        if l + 1 < size:  # noqa: SIM102 - the inner test reads past the heap otherwise
+            if _stronger_px(cls, cnt, k, W, bins[k, start + l + 1], bins[k, start + l]):
+                m = l + 1
+        if not _stronger_px(cls, cnt, k, W, bins[k, start + m], bins[k, start + i]):
+            break
+        t = bins[k, start + i]
+        bins[k, start + i] = bins[k, start + m]
+        bins[k, start + m] = t
+        i = m
+
+
+@ti.func
+def _put(out0: ti.template(), out1: ti.template(), k, o, local: ti.template(), values: ti.template(), r, c):
+    """Point o of template k: the part-local point and value of pixel (r, c)."""
+    if k == 0:
+        for m in ti.static(range(3)):
+            out0[o, m] = local[r, c, m]
+        out0[o, 3] = values[0, r, c]
+    else:
+        for m in ti.static(range(3)):
+            out1[o, m] = local[r, c, m]
+        out1[o, 3] = values[1, r, c]
+
+
+@ti.func
+def _greedy(bins: ti.template(), cls: ti.template(), cnt: ti.template(), surv: ti.template(), taken: ti.template(),
+            k, j, W, start, quota, d2max):  # fmt: skip
+    """Step 6 for kind k, part j: the candidates strongest first (a partial heap sort of their bin),
+    each taken unless a taken one lies at d^2 <= d2max; their pixels (r << 16 | c) into taken[k, j];
+    returns how many."""
+    size = surv[k, j]
+    for e in range(size // 2):
+        _sift(bins, cls, cnt, k, W, start, size // 2 - 1 - e, size)
+    T = 0
+    while (T < quota) & (size > 0):
+        top = bins[k, start]
+        size -= 1
+        bins[k, start] = bins[k, start + size]
+        _sift(bins, cls, cnt, k, W, start, 0, size)
+        r = top // W
+        c = top - r * W
+        ok = True
+        for t in range(T):
+            tr = taken[k, j, t] >> 16
+            tc = taken[k, j, t] & 0xFFFF
+            if (r - tr) * (r - tr) + (c - tc) * (c - tc) <= d2max:
+                ok = False
+                break
+        if ok:
+            taken[k, j, T] = (r << 16) | c
+            T += 1
+    return T
+
+
+@ti.func
+def _pool_range(stats: ti.template(), j):
+    every = stats[j, 1] == 0
+    b = ti.select(every, 6, 2)
+    return every, stats[j, b], stats[j, b + 1], stats[j, b + 2], stats[j, b + 3]
+
+
+@ti.func
+def _centroid_pixel(part: ti.template(), cls: ti.template(), j, every, pr0, pr1, pc0, pc1):
+    """The pool pixel nearest the pool's centroid (n r - sum r, n c - sum c; the first among ties)."""
+    P = ti.i64(0)
+    sr = ti.i64(0)
+    sc = ti.i64(0)
+    for y in range(pr0, pr1 + 1):
+        for x in range(pc0, pc1 + 1):
+            if (part[y, x] == j) & (every | (cls[0, y, x] != 0)):
+                P += 1
+                sr += y
+                sc += x
+    best = ti.i64(-1)
+    fr = 0
+    fc = 0
+    for y in range(pr0, pr1 + 1):
+        for x in range(pc0, pc1 + 1):
+            if (part[y, x] == j) & (every | (cls[0, y, x] != 0)):
+                ey = P * y - sr
+                ex = P * x - sc
+                v = ey * ey + ex * ex
+                if (best < 0) | (v < best):
+                    best = v
+                    fr = y
+                    fc = x
+    return fr, fc
 
 
 @ti.kernel
-def _emit(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, cls: nd3, cnt: nd2,
-          mask: nd3, out0: nd2, out1: nd2, r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, stamp: ti.i32,
-          rad: ti.i32, d2max: ti.i32, n0: ti.i32, n1: ti.i32, total: ti.i32, serial: ti.template()):  # fmt: skip
+def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, cls: nd3,
+                 cnt: nd2, dist: nd3, used: nd3, taken: nd3, rows: nd3, out0: nd2, out1: nd2,
+                 d2max: ti.i32):  # fmt: skip
+    """Steps 6-7 with one thread per kind k and part j (the CPU arch: no limit on a thread's loops):
+    the greedy extrema, then the farthest-point fill over the part's pool, listed (its columns, in
+    pixel order; rows[k, j, y] the first of row y) in the part's bin (its candidates are done with),
+    the distances at the pixels in dist[k], the points taken in taken[k, j] (r << 16 | c)."""
     J = stats.shape[0]
+    H = part.shape[0]
     W = part.shape[1]
-    for e in range(2 * total):  # 7. the extrema: each survivor's rank among its part's survivors
-        k = e // total
-        i = e - k * total
-        j = -1
-        for jj in range(J):
-            if (i >= plan[k, jj, 3]) & (i < plan[k, jj, 3] + surv[k, jj]):
-                j = jj
-        if j >= 0:
-            n_ext = plan[k, j, 1]
-            if n_ext > 0:
-                start = plan[k, j, 3]
-                me = bins[k, i]
-                r = me // W
-                c = me - r * W
-                num = cls[1 + k, r, c]
-                mc = cnt[r, c]
-                rank = 0
-                for b in range(start, start + surv[k, j]):
-                    if rank < n_ext:
-                        o = bins[k, b]
-                        y = o // W
-                        x = o - y * W
-                        if _stronger(cls[1 + k, y, x], cnt[y, x], o, num, mc, me):
-                            rank += 1
-                if rank < n_ext:
-                    if k == 0:
-                        _write(out0, plan[k, j, 0] + rank, local, values, k, r, c)
-                    else:
-                        _write(out1, plan[k, j, 0] + rank, local, values, k, r, c)
-                    for dy in range(-rad, rad + 1):
-                        for dx in range(-rad, rad + 1):
-                            if dy * dy + dx * dx <= d2max:
-                                y = r + dy
-                                x = c + dx
-                                if (y >= r0) & (y < r1) & (x >= c0) & (x < c1):
-                                    if part[y, x] == j:
-                                        mask[k, y, x] = stamp
-    ti.loop_config(serialize=serial)
-    for e in range(n0 + n1):  # 8. the fill points
-        k = 0
-        s = e
-        if e >= n0:
-            k = 1
-            s = e - n0
-        j = -1
-        for jj in range(J):
-            if (s >= plan[k, jj, 0]) & (s < plan[k, jj, 0] + plan[k, jj, 2]):
-                j = jj
-        if j >= 0:
-            n_ext = plan[k, j, 1]
-            i = s - plan[k, j, 0] - n_ext
-            if i >= 0:
-                m = plan[k, j, 2] - n_ext
-                every = stats[j, 1] == 0
-                b = ti.select(every, 6, 2)
-                pr0 = stats[j, b]
-                pr1 = stats[j, b + 1]
-                pc0 = stats[j, b + 2]
-                pc1 = stats[j, b + 3]
-                R = pr1 - pr0 + 1
-                t = pr0 + ((2 * i + 1) * R) // (2 * m)
-                h = (ti.cast(i, ti.u32) * ti.u32(2654435769) + ti.u32(0x80000000)) >> ti.u32(16)
-                hr = ti.cast(h, ti.i32)
-                found_r = -1
-                found_c = -1
-                for strict in range(2):
-                    if found_r < 0:
-                        for step in range(2 * R + 1):
-                            if found_r < 0:
-                                row = t + ti.select(step % 2 == 1, (step + 1) // 2, -(step // 2))
-                                if (row >= pr0) & (row <= pr1):
-                                    count = 0
-                                    for x in range(pc0, pc1 + 1):
-                                        if _pool(part, cls, row, x, j, every) & ((strict == 1) | (mask[k, row, x] != stamp)):
-                                            count += 1
-                                    if count > 0:
-                                        want = (hr * count) >> 16
-                                        seen = 0
-                                        for x in range(pc0, pc1 + 1):
-                                            if found_r < 0:
-                                                if _pool(part, cls, row, x, j, every) & ((strict == 1) | (mask[k, row, x] != stamp)):
-                                                    if seen == want:
-                                                        found_r = row
-                                                        found_c = x
-                                                    seen += 1
-                if found_r >= 0:
-                    if k == 0:
-                        _write(out0, s, local, values, k, found_r, found_c)
-                    else:
-                        _write(out1, s, local, values, k, found_r, found_c)
+    for g in range(2 * J):
+        k = g // J
+        j = g - k * J
+        offset = plan[k, j, 0]
+        quota = plan[k, j, 1]
+        start = plan[k, j, 2]
+        if quota > 0:
+            T = _greedy(bins, cls, cnt, surv, taken, k, j, W, start, quota, d2max)
+            for t in range(T):
+                _put(out0, out1, k, offset + t, local, values, taken[k, j, t] >> 16, taken[k, j, t] & 0xFFFF)
+            m = quota - T
+            if m > 0:  # 7. the fill
+                every, pr0, pr1, pc0, pc1 = _pool_range(stats, j)
+                for y in range(pr0, pr1 + 1):
+                    used[k, j, y] = 0
+                for x in range(pc0, pc1 + 1):
+                    used[k, j, H + x] = 0
+                if T == 0:  # the first: nearest the pool's centroid
+                    fr, fc = _centroid_pixel(part, cls, j, every, pr0, pr1, pc0, pc1)
+                    taken[k, j, 0] = (fr << 16) | fc
+                    _put(out0, out1, k, offset, local, values, fr, fc)
+                    T = 1
+                    m -= 1
+                for t in range(T):
+                    used[k, j, taken[k, j, t] >> 16] = 1
+                    used[k, j, H + (taken[k, j, t] & 0xFFFF)] = 1
+                # the pool into the bin (pixel order), its distances to the points taken; per row its
+                # first entry, an upper bound of its distances and how many points they have seen
+                P = 0
+                for y in range(pr0, pr1 + 1):
+                    rows[k, j, y] = P
+                    rmax = 0
+                    for x in range(pc0, pc1 + 1):
+                        if (part[y, x] == j) & (every | (cls[0, y, x] != 0)):
+                            bins[k, start + P] = x
+                            P += 1
+                            d = 1 << 30
+                            for t in range(T):
+                                tr = taken[k, j, t] >> 16
+                                tc = taken[k, j, t] & 0xFFFF
+                                d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+                            dist[k, y, x] = d
+                            rmax = ti.max(rmax, d)
+                    rows[k, j, H + 1 + y] = rmax
+                    rows[k, j, 2 * H + 1 + y] = T
+                rows[k, j, pr1 + 1] = P
+                for _ in range(m):
+                    # the farthest with a new row and a new column (first among ties): rows in order,
+                    # a row whose bound does not beat the best so far skipped (its distances only
+                    # shrink; an equal one comes later in pixel order), the others brought up to date
+                    b1 = 0
+                    p1 = -1
+                    for y in range(pr0, pr1 + 1):
+                        if (used[k, j, y] == 0) & (rows[k, j, H + 1 + y] > b1):
+                            _row_update(rows, bins, dist, taken, k, j, H, start, y, T)
+                            for e in range(rows[k, j, y], rows[k, j, y + 1]):
+                                x = bins[k, start + e]
+                                d = dist[k, y, x]
+                                if (used[k, j, H + x] == 0) & (d > b1):
+                                    b1 = d
+                                    p1 = (y << 16) | x
+                    px = p1
+                    if p1 < 0:  # none: the farthest with a new row or column, else any
+                        b2 = 0
+                        b3 = -1
+                        p2 = -1
+                        p3 = -1
+                        for y in range(pr0, pr1 + 1):
+                            _row_update(rows, bins, dist, taken, k, j, H, start, y, T)
+                            nr = used[k, j, y] == 0
+                            for e in range(rows[k, j, y], rows[k, j, y + 1]):
+                                x = bins[k, start + e]
+                                d = dist[k, y, x]
+                                if (nr | (used[k, j, H + x] == 0)) & (d > b2):
+                                    b2 = d
+                                    p2 = (y << 16) | x
+                                if d > b3:
+                                    b3 = d
+                                    p3 = (y << 16) | x
+                        px = ti.select(p2 >= 0, p2, p3)
+                    lr = px >> 16
+                    lc = px & 0xFFFF
+                    used[k, j, lr] = 1
+                    used[k, j, H + lc] = 1
+                    taken[k, j, T] = px
+                    _put(out0, out1, k, offset + T, local, values, lr, lc)
+                    T += 1
 
 
-def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, mask, stamp, rad, s2, n0, n1,
-         total_area, out0, out1):  # fmt: skip
-    """Steps 7-9 into out0 (RGB) and out1 (depth)."""
+@ti.func
+def _row_update(rows: ti.template(), bins: ti.template(), dist: ti.template(), taken: ti.template(), k, j, H, start,
+                y, T):  # fmt: skip
+    """Row y of the pool's distances brought up to the T points taken, and its bound."""
+    seen = rows[k, j, 2 * H + 1 + y]
+    if seen < T:
+        rmax = 0
+        for e in range(rows[k, j, y], rows[k, j, y + 1]):
+            x = bins[k, start + e]
+            d = dist[k, y, x]
+            for t in range(seen, T):
+                tr = taken[k, j, t] >> 16
+                tc = taken[k, j, t] & 0xFFFF
+                d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+            dist[k, y, x] = d
+            rmax = ti.max(rmax, d)
+        rows[k, j, H + 1 + y] = rmax
+        rows[k, j, 2 * H + 1 + y] = T
+
+
+#: the device path's per-(kind, part) state: next output slot, fill points left, last point, best key, best pixel
+ST_SLOT, ST_LEFT, ST_LAST, ST_KEY, ST_IDX = range(5)
+NO_IDX = 0x7FFFFFFF
+
+
+@ti.kernel
+def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, cls: nd3,
+               cnt: nd2, dist: nd3, used: nd3, taken: nd3, state: nd3, out0: nd2, out1: nd2, r0: ti.i32,
+               r1: ti.i32, c0: ti.i32, c1: ti.i32, d2max: ti.i32):  # fmt: skip
+    """The device path (bounded loops per thread: lavapipe's llvmpipe runs at most 65535 loop passes
+    per invocation): per kind and part the greedy extrema and the fill's first point; then per pixel
+    the pool's distances to the points taken. The fill's steps follow in :func:`_emit_step`."""
+    J = stats.shape[0]
+    H = part.shape[0]
+    W = part.shape[1]
+    for g in range(2 * J):
+        k = g // J
+        j = g - k * J
+        offset = plan[k, j, 0]
+        quota = plan[k, j, 1]
+        start = plan[k, j, 2]
+        state[k, j, ST_LEFT] = 0
+        state[k, j, ST_KEY] = -1
+        state[k, j, ST_IDX] = NO_IDX
+        state[k, j, 5] = 0
+        if quota > 0:
+            T = _greedy(bins, cls, cnt, surv, taken, k, j, W, start, quota, d2max)
+            for t in range(T):
+                _put(out0, out1, k, offset + t, local, values, taken[k, j, t] >> 16, taken[k, j, t] & 0xFFFF)
+            m = quota - T
+            if m > 0:
+                every, pr0, pr1, pc0, pc1 = _pool_range(stats, j)
+                for y in range(pr0, pr1 + 1):
+                    used[k, j, y] = 0
+                for x in range(pc0, pc1 + 1):
+                    used[k, j, H + x] = 0
+                if T == 0:
+                    fr, fc = _centroid_pixel(part, cls, j, every, pr0, pr1, pc0, pc1)
+                    taken[k, j, 0] = (fr << 16) | fc
+                    _put(out0, out1, k, offset, local, values, fr, fc)
+                    T = 1
+                    m -= 1
+                for t in range(T):
+                    used[k, j, taken[k, j, t] >> 16] = 1
+                    used[k, j, H + (taken[k, j, t] & 0xFFFF)] = 1
+            state[k, j, ST_SLOT] = offset + T
+            state[k, j, ST_LEFT] = m
+            state[k, j, 5] = T
+    w = c1 - c0
+    for i in range((r1 - r0) * w):
+        y = r0 + i // w
+        x = c0 + i % w
+        p = part[y, x]
+        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
+            if (stats[p, 1] == 0) | (cls[0, y, x] != 0):
+                for k in ti.static(range(2)):
+                    if state[k, p, ST_LEFT] > 0:
+                        d = 1 << 30
+                        for t in range(state[k, p, 5]):
+                            tr = taken[k, p, t] >> 16
+                            tc = taken[k, p, t] & 0xFFFF
+                            d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+                        dist[k, y, x] = d
+
+
+@ti.func
+def _fill_key(used: ti.template(), H, k, p, y, x, d):
+    """The fill's order as one integer: the tier (2: a new row and a new column, 1: either, 0: neither;
+    only with d > 0) above d (< 2**20)."""
+    nr = used[k, p, y] == 0
+    nc = used[k, p, H + x] == 0
+    tier = ti.select(nr & nc, 2, ti.select(nr | nc, 1, 0))
+    return ti.select(d > 0, tier, 0) * (1 << 20) + d
+
+
+@ti.kernel
+def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, cls: nd3, dist: nd3, used: nd3, state: nd3,
+               out0: nd2, out1: nd2, r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, first: ti.i32):  # fmt: skip
+    """One fill point of every kind and part with points left: the distances updated with the last
+    point, the largest key (atomic max), the first pixel holding it (atomic min), the point."""
+    J = stats.shape[0]
+    H = part.shape[0]
+    W = part.shape[1]
+    w = c1 - c0
+    n = (r1 - r0) * w
+    for i in range(n):
+        y = r0 + i // w
+        x = c0 + i % w
+        p = part[y, x]
+        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
+            if (stats[p, 1] == 0) | (cls[0, y, x] != 0):
+                for k in ti.static(range(2)):
+                    if state[k, p, ST_LEFT] > 0:
+                        d = dist[k, y, x]
+                        if first == 0:
+                            last = state[k, p, ST_LAST]
+                            ly = last // W
+                            lx = last - ly * W
+                            d = ti.min(d, (y - ly) * (y - ly) + (x - lx) * (x - lx))
+                            dist[k, y, x] = d
+                        key = _fill_key(used, H, k, p, y, x, d)
+                        if key > state[k, p, ST_KEY]:  # few atomics: the pool's pixels share one word
+                            ti.atomic_max(state[k, p, ST_KEY], key)
+    for i in range(n):
+        y = r0 + i // w
+        x = c0 + i % w
+        p = part[y, x]
+        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
+            if (stats[p, 1] == 0) | (cls[0, y, x] != 0):
+                for k in ti.static(range(2)):
+                    if state[k, p, ST_LEFT] > 0:  # noqa: SIM102 - the inner test reads dist where this part has a fill
+                        if _fill_key(used, H, k, p, y, x, dist[k, y, x]) == state[k, p, ST_KEY]:
+                            ti.atomic_min(state[k, p, ST_IDX], y * W + x)
+    ti.loop_config(serialize=True)
+    for g in range(2 * J):
+        k = g // J
+        j = g - k * J
+        if state[k, j, ST_LEFT] > 0:
+            px = state[k, j, ST_IDX]
+            y = px // W
+            x = px - y * W
+            _put(out0, out1, k, state[k, j, ST_SLOT], local, values, y, x)
+            used[k, j, y] = 1
+            used[k, j, H + x] = 1
+            state[k, j, ST_LAST] = px
+            state[k, j, ST_SLOT] += 1
+            state[k, j, ST_LEFT] -= 1
+            state[k, j, ST_KEY] = -1
+            state[k, j, ST_IDX] = NO_IDX
+
+
+def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, dist, used, s2, out0, out1):
+    """Steps 6-7 into out0 (RGB) and out1 (depth): on the CPU arch one kernel (a thread per kind and
+    part); elsewhere a kernel for the extrema and the fill's start, then one per fill point."""
     r0, r1, c0, c1 = (int(x) for x in crop)
-    d2max = int(math.ceil(float(s2))) - 1
+    d2max = math.ceil(float(s2)) - 1  # d^2 < s2 for an integer d^2
+    J = stats.shape[0]
     o0 = out0.buffer if out0.buffer is not None else scratch(device, "mt empty", (1, 4), ti.f32)
     o1 = out1.buffer if out1.buffer is not None else scratch(device, "mt empty", (1, 4), ti.f32)
-    launch(_emit, (part.buffer, values.buffer, local.buffer, plan.buffer, stats.buffer, surv.buffer, bins.buffer,
-                   cls.buffer, cnt.buffer, mask.buffer, o0, o1),
-           (device.arch == "cpu",),
-           scalars=(r0, r1, c0, c1, int(stamp), int(rad), d2max, int(n0), int(n1), int(total_area)))  # fmt: skip
+    nt = max(int(out0.shape[0]), int(out1.shape[0]), 1)
+    taken = scratch(device, "mt taken", (2, J, nt), ti.i32)
+    common = (part.buffer, values.buffer, local.buffer, plan.buffer, stats.buffer, surv.buffer, bins.buffer,
+              cls.buffer, cnt.buffer, dist.buffer, used.buffer, taken)  # fmt: skip
+    if device.arch == "cpu":
+        rows = scratch(device, "mt rows", (2, J, 3 * part.shape[0] + 1), ti.i32)
+        launch(_emit_serial, (*common, rows, o0, o1), scalars=(d2max,))
+        return
+    state = scratch(device, "mt state", (2, J, 6), ti.i32)
+    launch(_emit_prep, (*common, state, o0, o1), scalars=(r0, r1, c0, c1, d2max))
+    steps = int(state.to_numpy()[:, :, ST_LEFT].max())
+    for step in range(steps):
+        launch(_emit_step, (part.buffer, values.buffer, local.buffer, stats.buffer, cls.buffer, dist.buffer,
+                            used.buffer, state, o0, o1), scalars=(r0, r1, c0, c1, int(step == 0)))  # fmt: skip
