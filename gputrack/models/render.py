@@ -3,7 +3,7 @@
 One ray per pixel centre through the pinhole camera, d = ((u - cx)/fx, (v - cy)/fy, 1), so the
 ray parameter of a hit is its camera depth Z. Each part's shape (:class:`gputrack.models.Shape`)
 is intersected analytically in the part's coordinates (rays restricted to the projection of the
-part's bounding sphere); the nearest hit wins (z-buffer, hidden-surface removal). Surfaces carry
+part's bounding box); the nearest hit wins (z-buffer, hidden-surface removal). Surfaces carry
 a procedural solid texture of the part-local point (it moves with the part) with many intensity
 extrema, under mild Lambertian shading from a light at the camera. A textured wall parallel to
 the image plane is the background. Depth is in millimetres, quantised to ``depth_step`` (Kinect-
@@ -164,19 +164,26 @@ def intersect(shape: Shape, o: np.ndarray, d: np.ndarray):
 
 
 def _pixel_box(transform, shape: Shape, camera: Camera, width: int, height: int):
-    """(u0, u1, v0, v1) half-open pixel box that contains the part's projection (None if empty)."""
-    centre, radius = shape.bounding_sphere()
-    c = transform[:, :3] @ centre + transform[:, 3]
-    near = c[2] - radius
-    if near <= 1.0:
+    """(u0, u1, v0, v1) half-open pixel box that contains the part's projection (None if empty): the
+    projection of the shape's bounding box in part coordinates (tighter than its bounding sphere's
+    for a long limb); the whole image when a corner is within 1 mm of the camera plane or behind it."""
+    lo = np.zeros(3)
+    hi = np.zeros(3)
+    cap = shape.radii[0] if shape.kind == "capsule" else 0.0
+    lo[shape.axis], hi[shape.axis] = shape.start - cap, shape.end + cap
+    a, b = _other_axes(shape.axis)
+    lo[a], hi[a] = -shape.radii[0], shape.radii[0]
+    lo[b], hi[b] = -shape.radii[1], shape.radii[1]
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    c = corners @ transform[:, :3].T + transform[:, 3]
+    if c[:, 2].min() <= 1.0:
         return 0, width, 0, height
-    zs = np.array([near, c[2] + radius])
-    xs = np.array([c[0] - radius, c[0] + radius])[:, None] / zs[None, :]
-    ys = np.array([c[1] - radius, c[1] + radius])[:, None] / zs[None, :]
-    u0 = int(np.floor(camera.fx * xs.min() + camera.cx)) - 1
-    u1 = int(np.ceil(camera.fx * xs.max() + camera.cx)) + 2
-    v0 = int(np.floor(camera.fy * ys.min() + camera.cy)) - 1
-    v1 = int(np.ceil(camera.fy * ys.max() + camera.cy)) + 2
+    u = camera.fx * c[:, 0] / c[:, 2] + camera.cx
+    v = camera.fy * c[:, 1] / c[:, 2] + camera.cy
+    u0 = int(np.floor(u.min())) - 1
+    u1 = int(np.ceil(u.max())) + 2
+    v0 = int(np.floor(v.min())) - 1
+    v1 = int(np.ceil(v.max())) + 2
     u0, u1 = max(u0, 0), min(u1, width)
     v0, v1 = max(v0, 0), min(v1, height)
     if u0 >= u1 or v0 >= v1:

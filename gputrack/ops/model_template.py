@@ -14,7 +14,7 @@ The rule, exactly (every backend; the NumPy reference is gputrack/backends/refer
 1. **Render** (one ray per pixel centre, d = ((u - cx)/fx, (v - cy)/fy, 1), so a hit's ray
    parameter is its camera depth Z): each part's shape (:class:`gputrack.models.Shape`) is
    intersected analytically in the part's coordinates, only at the pixels of the part's box (the
-   projection of its bounding sphere, :func:`gputrack.models.render.part_boxes`), and the nearest
+   projection of its bounding box, :func:`gputrack.models.render.part_boxes`), and the nearest
    hit wins (ties: the lower part index). Per pixel: the part id (-1: nothing), the gray value
    (the procedural :class:`gputrack.models.render.Texture` of the part-local point under mild
    Lambertian shading, as :func:`gputrack.models.render.render`), the depth Z and the part-local

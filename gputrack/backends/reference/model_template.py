@@ -109,7 +109,7 @@ def classify(device, part, values, crop, scales, window, border, cls, cnt, bins,
 
 
 def _greedy(sv, num, cnt, W, quota, s2):
-    """Step 5: the candidates ``sv`` (pixel indices) strongest first, each taken unless a taken one
+    """Step 6: the candidates ``sv`` (pixel indices) strongest first, each taken unless a taken one
     lies closer than the spacing; at most ``quota``."""
     strength = num[sv] / cnt[sv]  # the exact order of _stronger (see the op's step 3)
     taken_r, taken_c, taken = [], [], []
@@ -126,7 +126,7 @@ def _greedy(sv, num, cnt, W, quota, s2):
 
 
 def _farthest(rows, cols, chosen_r, chosen_c, m):
-    """Step 6: m more of the pool pixels (rows, cols) (pixel order), each farthest from all chosen
+    """Step 7: m more of the pool pixels (rows, cols) (pixel order), each farthest from all chosen
     so far, preferring those whose row and column no chosen point has (then a new row or a new
     column, then any); the first among ties. With nothing chosen, the first is the pixel nearest the
     pool's centroid (integer arithmetic)."""
@@ -158,7 +158,7 @@ def _farthest(rows, cols, chosen_r, chosen_c, m):
 
 
 def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, dist, used, s2, out0, out1):
-    """Steps 5-7 per kind and part: the greedy extrema, then the farthest-point fill, written into
+    """Steps 6-8 per kind and part: the greedy extrema, then the farthest-point fill, written into
     out0 (RGB) and out1 (depth)."""
     H, W = part.shape
     r0c, r1c, c0c, c1c = crop
