@@ -69,6 +69,25 @@ def test_steady_state_frame_moves_only_frame_and_poses(device, arm_cross):
     assert frame.d2h <= 2 * poses * 2, frame.stages
 
 
+def test_template_every_frame_moves_only_a_few_counts(device, arm_cross):
+    """The template made on the device each frame: the host sends the part transforms (and a new
+    quota plan when the quotas change) and reads the per-part counts; the points stay there."""
+    seq, frames = arm_cross
+    cfg = BodyTrackerConfig(lm_iterations=0, template_every=1, samples=300)
+    tracker = BodyTracker(device, seq.params[0], config=cfg)
+    for f in frames[1:4]:
+        tracker.track(f.gray, f.depth)
+    frame = tracker.scheduler.frames[-1]
+    if device.backend == "numpy":
+        assert (frame.h2d, frame.d2h) == (0, 0)
+        return
+    J = seq.chain.n_parts
+    h2d, d2h = frame.stages["template"][1:]
+    assert d2h == J * 10 * 4  # the per-part counts (gputrack.ops.model_template.STATS), int32
+    assert h2d <= 4096, h2d  # transforms and box table; plan and part index only when new
+    assert all(frame.stages[n][1:] == (0, 0) for n in frame.stages if n.startswith("PF stage")), frame.stages
+
+
 SHOULDER_TRIALS = 3
 SHOULDER_STEP = 2  # every other frame of the 30 fps sequence (15 fps, for time): 39 frames to the arms lowered
 

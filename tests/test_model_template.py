@@ -35,6 +35,12 @@ def _poses():
 POSES = _poses()
 
 
+def _render_f64(device) -> bool:
+    """Whether ``device``'s backend renders in float64 (its ``render_dtype``): then its render is
+    the reference's up to the float32 store."""
+    return gputrack.ops.backend_module(device, "model_template").render_dtype(device) == np.float64
+
+
 @pytest.mark.parametrize("pose", sorted(POSES))
 def test_render_matches_reference(device, pose):
     want = render_model(REF, CHAIN, POSES[pose])
@@ -47,9 +53,10 @@ def test_render_matches_reference(device, pose):
     gl = device.to_numpy(got.local)[r0:r1, c0:c1]
     wp, wv, wl = wp[r0:r1, c0:c1], wv[:, r0:r1, c0:c1], wl[r0:r1, c0:c1]
     differ = gp != wp
-    # fp64: rendered in double, the reference's float64 up to the float32 store (measured on PoCL:
+    # rendered in float64: the reference's up to the float32 store (measured on PoCL and taichi:cpu:
     # 0 part pixels, depth and local bit-equal, gray 3.7e-9); else float32 (depth 2.6e-3 mm)
-    most, zt, lt, gt = (2, 1e-3, 1e-4, 1e-6) if device.fp64 else (0.002 * differ.size, 0.02, 0.02, 2e-4)
+    f64 = _render_f64(device)
+    most, zt, lt, gt = (2, 1e-3, 1e-4, 1e-6) if f64 else (0.002 * differ.size, 0.02, 0.02, 2e-4)
     assert differ.sum() <= most, f"{differ.sum()} of {differ.size} pixels differ in their part"
     both = ~differ & (wp >= 0)
     assert both.sum() > 5000
@@ -66,11 +73,12 @@ def _tracker_poses():
 
 
 def test_tracker_templates_equal_reference(device):
-    """On devices with fp64 the render computes in double: the templates the tracker renders (the
-    file's poses, the arm_cross sequence's) are the reference's exactly (a float32 render flips
+    """Where the backend renders in float64 (its ``render_dtype``): the templates the tracker renders
+    (the file's poses, the arm_cross sequence's) are the reference's exactly (a float32 render flips
     near-ties of the integers q and moves points by up to hundreds of mm)."""
-    if not device.fp64:
-        pytest.skip(f"{device.spec} has no fp64: its float32 render is only close to the reference's")
+    if not _render_f64(device):
+        why = f"{device.spec} has no fp64" if not device.fp64 else f"the {device.backend} backend renders in float32 on {device.spec}"
+        pytest.skip(f"{why}: a float32 render's templates are only close to the reference's")
     for i, p in enumerate(_tracker_poses()):
         want = model_template(REF, CHAIN, p)
         got = model_template(device, CHAIN, p)

@@ -136,6 +136,10 @@ class DeviceTemplate(SparseTemplate):
         }
 
     @property
+    def n(self) -> int:
+        return len(self.part)  # known on the host: no download
+
+    @property
     def packed(self) -> np.ndarray:
         if self._host is None:
             self._host = np.ascontiguousarray(self._device.to_numpy(self._pts), dtype=np.float32)

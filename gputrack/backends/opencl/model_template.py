@@ -24,7 +24,7 @@ import numpy as np
 from ...device import per_device, per_device_cache
 from ...uploads import constant
 
-__all__ = ["classify", "emit", "render"]
+__all__ = ["classify", "emit", "render", "render_dtype"]
 
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
@@ -48,6 +48,11 @@ def lanes(device) -> int:
 def double(device) -> bool:
     """Whether the render computes in double (GT_MT_DOUBLE): on devices with fp64."""
     return bool(device.fp64)
+
+
+def render_dtype(device):
+    """The type the render computes in: np.float64 on devices with fp64 (GT_MT_DOUBLE), else np.float32."""
+    return np.float64 if double(device) else np.float32
 
 
 @per_device

@@ -12,7 +12,12 @@ import numpy as np
 from ...models.render import render as render_chain
 from ...ops.model_template import NO_ROW, STATS
 
-__all__ = ["classify", "emit", "render"]
+__all__ = ["classify", "emit", "render", "render_dtype"]
+
+
+def render_dtype(device):
+    """The type the render computes in: float64 (gputrack.models.render.render)."""
+    return np.float64
 
 
 def render(device, chain, transforms, texture, table, waves, consts, crop, part, values, local):

@@ -33,6 +33,7 @@ images (Taichi's CPU backend compiles with fast math: no float tie-breaking is r
 are flags, not infinities).
 """
 
+import functools
 import math
 
 import numpy as np
@@ -89,12 +90,12 @@ def _axes(k, v):
 
 
 @ti.func
-def _intersect(table: ti.template(), j, o, d):
+def _intersect(table: ti.template(), j, o, d, real: ti.template()):
     """First hit of the ray o + t d (part coordinates) with part j's shape: (hit, t, which) as
     gputrack.models.render.intersect (which: 0 the side or a capsule, 1/2 a cylinder's start/end
-    cap). A ray that misses the infinite (elliptic) cylinder misses the shape (the caps lie inside
-    it); one that enters it within [start, end] hits there first (t > 0 checked after, as the
-    reference's min over the surfaces): only the rest needs the caps."""
+    cap), in ``real``. A ray that misses the infinite (elliptic) cylinder misses the shape (the
+    caps lie inside it); one that enters it within [start, end] hits there first (t > 0 checked
+    after, as the reference's min over the surfaces): only the rest needs the caps."""
     kind = table[j, 16]
     k = ti.cast(table[j, 17], ti.i32)
     s0 = table[j, 18]
@@ -102,7 +103,7 @@ def _intersect(table: ti.template(), j, o, d):
     ok, ou, ov = _axes(k, o)
     dk, du, dv = _axes(k, d)
     hit = False
-    t = 0.0
+    t = real(0.0)
     which = 0
     ra = table[j, 20]
     rb = table[j, 21]
@@ -113,7 +114,7 @@ def _intersect(table: ti.template(), j, o, d):
         ia = 1.0 / ra
         ib = 1.0 / rb
         # the side, in the coordinates scaled to a unit circle (a capsule: ra = rb = r); the
-        # discriminant as a - (o x d)^2 (no cancellation of the large |o|^2 |d|^2 terms in float32)
+        # discriminant as a - (o x d)^2 (no cancellation of the large |o|^2 |d|^2 terms)
         ua = ou * ia
         va = ov * ib
         ea = du * ia
@@ -137,7 +138,7 @@ def _intersect(table: ti.template(), j, o, d):
                     end = s0
                     if ti.static(e == 1):
                         end = s1
-                    oc = ti.Vector([o[0], o[1], o[2]])
+                    oc = ti.Vector([o[0], o[1], o[2]], dt=real)
                     for m in ti.static(range(3)):
                         if k == m:
                             oc[m] = o[m] - end
@@ -167,16 +168,16 @@ def _intersect(table: ti.template(), j, o, d):
 
 
 @ti.func
-def _normal(table: ti.template(), j, p, which):
+def _normal(table: ti.template(), j, p, which, real: ti.template()):
     """The unit outward normal at the hit p of part j's shape (``which`` from :func:`_intersect`)."""
     k = ti.cast(table[j, 17], ti.i32)
     s0 = table[j, 18]
     s1 = table[j, 19]
     ra = table[j, 20]
     rb = table[j, 21]
-    n = ti.Vector([0.0, 0.0, 0.0])
+    n = ti.Vector([0.0, 0.0, 0.0], dt=real)
     if table[j, 16] == 0.0:  # capsule: from the closest point of the axis segment, / r
-        n = ti.Vector([p[0], p[1], p[2]])
+        n = ti.Vector([p[0], p[1], p[2]], dt=real)
         for m in ti.static(range(3)):
             if k == m:
                 n[m] = p[m] - ti.min(ti.max(p[m], s0), s1)
@@ -187,73 +188,125 @@ def _normal(table: ti.template(), j, p, which):
                 n[m] = ti.select(which == 1, -1.0, ti.select(which == 2, 1.0, 0.0))
             elif which == 0:
                 n[m] = p[m] / ti.select(m == ti.select(k == 0, 1, 0), ra * ra, rb * rb)
-        n = n / ti.max(n.norm(), 1e-12)
+        n = n / ti.max(n.norm(), real(1e-12))
     return n
 
 
 @ti.kernel
-def _render(table: nd2, waves: nd3, part: nd2, values: nd3, local: nd3, r0: ti.i32, c0: ti.i32, w: ti.i32,
-            n: ti.i32, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, amp: ti.f32, shading: ti.f32):  # fmt: skip
+def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: nd3, r0: ti.i32, r1: ti.i32,
+            c0: ti.i32, c1: ti.i32, real: ti.template()):  # fmt: skip
+    """Step 1 over the crop in ``real`` (table, waves and consts of that type; float literals that
+    are not exact in float32 written real(x): Taichi's literals take the default float32 type)."""
     J = table.shape[0]
-    ifx = 1.0 / fx
-    ify = 1.0 / fy
-    for i in range(n):
+    fx = consts[0]
+    fy = consts[1]
+    cx = consts[2]
+    cy = consts[3]
+    amp = consts[4]
+    shading = consts[5]
+    w = c1 - c0
+    for i in range((r1 - r0) * w):
         r = r0 + i // w
         c = c0 + i % w
-        dc = ti.Vector([(ti.cast(c, ti.f32) - cx) * ifx, (ti.cast(r, ti.f32) - cy) * ify, 1.0])
+        dc = ti.Vector([(ti.cast(c, real) - cx) / fx, (ti.cast(r, real) - cy) / fy, 1.0], dt=real)
         best = -1
-        bt = 0.0
+        bt = real(0.0)
         bwhich = 0
-        bo = ti.Vector([0.0, 0.0, 0.0])
-        bd = ti.Vector([0.0, 0.0, 1.0])
+        bd = ti.Vector([0.0, 0.0, 1.0], dt=real)
         for j in range(J):
             if (r >= ti.cast(table[j, 12], ti.i32)) & (r < ti.cast(table[j, 13], ti.i32)) & \
                     (c >= ti.cast(table[j, 14], ti.i32)) & (c < ti.cast(table[j, 15], ti.i32)):  # fmt: skip
-                d = ti.Vector([0.0, 0.0, 0.0])
-                o = ti.Vector([table[j, 9], table[j, 10], table[j, 11]])
+                d = ti.Vector([0.0, 0.0, 0.0], dt=real)
+                o = ti.Vector([table[j, 9], table[j, 10], table[j, 11]], dt=real)
                 for m in ti.static(range(3)):
                     d[m] = table[j, 3 * m] * dc[0] + table[j, 3 * m + 1] * dc[1] + table[j, 3 * m + 2] * dc[2]
-                hit, t, which = _intersect(table, j, o, d)
+                hit, t, which = _intersect(table, j, o, d, real)
                 if hit & ((best < 0) | (t < bt)):
                     best = j
                     bt = t
                     bwhich = which
-                    bo = o
                     bd = d
-        gray = 0.0
-        x = ti.Vector([0.0, 0.0, 0.0])
+        gray = real(0.0)
+        x = ti.Vector([0.0, 0.0, 0.0], dt=real)
         if best >= 0:
-            x = bo + bt * bd
-            s = 0.0
+            x = ti.Vector([table[best, 9], table[best, 10], table[best, 11]], dt=real) + bt * bd
+            s = real(0.0)
             for q in range(waves.shape[1]):
-                s += _sin(waves[best, q, 0] * x[0] + waves[best, q, 1] * x[1] + waves[best, q, 2] * x[2]
-                          + waves[best, q, 3])  # fmt: skip
-            tex = ti.min(ti.max(0.5 + amp * s, 0.02), 0.98)
-            cosv = ti.abs(bd.dot(_normal(table, best, x, bwhich))) / bd.norm()
+                arg = waves[best, q, 0] * x[0] + waves[best, q, 1] * x[1] + waves[best, q, 2] * x[2] + waves[best, q, 3]
+                if ti.static(real == ti.f64):
+                    s += ti.sin(arg)
+                else:
+                    s += _sin(arg)
+            tex = ti.min(ti.max(0.5 + amp * s, real(0.02)), real(0.98))
+            cosv = ti.abs(bd.dot(_normal(table, best, x, bwhich, real))) / bd.norm()
             gray = tex * (1.0 - shading + shading * cosv)
         part[r, c] = best
-        values[0, r, c] = gray
-        values[1, r, c] = bt
+        values[0, r, c] = ti.cast(gray, ti.f32)
+        values[1, r, c] = ti.cast(bt, ti.f32)
         for m in ti.static(range(3)):
-            local[r, c, m] = x[m]
+            local[r, c, m] = ti.cast(x[m], ti.f32)
+
+
+def render_dtype(device):
+    """The type the render computes in: np.float64 on the CPU and CUDA archs (Taichi's double sine:
+    the reference's float64, so the templates are the reference's), np.float32 elsewhere (Vulkan:
+    Taichi's SPIR-V has no double sine, "Instruction Sin does not 64bits operation")."""
+    return np.float64 if device.arch in ("cpu", "cuda") and device.fp64 else np.float32
+
+
+@functools.lru_cache(maxsize=8)
+def _waves64(texture, n_parts: int) -> np.ndarray:
+    """(J, waves, 4) float64: the op's texture table (k_x, k_y, k_z, phase) unrounded (read-only)."""
+    table = np.zeros((n_parts, texture.waves, 4), np.float64)
+    for j in range(n_parts):
+        k, phase = texture._waves(j)
+        table[j, :, :3], table[j, :, 3] = k, phase
+    table.setflags(write=False)
+    return table
+
+
+def _inputs64(chain, transforms, texture, table, waves, consts):
+    """The op's float32 part table, waves and constants in float64 as the reference computes them:
+    R^T and o = -R^T t from the float64 transforms, the shapes' extents, the texture's waves and
+    amplitude unrounded; the boxes, kinds and axes (exact in float32), the camera and the shading
+    as sent (the reference reads those from the float32 constants too)."""
+    tf = np.asarray(transforms, np.float64)
+    t64 = np.array(table, np.float64)
+    rt = tf[:, :, :3].transpose(0, 2, 1)  # R^T per part
+    t64[:, 0:9] = rt.reshape(-1, 9)
+    t64[:, 9:12] = -np.einsum("jab,jb->ja", rt, tf[:, :, 3])
+    for j, pt in enumerate(chain.parts):
+        if pt.shape is not None:
+            t64[j, 18:22] = (pt.shape.start, pt.shape.end, *pt.shape.radii)
+    w64 = _waves64(texture, int(waves.shape[0]))
+    if w64.shape != waves.shape:
+        raise ValueError(f"waves: expected the texture's table of shape {w64.shape}, got {waves.shape}")
+    c64 = np.array(consts, np.float64)
+    c64[4] = texture.contrast * np.sqrt(2.0 / texture.waves)  # as Texture.sample
+    return t64, w64, c64
 
 
 def render(device, chain, transforms, texture, table, waves, consts, crop, part, values, local):
-    """Step 1 into ``part``, ``values``, ``local`` at the pixels of ``crop``."""
+    """Step 1 into ``part``, ``values``, ``local`` at the pixels of ``crop`` (computed in
+    :func:`render_dtype`, stored float32)."""
     r0, r1, c0, c1 = (int(x) for x in crop)
     if r1 <= r0 or c1 <= c0:
         return
-    table = np.ascontiguousarray(table, np.float32)
-    if device.arch == "cpu":
-        tab = table  # read in place
+    dt = render_dtype(device)
+    if dt == np.float64:
+        table, waves, consts = _inputs64(chain, transforms, texture, table, waves, consts)
+    table = np.ascontiguousarray(table, dt)
+    waves = np.ascontiguousarray(waves, dt)
+    consts = np.ascontiguousarray(consts, dt)
+    real = ti.f64 if dt == np.float64 else ti.f32
+    if device.arch == "cpu":  # read in place
+        tab, wv, cs = table, waves, consts
     else:
-        tab = scratch(device, "mt table", table.shape, ti.f32)
+        tab = scratch(device, "mt table", table.shape, real)
         tab.from_numpy(table)
-    wv = constant(device, np.ascontiguousarray(waves, np.float32)).buffer
-    fx, fy, cx, cy, amp, shading = (float(x) for x in np.asarray(consts, np.float32))
-    w = c1 - c0
-    launch(_render, (tab, wv, part.buffer, values.buffer, local.buffer),
-           scalars=(r0, c0, w, (r1 - r0) * w, fx, fy, cx, cy, amp, shading))  # fmt: skip
+        wv = constant(device, waves).buffer
+        cs = constant(device, consts).buffer
+    launch(_render, (tab, wv, cs, part.buffer, values.buffer, local.buffer), (real,), scalars=(r0, r1, c0, c1))
 
 
 # -- steps 2-5: classify ----------------------------------------------------------------------------
