@@ -2,11 +2,16 @@
 reference: gputrack/backends/reference/model_template.py).
 
 * :func:`render` (step 1), one launch: a thread per pixel of the crop; every part whose box holds
-  the pixel is intersected in float32 (the shapes of :func:`gputrack.models.render.intersect`; the
-  discriminants in the cross-product form a - (o x d)^2, which keeps float32's accuracy for a
-  camera far from the part; a ray missing the infinite cylinder is rejected before any division),
-  the nearest hit wins (strict ``<``: ties to the lower part). The texture's sines are a
-  polynomial (:func:`_sin`, ~1e-7 off plus the argument's own float32 rounding).
+  the pixel is intersected (the shapes of :func:`gputrack.models.render.intersect`; the
+  discriminants in the cross-product form a - (o x d)^2, which keeps the accuracy for a camera far
+  from the part; a ray missing the infinite cylinder is rejected before any division), the nearest
+  hit wins (strict ``<``: ties to the lower part). It computes in :func:`render_dtype`: float64 on
+  the CPU and CUDA archs (the inputs in float64 as the reference computes them, libm's / libdevice's
+  double sine: on taichi:cpu the render and the templates equal the reference's), float32 on
+  Vulkan (Taichi's SPIR-V has no double sine; the texture's sines then a polynomial, :func:`_sin`,
+  ~1e-7 off plus the argument's own float32 rounding); the outputs round to float32 at the store.
+  The double sines are most of the render's time on the CPU (~29 ns each against ~9 ns for a
+  double polynomial, which would not be bit-equal to NumPy's).
 * :func:`classify` (steps 2-4), one launch of four top-level loops (Taichi's barrier between
   them): the statistics zeroed (serial); a thread per crop pixel: interior flag, q = floor(v s)
   (integers from here on), the window's count, sum and extremes (unrolled: ``window`` and
@@ -17,9 +22,10 @@ reference: gputrack/backends/reference/model_template.py).
   loop lost every row past the 128th, cause not found, hence the split); a thread per crop pixel:
   the candidates (pool extrema) binned per part by an atomic counter (bin order is the atomics'
   order: only the set matters).
-* :func:`emit` (steps 6-7). On the CPU arch one launch of a thread per kind and part, as the op's
-  docstring describes: the greedy extrema by a partial heap sort of the part's bin, then the
-  farthest-point fill over the part's pool (listed in the bin, the candidates being done with),
+* :func:`emit` (steps 6-7). On the CPU arch one launch of a thread per kind and part (each its own
+  task of Taichi's thread pool: a loop over 2 J CPU_TASK indices, every CPU_TASK-th working, as
+  Taichi 1.7 gives a CPU task at least 512 indices), as the op's docstring describes: the greedy
+  extrema by a partial heap sort of the part's bin, then the farthest-point fill over the part's pool (listed in the bin, the candidates being done with),
   row by row: a row whose bound on its distances cannot beat the best so far is skipped and
   brought up to date only when it can (exact: distances only shrink; ~2x faster than full passes).
   Elsewhere (Vulkan, CUDA) one thread's loops must stay bounded (lavapipe's llvmpipe runs at most
@@ -41,6 +47,7 @@ import numpy as np
 from ...uploads import constant
 from .launch import launch
 from .runtime import scratch, ti
+from .tasks import CPU_TASK
 
 nd1 = ti.types.ndarray(ndim=1)
 nd2 = ti.types.ndarray(ndim=2)
@@ -580,7 +587,10 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
     J = stats.shape[0]
     H = part.shape[0]
     W = part.shape[1]
-    for g in range(2 * J):
+    for it in range(2 * J * CPU_TASK):  # a task of Taichi's thread pool per kind and part
+        if it % CPU_TASK != 0:
+            continue
+        g = it // CPU_TASK
         k = g // J
         j = g - k * J
         offset = plan[k, j, 0]
