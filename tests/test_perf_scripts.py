@@ -196,3 +196,41 @@ def test_benchmark_script_runs_on_numpy_at_a_tiny_size(script, monkeypatch, caps
     for r in doc["results"]:
         t = r["device"]
         assert t["reps"] >= 1 and 0 < t["p10_ms"] <= t["median_ms"] <= t["p90_ms"], r
+
+
+# -- the body tracker's long-run and first-frame scripts ----------------------------------------------
+def test_soak_body_reports_its_figures(tmp_path):
+    """perf/soak_body.py on numpy, 4 frames of a 3-frame loop: the figures it promises, in JSON."""
+    out = tmp_path / "soak.json"
+    cmd = [sys.executable, str(ROOT / "perf" / "soak_body.py"), "--device", "numpy", "--frames", "4", "--loop", "3",
+           "--json", str(out), "--per-frame"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    doc = json.loads(out.read_text())
+    assert doc["device"] == "numpy" and doc["frames"] == 4 and len(doc["errors_deg"]) == 4
+    assert 0.0 <= doc["lost_fraction"] <= 1.0 and doc["nan_or_kept_frames"] == 0
+    assert doc["median_frame_ms"] > 0 and doc["rss_growth_mb_per_1000_frames"] is not None
+    assert "lost frames (an arm part > 10 deg)" in proc.stdout
+
+
+def test_soak_episodes():
+    spec = importlib.util.spec_from_file_location("soak_body_under_test", ROOT / "perf" / "soak_body.py")
+    soak = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(soak)
+    lost = np.array([0, 1, 1, 0, 0, 1, 0, 1, 1, 1], bool)
+    assert soak.episodes(lost) == [(1, 2), (5, 1), (7, 3)]
+    assert soak.episodes(np.zeros(4, bool)) == []
+
+
+def test_first_frame_times_a_fresh_and_a_warm_process(tmp_path):
+    """perf/first_frame.py on numpy (nothing to compile): one run with empty caches, one warm."""
+    out = tmp_path / "first.json"
+    cmd = [sys.executable, str(ROOT / "perf" / "first_frame.py"), "--device", "numpy", "--warm", "1", "--json",
+           str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = json.loads(out.read_text())
+    assert [r["caches"] for r in runs] == ["empty", "warm"]
+    for r in runs:
+        assert 0 < r["import_s"] <= r["device_s"] <= r["tracker_s"] <= r["first_frame_s"] <= r["process_wall_s"]
+        assert r["confidence"] == 1.0

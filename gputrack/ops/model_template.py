@@ -20,16 +20,18 @@ The rule, exactly (every backend; the NumPy reference is gputrack/backends/refer
    Lambertian shading, as :func:`gputrack.models.render.render`), the depth Z and the part-local
    point. The devices render in float32, the reference in float64: they agree to rounding except
    for a few pixels on silhouettes and occlusion edges.
-2. **Values as integers**: value image k (0: gray, 1: depth) is read as q = floor(v s_k) with s_k a
-   power of two such that |q| < 2**22 (for the model: gray <= 1, depth <= the farthest point of a
-   part's bounding sphere). Every comparison below is then exact integer arithmetic, so every
-   backend picks the same pixels from the same images.
+2. **Values as integers**: value image k (0: gray, 1: depth) is read as q = v s_k (64-bit) with s_k a
+   power of two such that |q| < 2**40 (for the model: gray <= 1, depth <= the farthest point of a
+   part's bounding sphere): a float32 value times s_k is an integer, so q keeps every value's order
+   and every tie exactly (a coarser q would tie neighbours a float32 depth tells apart and turn a
+   limb's ridge into a line of extrema). Every comparison below is then exact 64-bit integer
+   arithmetic, so every backend picks the same pixels from the same images.
 3. **Per pixel** of part j: *interior* if every pixel within ``border`` (a square; outside the
    image counts as no part) belongs to j; over the ``window`` x ``window`` neighbourhood's pixels of
    the same part (the pixel itself included): c = their count, S = the sum of their q, hi and lo
    their largest and smallest q. The pixel is an *extremum* when hi > lo and q = hi or q = lo; its
    strength is |c q - S| / c (its distance from the neighbourhood's mean; compared exactly, by
-   cross-multiplying in 64 bits). Pixel a is *stronger* than b when its strength is larger, or
+   cross-multiplying: |c q - S| < 2**47, c <= 49). Pixel a is *stronger* than b when its strength is larger, or
    equal and its index r W + c is smaller.
 4. **Pools**: part j's pool is its interior pixels, or all its pixels when it has no interior pixel
    (a part too thin for the border). available_j = the pool's size, area_j = the part's pixel count.
@@ -80,8 +82,9 @@ from .template import SparseTemplate
 
 __all__ = ["DeviceTemplate", "ModelImages", "model_template", "render_model", "select_template"]
 
-#: |q| < 2**VALUE_BITS for the integer values of step 2 (window sums of 49 fit int32)
-VALUE_BITS = 22
+#: |q| < 2**VALUE_BITS for the integer values of step 2 (int64: a window's sum of 49 and the
+#: cross-multiplied strengths, < 2**53, fit)
+VALUE_BITS = 40
 #: columns of the per-part statistics: area, interior count, interior rows and columns
 #: (min, max), all pixels' rows and columns (min, max)
 STATS = ("area", "interior", "ir0", "ir1", "ic0", "ic1", "ar0", "ar1", "ac0", "ac1")
@@ -184,7 +187,7 @@ def _selection_args(n, n_depth, window, border, spacing):
 
 def _scale(vmax: float) -> float:
     """The power of two s with |v| s < 2**VALUE_BITS for |v| <= vmax (step 2)."""
-    vmax = max(float(vmax), 1e-30)
+    vmax = max(float(vmax), 2.0**-60)  # s <= 2**100: a float32 (an all-zero image has any s)
     return float(2.0 ** math.floor(math.log2((2**VALUE_BITS - 1) / vmax)))
 
 
@@ -232,7 +235,8 @@ class _Scratch:
         self.part = e((H, W), np.int32)
         self.values = e((2, H, W), np.float32)
         self.local = e((H, W, 3), np.float32)
-        self.cls = e((3, H, W), np.int32)  # interior flag, extremum strength numerator per kind (-1: none)
+        self.interior = e((H, W), np.int32)  # the interior flag (step 3)
+        self.num = e((2, H, W), np.int64)  # per kind the extremum strength numerator |c q - S| (-1: none)
         self.cnt = e((H, W), np.int32)  # same-part window count c
         self.dist = e((2, H, W), np.int32)  # the fill's squared distances (step 7), per kind
         self.used = e((2, J, H + W), np.int32)  # the fill's used rows and columns, per kind and part
@@ -334,8 +338,8 @@ def select_template(device, images: ModelImages, n: int = 128, n_depth: int = 12
     s = _scratch(device, H, W, J)
     be = backend_module(device, "model_template")
     scales = np.array([_scale(v) for v in images.value_max], np.float32)
-    be.classify(device, images.part, images.values, images.crop, scales, window, border, s.cls, s.cnt, s.bins,
-                s.stats, s.surv)  # fmt: skip
+    be.classify(device, images.part, images.values, images.crop, scales, window, border, s.interior, s.num, s.cnt,
+                s.bins, s.stats, s.surv)  # fmt: skip
     stats = device.to_numpy(s.stats).astype(np.int64)  # the one wait: a few integers per part
     area, interior = stats[:, 0], stats[:, 1]
     if area.sum() == 0:
@@ -351,7 +355,7 @@ def select_template(device, images: ModelImages, n: int = 128, n_depth: int = 12
         counts.append(q)
     outs = [device.empty((int(c.sum()), 4), np.float32) for c in counts]
     be.emit(device, images.part, images.values, images.local, images.crop, constant(device, plan), s.stats, s.surv,
-            s.bins, s.cls, s.cnt, s.dist, s.used, float(spacing) ** 2, *outs)  # fmt: skip
+            s.bins, s.interior, s.num, s.cnt, s.dist, s.used, float(spacing) ** 2, *outs)  # fmt: skip
     return DeviceTemplate(device, outs[0], counts[0]), DeviceTemplate(device, outs[1], counts[1])
 
 

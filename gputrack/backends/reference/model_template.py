@@ -7,6 +7,8 @@ arithmetic on q = floor(v s), so the devices pick exactly these pixels from the 
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 
 from ...models.render import render as render_chain
@@ -54,9 +56,9 @@ def _padded(a, crop, pad, fill):
     return out
 
 
-def classify(device, part, values, crop, scales, window, border, cls, cnt, bins, stats, surv):
-    """Steps 2-4: cls[0] interior flag, cls[1 + k] strength numerator |c q - S| of extrema (-1
-    elsewhere), cnt the same-part window count; stats (J, 10); surv (2, J) the counts of candidates
+def classify(device, part, values, crop, scales, window, border, interior_out, num_out, cnt, bins, stats, surv):
+    """Steps 2-4: the interior flag, num[k] the strength numerator |c q - S| of extrema (-1
+    elsewhere, int64), cnt the same-part window count; stats (J, 10); surv (2, J) the counts of candidates
     (pool extrema) and bins[k, start_j + i] their pixel indices (in pixel order here)."""
     J = stats.shape[0]
     H, W = part.shape
@@ -86,8 +88,8 @@ def classify(device, part, values, crop, scales, window, border, cls, cnt, bins,
     extremum = model & (hi > lo) & ((q == hi) | (q == lo))
     num = np.where(extremum, np.abs(c * q - S), -1)
     inner = (slice(pad, -pad), slice(pad, -pad))
-    cls[0, r0:r1, c0:c1] = interior[inner]
-    cls[1:, r0:r1, c0:c1] = num[(slice(None), *inner)]
+    interior_out[r0:r1, c0:c1] = interior[inner]
+    num_out[:, r0:r1, c0:c1] = num[(slice(None), *inner)]
     cnt[r0:r1, c0:c1] = c[inner]
     st = np.zeros((J, len(STATS)), np.int64)
     st[:, 2::2] = NO_ROW
@@ -116,9 +118,10 @@ def classify(device, part, values, crop, scales, window, border, cls, cnt, bins,
 def _greedy(sv, num, cnt, W, quota, s2):
     """Step 6: the candidates ``sv`` (pixel indices) strongest first, each taken unless a taken one
     lies closer than the spacing; at most ``quota``."""
-    strength = num[sv] / cnt[sv]  # the exact order of _stronger (see the op's step 3)
+    # strongest first (|c q - S| / c as exact fractions: numerators up to 2**47), ties by pixel index
+    order = sorted(range(len(sv)), key=lambda i: (-Fraction(int(num[sv[i]]), int(cnt[sv[i]])), int(sv[i])))
     taken_r, taken_c, taken = [], [], []
-    for o in np.lexsort((sv, -strength)):
+    for o in order:
         if len(taken) == quota:
             break
         r, c = divmod(int(sv[o]), W)
@@ -162,21 +165,21 @@ def _farthest(rows, cols, chosen_r, chosen_c, m):
     return out
 
 
-def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, dist, used, s2, out0, out1):
+def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num_img, cnt, dist, used, s2, out0, out1):
     """Steps 6-8 per kind and part: the greedy extrema, then the farthest-point fill, written into
     out0 (RGB) and out1 (depth)."""
     H, W = part.shape
     r0c, r1c, c0c, c1c = crop
     p = part[r0c:r1c, c0c:c1c]
     for k, out in enumerate((out0, out1)):
-        num = cls[1 + k].ravel()
+        num = num_img[k].ravel()
         for j in range(stats.shape[0]):
             offset, quota, start = (int(x) for x in plan[k, j, :3])
             if quota == 0:
                 continue
             sv = bins[k, start:start + int(surv[k, j])].astype(np.int64)
             chosen = _greedy(sv, num, cnt.ravel(), W, quota, s2)
-            pool = (p == j) & ((cls[0, r0c:r1c, c0c:c1c] != 0) if stats[j, 1] > 0 else True)
+            pool = (p == j) & ((interior[r0c:r1c, c0c:c1c] != 0) if stats[j, 1] > 0 else True)
             pr, pc = np.nonzero(pool)
             pr, pc = pr + r0c, pc + c0c
             cr, cc = (list(x) for x in np.divmod(np.asarray(chosen, np.int64), W)) if chosen else ([], [])
