@@ -15,8 +15,10 @@
 //   gt_mt_emit      NDRange (J, 2), work-groups of one: per part and kind, sequentially, step 6
 //                   (the greedy extrema, strongest first from a heap), step 7 (the farthest-point,
 //                   rook-spread fill) and step 8 (the points).
-// Every selection step works on the integers q = floor(v s_k) (exact on every device); pixels
-// outside the crop count as no part and are never read.
+// Every selection step works on the 64-bit integers q = floor(v s_k) (|q| < 2**40: the float32
+// product v s_k, s_k a power of two, is exact on every device), their window sums and the strength
+// numerators |c q - S| (< 2**47) in long; the strength comparison cross-multiplies in long (< 2**53).
+// Pixels outside the crop count as no part and are never read.
 
 #define GT_MT_STATS 10
 #define GT_MT_NO_ROW (1 << 30)
@@ -24,7 +26,9 @@
 // ---- lanes: a work-item renders / classifies GT_MT_LANES consecutive pixels of a row ------------
 // (CPU devices: 8, the vector types map onto SIMD registers; GPUs and the doctor's build: 1).
 // Comparisons give 1 (scalar) or -1 (vector) for true: they are combined only with & | ! and read
-// only by select() and MT_ANY, which see both.
+// only by select() and MT_ANY, which see both. lv: a long per lane (the integers q of step 2 and
+// their window sums); MT_ITOL / MT_LTOI turn an int mask into a long mask and back (a long8
+// comparison gives a long8 mask; a scalar one an int).
 #ifndef GT_MT_LANES
 #define GT_MT_LANES 1
 #endif
@@ -41,6 +45,12 @@ typedef int iv;
 #define MT_GATHERF(p, k) ((p)[(k)])
 #define MT_TOI(x) convert_int(x)
 #define MT_TOF(x) convert_float(x)
+typedef long lv;
+#define MT_LOADL(p) (*(p))
+#define MT_STOREL(x, p) (*(p) = (x))
+#define MT_TOL(x) convert_long(x)
+#define MT_ITOL(m) convert_long(m)
+#define MT_LTOI(m) (m)
 #elif GT_MT_LANES == 8
 typedef float8 fv;
 typedef int8 iv;
@@ -56,6 +66,12 @@ typedef int8 iv;
     ((fv)((p)[(k).s0], (p)[(k).s1], (p)[(k).s2], (p)[(k).s3], (p)[(k).s4], (p)[(k).s5], (p)[(k).s6], (p)[(k).s7]))
 #define MT_TOI(x) convert_int8(x)
 #define MT_TOF(x) convert_float8(x)
+typedef long8 lv;
+#define MT_LOADL(p) vload8(0, (p))
+#define MT_STOREL(x, p) vstore8((x), 0, (p))
+#define MT_TOL(x) convert_long8(x)
+#define MT_ITOL(m) convert_long8(m)
+#define MT_LTOI(m) convert_int8(m)
 #else
 #error "GT_MT_LANES must be 1 or 8"
 #endif
@@ -87,6 +103,18 @@ inline void mt_storei(const iv v, __global int *p, const int n)
     }
     int tmp[MT_L];
     MT_STOREI(v, tmp);
+    for (int l = 0; l < n; ++l)
+        p[l] = tmp[l];
+}
+
+inline void mt_storel(const lv v, __global long *p, const int n)
+{
+    if (n == MT_L) {
+        MT_STOREL(v, p);
+        return;
+    }
+    long tmp[MT_L];
+    MT_STOREL(v, tmp);
     for (int l = 0; l < n; ++l)
         p[l] = tmp[l];
 }
@@ -290,20 +318,20 @@ __kernel void gt_mt_render(__global const real *table, __global const real *wave
 // ---- steps 2-5: classify, count, suppress ----------------------------------------------------------
 
 // a stronger than b: |c q - S| / c larger (cross-multiplied in 64 bits), ties: the smaller index
-inline int gt_mt_stronger(const int na, const int ca, const int ia, const int nb, const int cb, const int ib)
+inline int gt_mt_stronger(const long na, const int ca, const int ia, const long nb, const int cb, const int ib)
 {
-    const long lhs = (long)na * cb, rhs = (long)nb * ca;
+    const long lhs = na * cb, rhs = nb * ca;  // < 2**47 * 49 < 2**53
     return lhs > rhs || (lhs == rhs && ia < ib);
 }
 
-// NDRange (ceil((c1 - c0) / L), r1 - r0), L pixels of a row per work-item: cls[0] the interior
-// flag, cls[1 + k] the strength numerator of an extremum of value k (-1: none), cnt the window's
-// same-part count; work-item (0, 0) resets stats (J, 10) and surv (2, J) for gt_mt_stats and
+// NDRange (ceil((c1 - c0) / L), r1 - r0), L pixels of a row per work-item: interior the interior
+// flag, num[k] the strength numerator |c q - S| (long) of an extremum of value k (-1: none), cnt
+// the window's same-part count; work-item (0, 0) resets stats (J, 10) and surv (2, J) for gt_mt_stats and
 // gt_mt_bin (launched after this kernel)
 __kernel void gt_mt_classify(__global const int *part, __global const float *values, const int H, const int W,
                              const int r0, const int r1, const int c0, const int c1, const float sc0, const float sc1,
-                             const int wh, const int border, const int J, __global int *cls, __global int *cnt,
-                             __global int *stats, __global int *surv)
+                             const int wh, const int border, const int J, __global int *interior,
+                             __global long *num, __global int *cnt, __global int *stats, __global int *surv)
 {
     const int gc = get_global_id(0), gr = get_global_id(1);
     if (gc == 0 && gr == 0) {
@@ -334,11 +362,13 @@ __kernel void gt_mt_classify(__global const int *part, __global const float *val
                 inner = inner & (mt_loadi(part + y * W, c + dx, c0, c1, -1) == p);
         }
     }
-    const iv q0 = MT_TOI(floor(mt_loadf(values + r * W, c, c0, c1) * sc0));
-    const iv q1 = MT_TOI(floor(mt_loadf(values + HW + r * W, c, c0, c1) * sc1));
-    iv n = (iv)0, S0 = (iv)0, S1 = (iv)0, hi0 = (iv)INT_MIN, lo0 = (iv)INT_MAX, hi1 = (iv)INT_MIN, lo1 = (iv)INT_MAX;
+    const lv q0 = MT_TOL(floor(mt_loadf(values + r * W, c, c0, c1) * sc0));
+    const lv q1 = MT_TOL(floor(mt_loadf(values + HW + r * W, c, c0, c1) * sc1));
+    iv n = (iv)0;
+    lv S0 = (lv)0, S1 = (lv)0, hi0 = (lv)LONG_MIN, lo0 = (lv)LONG_MAX, hi1 = (lv)LONG_MIN, lo1 = (lv)LONG_MAX;
     // a window row's part ids and q of columns c - wh .. c + L - 1 + wh, staged once (wh <= 3)
-    int sp[MT_SPAN], sa[MT_SPAN], sb[MT_SPAN];
+    int sp[MT_SPAN];
+    long sa[MT_SPAN], sb[MT_SPAN];
     for (int dy = -wh; dy <= wh; ++dy) {
         const int y = r + dy;
         const int inb = dy >= -border && dy <= border;
@@ -352,38 +382,40 @@ __kernel void gt_mt_classify(__global const int *part, __global const float *val
 #if GT_MT_LANES == 8
         MT_STOREI(mt_loadi(prow, c - wh, c0, c1, -1), sp);
         MT_STOREI(mt_loadi(prow, c - wh + MT_L, c0, c1, -1), sp + MT_L);
-        MT_STOREI(MT_TOI(floor(mt_loadf(vrow, c - wh, c0, c1) * sc0)), sa);
-        MT_STOREI(MT_TOI(floor(mt_loadf(vrow, c - wh + MT_L, c0, c1) * sc0)), sa + MT_L);
-        MT_STOREI(MT_TOI(floor(mt_loadf(vrow + HW, c - wh, c0, c1) * sc1)), sb);
-        MT_STOREI(MT_TOI(floor(mt_loadf(vrow + HW, c - wh + MT_L, c0, c1) * sc1)), sb + MT_L);
+        MT_STOREL(MT_TOL(floor(mt_loadf(vrow, c - wh, c0, c1) * sc0)), sa);
+        MT_STOREL(MT_TOL(floor(mt_loadf(vrow, c - wh + MT_L, c0, c1) * sc0)), sa + MT_L);
+        MT_STOREL(MT_TOL(floor(mt_loadf(vrow + HW, c - wh, c0, c1) * sc1)), sb);
+        MT_STOREL(MT_TOL(floor(mt_loadf(vrow + HW, c - wh + MT_L, c0, c1) * sc1)), sb + MT_L);
 #else
         for (int x = 0; x <= 2 * wh; ++x) {
             const int cx = c - wh + x, in = cx >= c0 && cx < c1, cc = clamp(cx, c0, c1 - 1);
             sp[x] = in ? prow[cc] : -1;
-            sa[x] = (int)floor(vrow[cc] * sc0);
-            sb[x] = (int)floor(vrow[HW + cc] * sc1);
+            sa[x] = convert_long(floor(vrow[cc] * sc0));
+            sb[x] = convert_long(floor(vrow[HW + cc] * sc1));
         }
 #endif
         for (int dx = -wh; dx <= wh; ++dx) {
             const iv same = MT_LOADI(sp + wh + dx) == p;
-            const iv a = MT_LOADI(sa + wh + dx), b = MT_LOADI(sb + wh + dx);
+            const lv ls = MT_ITOL(same);
+            const lv a = MT_LOADL(sa + wh + dx), b = MT_LOADL(sb + wh + dx);
             if (inb && dx >= -border && dx <= border)
                 inner = inner & same;
             n += select((iv)0, (iv)1, same);
-            S0 += select((iv)0, a, same);
-            S1 += select((iv)0, b, same);
-            hi0 = select(hi0, max(hi0, a), same);
-            lo0 = select(lo0, min(lo0, a), same);
-            hi1 = select(hi1, max(hi1, b), same);
-            lo1 = select(lo1, min(lo1, b), same);
+            S0 += select((lv)0, a, ls);
+            S1 += select((lv)0, b, ls);
+            hi0 = select(hi0, max(hi0, a), ls);
+            lo0 = select(lo0, min(lo0, a), ls);
+            hi1 = select(hi1, max(hi1, b), ls);
+            lo1 = select(lo1, min(lo1, b), ls);
         }
     }
-    const iv e0 = n * q0 - S0, e1 = n * q1 - S1;
-    const iv x0 = model & (hi0 > lo0) & ((q0 == hi0) | (q0 == lo0));
-    const iv x1 = model & (hi1 > lo1) & ((q1 == hi1) | (q1 == lo1));
-    mt_storei(select((iv)0, (iv)1, inner), cls + i, nl);
-    mt_storei(select((iv)-1, select(e0, -e0, e0 < 0), x0), cls + HW + i, nl);
-    mt_storei(select((iv)-1, select(e1, -e1, e1 < 0), x1), cls + 2 * HW + i, nl);
+    const lv nl64 = MT_TOL(n);
+    const lv e0 = nl64 * q0 - S0, e1 = nl64 * q1 - S1;
+    const lv x0 = MT_ITOL(model & MT_LTOI((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0))));
+    const lv x1 = MT_ITOL(model & MT_LTOI((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1))));
+    mt_storei(select((iv)0, (iv)1, inner), interior + i, nl);
+    mt_storel(select((lv)-1, select(e0, -e0, MT_ITOL(e0 < 0)), x0), num + i, nl);
+    mt_storel(select((lv)-1, select(e1, -e1, MT_ITOL(e1 < 0)), x1), num + HW + i, nl);
     mt_storei(select((iv)0, n, model), cnt + i, nl);
 }
 
@@ -401,12 +433,12 @@ inline void gt_mt_flush(__global int *stats, const int p, const int count_col, c
 
 // NDRange (r1 - r0): per part the area, the interior count and the two (row, column) ranges, one
 // flush of atomics per run of same-part (or same-part interior) pixels of a row
-__kernel void gt_mt_stats(__global const int *part, __global const int *cls, const int W, const int r0,
+__kernel void gt_mt_stats(__global const int *part, __global const int *interior, const int W, const int r0,
                           const int c0, const int c1, __global int *stats)
 {
     const int r = r0 + get_global_id(0);
     __global const int *pr = part + r * W;
-    __global const int *ir = cls + r * W;
+    __global const int *ir = interior + r * W;
     int pa = -1, sa = c0, pi = -1, si = c0;  // the open runs: part and first column
     for (int c = c0; c < c1; ++c) {
         const int p = pr[c];
@@ -433,7 +465,8 @@ __kernel void gt_mt_stats(__global const int *part, __global const int *cls, con
 // NDRange (r1 - r0): a row's candidates (pool pixels that are extrema of value k; the pool of part
 // j: its interior pixels, or all its pixels when it has none) into their part's bin:
 // bins[k][start_j + atomic_inc(&surv[k][j])], start_j the areas of the parts before j
-__kernel void gt_mt_bin(__global const int *part, __global const int *cls, __global const int *stats, const int H,
+__kernel void gt_mt_bin(__global const int *part, __global const int *interior, __global const long *num,
+                        __global const int *stats, const int H,
                         const int W, const int r0, const int c0, const int c1, __global int *bins,
                         __global int *surv, const int J)
 {
@@ -444,7 +477,7 @@ __kernel void gt_mt_bin(__global const int *part, __global const int *cls, __glo
         const int p = part[o];
         if (p < 0)
             continue;
-        const int a0 = cls[HW + o] >= 0, a1 = cls[2 * HW + o] >= 0;
+        const int a0 = num[o] >= 0, a1 = num[HW + o] >= 0;
         if (!a0 && !a1)
             continue;
         if (p != pp) {
@@ -454,7 +487,7 @@ __kernel void gt_mt_bin(__global const int *part, __global const int *cls, __glo
                 start += stats[j * GT_MT_STATS];
             all = stats[p * GT_MT_STATS + 1] == 0;
         }
-        if (!all && !cls[o])
+        if (!all && !interior[o])
             continue;
         if (a0)
             bins[start + atomic_inc(surv + p)] = o;
@@ -466,13 +499,13 @@ __kernel void gt_mt_bin(__global const int *part, __global const int *cls, __glo
 // ---- steps 6-8: the extrema, the fill, the points -----------------------------------------------
 
 // candidate a stronger than b (pixel indices; num, cnt: the strength's numerator and count)
-inline int gt_mt_above(__global const int *num, __global const int *cnt, const int a, const int b)
+inline int gt_mt_above(__global const long *num, __global const int *cnt, const int a, const int b)
 {
     return gt_mt_stronger(num[a], cnt[a], a, num[b], cnt[b], b);
 }
 
 // sift bin[i] down the max-heap bin[0 .. size) ("max": the stronger)
-inline void gt_mt_sift(__global int *bin, int i, const int size, __global const int *num, __global const int *cnt)
+inline void gt_mt_sift(__global int *bin, int i, const int size, __global const long *num, __global const int *cnt)
 {
     const int x = bin[i];
     for (;;) {
@@ -524,8 +557,8 @@ inline void mt_argmax(const iv v, const iv ix, int *bv, int *bi)
 // | c) until step 8 writes the points.
 __kernel void gt_mt_emit(__global const int *part, __global const float *values, __global const float *pts,
                          const int H, const int W, __global const int *plan, __global const int *stats,
-                         __global const int *surv, __global int *bins, __global const int *cls,
-                         __global const int *cnt, __global int *dist, __global int *used, const int lim,
+                         __global const int *surv, __global int *bins, __global const int *interior,
+                         __global const long *nums, __global const int *cnt, __global int *dist, __global int *used, const int lim,
                          const int J,
                          __global float *out0, __global float *out1)
 {
@@ -537,7 +570,7 @@ __kernel void gt_mt_emit(__global const int *part, __global const float *values,
     __global float *out = (k == 0 ? out0 : out1) + 4 * offset;
     __global int *slot = (__global int *)out;  // slot t's pixel at slot[4 t]
     __global int *bin = bins + k * HW + start;
-    __global const int *num = cls + (1 + k) * HW;
+    __global const long *num = nums + k * HW;
     // step 6
     int size = surv[k * J + j], taken = 0;
     for (int i = size / 2 - 1; i >= 0; --i)
@@ -558,7 +591,7 @@ __kernel void gt_mt_emit(__global const int *part, __global const float *values,
     // step 7
     if (taken < quota) {
         __global const int *st = stats + j * GT_MT_STATS;
-        const int interior = st[1] > 0, b = interior ? 2 : 6;
+        const int inner = st[1] > 0, b = inner ? 2 : 6;
         __global int *pool = bin;
         __global int *dd = dist + k * HW + start;
         int n = 0;
@@ -566,7 +599,7 @@ __kernel void gt_mt_emit(__global const int *part, __global const float *values,
         for (int r = st[b]; r <= st[b + 1]; ++r)
             for (int c = st[b + 2]; c <= st[b + 3]; ++c) {
                 const int o = r * W + c;
-                if (part[o] == j && (!interior || cls[o] != 0)) {
+                if (part[o] == j && (!inner || interior[o] != 0)) {
                     pool[n++] = r << 16 | c;
                     sr += r;
                     sc += c;

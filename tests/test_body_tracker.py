@@ -88,6 +88,29 @@ def test_template_every_frame_moves_only_a_few_counts(device, arm_cross):
     assert all(frame.stages[n][1:] == (0, 0) for n in frame.stages if n.startswith("PF stage")), frame.stages
 
 
+def test_a_cost_jump_is_tracked_again_with_wider_sigmas(device, arm_cross):
+    """A frame whose cost jumps (here: every candidate's right elbow 60 deg off, as after a lost
+    arm) runs the recovery pass once, and the frame keeps the lower cost of the two passes; frames
+    without a jump never run it. (Whether the pass finds the arm again depends on how far off it
+    is: perf/soak_body.py measures how often arms are lost over long runs.)"""
+    seq, frames = arm_cross
+    out = {}
+    for ratio in (0.0, 2.0):
+        cfg = BodyTrackerConfig(lm_iterations=3, samples=500, recover_ratio=ratio)
+        tracker = BodyTracker(device, seq.params[0], config=cfg)
+        for f in frames[1:4]:
+            tracker.track(f.gray, f.depth)
+        assert tracker.recoveries == 0
+        tracker.candidates[:, 11] += np.radians(60.0)  # right elbow (ph_RL)
+        est = tracker.track(frames[4].gray, frames[4].depth)
+        out[ratio] = (est, tracker.recoveries, tracker.recovered, tracker._costs)
+    (plain, n0, _, costs), (rec, n1, kept, _) = out[0.0], out[2.0]
+    assert plain.cost > 2.0 * np.median(list(costs)[:-1])  # the jump
+    assert (n0, n1) == (0, 1) and kept in (0, 1)
+    assert rec.cost <= plain.cost
+    assert (rec.cost < plain.cost) == (kept == 1)
+
+
 SHOULDER_TRIALS = 3
 SHOULDER_STEP = 2  # every other frame of the 30 fps sequence (15 fps, for time): 39 frames to the arms lowered
 

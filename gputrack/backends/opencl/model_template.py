@@ -1,7 +1,8 @@
 """OpenCL launchers of :mod:`gputrack.ops.model_template` (kernels/gt_model_template.cl).
 
 ``render``: one launch over the crop (the part table copied into a buffer kept per device, enqueued
-without a wait). ``classify``: a launch over the crop (classes, and the reset of the counts), one over
+without a wait). ``classify``: a launch over the crop (the interior flags and the 64-bit strength
+numerators of step 2-3's integers, and the reset of the counts), one over
 its rows (the per-part statistics, a run of a row at a time) and one over its rows (every candidate
 into its part's bin). ``render`` and the classes take GT_MT_LANES pixels of a row per work-item
 (explicit vectors on CPU devices; the classes stage each window row's part ids and q once). The
@@ -29,10 +30,10 @@ __all__ = ["classify", "emit", "render", "render_dtype"]
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
     "gt_mt_render": [None, None, None, _I, _I, _I, _I, _I, _I, _I, None, None, None],
-    "gt_mt_classify": [None, None, _I, _I, _I, _I, _I, _I, _F, _F, _I, _I, _I, None, None, None, None],
+    "gt_mt_classify": [None, None, _I, _I, _I, _I, _I, _I, _F, _F, _I, _I, _I, None, None, None, None, None],
     "gt_mt_stats": [None, None, _I, _I, _I, _I, None],
-    "gt_mt_bin": [None, None, None, _I, _I, _I, _I, _I, None, None, _I],
-    "gt_mt_emit": [None, None, None, _I, _I, None, None, None, None, None, None, None, None, _I, _I, None, None],
+    "gt_mt_bin": [None, None, None, None, _I, _I, _I, _I, _I, None, None, _I],
+    "gt_mt_emit": [None, None, None, _I, _I, None, None, None, None, None, None, None, None, None, _I, _I, None, None],
 }
 
 
@@ -141,13 +142,15 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
                                     local.buffer.data)  # fmt: skip
 
 
-def classify(device, part, values, crop, scales, window, border, cls, cnt, bins, stats, surv):
-    """Steps 2-4: classes, per-part statistics, every candidate binned per part (see the reference)."""
+def classify(device, part, values, crop, scales, window, border, interior, num, cnt, bins, stats, surv):
+    """Steps 2-4: the interior flags (int32), the strength numerators num (2, H, W) int64 (-1: not an
+    extremum), per-part statistics, every candidate binned per part (see the reference)."""
     r0, r1, c0, c1 = (int(v) for v in crop)
     H, W = part.shape
     J = int(stats.shape[0])
     q = device.queue
-    pb, vb, clb, cnb = part.buffer.data, values.buffer.data, cls.buffer.data, cnt.buffer.data
+    pb, vb, cnb = part.buffer.data, values.buffer.data, cnt.buffer.data
+    ib, nb = interior.buffer.data, num.buffer.data
     stb, svb = stats.buffer.data, surv.buffer.data
     sc = np.asarray(scales, np.float32)
     if r1 <= r0 or c1 <= c0:  # nothing to read: the counts only
@@ -160,13 +163,13 @@ def classify(device, part, values, crop, scales, window, border, cls, cnt, bins,
         cl.enqueue_copy(q, svb, np.zeros((2, J), np.int32))
         return
     _kernel(device, "gt_mt_classify")(q, (-(-(c1 - c0) // lanes(device)), r1 - r0), None, pb, vb, H, W, r0, r1, c0,
-                                      c1, float(sc[0]), float(sc[1]), int(window) // 2, int(border), J, clb, cnb, stb,
-                                      svb)  # fmt: skip
-    _kernel(device, "gt_mt_stats")(q, (r1 - r0,), None, pb, clb, W, r0, c0, c1, stb)
-    _kernel(device, "gt_mt_bin")(q, (r1 - r0,), None, pb, clb, stb, H, W, r0, c0, c1, bins.buffer.data, svb, J)
+                                      c1, float(sc[0]), float(sc[1]), int(window) // 2, int(border), J, ib, nb, cnb,
+                                      stb, svb)  # fmt: skip
+    _kernel(device, "gt_mt_stats")(q, (r1 - r0,), None, pb, ib, W, r0, c0, c1, stb)
+    _kernel(device, "gt_mt_bin")(q, (r1 - r0,), None, pb, ib, nb, stb, H, W, r0, c0, c1, bins.buffer.data, svb, J)
 
 
-def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, dist, used, s2, out0, out1):
+def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num, cnt, dist, used, s2, out0, out1):
     """Steps 6-8: per kind and part (a work-group of one each) the greedy extrema, the farthest-point
     fill and the points, into out0 (RGB) and out1 (depth). ``dist`` holds the fill's distances with
     each pool pixel's row / column flags; ``used`` the seeds' rows and columns."""
@@ -179,5 +182,5 @@ def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, d
     o1 = (out1 if out1.shape[0] else dummy).buffer.data
     _kernel(device, "gt_mt_emit")(device.queue, (J, 2), (1, 1), part.buffer.data, values.buffer.data,
                                   local.buffer.data, H, W, plan.buffer.data, stats.buffer.data, surv.buffer.data,
-                                  bins.buffer.data, cls.buffer.data, cnt.buffer.data, dist.buffer.data,
-                                  used.buffer.data, _lim(s2), J, o0, o1)  # fmt: skip
+                                  bins.buffer.data, interior.buffer.data, num.buffer.data, cnt.buffer.data,
+                                  dist.buffer.data, used.buffer.data, _lim(s2), J, o0, o1)  # fmt: skip

@@ -22,6 +22,7 @@ model out of view) keeps the last pose and reports ``confidence = 0``.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 
@@ -69,6 +70,12 @@ class BodyTrackerConfig:
     depth_tol: float = 0.0
     template_every: int = 1  # re-render the template every this many frames
     seed: int = 0
+    # loss recovery: a frame whose best cost exceeds ``recover_ratio`` times the median of the last
+    # ``recover_window`` frames' costs (a lost arm: ~4x) is tracked again from the same start with
+    # the particle filter's sigmas times ``recover_sigma``, and the lower cost wins (0: off)
+    recover_ratio: float = 2.0
+    recover_window: int = 30
+    recover_sigma: float = 2.0
 
     def __post_init__(self):
         for name in ("candidates", "samples", "stages", "n_rgb", "n_depth", "template_every"):
@@ -83,6 +90,13 @@ class BodyTrackerConfig:
             raise ValueError(f"lam: expected a value in [0, 1], got {self.lam}")
         if not 0.0 <= self.depth_tol < np.inf:
             raise ValueError(f"depth_tol: expected a finite value >= 0 (mm), got {self.depth_tol}")
+        if not (self.recover_ratio == 0.0 or 1.0 < self.recover_ratio < np.inf):
+            raise ValueError(f"recover_ratio: expected 0 (off) or a finite ratio > 1, got {self.recover_ratio}")
+        if isinstance(self.recover_window, bool) or not isinstance(self.recover_window, (int, np.integer)) \
+                or self.recover_window < 3:  # fmt: skip
+            raise ValueError(f"recover_window: expected an integer >= 3 (frames), got {self.recover_window!r}")
+        if not 1.0 <= self.recover_sigma < np.inf:
+            raise ValueError(f"recover_sigma: expected a finite factor >= 1, got {self.recover_sigma}")
 
 
 @dataclasses.dataclass
@@ -146,8 +160,15 @@ class BodyTracker:
                                       points_dtype=np.float32, early_stop=False) if cfg.lm_iterations else None  # fmt: skip
         self._sparsity = None
         self._residual_out = {}  # pose_residuals' output arrays by shape, reused as out=
-        self.scheduler = Scheduler(device, self._stages(), inputs=("gray", "depth", "start"),
+        self.scheduler = Scheduler(device, self._stages(self._sigmas), inputs=("gray", "depth", "start"),
                                    outputs=("estimate", "cost"), profile=profile)  # fmt: skip
+        # the recovery pass (see BodyTrackerConfig.recover_ratio): the same stages, wider sigmas,
+        # the frame's template kept; made at the first frame that needs it
+        self._recovery = None
+        self._profile = profile
+        self._costs = collections.deque(maxlen=cfg.recover_window)
+        self.recoveries = 0  # frames tracked again, and kept (lower cost) ...
+        self.recovered = 0
 
     # -- helpers ---------------------------------------------------------------------------------
     def _groups(self) -> list[np.ndarray]:
@@ -226,13 +247,13 @@ class BodyTracker:
         return residuals
 
     # -- the frame's stages (run by self.scheduler) -----------------------------------------------
-    def _stages(self) -> list[Stage]:
+    def _stages(self, sigmas) -> list[Stage]:
         cfg, images = self.config, ("gray", "depth", "rgb", "dep")
         stages = [Stage("template", self._template_stage, writes=("rgb", "dep"))]
         calls = 0
         for s in range(cfg.stages):
-            for g, sigma in enumerate(self._sigmas[s]):
-                name = f"PF stage {s + 1}" + (f".{g + 1}" if len(self._sigmas[s]) > 1 else "")
+            for g, sigma in enumerate(sigmas[s]):
+                name = f"PF stage {s + 1}" + (f".{g + 1}" if len(sigmas[s]) > 1 else "")
                 prev = "start" if calls == 0 else "candidates"
                 stages.append(Stage(name, self._pf_stage(sigma, prev, f"pf{calls % 2}"), reads=(*images, prev),
                                     writes=("candidates", "scores", f"pf{calls % 2}")))  # fmt: skip
@@ -305,6 +326,8 @@ class BodyTracker:
         finally:
             self._given_templates = None
         candidates, best_cost = out["estimate"], out["cost"]
+        if self._suspect(best_cost):
+            candidates, best_cost = self._recover(gray, depth, candidates, best_cost)
         if not np.isfinite(candidates).all():
             return self._keep("the estimate is not finite")
         if not np.isfinite(best_cost):
@@ -312,7 +335,37 @@ class BodyTracker:
         self.candidates = candidates
         self.params = candidates[0].copy()
         self.frame_index += 1
+        self._costs.append(best_cost)
         return BodyEstimate(self.params.copy(), best_cost, 1.0, candidates.copy())
+
+    def _suspect(self, cost: float) -> bool:
+        """A cost jump (a lost part): above recover_ratio x the median of the recent frames' costs."""
+        cfg = self.config
+        if not cfg.recover_ratio or len(self._costs) < 3 or not np.isfinite(cost):
+            return False
+        return cost > cfg.recover_ratio * float(np.median(self._costs))
+
+    def _recover(self, gray, depth, candidates, cost):
+        """Track the frame again from the same start, the sigmas widened, the template kept; the lower
+        cost wins."""
+        cfg = self.config
+        if self._recovery is None:
+            wide = [[g * np.float32(cfg.recover_sigma) for g in stage] for stage in self._sigmas]
+            self._recovery = Scheduler(self.device, self._stages(wide), inputs=("gray", "depth", "start"),
+                                       outputs=("estimate", "cost"), profile=self._profile)  # fmt: skip
+        self.recoveries += 1
+        self._given_templates = self._templates
+        try:
+            out = self._recovery.run(gray=gray, depth=depth, start=self.candidates.astype(np.float32))
+        except SkipFrame:
+            return candidates, cost
+        finally:
+            self._given_templates = None
+        if np.isfinite(out["cost"]) and out["cost"] < cost and np.isfinite(out["estimate"]).all():
+            self.recovered += 1
+            log.info("frame %d: cost %.3g -> %.3g after the recovery pass", self.frame_index, cost, out["cost"])
+            return out["estimate"], out["cost"]
+        return candidates, cost
 
     def _keep(self, why: str) -> BodyEstimate:
         log.warning("frame %d: %s; keeping the last pose", self.frame_index, why)
