@@ -14,7 +14,9 @@ reference: gputrack/backends/reference/model_template.py).
   double polynomial, which would not be bit-equal to NumPy's).
 * :func:`classify` (steps 2-4), one launch of four top-level loops (Taichi's barrier between
   them): the statistics zeroed (serial); a thread per crop pixel: interior flag, q = floor(v s)
-  (integers from here on), the window's count, sum and extremes (unrolled: ``window`` and
+  as an int64 (the float32 product, an integer below 2**40; 64-bit integers from here on: the
+  window's sum, the strength numerator |c q - S| < 2**47 into the int64 ``num``), the window's
+  count, sum and extremes (unrolled: ``window`` and
   ``border`` are template values; an interior pixel with border >= window // 2 skips the same-part
   tests), the extremum strength numerator, and on a GPU the per-part counts and ranges by atomics;
   on the CPU arch instead a thread per crop row flushes each run of a part's pixels by atomics
@@ -48,6 +50,7 @@ from ...uploads import constant
 from .launch import launch
 from .runtime import scratch, ti
 from .tasks import CPU_TASK
+from .trig import sincos64
 
 nd1 = ti.types.ndarray(ndim=1)
 nd2 = ti.types.ndarray(ndim=2)
@@ -66,6 +69,12 @@ def _ifloor(x):
     """floor(x) as an int32 (|x| < 2**31; one instruction on the CPU, faster than a truncation
     with a correction, measured)."""
     return ti.cast(ti.floor(x), ti.i32)
+
+
+@ti.func
+def _qfloor(x):
+    """floor(x) as an int64 (|x| < 2**40: step 2's q from the float32 product v s, exact)."""
+    return ti.cast(ti.floor(x), ti.i64)
 
 
 @ti.func
@@ -201,9 +210,10 @@ def _normal(table: ti.template(), j, p, which, real: ti.template()):
 
 @ti.kernel
 def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: nd3, r0: ti.i32, r1: ti.i32,
-            c0: ti.i32, c1: ti.i32, real: ti.template()):  # fmt: skip
+            c0: ti.i32, c1: ti.i32, real: ti.template(), sine64: ti.template()):  # fmt: skip
     """Step 1 over the crop in ``real`` (table, waves and consts of that type; float literals that
-    are not exact in float32 written real(x): Taichi's literals take the default float32 type)."""
+    are not exact in float32 written real(x): Taichi's literals take the default float32 type);
+    ``sine64``: the double sines are Taichi's own (else :func:`sincos64`)."""
     J = table.shape[0]
     fx = consts[0]
     fy = consts[1]
@@ -240,8 +250,10 @@ def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: 
             s = real(0.0)
             for q in range(waves.shape[1]):
                 arg = waves[best, q, 0] * x[0] + waves[best, q, 1] * x[1] + waves[best, q, 2] * x[2] + waves[best, q, 3]
-                if ti.static(real == ti.f64):
+                if ti.static(real == ti.f64 and sine64):
                     s += ti.sin(arg)
+                elif ti.static(real == ti.f64):
+                    s += sincos64(arg)[0]
                 else:
                     s += _sin(arg)
             tex = ti.min(ti.max(0.5 + amp * s, real(0.02)), real(0.98))
@@ -255,10 +267,16 @@ def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: 
 
 
 def render_dtype(device):
-    """The type the render computes in: np.float64 on the CPU and CUDA archs (Taichi's double sine:
-    the reference's float64, so the templates are the reference's), np.float32 elsewhere (Vulkan:
-    Taichi's SPIR-V has no double sine, "Instruction Sin does not 64bits operation")."""
-    return np.float64 if device.arch in ("cpu", "cuda") and device.fp64 else np.float32
+    """The type the render computes in: np.float64 where the device has it (the reference's float64,
+    so the templates are the reference's), else np.float32. The texture's double sines are Taichi's
+    (the C library's) on the CPU and CUDA archs; on Vulkan, whose SPIR-V has no double sine
+    ("Instruction Sin does not 64bits operation"), :func:`gputrack.backends.taichi.trig.sincos64`
+    (within ~2e-14 of it for the texture's arguments, far below the float32 rounding of the gray value)."""
+    return np.float64 if device.fp64 else np.float32
+
+
+def _libm_sine(device) -> bool:
+    return device.arch in ("cpu", "cuda")
 
 
 @functools.lru_cache(maxsize=8)
@@ -313,7 +331,8 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
         tab.from_numpy(table)
         wv = constant(device, waves).buffer
         cs = constant(device, consts).buffer
-    launch(_render, (tab, wv, cs, part.buffer, values.buffer, local.buffer), (real,), scalars=(r0, r1, c0, c1))
+    launch(_render, (tab, wv, cs, part.buffer, values.buffer, local.buffer), (real, _libm_sine(device)),
+           scalars=(r0, r1, c0, c1))  # fmt: skip
 
 
 # -- steps 2-5: classify ----------------------------------------------------------------------------
@@ -347,8 +366,8 @@ def _flush(stats: ti.template(), j, count, base, r, a, b):
 
 
 @ti.kernel
-def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2, surv: nd2, r0: ti.i32, r1: ti.i32,
-              c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, half: ti.template(),
+def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: nd2, stats: nd2, surv: nd2,
+              r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, half: ti.template(),
               border: ti.template()):  # fmt: skip
     J = stats.shape[0]
     W = part.shape[1]
@@ -370,8 +389,8 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
         p = part[r, c]
         inner = 0
         count = 0
-        num0 = -1
-        num1 = -1
+        num0 = ti.i64(-1)
+        num1 = ti.i64(-1)
         if p >= 0:
             same_all = True
             for dy in ti.static(range(-border, border + 1)):
@@ -380,8 +399,8 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
                         inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
                         same_all = same_all & inside & (part[y, x] == p)
             inner = ti.cast(same_all, ti.i32)
-            q0 = _ifloor(values[0, r, c] * s0)
-            q1 = _ifloor(values[1, r, c] * s1)
+            q0 = _qfloor(values[0, r, c] * s0)
+            q1 = _qfloor(values[1, r, c] * s1)
             count = 1
             S0 = q0
             S1 = q1
@@ -395,8 +414,8 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
                     for dy in ti.static(range(-half, half + 1)):
                         for dx in ti.static(range(-half, half + 1)):
                             if ti.static(dy != 0 or dx != 0):
-                                a0 = _ifloor(values[0, r + dy, c + dx] * s0)
-                                a1 = _ifloor(values[1, r + dy, c + dx] * s1)
+                                a0 = _qfloor(values[0, r + dy, c + dx] * s0)
+                                a1 = _qfloor(values[1, r + dy, c + dx] * s1)
                                 S0 += a0
                                 S1 += a1
                                 hi0 = ti.max(hi0, a0)
@@ -409,32 +428,34 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
                         if ti.static(dy != 0 or dx != 0):
                             inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
                             same = inside & (part[y, x] == p)
-                            a0 = _ifloor(values[0, y, x] * s0)
-                            a1 = _ifloor(values[1, y, x] * s1)
+                            a0 = _qfloor(values[0, y, x] * s0)
+                            a1 = _qfloor(values[1, y, x] * s1)
                             count += ti.cast(same, ti.i32)
-                            S0 += ti.select(same, a0, 0)
-                            S1 += ti.select(same, a1, 0)
+                            S0 += ti.select(same, a0, ti.i64(0))
+                            S1 += ti.select(same, a1, ti.i64(0))
                             hi0 = ti.select(same, ti.max(hi0, a0), hi0)
                             lo0 = ti.select(same, ti.min(lo0, a0), lo0)
                             hi1 = ti.select(same, ti.max(hi1, a1), hi1)
                             lo1 = ti.select(same, ti.min(lo1, a1), lo1)
-            num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.abs(count * q0 - S0), -1)
-            num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.abs(count * q1 - S1), -1)
-        cls[0, r, c] = inner
-        cls[1, r, c] = num0
-        cls[2, r, c] = num1
+            e0 = ti.cast(count, ti.i64) * q0 - S0
+            e1 = ti.cast(count, ti.i64) * q1 - S1
+            num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.select(e0 < 0, -e0, e0), ti.i64(-1))
+            num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.select(e1 < 0, -e1, e1), ti.i64(-1))
+        interior[r, c] = inner
+        num[0, r, c] = num0
+        num[1, r, c] = num1
         cnt[r, c] = count
     for i in range(n):  # 4. a thread per start of a run of a part's (interior) pixels in a row flushes it
         r = r0 + i // w
         c = c0 + i % w
         p = part[r, c]
         if p >= 0:
-            q = ti.select(cls[0, r, c] != 0, p, -1)
+            q = ti.select(interior[r, c] != 0, p, -1)
             before = -1
             qbefore = -1
             if c > c0:
                 before = part[r, c - 1]
-                qbefore = ti.select(cls[0, r, c - 1] != 0, before, -1)
+                qbefore = ti.select(interior[r, c - 1] != 0, before, -1)
             if before != p:
                 e = c + 1
                 while (e < c1) and (part[r, e] == p):
@@ -442,7 +463,7 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
                 _flush(stats, p, 0, 6, r, c, e - 1)
             if (q >= 0) & (qbefore != q):
                 e = c + 1
-                while (e < c1) and (part[r, e] == p) and (cls[0, r, e] != 0):
+                while (e < c1) and (part[r, e] == p) and (interior[r, e] != 0):
                     e += 1
                 _flush(stats, p, 1, 2, r, c, e - 1)
     for i in range(n):  # the candidates (pool extrema) binned per part
@@ -450,36 +471,38 @@ def _classify(part: nd2, values: nd3, cls: nd3, cnt: nd2, bins: nd2, stats: nd2,
         c = c0 + i % w
         p = part[r, c]
         if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (cls[0, r, c] != 0):  # the pool: every pixel of a part without interior
+            if (stats[p, 1] == 0) | (interior[r, c] != 0):  # the pool: every pixel of a part without interior
                 for k in ti.static(range(2)):
-                    if cls[1 + k, r, c] >= 0:
+                    if num[k, r, c] >= 0:
                         start = 0
                         for jj in range(p):
                             start += stats[jj, 0]
                         bins[k, start + ti.atomic_add(surv[k, p], 1)] = r * W + c
 
 
-def classify(device, part, values, crop, scales, window, border, cls, cnt, bins, stats, surv):
-    """Steps 2-4: stats (J, 10), surv (2, J) candidates per kind and part, bins (unordered), cls, cnt."""
+def classify(device, part, values, crop, scales, window, border, interior, num, cnt, bins, stats, surv):
+    """Steps 2-4: stats (J, 10), surv (2, J) candidates per kind and part, bins (unordered), the
+    interior flag, num (int64: the extrema's strength numerators, -1 elsewhere), cnt."""
     r0, r1, c0, c1 = (int(x) for x in crop)
     sc = np.asarray(scales, np.float32)
-    launch(_classify, (part.buffer, values.buffer, cls.buffer, cnt.buffer, bins.buffer, stats.buffer, surv.buffer),
+    launch(_classify, (part.buffer, values.buffer, interior.buffer, num.buffer, cnt.buffer, bins.buffer, stats.buffer,
+                       surv.buffer),
            (int(window) // 2, int(border)), scalars=(r0, r1, c0, c1, float(sc[0]), float(sc[1])))  # fmt: skip
 
 
 # -- steps 6-7: emit --------------------------------------------------------------------------------
 @ti.func
-def _stronger_px(cls: ti.template(), cnt: ti.template(), k, W, a, b):
+def _stronger_px(num: ti.template(), cnt: ti.template(), k, W, a, b):
     """Candidate pixel a (index r W + c) stronger than b for value k."""
     ra = a // W
     ca = a - ra * W
     rb = b // W
     cb = b - rb * W
-    return _stronger(cls[1 + k, ra, ca], cnt[ra, ca], a, cls[1 + k, rb, cb], cnt[rb, cb], b)
+    return _stronger(num[k, ra, ca], cnt[ra, ca], a, num[k, rb, cb], cnt[rb, cb], b)
 
 
 @ti.func
-def _sift(bins: ti.template(), cls: ti.template(), cnt: ti.template(), k, W, start, i0, size):
+def _sift(bins: ti.template(), num: ti.template(), cnt: ti.template(), k, W, start, i0, size):
     """Sift bins[k, start + i0] down the max-heap (by strength) of ``size`` entries at ``start``."""
     i = i0
     while True:
@@ -488,9 +511,9 @@ def _sift(bins: ti.template(), cls: ti.template(), cnt: ti.template(), k, W, sta
             break
         m = l
         if l + 1 < size:  # noqa: SIM102 - the inner test reads past the heap otherwise
-            if _stronger_px(cls, cnt, k, W, bins[k, start + l + 1], bins[k, start + l]):
+            if _stronger_px(num, cnt, k, W, bins[k, start + l + 1], bins[k, start + l]):
                 m = l + 1
-        if not _stronger_px(cls, cnt, k, W, bins[k, start + m], bins[k, start + i]):
+        if not _stronger_px(num, cnt, k, W, bins[k, start + m], bins[k, start + i]):
             break
         t = bins[k, start + i]
         bins[k, start + i] = bins[k, start + m]
@@ -512,20 +535,20 @@ def _put(out0: ti.template(), out1: ti.template(), k, o, local: ti.template(), v
 
 
 @ti.func
-def _greedy(bins: ti.template(), cls: ti.template(), cnt: ti.template(), surv: ti.template(), taken: ti.template(),
+def _greedy(bins: ti.template(), num: ti.template(), cnt: ti.template(), surv: ti.template(), taken: ti.template(),
             k, j, W, start, quota, d2max):  # fmt: skip
     """Step 6 for kind k, part j: the candidates strongest first (a partial heap sort of their bin),
     each taken unless a taken one lies at d^2 <= d2max; their pixels (r << 16 | c) into taken[k, j];
     returns how many."""
     size = surv[k, j]
     for e in range(size // 2):
-        _sift(bins, cls, cnt, k, W, start, size // 2 - 1 - e, size)
+        _sift(bins, num, cnt, k, W, start, size // 2 - 1 - e, size)
     T = 0
     while (T < quota) & (size > 0):
         top = bins[k, start]
         size -= 1
         bins[k, start] = bins[k, start + size]
-        _sift(bins, cls, cnt, k, W, start, 0, size)
+        _sift(bins, num, cnt, k, W, start, 0, size)
         r = top // W
         c = top - r * W
         ok = True
@@ -549,14 +572,14 @@ def _pool_range(stats: ti.template(), j):
 
 
 @ti.func
-def _centroid_pixel(part: ti.template(), cls: ti.template(), j, every, pr0, pr1, pc0, pc1):
+def _centroid_pixel(part: ti.template(), interior: ti.template(), j, every, pr0, pr1, pc0, pc1):
     """The pool pixel nearest the pool's centroid (n r - sum r, n c - sum c; the first among ties)."""
     P = ti.i64(0)
     sr = ti.i64(0)
     sc = ti.i64(0)
     for y in range(pr0, pr1 + 1):
         for x in range(pc0, pc1 + 1):
-            if (part[y, x] == j) & (every | (cls[0, y, x] != 0)):
+            if (part[y, x] == j) & (every | (interior[y, x] != 0)):
                 P += 1
                 sr += y
                 sc += x
@@ -565,7 +588,7 @@ def _centroid_pixel(part: ti.template(), cls: ti.template(), j, every, pr0, pr1,
     fc = 0
     for y in range(pr0, pr1 + 1):
         for x in range(pc0, pc1 + 1):
-            if (part[y, x] == j) & (every | (cls[0, y, x] != 0)):
+            if (part[y, x] == j) & (every | (interior[y, x] != 0)):
                 ey = P * y - sr
                 ex = P * x - sc
                 v = ey * ey + ex * ex
@@ -577,8 +600,8 @@ def _centroid_pixel(part: ti.template(), cls: ti.template(), j, every, pr0, pr1,
 
 
 @ti.kernel
-def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, cls: nd3,
-                 cnt: nd2, dist: nd3, used: nd3, taken: nd3, rows: nd3, out0: nd2, out1: nd2,
+def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, interior: nd2,
+                 num: nd3, cnt: nd2, dist: nd3, used: nd3, taken: nd3, rows: nd3, out0: nd2, out1: nd2,
                  d2max: ti.i32):  # fmt: skip
     """Steps 6-7 with one thread per kind k and part j (the CPU arch: no limit on a thread's loops):
     the greedy extrema, then the farthest-point fill over the part's pool, listed (its columns, in
@@ -597,7 +620,7 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
         quota = plan[k, j, 1]
         start = plan[k, j, 2]
         if quota > 0:
-            T = _greedy(bins, cls, cnt, surv, taken, k, j, W, start, quota, d2max)
+            T = _greedy(bins, num, cnt, surv, taken, k, j, W, start, quota, d2max)
             for t in range(T):
                 _put(out0, out1, k, offset + t, local, values, taken[k, j, t] >> 16, taken[k, j, t] & 0xFFFF)
             m = quota - T
@@ -608,7 +631,7 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
                 for x in range(pc0, pc1 + 1):
                     used[k, j, H + x] = 0
                 if T == 0:  # the first: nearest the pool's centroid
-                    fr, fc = _centroid_pixel(part, cls, j, every, pr0, pr1, pc0, pc1)
+                    fr, fc = _centroid_pixel(part, interior, j, every, pr0, pr1, pc0, pc1)
                     taken[k, j, 0] = (fr << 16) | fc
                     _put(out0, out1, k, offset, local, values, fr, fc)
                     T = 1
@@ -623,7 +646,7 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
                     rows[k, j, y] = P
                     rmax = 0
                     for x in range(pc0, pc1 + 1):
-                        if (part[y, x] == j) & (every | (cls[0, y, x] != 0)):
+                        if (part[y, x] == j) & (every | (interior[y, x] != 0)):
                             bins[k, start + P] = x
                             P += 1
                             d = 1 << 30
@@ -705,8 +728,8 @@ NO_IDX = 0x7FFFFFFF
 
 
 @ti.kernel
-def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, cls: nd3,
-               cnt: nd2, dist: nd3, used: nd3, taken: nd3, state: nd3, out0: nd2, out1: nd2, r0: ti.i32,
+def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, interior: nd2,
+               num: nd3, cnt: nd2, dist: nd3, used: nd3, taken: nd3, state: nd3, out0: nd2, out1: nd2, r0: ti.i32,
                r1: ti.i32, c0: ti.i32, c1: ti.i32, d2max: ti.i32):  # fmt: skip
     """The device path (bounded loops per thread: lavapipe's llvmpipe runs at most 65535 loop passes
     per invocation): per kind and part the greedy extrema and the fill's first point; then per pixel
@@ -725,7 +748,7 @@ def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: 
         state[k, j, ST_IDX] = NO_IDX
         state[k, j, 5] = 0
         if quota > 0:
-            T = _greedy(bins, cls, cnt, surv, taken, k, j, W, start, quota, d2max)
+            T = _greedy(bins, num, cnt, surv, taken, k, j, W, start, quota, d2max)
             for t in range(T):
                 _put(out0, out1, k, offset + t, local, values, taken[k, j, t] >> 16, taken[k, j, t] & 0xFFFF)
             m = quota - T
@@ -736,7 +759,7 @@ def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: 
                 for x in range(pc0, pc1 + 1):
                     used[k, j, H + x] = 0
                 if T == 0:
-                    fr, fc = _centroid_pixel(part, cls, j, every, pr0, pr1, pc0, pc1)
+                    fr, fc = _centroid_pixel(part, interior, j, every, pr0, pr1, pc0, pc1)
                     taken[k, j, 0] = (fr << 16) | fc
                     _put(out0, out1, k, offset, local, values, fr, fc)
                     T = 1
@@ -753,7 +776,7 @@ def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: 
         x = c0 + i % w
         p = part[y, x]
         if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (cls[0, y, x] != 0):
+            if (stats[p, 1] == 0) | (interior[y, x] != 0):
                 for k in ti.static(range(2)):
                     if state[k, p, ST_LEFT] > 0:
                         d = 1 << 30
@@ -775,7 +798,7 @@ def _fill_key(used: ti.template(), H, k, p, y, x, d):
 
 
 @ti.kernel
-def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, cls: nd3, dist: nd3, used: nd3, state: nd3,
+def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, interior: nd2, dist: nd3, used: nd3, state: nd3,
                out0: nd2, out1: nd2, r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, first: ti.i32):  # fmt: skip
     """One fill point of every kind and part with points left: the distances updated with the last
     point, the largest key (atomic max), the first pixel holding it (atomic min), the point."""
@@ -789,7 +812,7 @@ def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, cls: nd3, dist: n
         x = c0 + i % w
         p = part[y, x]
         if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (cls[0, y, x] != 0):
+            if (stats[p, 1] == 0) | (interior[y, x] != 0):
                 for k in ti.static(range(2)):
                     if state[k, p, ST_LEFT] > 0:
                         d = dist[k, y, x]
@@ -807,7 +830,7 @@ def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, cls: nd3, dist: n
         x = c0 + i % w
         p = part[y, x]
         if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (cls[0, y, x] != 0):
+            if (stats[p, 1] == 0) | (interior[y, x] != 0):
                 for k in ti.static(range(2)):
                     if state[k, p, ST_LEFT] > 0:  # noqa: SIM102 - the inner test reads dist where this part has a fill
                         if _fill_key(used, H, k, p, y, x, dist[k, y, x]) == state[k, p, ST_KEY]:
@@ -830,7 +853,7 @@ def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, cls: nd3, dist: n
             state[k, j, ST_IDX] = NO_IDX
 
 
-def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, dist, used, s2, out0, out1):
+def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num, cnt, dist, used, s2, out0, out1):
     """Steps 6-7 into out0 (RGB) and out1 (depth): on the CPU arch one kernel (a thread per kind and
     part); elsewhere a kernel for the extrema and the fill's start, then one per fill point."""
     r0, r1, c0, c1 = (int(x) for x in crop)
@@ -841,7 +864,7 @@ def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, d
     nt = max(int(out0.shape[0]), int(out1.shape[0]), 1)
     taken = scratch(device, "mt taken", (2, J, nt), ti.i32)
     common = (part.buffer, values.buffer, local.buffer, plan.buffer, stats.buffer, surv.buffer, bins.buffer,
-              cls.buffer, cnt.buffer, dist.buffer, used.buffer, taken)  # fmt: skip
+              interior.buffer, num.buffer, cnt.buffer, dist.buffer, used.buffer, taken)  # fmt: skip
     if device.arch == "cpu":
         rows = scratch(device, "mt rows", (2, J, 3 * part.shape[0] + 1), ti.i32)
         launch(_emit_serial, (*common, rows, o0, o1), scalars=(d2max,))
@@ -850,5 +873,5 @@ def emit(device, part, values, local, crop, plan, stats, surv, bins, cls, cnt, d
     launch(_emit_prep, (*common, state, o0, o1), scalars=(r0, r1, c0, c1, d2max))
     steps = int(state.to_numpy()[:, :, ST_LEFT].max())
     for step in range(steps):
-        launch(_emit_step, (part.buffer, values.buffer, local.buffer, stats.buffer, cls.buffer, dist.buffer,
+        launch(_emit_step, (part.buffer, values.buffer, local.buffer, stats.buffer, interior.buffer, dist.buffer,
                             used.buffer, state, o0, o1), scalars=(r0, r1, c0, c1, int(step == 0)))  # fmt: skip
