@@ -258,9 +258,9 @@ def _scratch(device, H, W, J) -> _Scratch:
 # -- the op -------------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=16)
 def _texture_table(texture: Texture, n_parts: int) -> np.ndarray:
-    """(J, waves, 4) float32: each part's plane waves (k_x, k_y, k_z, phase) of Texture.sample (made
+    """(J, waves, 4) float64: each part's plane waves (k_x, k_y, k_z, phase) of Texture.sample (made
     once per texture and J; read-only)."""
-    table = np.zeros((n_parts, texture.waves, 4), np.float32)
+    table = np.zeros((n_parts, texture.waves, 4), np.float64)
     for j in range(n_parts):
         k, phase = texture._waves(j)
         table[j, :, :3], table[j, :, 3] = k, phase
@@ -301,8 +301,9 @@ def render_model(device, chain: Chain, params, camera: Camera | None = None, siz
     crop = (min(b[2] for b in live), max(b[3] for b in live), min(b[0] for b in live), max(b[1] for b in live))
     J = chain.n_parts
     s = _scratch(device, height, width, J)
-    # per part: the ray transform into part coordinates (R^T, o = -R^T t), its box, its shape
-    table = np.zeros((J, 24), np.float32)
+    # per part, in float64 (a backend that renders in float32 rounds them): the ray transform into
+    # part coordinates (R^T, o = -R^T t, as the reference renderer computes them), its box, its shape
+    table = np.zeros((J, 24), np.float64)
     for j, pt in enumerate(chain.parts):
         r, t = transforms[j, :, :3], transforms[j, :, 3]
         table[j, 0:9] = r.T.ravel()  # d_part = R^T d_cam
@@ -313,7 +314,7 @@ def render_model(device, chain: Chain, params, camera: Camera | None = None, siz
             sh = pt.shape
             table[j, 16:22] = (0.0 if sh.kind == "capsule" else 1.0, sh.axis, sh.start, sh.end, *sh.radii)
     consts = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
-                       texture.contrast * math.sqrt(2.0 / texture.waves), shading], np.float32)  # fmt: skip
+                       texture.contrast * np.sqrt(2.0 / texture.waves), shading], np.float64)  # fmt: skip
     backend_module(device, "model_template").render(
         device, chain, transforms, texture, table, _texture_table(texture, J), consts, crop, s.part, s.values, s.local,
     )

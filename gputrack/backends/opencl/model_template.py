@@ -17,7 +17,6 @@ points. No host wait in any of them (one in-order queue); the op downloads the c
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
@@ -90,38 +89,6 @@ def _lim(s2) -> int:
     return int(math.ceil(float(s2))) - 1
 
 
-@functools.lru_cache(maxsize=8)
-def _waves64(texture, n_parts: int) -> np.ndarray:
-    """(J, waves, 4) float64: the op's texture table (k_x, k_y, k_z, phase) unrounded (read-only)."""
-    table = np.zeros((n_parts, texture.waves, 4), np.float64)
-    for j in range(n_parts):
-        k, phase = texture._waves(j)
-        table[j, :, :3], table[j, :, 3] = k, phase
-    table.setflags(write=False)
-    return table
-
-
-def _inputs64(chain, transforms, texture, table, waves, consts):
-    """The op's float32 part table, waves and constants in float64 as the reference computes them:
-    R^T and o = -R^T t from the float64 transforms, the shapes' extents, the texture's waves and
-    amplitude unrounded; the boxes, kinds and axes (exact in float32), the camera and the shading
-    as sent (the reference reads those from the float32 constants too)."""
-    tf = np.asarray(transforms, np.float64)
-    t64 = np.array(table, np.float64)
-    for j, pt in enumerate(chain.parts):
-        r, t = tf[j, :, :3], tf[j, :, 3]
-        t64[j, 0:9] = r.T.ravel()
-        t64[j, 9:12] = -(r.T @ t)
-        if pt.shape is not None:
-            t64[j, 18:22] = (pt.shape.start, pt.shape.end, *pt.shape.radii)
-    w64 = _waves64(texture, int(waves.shape[0]))
-    if w64.shape != waves.shape:
-        raise ValueError(f"waves: expected the texture's table of shape {w64.shape}, got {waves.shape}")
-    c64 = np.array(consts, np.float64)
-    c64[4] = texture.contrast * np.sqrt(2.0 / texture.waves)  # as Texture.sample
-    return t64, w64, c64
-
-
 def render(device, chain, transforms, texture, table, waves, consts, crop, part, values, local):
     """Step 1 over the crop: part, gray and depth Z, the part-local point (computed in double on
     devices with fp64, else float; stored float32)."""
@@ -130,9 +97,7 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
         return
     H, W = part.shape
     J, Wv = int(waves.shape[0]), int(waves.shape[1])
-    if double(device):
-        table, waves, consts = _inputs64(chain, transforms, texture, table, waves, consts)
-    dt = np.float64 if double(device) else np.float32
+    dt = np.float64 if double(device) else np.float32  # the op's tables are float64
     tb = _upload_table(device, np.ascontiguousarray(table, dt))
     wv = constant(device, np.ascontiguousarray(waves, dt))
     cs = constant(device, np.ascontiguousarray(consts, dt))

@@ -41,7 +41,6 @@ images (Taichi's CPU backend compiles with fast math: no float tie-breaking is r
 are flags, not infinities).
 """
 
-import functools
 import math
 
 import numpy as np
@@ -279,47 +278,13 @@ def _libm_sine(device) -> bool:
     return device.arch in ("cpu", "cuda")
 
 
-@functools.lru_cache(maxsize=8)
-def _waves64(texture, n_parts: int) -> np.ndarray:
-    """(J, waves, 4) float64: the op's texture table (k_x, k_y, k_z, phase) unrounded (read-only)."""
-    table = np.zeros((n_parts, texture.waves, 4), np.float64)
-    for j in range(n_parts):
-        k, phase = texture._waves(j)
-        table[j, :, :3], table[j, :, 3] = k, phase
-    table.setflags(write=False)
-    return table
-
-
-def _inputs64(chain, transforms, texture, table, waves, consts):
-    """The op's float32 part table, waves and constants in float64 as the reference computes them:
-    R^T and o = -R^T t from the float64 transforms, the shapes' extents, the texture's waves and
-    amplitude unrounded; the boxes, kinds and axes (exact in float32), the camera and the shading
-    as sent (the reference reads those from the float32 constants too)."""
-    tf = np.asarray(transforms, np.float64)
-    t64 = np.array(table, np.float64)
-    rt = tf[:, :, :3].transpose(0, 2, 1)  # R^T per part
-    t64[:, 0:9] = rt.reshape(-1, 9)
-    t64[:, 9:12] = -np.einsum("jab,jb->ja", rt, tf[:, :, 3])
-    for j, pt in enumerate(chain.parts):
-        if pt.shape is not None:
-            t64[j, 18:22] = (pt.shape.start, pt.shape.end, *pt.shape.radii)
-    w64 = _waves64(texture, int(waves.shape[0]))
-    if w64.shape != waves.shape:
-        raise ValueError(f"waves: expected the texture's table of shape {w64.shape}, got {waves.shape}")
-    c64 = np.array(consts, np.float64)
-    c64[4] = texture.contrast * np.sqrt(2.0 / texture.waves)  # as Texture.sample
-    return t64, w64, c64
-
-
 def render(device, chain, transforms, texture, table, waves, consts, crop, part, values, local):
     """Step 1 into ``part``, ``values``, ``local`` at the pixels of ``crop`` (computed in
     :func:`render_dtype`, stored float32)."""
     r0, r1, c0, c1 = (int(x) for x in crop)
     if r1 <= r0 or c1 <= c0:
         return
-    dt = render_dtype(device)
-    if dt == np.float64:
-        table, waves, consts = _inputs64(chain, transforms, texture, table, waves, consts)
+    dt = render_dtype(device)  # the op's tables are float64
     table = np.ascontiguousarray(table, dt)
     waves = np.ascontiguousarray(waves, dt)
     consts = np.ascontiguousarray(consts, dt)
