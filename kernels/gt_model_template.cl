@@ -20,6 +20,8 @@
 // numerators |c q - S| (< 2**47) in long; the strength comparison cross-multiplies in long (< 2**53).
 // Pixels outside the crop count as no part and are never read.
 
+#include "gt_pcg.clh"
+
 #define GT_MT_STATS 10
 #define GT_MT_NO_ROW (1 << 30)
 
@@ -317,11 +319,15 @@ __kernel void gt_mt_render(__global const real *table, __global const real *wave
 
 // ---- steps 2-5: classify, count, suppress ----------------------------------------------------------
 
-// a stronger than b: |c q - S| / c larger (cross-multiplied in 64 bits), ties: the smaller index
+// a stronger than b: |c q - S| / c larger (cross-multiplied in 64 bits), ties: the smaller hash of
+// the pixel index, then the smaller index (the op's step 3)
 inline int gt_mt_stronger(const long na, const int ca, const int ia, const long nb, const int cb, const int ib)
 {
     const long lhs = na * cb, rhs = nb * ca;  // < 2**47 * 49 < 2**53
-    return lhs > rhs || (lhs == rhs && ia < ib);
+    if (lhs != rhs)
+        return lhs > rhs;
+    const uint ha = gt_pcg((uint)ia), hb = gt_pcg((uint)ib);
+    return ha < hb || (ha == hb && ia < ib);
 }
 
 // NDRange (ceil((c1 - c0) / L), r1 - r0), L pixels of a row per work-item: interior the interior

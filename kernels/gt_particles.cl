@@ -1,12 +1,7 @@
 // Particle-filter helpers (paper 000 eq. 12): counter-based sampling around candidates, best-k.
 // Same generator as the NumPy reference (gputrack/backends/reference/particles.py).
 
-inline uint gt_pcg(const uint x)
-{
-    const uint state = x * 747796405u + 2891336453u;
-    const uint word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
-    return (word >> 22u) ^ word;
-}
+#include "gt_pcg.clh"
 
 // out (n, p): sample k belongs to candidate k c / n; sigma is (p,) or, with per_candidate, (c, p).
 // One work-item per Box-Muller pair: parameters 2t, 2t+1 of sample k are the (cos, sin) pair of

@@ -83,7 +83,7 @@ def test_template_every_frame_moves_only_a_few_counts(device, arm_cross):
         return
     J = seq.chain.n_parts
     h2d, d2h = frame.stages["template"][1:]
-    assert d2h == J * 10 * 4  # the per-part counts (gputrack.ops.model_template.STATS), int32
+    assert d2h == J * 10 * 4  # the per-part counts (10 columns: gputrack.backends.reference.model_template.STATS), int32
     assert h2d <= 4096, h2d  # transforms and box table; plan and part index only when new
     assert all(frame.stages[n][1:] == (0, 0) for n in frame.stages if n.startswith("PF stage")), frame.stages
 

@@ -32,7 +32,11 @@ The rule, exactly (every backend; the NumPy reference is gputrack/backends/refer
    their largest and smallest q. The pixel is an *extremum* when hi > lo and q = hi or q = lo; its
    strength is |c q - S| / c (its distance from the neighbourhood's mean; compared exactly, by
    cross-multiplying: |c q - S| < 2**47, c <= 49). Pixel a is *stronger* than b when its strength is larger, or
-   equal and its index r W + c is smaller.
+   equal and the PCG hash of its index r W + c (gputrack.backends.reference.particles.pcg) is smaller,
+   or that too equal and its index is smaller. The hash scrambles exact ties: the pixels of a ridge
+   of equal depth steps (an upright torso's z-buffer) are then taken spread along it, not from its
+   top down (taken in pixel order, the torso's depth points bunched in its top rows, and the
+   particle filter alone lost a forearm in the first frames of sequence 0).
 4. **Pools**: part j's pool is its interior pixels, or all its pixels when it has no interior pixel
    (a part too thin for the border). available_j = the pool's size, area_j = the part's pixel count.
    The candidates are the pool's extrema.
@@ -71,6 +75,7 @@ import math
 
 import numpy as np
 
+from ..backends.reference.model_template import STATS
 from ..device import Device, per_device_cache
 from ..models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from ..models.chain import Chain
@@ -85,10 +90,6 @@ __all__ = ["DeviceTemplate", "ModelImages", "model_template", "render_model", "s
 #: |q| < 2**VALUE_BITS for the integer values of step 2 (int64: a window's sum of 49 and the
 #: cross-multiplied strengths, < 2**53, fit)
 VALUE_BITS = 40
-#: columns of the per-part statistics: area, interior count, interior rows and columns
-#: (min, max), all pixels' rows and columns (min, max)
-STATS = ("area", "interior", "ir0", "ir1", "ic0", "ic1", "ar0", "ar1", "ac0", "ac1")
-NO_ROW = 1 << 30  # the initial minimum of a row or column range
 
 
 class ModelImages:

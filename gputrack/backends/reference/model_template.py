@@ -12,9 +12,14 @@ from fractions import Fraction
 import numpy as np
 
 from ...models.render import render as render_chain
-from ...ops.model_template import NO_ROW, STATS
+from .particles import pcg
 
-__all__ = ["classify", "emit", "render", "render_dtype"]
+__all__ = ["NO_ROW", "STATS", "classify", "emit", "render", "render_dtype"]
+
+#: columns of the per-part statistics: area, interior count, interior rows and columns (min, max),
+#: all pixels' rows and columns (min, max)
+STATS = ("area", "interior", "ir0", "ir1", "ic0", "ic1", "ar0", "ar1", "ac0", "ac1")
+NO_ROW = 1 << 30  # the initial minimum of a row or column range
 
 
 def render_dtype(device):
@@ -61,7 +66,7 @@ def classify(device, part, values, crop, scales, window, border, interior_out, n
     elsewhere, int64), cnt the same-part window count; stats (J, 10); surv (2, J) the counts of candidates
     (pool extrema) and bins[k, start_j + i] their pixel indices (in pixel order here)."""
     J = stats.shape[0]
-    H, W = part.shape
+    W = part.shape[1]
     r0, r1, c0, c1 = crop
     pad = max(window // 2, border) + 1
     p = _padded(part, crop, pad, -1)
@@ -118,8 +123,11 @@ def classify(device, part, values, crop, scales, window, border, interior_out, n
 def _greedy(sv, num, cnt, W, quota, s2):
     """Step 6: the candidates ``sv`` (pixel indices) strongest first, each taken unless a taken one
     lies closer than the spacing; at most ``quota``."""
-    # strongest first (|c q - S| / c as exact fractions: numerators up to 2**47), ties by pixel index
-    order = sorted(range(len(sv)), key=lambda i: (-Fraction(int(num[sv[i]]), int(cnt[sv[i]])), int(sv[i])))
+    # strongest first (|c q - S| / c as exact fractions: numerators up to 2**47), ties by the pcg hash
+    # of the pixel index, then the index
+    tie = pcg(sv.astype(np.uint32))
+    order = sorted(range(len(sv)), key=lambda i: (-Fraction(int(num[sv[i]]), int(cnt[sv[i]])), int(tie[i]),
+                                                  int(sv[i])))  # fmt: skip
     taken_r, taken_c, taken = [], [], []
     for o in order:
         if len(taken) == quota:
@@ -168,7 +176,7 @@ def _farthest(rows, cols, chosen_r, chosen_c, m):
 def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num_img, cnt, dist, used, s2, out0, out1):
     """Steps 6-8 per kind and part: the greedy extrema, then the farthest-point fill, written into
     out0 (RGB) and out1 (depth)."""
-    H, W = part.shape
+    W = part.shape[1]
     r0c, r1c, c0c, c1c = crop
     p = part[r0c:r1c, c0c:c1c]
     for k, out in enumerate((out0, out1)):

@@ -49,6 +49,7 @@ from ...uploads import constant
 from .launch import launch
 from .runtime import scratch, ti
 from .tasks import CPU_TASK
+from .particles import _pcg
 from .trig import sincos64
 
 nd1 = ti.types.ndarray(ndim=1)
@@ -303,10 +304,13 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
 # -- steps 2-5: classify ----------------------------------------------------------------------------
 @ti.func
 def _stronger(num_a, cnt_a, idx_a, num_b, cnt_b, idx_b):
-    """a stronger than b: |c q - S| / c larger (cross-multiplied in 64 bits), ties by pixel index."""
+    """a stronger than b: |c q - S| / c larger (cross-multiplied in 64 bits), ties by the pcg hash of
+    the pixel index, then by the index (the op's step 3)."""
     lhs = ti.cast(num_a, ti.i64) * ti.cast(cnt_b, ti.i64)
     rhs = ti.cast(num_b, ti.i64) * ti.cast(cnt_a, ti.i64)
-    return (lhs > rhs) | ((lhs == rhs) & (idx_a < idx_b))
+    ha = _pcg(ti.cast(idx_a, ti.u32))
+    hb = _pcg(ti.cast(idx_b, ti.u32))
+    return (lhs > rhs) | ((lhs == rhs) & ((ha < hb) | ((ha == hb) & (idx_a < idx_b))))
 
 
 @ti.func

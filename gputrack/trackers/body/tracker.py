@@ -341,7 +341,7 @@ class BodyTracker:
     def _suspect(self, cost: float) -> bool:
         """A cost jump (a lost part): above recover_ratio x the median of the recent frames' costs."""
         cfg = self.config
-        if not cfg.recover_ratio or len(self._costs) < 3 or not np.isfinite(cost):
+        if not cfg.recover_ratio or not self._costs or not np.isfinite(cost):
             return False
         return cost > cfg.recover_ratio * float(np.median(self._costs))
 
