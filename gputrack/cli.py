@@ -402,7 +402,7 @@ def main(argv=None) -> int:
     p.add_argument("--stages", type=_int_at_least(1), default=3,
                    help="coarse-to-fine particle-filter stages (default 3)")  # fmt: skip
     p.add_argument("--shoulders", action="store_true", help="estimate the shoulder positions too (20 parameters)")
-    p.add_argument("--template-every", type=_int_at_least(1), default=1, help="re-render the template every N frames")
+    p.add_argument("--template-every", type=_int_at_least(1), default=1, help="make the template every N frames")
     p.add_argument(
         "--depth-tol",
         type=_float_above(0.0, inclusive=True),

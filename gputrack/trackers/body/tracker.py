@@ -68,7 +68,7 @@ class BodyTrackerConfig:
     # quantised sensor's step (2.5 for the simulator's 5 mm) pins the torso's turn, and so the
     # shoulders (Table 7); 0, the plain eq. 18, tracks the arms more closely
     depth_tol: float = 0.0
-    template_every: int = 1  # re-render the template every this many frames
+    template_every: int = 1  # make the template (on the device) every this many frames
     seed: int = 0
     # loss recovery: a frame whose best cost exceeds ``recover_ratio`` times the median of the last
     # ``recover_window`` frames' costs (a lost arm: ~4x) is tracked again from the same start with
