@@ -115,3 +115,33 @@ def test_template_close_to_reference(device, pose):
         same_part = g.part[:, None] == w.part[None]
         near = (np.where(same_part, d, np.inf).min(axis=1) < 0.5).mean()
         assert near > 0.9, f"{near:.2%} of the points are the reference's"
+
+
+def test_bad_input():
+    rest = CHAIN.rest_params()
+    with pytest.raises(ValueError, match=r"params: expected shape \(14,\), got \(13,\)"):
+        render_model(REF, CHAIN, rest[:13])
+    with pytest.raises(ValueError, match="params: expected finite values"):
+        render_model(REF, CHAIN, np.where(np.arange(14) == 3, np.nan, rest))
+    with pytest.raises(ValueError, match="size: expected"):
+        render_model(REF, CHAIN, rest, size=(1, 1))
+    with pytest.raises(TypeError, match="chain: expected a gputrack.models.Chain"):
+        render_model(REF, "body", rest)
+    with pytest.raises(TypeError, match="camera: expected a gputrack.Camera"):
+        render_model(REF, CHAIN, rest, camera=(525, 525, 320, 240))
+    with pytest.raises(TypeError, match="texture: expected"):
+        render_model(REF, CHAIN, rest, texture="wood")
+    with pytest.raises(ValueError, match="shading: expected a number in"):
+        render_model(REF, CHAIN, rest, shading=1.5)
+    far = rest.copy()
+    far[5] = -5000.0  # behind the camera
+    with pytest.raises(ValueError, match="no visible model surface"):
+        model_template(REF, CHAIN, far)
+    images = render_model(REF, CHAIN, rest)
+    for kw, match in (({"n": 0}, "n: expected an integer >= 1"), ({"window": 4}, "window: expected an odd size"),
+                      ({"border": 9}, "border: expected 0 .. 8"), ({"spacing": 0.5}, "spacing: expected 1 .. 16"),
+                      ({"n_depth": 2.5}, "n_depth: expected an integer")):  # fmt: skip
+        with pytest.raises((ValueError, TypeError), match=match):
+            select_template(REF, images, **kw)
+    with pytest.raises(ValueError, match="expected pixels of the model"):
+        model_images(REF, np.full((4, 4), -1), np.zeros((2, 4, 4)), np.zeros((4, 4, 3)))

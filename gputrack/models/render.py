@@ -23,7 +23,7 @@ import numpy as np
 from .camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from .chain import Chain, Shape
 
-__all__ = ["Rendering", "Texture", "Wall", "part_boxes", "render"]
+__all__ = ["Rendering", "Texture", "Wall", "image_size", "part_boxes", "pose_transforms", "render"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -191,6 +191,24 @@ def _pixel_box(transform, shape: Shape, camera: Camera, width: int, height: int)
     return u0, u1, v0, v1
 
 
+def image_size(size) -> tuple[int, int]:
+    """``size`` = (width, height) as ints, checked: at least 2 x 2."""
+    width, height = (int(s) for s in size)
+    if width < 2 or height < 2:
+        raise ValueError(f"size: expected (width, height) of at least 2 x 2, got {size}")
+    return width, height
+
+
+def pose_transforms(chain: Chain, params) -> np.ndarray:
+    """Camera-from-part transforms (J, 3, 4) float64 of one pose ``params`` (P,), checked: shape, finite."""
+    p = np.asarray(params, dtype=np.float64)
+    if p.shape != (chain.n_params,):
+        raise ValueError(f"params: expected shape ({chain.n_params},), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError("params: expected finite values, got non-finite entries")
+    return chain.transforms(p[None])[0]
+
+
 def part_boxes(chain: Chain, transforms, camera: Camera, width: int, height: int) -> tuple[list, float]:
     """Per part the half-open pixel box (u0, u1, v0, v1) that holds its projection (None: out of
     view or no shape), and the largest camera depth of the parts' bounding spheres (mm)."""
@@ -230,18 +248,11 @@ def render(
         raise TypeError(f"chain: expected a gputrack.models.Chain, got {type(chain).__name__}")
     camera = camera or DEFAULT_CAMERA
     texture = texture or Texture()
-    width, height = (int(s) for s in size)
-    if width < 2 or height < 2:
-        raise ValueError(f"size: expected (width, height) of at least 2 x 2, got {size}")
+    width, height = image_size(size)
     if transforms is None:
         if params is None:
             raise ValueError("params: expected a (P,) parameter vector or transforms, got neither")
-        p = np.asarray(params, dtype=np.float64)
-        if p.shape != (chain.n_params,):
-            raise ValueError(f"params: expected shape ({chain.n_params},), got {p.shape}")
-        if not np.isfinite(p).all():
-            raise ValueError("params: expected finite values, got non-finite entries")
-        transforms = chain.transforms(p[None])[0]
+        transforms = pose_transforms(chain, params)
     transforms = np.asarray(transforms, dtype=np.float64)
     if transforms.shape != (chain.n_parts, 3, 4):
         raise ValueError(f"transforms: expected shape ({chain.n_parts}, 3, 4), got {transforms.shape}")

@@ -79,7 +79,7 @@ from ..backends.reference.model_template import STATS
 from ..device import Device, per_device_cache
 from ..models.camera import DEFAULT_CAMERA, DEFAULT_SIZE, Camera
 from ..models.chain import Chain
-from ..models.render import Texture, part_boxes
+from ..models.render import Texture, image_size, part_boxes, pose_transforms
 from ..uploads import constant
 from . import backend_module
 from ._args import check_device
@@ -286,15 +286,8 @@ def render_model(device, chain: Chain, params, camera: Camera | None = None, siz
         raise TypeError(f"texture: expected a gputrack.models.render.Texture, got {type(texture).__name__}")
     if isinstance(shading, bool) or not isinstance(shading, (int, float)) or not 0.0 <= shading <= 1.0:
         raise ValueError(f"shading: expected a number in [0, 1], got {shading!r}")
-    width, height = (int(s) for s in size)
-    if width < 2 or height < 2:
-        raise ValueError(f"size: expected (width, height) of at least 2 x 2, got {size}")
-    p = np.asarray(params, dtype=np.float64)
-    if p.shape != (chain.n_params,):
-        raise ValueError(f"params: expected shape ({chain.n_params},), got {p.shape}")
-    if not np.isfinite(p).all():
-        raise ValueError("params: expected finite values, got non-finite entries")
-    transforms = chain.transforms(p[None])[0]
+    width, height = image_size(size)
+    transforms = pose_transforms(chain, params)
     boxes, zmax = part_boxes(chain, transforms, camera, width, height)
     live = [b for b in boxes if b is not None]
     if not live:
