@@ -9,8 +9,8 @@ the ends). The tracker runs ``--frames`` frames with the paper's settings (PF 3 
 - lost frames: an arm part's axis more than ``--lost`` degrees (10) off the truth (Tables 5-6 measure);
 - episodes: runs of consecutive lost frames (count, longest, the worst error in any);
 - frames with a NaN pose or confidence 0;
-- the median frame time (ms) and the resident memory's growth per 1000 frames, between 20 % of the
-  run (after warm-up and the profiler's bounded history filled) and the end.
+- the median frame time (ms) and the resident memory's growth per 1000 frames, from frame
+  max(20 % of the run, min(1100, half of it)) (after warm-up and the profiler's 1000-frame history) to the end.
 
 ``--json FILE`` writes the figures (and the per-frame errors with ``--per-frame``).
 """
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     bad = 0
     ms = np.zeros(args.frames)
     rss = {}
-    mark = max(1, args.frames // 5)
+    mark = max(1, args.frames // 5, min(1100, args.frames // 2))  # after the profiler's 1000-frame history fills
     t_start = time.perf_counter()
     for k in range(args.frames):
         f = frames[order[(k + 1) % len(order)]]
