@@ -568,6 +568,29 @@ def _centroid_pixel(part: ti.template(), interior: ti.template(), j, every, pr0,
     return fr, fc
 
 
+@ti.func
+def _seed_fill(part: ti.template(), interior: ti.template(), used: ti.template(), taken: ti.template(),
+               out0: ti.template(), out1: ti.template(), local: ti.template(), values: ti.template(), k, j, H, offset,
+               T, m, every, pr0, pr1, pc0, pc1):  # fmt: skip
+    """The fill's seeds (step 7): the pool's rows and columns marked unused, then the first fill point
+    at the pool's centroid when no extremum was taken, then the rows and columns of the T points
+    taken marked used. Returns (T, m) after the centroid point."""
+    for y in range(pr0, pr1 + 1):
+        used[k, j, y] = 0
+    for x in range(pc0, pc1 + 1):
+        used[k, j, H + x] = 0
+    if T == 0:  # the first: nearest the pool's centroid
+        fr, fc = _centroid_pixel(part, interior, j, every, pr0, pr1, pc0, pc1)
+        taken[k, j, 0] = (fr << 16) | fc
+        _put(out0, out1, k, offset, local, values, fr, fc)
+        T = 1
+        m -= 1
+    for t in range(T):
+        used[k, j, taken[k, j, t] >> 16] = 1
+        used[k, j, H + (taken[k, j, t] & 0xFFFF)] = 1
+    return T, m
+
+
 @ti.kernel
 def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: nd2, bins: nd2, interior: nd2,
                  num: nd3, cnt: nd2, dist: nd3, used: nd3, taken: nd3, rows: nd3, out0: nd2, out1: nd2,
@@ -595,19 +618,8 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
             m = quota - T
             if m > 0:  # 7. the fill
                 every, pr0, pr1, pc0, pc1 = _pool_range(stats, j)
-                for y in range(pr0, pr1 + 1):
-                    used[k, j, y] = 0
-                for x in range(pc0, pc1 + 1):
-                    used[k, j, H + x] = 0
-                if T == 0:  # the first: nearest the pool's centroid
-                    fr, fc = _centroid_pixel(part, interior, j, every, pr0, pr1, pc0, pc1)
-                    taken[k, j, 0] = (fr << 16) | fc
-                    _put(out0, out1, k, offset, local, values, fr, fc)
-                    T = 1
-                    m -= 1
-                for t in range(T):
-                    used[k, j, taken[k, j, t] >> 16] = 1
-                    used[k, j, H + (taken[k, j, t] & 0xFFFF)] = 1
+                T, m = _seed_fill(part, interior, used, taken, out0, out1, local, values, k, j, H, offset, T, m, every,
+                                  pr0, pr1, pc0, pc1)  # fmt: skip
                 # the pool into the bin (pixel order), its distances to the points taken; per row its
                 # first entry, an upper bound of its distances and how many points they have seen
                 P = 0
@@ -723,19 +735,8 @@ def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: 
             m = quota - T
             if m > 0:
                 every, pr0, pr1, pc0, pc1 = _pool_range(stats, j)
-                for y in range(pr0, pr1 + 1):
-                    used[k, j, y] = 0
-                for x in range(pc0, pc1 + 1):
-                    used[k, j, H + x] = 0
-                if T == 0:
-                    fr, fc = _centroid_pixel(part, interior, j, every, pr0, pr1, pc0, pc1)
-                    taken[k, j, 0] = (fr << 16) | fc
-                    _put(out0, out1, k, offset, local, values, fr, fc)
-                    T = 1
-                    m -= 1
-                for t in range(T):
-                    used[k, j, taken[k, j, t] >> 16] = 1
-                    used[k, j, H + (taken[k, j, t] & 0xFFFF)] = 1
+                T, m = _seed_fill(part, interior, used, taken, out0, out1, local, values, k, j, H, offset, T, m, every,
+                                  pr0, pr1, pc0, pc1)  # fmt: skip
             state[k, j, ST_SLOT] = offset + T
             state[k, j, ST_LEFT] = m
             state[k, j, 5] = T
