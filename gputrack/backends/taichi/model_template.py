@@ -569,6 +569,16 @@ def _centroid_pixel(part: ti.template(), interior: ti.template(), j, every, pr0,
 
 
 @ti.func
+def _nearest_d2(taken: ti.template(), k, j, y, x, t0, t1, d):
+    """min(d, the squared distance from pixel (y, x) to points t0 .. t1 - 1 taken for kind k, part j)."""
+    for t in range(t0, t1):
+        tr = taken[k, j, t] >> 16
+        tc = taken[k, j, t] & 0xFFFF
+        d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+    return d
+
+
+@ti.func
 def _seed_fill(part: ti.template(), interior: ti.template(), used: ti.template(), taken: ti.template(),
                out0: ti.template(), out1: ti.template(), local: ti.template(), values: ti.template(), k, j, H, offset,
                T, m, every, pr0, pr1, pc0, pc1):  # fmt: skip
@@ -630,11 +640,7 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
                         if (part[y, x] == j) & (every | (interior[y, x] != 0)):
                             bins[k, start + P] = x
                             P += 1
-                            d = 1 << 30
-                            for t in range(T):
-                                tr = taken[k, j, t] >> 16
-                                tc = taken[k, j, t] & 0xFFFF
-                                d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+                            d = _nearest_d2(taken, k, j, y, x, 0, T, 1 << 30)
                             dist[k, y, x] = d
                             rmax = ti.max(rmax, d)
                     rows[k, j, H + 1 + y] = rmax
@@ -692,11 +698,7 @@ def _row_update(rows: ti.template(), bins: ti.template(), dist: ti.template(), t
         rmax = 0
         for e in range(rows[k, j, y], rows[k, j, y + 1]):
             x = bins[k, start + e]
-            d = dist[k, y, x]
-            for t in range(seen, T):
-                tr = taken[k, j, t] >> 16
-                tc = taken[k, j, t] & 0xFFFF
-                d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+            d = _nearest_d2(taken, k, j, y, x, seen, T, dist[k, y, x])
             dist[k, y, x] = d
             rmax = ti.max(rmax, d)
         rows[k, j, H + 1 + y] = rmax
@@ -749,11 +751,7 @@ def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: 
             if (stats[p, 1] == 0) | (interior[y, x] != 0):
                 for k in ti.static(range(2)):
                     if state[k, p, ST_LEFT] > 0:
-                        d = 1 << 30
-                        for t in range(state[k, p, 5]):
-                            tr = taken[k, p, t] >> 16
-                            tc = taken[k, p, t] & 0xFFFF
-                            d = ti.min(d, (y - tr) * (y - tr) + (x - tc) * (x - tc))
+                        d = _nearest_d2(taken, k, p, y, x, 0, state[k, p, 5], 1 << 30)
                         dist[k, y, x] = d
 
 
