@@ -5,13 +5,11 @@ reference: gputrack/backends/reference/model_template.py).
   the pixel is intersected (the shapes of :func:`gputrack.models.render.intersect`; the
   discriminants in the cross-product form a - (o x d)^2, which keeps the accuracy for a camera far
   from the part; a ray missing the infinite cylinder is rejected before any division), the nearest
-  hit wins (strict ``<``: ties to the lower part). It computes in :func:`render_dtype`: float64 on
-  the CPU and CUDA archs (the inputs in float64 as the reference computes them, libm's / libdevice's
-  double sine: on taichi:cpu the render and the templates equal the reference's), float32 on
-  Vulkan (Taichi's SPIR-V has no double sine; the texture's sines then a polynomial, :func:`_sin`,
+  hit wins (strict ``<``: ties to the lower part). It computes in :func:`render_dtype`: float64
+  where the device has it (the op's float64 inputs; the texture's double sines by
+  :func:`gputrack.backends.taichi.trig.sincos64`, within ~2e-14 of NumPy's: the render and the
+  templates equal the reference's, tested), else float32 (the sines a polynomial, :func:`_sin`,
   ~1e-7 off plus the argument's own float32 rounding); the outputs round to float32 at the store.
-  The double sines are most of the render's time on the CPU (~29 ns each against ~9 ns for a
-  double polynomial, which would not be bit-equal to NumPy's).
 * :func:`classify` (steps 2-4), one launch of four top-level loops (Taichi's barrier between
   them): the statistics zeroed (serial); a thread per crop pixel: interior flag, q = floor(v s)
   as an int64 (the float32 product, an integer below 2**40; 64-bit integers from here on: the
@@ -210,10 +208,9 @@ def _normal(table: ti.template(), j, p, which, real: ti.template()):
 
 @ti.kernel
 def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: nd3, r0: ti.i32, r1: ti.i32,
-            c0: ti.i32, c1: ti.i32, real: ti.template(), sine64: ti.template()):  # fmt: skip
+            c0: ti.i32, c1: ti.i32, real: ti.template()):  # fmt: skip
     """Step 1 over the crop in ``real`` (table, waves and consts of that type; float literals that
-    are not exact in float32 written real(x): Taichi's literals take the default float32 type);
-    ``sine64``: the double sines are Taichi's own (else :func:`sincos64`)."""
+    are not exact in float32 written real(x): Taichi's literals take the default float32 type)."""
     J = table.shape[0]
     fx = consts[0]
     fy = consts[1]
@@ -250,9 +247,7 @@ def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: 
             s = real(0.0)
             for q in range(waves.shape[1]):
                 arg = waves[best, q, 0] * x[0] + waves[best, q, 1] * x[1] + waves[best, q, 2] * x[2] + waves[best, q, 3]
-                if ti.static(real == ti.f64 and sine64):
-                    s += ti.sin(arg)
-                elif ti.static(real == ti.f64):
+                if ti.static(real == ti.f64):
                     s += sincos64(arg)[0]
                 else:
                     s += _sin(arg)
@@ -268,15 +263,12 @@ def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: 
 
 def render_dtype(device):
     """The type the render computes in: np.float64 where the device has it (the reference's float64,
-    so the templates are the reference's), else np.float32. The texture's double sines are Taichi's
-    (the C library's) on the CPU and CUDA archs; on Vulkan, whose SPIR-V has no double sine
-    ("Instruction Sin does not 64bits operation"), :func:`gputrack.backends.taichi.trig.sincos64`
-    (within ~2e-14 of it for the texture's arguments, far below the float32 rounding of the gray value)."""
+    so the templates are the reference's), else np.float32. The texture's double sines are
+    :func:`gputrack.backends.taichi.trig.sincos64` on every arch (SPIR-V has no double sine,
+    "Instruction Sin does not 64bits operation"; on the CPU it is inlined where the C library's is a
+    call: render 11.6 -> 9.7 ms for the body at rest, measured): within ~2e-14 of NumPy's for the
+    texture's arguments, far below the float32 rounding of the gray value."""
     return np.float64 if device.fp64 else np.float32
-
-
-def _libm_sine(device) -> bool:
-    return device.arch in ("cpu", "cuda")
 
 
 def render(device, chain, transforms, texture, table, waves, consts, crop, part, values, local):
@@ -297,8 +289,7 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
         tab.from_numpy(table)
         wv = constant(device, waves).buffer
         cs = constant(device, consts).buffer
-    launch(_render, (tab, wv, cs, part.buffer, values.buffer, local.buffer), (real, _libm_sine(device)),
-           scalars=(r0, r1, c0, c1))  # fmt: skip
+    launch(_render, (tab, wv, cs, part.buffer, values.buffer, local.buffer), (real,), scalars=(r0, r1, c0, c1))
 
 
 # -- steps 2-5: classify ----------------------------------------------------------------------------
