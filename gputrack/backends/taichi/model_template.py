@@ -560,6 +560,18 @@ def _centroid_pixel(part: ti.template(), interior: ti.template(), j, every, pr0,
 
 
 @ti.func
+def _pool_part(part: ti.template(), stats: ti.template(), interior: ti.template(), y, x):
+    """The part whose pool holds pixel (y, x) (its interior pixels, or all its pixels for a part with
+    no interior pixel: step 4), else -1."""
+    p = part[y, x]
+    q = -1
+    if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
+        if (stats[p, 1] == 0) | (interior[y, x] != 0):
+            q = p
+    return q
+
+
+@ti.func
 def _nearest_d2(taken: ti.template(), k, j, y, x, t0, t1, d):
     """min(d, the squared distance from pixel (y, x) to points t0 .. t1 - 1 taken for kind k, part j)."""
     for t in range(t0, t1):
@@ -737,13 +749,12 @@ def _emit_prep(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv: 
     for i in range((r1 - r0) * w):
         y = r0 + i // w
         x = c0 + i % w
-        p = part[y, x]
-        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (interior[y, x] != 0):
-                for k in ti.static(range(2)):
-                    if state[k, p, ST_LEFT] > 0:
-                        d = _nearest_d2(taken, k, p, y, x, 0, state[k, p, 5], 1 << 30)
-                        dist[k, y, x] = d
+        p = _pool_part(part, stats, interior, y, x)
+        if p >= 0:
+            for k in ti.static(range(2)):
+                if state[k, p, ST_LEFT] > 0:
+                    d = _nearest_d2(taken, k, p, y, x, 0, state[k, p, 5], 1 << 30)
+                    dist[k, y, x] = d
 
 
 @ti.func
@@ -769,31 +780,29 @@ def _emit_step(part: nd2, values: nd3, local: nd3, stats: nd2, interior: nd2, di
     for i in range(n):
         y = r0 + i // w
         x = c0 + i % w
-        p = part[y, x]
-        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (interior[y, x] != 0):
-                for k in ti.static(range(2)):
-                    if state[k, p, ST_LEFT] > 0:
-                        d = dist[k, y, x]
-                        if first == 0:
-                            last = state[k, p, ST_LAST]
-                            ly = last // W
-                            lx = last - ly * W
-                            d = ti.min(d, (y - ly) * (y - ly) + (x - lx) * (x - lx))
-                            dist[k, y, x] = d
-                        key = _fill_key(used, H, k, p, y, x, d)
-                        if key > state[k, p, ST_KEY]:  # few atomics: the pool's pixels share one word
-                            ti.atomic_max(state[k, p, ST_KEY], key)
+        p = _pool_part(part, stats, interior, y, x)
+        if p >= 0:
+            for k in ti.static(range(2)):
+                if state[k, p, ST_LEFT] > 0:
+                    d = dist[k, y, x]
+                    if first == 0:
+                        last = state[k, p, ST_LAST]
+                        ly = last // W
+                        lx = last - ly * W
+                        d = ti.min(d, (y - ly) * (y - ly) + (x - lx) * (x - lx))
+                        dist[k, y, x] = d
+                    key = _fill_key(used, H, k, p, y, x, d)
+                    if key > state[k, p, ST_KEY]:  # few atomics: the pool's pixels share one word
+                        ti.atomic_max(state[k, p, ST_KEY], key)
     for i in range(n):
         y = r0 + i // w
         x = c0 + i % w
-        p = part[y, x]
-        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (interior[y, x] != 0):
-                for k in ti.static(range(2)):
-                    if state[k, p, ST_LEFT] > 0:  # noqa: SIM102 - the inner test reads dist where this part has a fill
-                        if _fill_key(used, H, k, p, y, x, dist[k, y, x]) == state[k, p, ST_KEY]:
-                            ti.atomic_min(state[k, p, ST_IDX], y * W + x)
+        p = _pool_part(part, stats, interior, y, x)
+        if p >= 0:
+            for k in ti.static(range(2)):
+                if state[k, p, ST_LEFT] > 0:  # noqa: SIM102 - the inner test reads dist where this part has a fill
+                    if _fill_key(used, H, k, p, y, x, dist[k, y, x]) == state[k, p, ST_KEY]:
+                        ti.atomic_min(state[k, p, ST_IDX], y * W + x)
     ti.loop_config(serialize=True)
     for g in range(2 * J):
         k = g // J
