@@ -143,5 +143,7 @@ def test_bad_input():
                       ({"n_depth": 2.5}, "n_depth: expected an integer")):  # fmt: skip
         with pytest.raises((ValueError, TypeError), match=match):
             select_template(REF, images, **kw)
+    with pytest.raises(ValueError, match="n_parts: expected more than the largest part id 4, got 3"):
+        model_images(REF, images.part, images.values, images.local, 3)
     with pytest.raises(ValueError, match="expected pixels of the model"):
         model_images(REF, np.full((4, 4), -1), np.zeros((2, 4, 4)), np.zeros((4, 4, 3)))

@@ -371,12 +371,16 @@ def model_images(device, part, values, local, n_parts: int | None = None) -> Mod
     if not (np.isfinite(values[:, ys, xs]).all() and np.isfinite(local[ys, xs]).all()):
         raise ValueError("values, local: expected finite values at the model's pixels")
     J = int(part.max()) + 1 if n_parts is None else int(n_parts)
+    if J <= int(part.max()):
+        raise ValueError(f"n_parts: expected more than the largest part id {int(part.max())}, got {J}")
     crop = (int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1)
     vmax = np.abs(values[:, ys, xs]).max(axis=1)
     s = _scratch(device, *part.shape, J)
-    device.asarray(part, out=s.part) if device.backend != "numpy" else np.copyto(s.part, part)
-    device.asarray(values, out=s.values) if device.backend != "numpy" else np.copyto(s.values, values)
-    device.asarray(local, out=s.local) if device.backend != "numpy" else np.copyto(s.local, local)
+    for dst, src in ((s.part, part), (s.values, values), (s.local, local)):
+        if device.backend == "numpy":
+            np.copyto(dst, src)
+        else:
+            device.asarray(src, out=dst)
     return ModelImages(device, s.part, s.values, s.local, crop, vmax, J)
 
 
