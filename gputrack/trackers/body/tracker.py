@@ -160,15 +160,14 @@ class BodyTracker:
                                       points_dtype=np.float32, early_stop=False) if cfg.lm_iterations else None  # fmt: skip
         self._sparsity = None
         self._residual_out = {}  # pose_residuals' output arrays by shape, reused as out=
-        self.scheduler = Scheduler(device, self._stages(self._sigmas), inputs=("gray", "depth", "start"),
-                                   outputs=("estimate", "cost"), profile=profile)  # fmt: skip
+        self._profile = profile
+        self.scheduler = self._scheduler(self._sigmas)
         # the recovery pass (see BodyTrackerConfig.recover_ratio): the same stages, wider sigmas,
         # the frame's template kept; made at the first frame that needs it
         self._recovery = None
-        self._profile = profile
         self._costs = collections.deque(maxlen=cfg.recover_window)
-        self.recoveries = 0  # frames tracked again, and kept (lower cost) ...
-        self.recovered = 0
+        self.recoveries = 0  # frames tracked again by the recovery pass
+        self.recovered = 0  # ... of which the pass's lower cost was kept
 
     # -- helpers ---------------------------------------------------------------------------------
     def _groups(self) -> list[np.ndarray]:
@@ -247,6 +246,11 @@ class BodyTracker:
         return residuals
 
     # -- the frame's stages (run by self.scheduler) -----------------------------------------------
+    def _scheduler(self, sigmas) -> Scheduler:
+        """The frame's stages with these per-stage sigmas, run by a Scheduler."""
+        return Scheduler(self.device, self._stages(sigmas), inputs=("gray", "depth", "start"),
+                         outputs=("estimate", "cost"), profile=self._profile)  # fmt: skip
+
     def _stages(self, sigmas) -> list[Stage]:
         cfg, images = self.config, ("gray", "depth", "rgb", "dep")
         stages = [Stage("template", self._template_stage, writes=("rgb", "dep"))]
@@ -351,8 +355,7 @@ class BodyTracker:
         cfg = self.config
         if self._recovery is None:
             wide = [[g * np.float32(cfg.recover_sigma) for g in stage] for stage in self._sigmas]
-            self._recovery = Scheduler(self.device, self._stages(wide), inputs=("gray", "depth", "start"),
-                                       outputs=("estimate", "cost"), profile=self._profile)  # fmt: skip
+            self._recovery = self._scheduler(wide)
         self.recoveries += 1
         self._given_templates = self._templates
         try:
