@@ -23,6 +23,7 @@ import numpy as np
 
 from ...device import per_device, per_device_cache
 from ...uploads import constant
+from .depth_points import enqueue_upload
 
 __all__ = ["classify", "emit", "render", "render_dtype"]
 
@@ -65,23 +66,19 @@ def _kernel(device, name):
     return found
 
 
-#: per device: the part table's buffer (grown as needed) and the event of its last copy, which
-#: keeps that call's host table alive until the copy has run (dropped at the next call)
+#: per device: the part table's array (made again when its shape or type changes) and the event of
+#: its last copy, which keeps that call's host table alive until the copy has run
 _TABLE = per_device_cache()
 
 
 def _upload_table(device, table: np.ndarray):
-    import pyopencl as cl
-
+    """``table`` into the device's kept part-table array, enqueued without a wait; its buffer."""
     host = np.ascontiguousarray(table)
     kept = _TABLE.get(device)
-    if kept is None or kept["nbytes"] < host.nbytes:
-        device.check_alloc((max(host.size, 1),), host.dtype)
-        kept = _TABLE[device] = {"buffer": cl.Buffer(device.context, cl.mem_flags.READ_ONLY, max(host.nbytes, 4)),
-                                 "nbytes": max(host.nbytes, 4), "event": None}  # fmt: skip
-    device.transfers.h2d += host.nbytes
-    kept["event"] = cl.enqueue_copy(device.queue, kept["buffer"], host, is_blocking=False)
-    return kept["buffer"]
+    if kept is None or kept["array"].shape != host.shape or kept["array"].dtype != host.dtype:
+        kept = _TABLE[device] = {"array": device.empty(host.shape, host.dtype), "event": None}
+    kept["event"] = enqueue_upload(device, kept["array"], host)
+    return kept["array"].buffer.data
 
 
 def _lim(s2) -> int:
