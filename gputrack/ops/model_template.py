@@ -65,7 +65,9 @@ On the devices the steps run as one render launch (a thread per pixel), one clas
 (steps 2-4: a thread per pixel; per-part counts by atomics; the candidates binned per part), then,
 after the host's quota plan, one launch of a thread per kind and part for steps 6-7: they are
 sequential by nature (each pick depends on the ones before), and a part's loops touch only its
-own candidates and pool (a few thousand pixels).
+own candidates and pool (a few thousand pixels). Where a thread's loops are bounded (Taichi on
+Vulkan: lavapipe runs at most 65535 passes per invocation) the fill instead takes one launch per
+fill point, a thread per pixel (gputrack/backends/taichi/model_template.py).
 """
 
 from __future__ import annotations
