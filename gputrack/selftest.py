@@ -54,13 +54,14 @@ def check_kinematics(device: Device) -> None:
 def check_template(device: Device) -> None:
     """rgbd_cost and patch_ncc of a tiny scene."""
     from .ops.ncc import patch_ncc
-    from .ops.template import rgbd_cost
+    from .ops.template import RgbdScene, rgbd_cost
 
     rng = np.random.default_rng(3)
     tf, rgb, dep, gray, depth, cam = problems.template_scene(rng)
+    scene = RgbdScene(rgb, dep, cam, c_depth=0.05)
     ref = get_device("numpy")
-    want = rgbd_cost(ref, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
-    got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+    want = rgbd_cost(ref, tf, scene, gray, depth)
+    got = rgbd_cost(device, tf, scene, gray, depth)
     for field in ("total", "rgb", "depth"):
         err = float(np.max(np.abs(to_numpy(getattr(got, field)) - getattr(want, field))))
         assert err <= 1e-3, f"rgbd_cost.{field} differs from the reference by {err:g}"
@@ -245,12 +246,12 @@ def check_clusters(device: Device) -> None:
 
 
 def _body_scene(rng, n=48, m=40, h=120, w=160):
-    """(chain, params (1, 14) float32, rgb and depth templates, gray, depth, camera): the upper
-    body of simulated sequence 0 at frame 0 before a small camera, template points scattered
-    around its parts' origins, and a smooth gray frame with a depth frame 2 m away (a few
-    missing readings), so that every hypothesis reads pixels of its own."""
+    """(chain, params (1, 14) float32, scene, gray, depth): the upper body of simulated sequence 0
+    at frame 0 before a small camera, an :class:`~gputrack.ops.template.RgbdScene` of template
+    points scattered around its parts' origins, and a smooth gray frame with a depth frame 2 m
+    away (a few missing readings), so that every hypothesis reads pixels of its own."""
     from .models import Camera, upper_body
-    from .ops.template import SparseTemplate
+    from .ops.template import RgbdScene, SparseTemplate
     from .sim.body import sequence_params
 
     chain = upper_body()
@@ -262,7 +263,7 @@ def _body_scene(rng, n=48, m=40, h=120, w=160):
     gray = (110 + 60 * np.sin(xx / 3.0) * np.cos(yy / 4.0) + rng.normal(0, 3, (h, w))).astype(np.float32)
     depth = (2000 + 40 * np.sin(xx / 5.0) + rng.normal(0, 2, (h, w))).astype(np.float32)
     depth[rng.random((h, w)) < 0.02] = 0
-    return chain, params, rgb, dep, gray, depth, cam
+    return chain, params, RgbdScene(rgb, dep, cam), gray, depth
 
 
 def check_particles(device: Device) -> None:
@@ -298,12 +299,12 @@ def check_pf_stage(device: Device) -> None:
     from .ops.pf import pf_stage
 
     rng = np.random.default_rng(8)
-    chain, params, rgb, dep, gray, depth, cam = _body_scene(rng)
+    chain, params, scene, gray, depth = _body_scene(rng)
     cand = (params + rng.normal(0, 0.01, (4, chain.n_params))).astype(np.float32)
     sigma = pf_sigma(chain).astype(np.float32)
     ref = get_device("numpy")
-    want = pf_stage(ref, chain, cand, sigma, 64, 99, rgb, dep, gray, depth, cam, k=5)
-    got = pf_stage(device, chain, cand, sigma, 64, 99, rgb, dep, gray, depth, cam, k=5)
+    want = pf_stage(ref, chain, cand, sigma, 64, 99, scene, gray, depth, k=5)
+    got = pf_stage(device, chain, cand, sigma, 64, 99, scene, gray, depth, k=5)
     assert np.array_equal(to_numpy(got.indices), want.indices), (
         f"pf_stage keeps samples {to_numpy(got.indices)}, the reference {want.indices}"
     )
@@ -318,22 +319,22 @@ def check_pose_residuals(device: Device) -> None:
     from .ops.pose_residuals import pose_residuals
 
     rng = np.random.default_rng(9)
-    chain, params, rgb, dep, gray, depth, cam = _body_scene(rng)
+    chain, params, scene, gray, depth = _body_scene(rng)
     P = chain.n_params
     poses = (params + rng.normal(0, 0.02, (3, P))).astype(np.float32)
     ref = get_device("numpy")
-    want = pose_residuals(ref, chain, poses, rgb, dep, gray, depth, cam)
-    got = to_numpy(pose_residuals(device, chain, poses, rgb, dep, gray, depth, cam))
+    want = pose_residuals(ref, chain, poses, scene, gray, depth)
+    got = to_numpy(pose_residuals(device, chain, poses, scene, gray, depth))
     err = float(np.max(np.abs(got - want)))
     assert err <= 1e-4, f"pose_residuals differs from the reference by {err:.3g}"
     h = np.float32(1e-3)
     stack = np.repeat(poses[:1], 2 * P + 1, axis=0)
     stack[1 : P + 1] += h * np.eye(P, dtype=np.float32)
     stack[P + 1 :] -= h * np.eye(P, dtype=np.float32)
-    want = pose_residuals(ref, chain, stack, rgb, dep, gray, depth, cam)
-    got = to_numpy(pose_residuals(device, chain, stack, rgb, dep, gray, depth, cam, central=True))
+    want = pose_residuals(ref, chain, stack, scene, gray, depth)
+    got = to_numpy(pose_residuals(device, chain, stack, scene, gray, depth, central=True))
     read = np.vstack([np.ones((1, want.shape[1]), bool), np.tile(chain.jacobian_sparsity(
-        np.concatenate([rgb.part, dep.part])).T, (2, 1))])  # fmt: skip
+        np.concatenate([scene.rgb.part, scene.depth.part])).T, (2, 1))])  # fmt: skip
     err = float(np.max(np.abs(got - want)[read]))
     assert err <= 1e-4, f"pose_residuals (central differences) differs from the reference by {err:.3g}"
 

@@ -75,18 +75,20 @@ def _rgbd_problem(op):
         """One ``op`` call on a particle-filter-like scene of ``size`` (:func:`~gputrack.sim.problems.pf_scene`),
         launched with ``params``."""
         from .ops import backend_module
+        from .ops.template import RgbdScene
         from .sim.problems import pf_scene
 
         rng = np.random.default_rng(0)
         tf, rgb, dep, gray, depth, cam = pf_scene(rng, size["B"], size["N"], size["N"])
         tf_d, g, d = device.asarray(tf), device.asarray(gray), device.asarray(depth)
-        r, dd, c = rgb.on(device), dep.on(device), cam.as_array()
-        p = {"lam": 0.9, "c_rgb": 0.5 / rgb.n, "c_depth": 5.0, "depth_tol": 0.0, "params": dict(params)}
+        scene = RgbdScene(rgb, dep, cam)  # the ops' defaults: lam 0.9, c_rgb 0.5/N, c_depth 5, depth_tol 0
+        r, dd, c, consts = scene.kernel_args(device)
+        p = {**consts, "params": dict(params)}
         mod = backend_module(device, "template")
         if op == "rgbd_cost":
             outs = tuple(device.empty((size["B"],), np.float32) for _ in range(3))
             return lambda: mod.rgbd_cost(device, tf_d, r, dd, g, d, c, *outs, **p)
-        res = device.empty((size["B"], rgb.n + dep.n), np.float32)
+        res = device.empty((size["B"], scene.n), np.float32)
         return lambda: mod.rgbd_residuals(device, tf_d, r, dd, g, d, c, res, **p)
 
     return problem

@@ -77,28 +77,27 @@ def _k_cases(device, args, ref, rng):
     """rgbd_cost of K hypotheses around 10 candidates, N = N' = 128 (its own scope: the lambdas
     below must not see the N sweep's templates)."""
     from gputrack.benchmarks.harness import Case
-    from gputrack.ops.template import rgbd_cost
+    from gputrack.ops.template import RgbdScene, rgbd_cost
     from gputrack.sim.problems import pf_scene
 
     tf0, rgb, dep, gray, depth, cam = pf_scene(rng, 1500, 128, 128)
     d_gray, d_depth = device.asarray(gray), device.asarray(depth)
-    rgb.to(device)
-    dep.to(device)
+    scene = RgbdScene(rgb, dep, cam).to(device)  # once per template, as a tracker does
     out = []
     for k in args.k or K_VALUES:
         tf = _scaled(tf0, k, rng)
         d_tf = device.asarray(tf)
-        keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+        keep = rgbd_cost(device, d_tf, scene, d_gray, d_depth)
 
         def e2e(tf=tf):
-            return device.to_numpy(rgbd_cost(device, tf, rgb, dep, d_gray, d_depth, cam).total)
+            return device.to_numpy(rgbd_cost(device, tf, scene, d_gray, d_depth).total)
 
         out.append(
             Case(
                 f"K: rgbd_cost K={k} N=N'=128",
-                run=lambda d_tf=d_tf, keep=keep: rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep),
+                run=lambda d_tf=d_tf, keep=keep: rgbd_cost(device, d_tf, scene, d_gray, d_depth, out=keep),
                 end_to_end=e2e,
-                reference=(lambda tf=tf: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam))
+                reference=(lambda tf=tf: rgbd_cost(ref, tf, scene, gray, depth))
                 if k <= args.reference_max_k
                 else None,
                 params={"sweep": "K", "x": k, "K": k, "N": 128, "N'": 128, "J": 5, "H": 480, "W": 640},
@@ -112,7 +111,7 @@ def cases(device, args):
     import gputrack
     from gputrack.benchmarks.harness import Case
     from gputrack.ops.kalman import kf_update, shared_matrix
-    from gputrack.ops.template import rgbd_cost
+    from gputrack.ops.template import RgbdScene, rgbd_cost
     from gputrack.sim.problems import kalman_tracks, pf_scene
 
     ref = gputrack.device("numpy")
@@ -125,17 +124,16 @@ def cases(device, args):
         for n in args.n or N_VALUES:
             tf, rgb, dep, gray, depth, cam = pf_scene(np.random.default_rng(n), 1500, n, n)
             d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
-            rgb.to(device)
-            dep.to(device)
-            keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+            scene = RgbdScene(rgb, dep, cam).to(device)  # once per template, as a tracker does
+            keep = rgbd_cost(device, d_tf, scene, d_gray, d_depth)
             out.append(
                 Case(
                     f"N: rgbd_cost K=1500 N=N'={n}",
-                    run=lambda d_tf=d_tf, keep=keep, rgb=rgb, dep=dep, g=d_gray, d=d_depth, cam=cam: rgbd_cost(
-                        device, d_tf, rgb, dep, g, d, cam, out=keep
+                    run=lambda d_tf=d_tf, keep=keep, scene=scene, g=d_gray, d=d_depth: rgbd_cost(
+                        device, d_tf, scene, g, d, out=keep
                     ),
-                    reference=lambda tf=tf, rgb=rgb, dep=dep, gray=gray, depth=depth, cam=cam: rgbd_cost(
-                        ref, tf, rgb, dep, gray, depth, cam
+                    reference=lambda tf=tf, scene=scene, gray=gray, depth=depth: rgbd_cost(
+                        ref, tf, scene, gray, depth
                     ),
                     params={"sweep": "N", "x": n, "K": 1500, "N": n, "N'": n, "J": 5, "H": 480, "W": 640},
                 )

@@ -65,6 +65,7 @@ def risky_cases(device):
     k = problems.kalman_mixed(rng, T=5, detections=3)
     big = lambda shape, dtype=f32: np.broadcast_to(np.zeros((1,) * len(shape), dtype), shape)  # noqa: E731
     tf, rgb, dep, gray, depth, cam = problems.template_scene(rng, b=3, j=2, n=5, m=4, h=12, w=14)
+    scene = ops.RgbdScene(rgb, dep, cam)
     cand = np.tile(chain.rest_params().astype(f32), (2, 1))
     sigma = np.full(P, 0.01, f32)
     cases = [
@@ -83,7 +84,7 @@ def risky_cases(device):
         ("forward_kinematics of 2**31 broadcast poses", lambda: ops.forward_kinematics(device, chain, big((2**31, P)))),
         ("SparseTemplate part 2e9", lambda: SparseTemplate(np.zeros((1, 3)), np.array([2_000_000_000]))),
         ("rgbd_cost of 2**31 broadcast hypotheses",
-         lambda: ops.rgbd_cost(device, big((2**31, 2, 3, 4)), rgb, dep, gray, depth, cam)),
+         lambda: ops.rgbd_cost(device, big((2**31, 2, 3, 4)), scene, gray, depth)),
         ("patch_ncc of 2**40 broadcast points",
          lambda: ops.patch_ncc(device, big((2**20, 2**20, 2)), big((2**20, 3, 3)), gray)),
         ("gate_pairs max_pairs 2**40",

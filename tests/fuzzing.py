@@ -280,8 +280,10 @@ def op_cases(seed: int = 0) -> list[Case]:
     for name, fn in (("rgbd_cost", ops.rgbd_cost), ("rgbd_residuals", ops.rgbd_residuals)):
         cases.append(Case(
             name,
+            # the scene is made in the call: its templates' and constants' mutations reach RgbdScene's checks
             lambda d, transforms, gray, depth_image, rgb, depth, lam, c_depth, depth_tol, fn=fn: fn(
-                d, transforms, rgb, depth, gray, depth_image, cam, lam=lam, c_depth=c_depth, depth_tol=depth_tol),
+                d, transforms, ops.RgbdScene(rgb, depth, cam, lam=lam, c_depth=c_depth, depth_tol=depth_tol), gray,
+                depth_image),
             {"transforms": tf, "gray": gray, "depth_image": depth, "rgb": rgb, "depth": dep, "lam": 0.9,
              "c_depth": 0.05, "depth_tol": 0.0},
             ("transforms", "gray", "depth_image"),
@@ -314,22 +316,22 @@ def op_cases(seed: int = 0) -> list[Case]:
     body = _body_scene()
     if body is not None:
         bchain, frame, brgb, bdep, bcam, bcand, bsigma = body
+        bscene = ops.RgbdScene(brgb, bdep, bcam)
         cases.append(Case(
             "pf_stage",
-            lambda d, candidates, sigma, gray, depth_image, n, seed, k: ops.pf_stage(
-                d, bchain, candidates, sigma, n, seed, brgb, bdep, gray, depth_image, bcam, k=k),
+            lambda d, candidates, sigma, gray, depth_image, n, seed, k, scene: ops.pf_stage(
+                d, bchain, candidates, sigma, n, seed, scene, gray, depth_image, k=k),
             {"candidates": bcand, "sigma": bsigma, "gray": frame.gray, "depth_image": frame.depth, "n": 40, "seed": 3,
-             "k": 4},
-            ("candidates", "sigma", "gray", "depth_image"), {"n": [3, 2**40], "k": [41]}, scale=50.0,
+             "k": 4, "scene": bscene},
+            ("candidates", "sigma", "gray", "depth_image"), {"n": [3, 2**40], "k": [41], "scene": [brgb]}, scale=50.0,
             nan_ok=("depth_image",),
         ))  # fmt: skip
         bparams = (bcand[:3] + 0.001).astype(np.float32)
         cases.append(Case(
             "pose_residuals",
-            lambda d, params, gray, depth_image: ops.pose_residuals(d, bchain, params, brgb, bdep, gray, depth_image,
-                                                                    bcam),
-            {"params": bparams, "gray": frame.gray, "depth_image": frame.depth},
-            ("params", "gray", "depth_image"), nan_ok=("depth_image",),
+            lambda d, params, gray, depth_image, scene: ops.pose_residuals(d, bchain, params, scene, gray, depth_image),
+            {"params": bparams, "gray": frame.gray, "depth_image": frame.depth, "scene": bscene},
+            ("params", "gray", "depth_image"), {"scene": [brgb]}, nan_ok=("depth_image",),
         ))  # fmt: skip
 
     k = _kalman(rng)

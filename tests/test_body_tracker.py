@@ -111,6 +111,30 @@ def test_a_cost_jump_is_tracked_again_with_wider_sigmas(device, arm_cross):
     assert (rec.cost < plain.cost) == (kept == 1)
 
 
+def test_the_start_moves_the_better_half_by_the_last_motion(arm_cross):
+    """predict (the default): a frame starts from the C candidates, the better half of them also moved
+    by the last frame's change of the estimate (constant velocity); predict=False starts where the
+    last frame ended (the paper). A host rule: one device shows it."""
+    seq, frames = arm_cross
+    device = gputrack.device("numpy")
+    for predict in (False, True):
+        cfg = BodyTrackerConfig(lm_iterations=0, samples=200, predict=predict)
+        tracker = BodyTracker(device, seq.params[0], config=cfg)
+        np.testing.assert_array_equal(tracker._start(), tracker.candidates.astype(np.float32))  # no motion yet
+        before = tracker.params.copy()
+        tracker.track(frames[1].gray, frames[1].depth)
+        motion, cand = tracker.params - before, tracker.candidates
+        assert np.abs(motion).max() > 0
+        start = tracker._start()
+        C, h = cfg.candidates, cfg.candidates // 2
+        assert start.shape == (C, seq.chain.n_params) and start.dtype == np.float32
+        np.testing.assert_array_equal(start[: C - h], cand[: C - h].astype(np.float32))
+        moved = cand[:h] + motion if predict else cand[C - h :]
+        np.testing.assert_array_equal(start[C - h :], moved.astype(np.float32))
+        tracker.track(np.full_like(frames[2].gray, 0.5), np.zeros_like(frames[2].depth))  # kept: no motion
+        np.testing.assert_array_equal(tracker._start(), tracker.candidates.astype(np.float32))
+
+
 SHOULDER_TRIALS = 3
 SHOULDER_STEP = 2  # every other frame of the 30 fps sequence (15 fps, for time): 39 frames to the arms lowered
 

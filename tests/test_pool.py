@@ -152,15 +152,16 @@ def test_rgbd_cost_with_fresh_outputs_equals_out(device):
     from gputrack.sim.problems import pf_scene
 
     tf, rgb, dep, gray, depth, cam = pf_scene(np.random.default_rng(2), 129)
+    scene = gputrack.RgbdScene(rgb, dep, cam)
     d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
     fields = ("total", "rgb", "depth")
-    keep = gputrack.rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+    keep = gputrack.rgbd_cost(device, d_tf, scene, d_gray, d_depth)
     want = [gputrack.to_numpy(getattr(keep, f)) for f in fields]
     for _ in range(3):  # fresh outputs, reusing the buffers the previous call freed
-        got = gputrack.rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+        got = gputrack.rgbd_cost(device, d_tf, scene, d_gray, d_depth)
         for f, w in zip(fields, want):
             np.testing.assert_array_equal(gputrack.to_numpy(getattr(got, f)), w)
-    again = gputrack.rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep)
+    again = gputrack.rgbd_cost(device, d_tf, scene, d_gray, d_depth, out=keep)
     for f, w in zip(fields, want):
         np.testing.assert_array_equal(gputrack.to_numpy(getattr(again, f)), w)
 

@@ -13,7 +13,7 @@ from tolerances import assert_close
 import gputrack
 from gputrack.ops.kinematics import forward_kinematics
 from gputrack.ops.pose_residuals import _plan, pose_residuals
-from gputrack.ops.template import rgbd_residuals
+from gputrack.ops.template import RgbdScene, rgbd_residuals
 from gputrack.sim import sequence
 from gputrack.models.camera import DEFAULT_CAMERA as CAM
 from gputrack.trackers.body.template import sparse_template
@@ -26,7 +26,7 @@ SENTINEL = 1e9  # entries a central call may leave as they were
 def scene(request):
     seq = sequence("arm_cross", frames=2, seed=0, shoulders=request.param)
     rgb, dep = sparse_template(seq.chain, seq.params[0], 64, 48)
-    return seq.chain, seq[1], rgb, dep
+    return seq.chain, seq[1], RgbdScene(rgb, dep, CAM)
 
 
 def _stack(chain, problems, seed=0):
@@ -43,47 +43,45 @@ def _stack(chain, problems, seed=0):
     return X.astype(np.float32)
 
 
-def _needed(chain, rgb, dep, problems):
+def _needed(chain, sc, problems):
     """(rows, M) bool: the entries a central call must compute (Fig. 2 and the problems' points)."""
-    mask = chain.jacobian_sparsity(np.concatenate([rgb.part, dep.part]))  # (M, P)
+    mask = chain.jacobian_sparsity(np.concatenate([sc.rgb.part, sc.depth.part]))  # (M, P)
     block = np.ones((2 * chain.n_params + 1, mask.shape[0]), bool)
     block[1::2] = mask.T
     block[2::2] = mask.T
     return np.tile(block, (problems, 1))
 
 
-def _composed(device, chain, X, frame, rgb, dep, **kw):
+def _composed(device, chain, X, frame, sc):
     tf = forward_kinematics(device, chain, X)
-    return gputrack.to_numpy(rgbd_residuals(device, tf, rgb, dep, frame.gray, frame.depth, CAM, **kw))
+    return gputrack.to_numpy(rgbd_residuals(device, tf, sc, frame.gray, frame.depth))
 
 
 def test_plain_call_equals_composition_and_reference(device, scene):
-    chain, frame, rgb, dep = scene
+    chain, frame, sc = scene
     X = _stack(chain, 3)[:50]
-    cam = CAM
-    got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam))
-    assert got.shape == (50, rgb.n + dep.n) and got.dtype == np.float32
-    assert_close(device, got, _composed(device, chain, X, frame, rgb, dep), atol=1e-6)
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, sc, frame.gray, frame.depth))
+    assert got.shape == (50, sc.n) and got.dtype == np.float32
+    assert_close(device, got, _composed(device, chain, X, frame, sc), atol=1e-6)
     # the reference at the device's poses, per row as the cost the LM sees (sum r^2, eq. 19): a
     # rendered frame has depth edges at the silhouette, where the float32 rounding of a projection
     # moves single residuals by up to ~1e-2 (rgbd_residuals is pinned entry by entry on smooth
     # scenes in test_template.py)
     tf = gputrack.to_numpy(forward_kinematics(device, chain, X))
-    want = rgbd_residuals(REF, tf, rgb, dep, frame.gray, frame.depth, cam).astype(np.float64)
+    want = rgbd_residuals(REF, tf, sc, frame.gray, frame.depth).astype(np.float64)
     np.testing.assert_allclose((got.astype(np.float64) ** 2).sum(axis=1), (want**2).sum(axis=1), rtol=1e-4)
 
 
 @pytest.mark.parametrize("problems", [1, 10])
 def test_central_computes_the_block_sparse_entries(device, scene, problems):
-    chain, frame, rgb, dep = scene
+    chain, frame, sc = scene
     X = _stack(chain, problems)
-    cam = CAM
-    want = _composed(device, chain, X, frame, rgb, dep)
+    want = _composed(device, chain, X, frame, sc)
     out = device.asarray(np.full(want.shape, SENTINEL, np.float32)) if device.backend != "numpy" else np.full(
         want.shape, SENTINEL, np.float32)  # fmt: skip
-    got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, central=True,
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, sc, frame.gray, frame.depth, central=True,
                                            out=out))  # fmt: skip
-    need = _needed(chain, rgb, dep, problems)
+    need = _needed(chain, sc, problems)
     assert_close(device, got[need], want[need], atol=5e-5)
     if device.backend == "taichi":  # the one backend that skips: it writes nothing else
         assert (got[~need] == SENTINEL).all()
@@ -91,27 +89,26 @@ def test_central_computes_the_block_sparse_entries(device, scene, problems):
 
 def test_depth_tolerance_reaches_every_path(device, scene):
     """depth_tol in the plain and the block-sparse (central) evaluation equals the composition's."""
-    chain, frame, rgb, dep = scene
+    chain, frame, sc = scene
     X = _stack(chain, 2)
-    want = _composed(device, chain, X, frame, rgb, dep, depth_tol=2.0)
-    assert (want != _composed(device, chain, X, frame, rgb, dep)).any()
+    tol = RgbdScene(sc.rgb, sc.depth, CAM, depth_tol=2.0)
+    want = _composed(device, chain, X, frame, tol)
+    assert (want != _composed(device, chain, X, frame, sc)).any()
     for central in (False, True):
-        got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, CAM,
-                                               depth_tol=2.0, central=central))  # fmt: skip
-        need = _needed(chain, rgb, dep, 2) if central else np.ones(want.shape, bool)
+        got = gputrack.to_numpy(pose_residuals(device, chain, X, tol, frame.gray, frame.depth, central=central))
+        need = _needed(chain, sc, 2) if central else np.ones(want.shape, bool)
         assert_close(device, got[need], want[need], atol=5e-5)
 
 
 def test_central_with_a_broken_layout_is_still_exact(device, scene):
     """Rows that differ from their problem's point in more than their parameter are computed in full."""
-    chain, frame, rgb, dep = scene
+    chain, frame, sc = scene
     X = _stack(chain, 2)
     rng = np.random.default_rng(5)
     X[3] += rng.normal(0, 0.01, X.shape[1]).astype(np.float32)  # row 3 (parameter 1's) moves everything
-    cam = CAM
-    want = _composed(device, chain, X, frame, rgb, dep)
-    got = gputrack.to_numpy(pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, central=True))
-    need = _needed(chain, rgb, dep, 2)
+    want = _composed(device, chain, X, frame, sc)
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, sc, frame.gray, frame.depth, central=True))
+    need = _needed(chain, sc, 2)
     need[3] = True
     assert_close(device, got[need], want[need], atol=5e-5)
 
@@ -130,19 +127,18 @@ def test_plan_groups_rows_that_move_the_same_parts():
 
 
 def test_bad_input(device, scene):
-    chain, frame, rgb, dep = scene
-    cam = CAM
+    chain, frame, sc = scene
     X = _stack(chain, 1)
     with pytest.raises(TypeError, match="chain: expected a gputrack.models.Chain"):
-        pose_residuals(device, "body", X, rgb, dep, frame.gray, frame.depth, cam)
+        pose_residuals(device, "body", X, sc, frame.gray, frame.depth)
     with pytest.raises(ValueError, match=r"params: expected shape \(n=\d+, %d\), got \(\d+, 5\)" % chain.n_params):
-        pose_residuals(device, chain, X[:, :5], rgb, dep, frame.gray, frame.depth, cam)
+        pose_residuals(device, chain, X[:, :5], sc, frame.gray, frame.depth)
     with pytest.raises(ValueError, match="params: expected at least one"):
-        pose_residuals(device, chain, X[:0], rgb, dep, frame.gray, frame.depth, cam)
+        pose_residuals(device, chain, X[:0], sc, frame.gray, frame.depth)
     with pytest.raises(ValueError, match="params: expected finite values"):
         bad = X.copy()
         bad[0, 0] = np.nan
-        pose_residuals(device, chain, bad, rgb, dep, frame.gray, frame.depth, cam)
+        pose_residuals(device, chain, bad, sc, frame.gray, frame.depth)
     with pytest.raises(ValueError, match="out: expected a float32 array of shape"):
         small = np.empty((3, 4), np.float32) if device.backend == "numpy" else device.empty((3, 4), np.float32)
-        pose_residuals(device, chain, X, rgb, dep, frame.gray, frame.depth, cam, out=small)
+        pose_residuals(device, chain, X, sc, frame.gray, frame.depth, out=small)

@@ -186,7 +186,7 @@ def test_closing_a_taichi_device_drops_the_arrays_cached_for_it():
 
         def work(dev):
             tf, rgb, dep, gray, depth, cam = pf_scene(np.random.default_rng(0), b=64)
-            total = gputrack.rgbd_cost(dev, tf.astype(np.float32), rgb, dep, gray, depth, cam).total
+            total = gputrack.rgbd_cost(dev, tf.astype(np.float32), gputrack.RgbdScene(rgb, dep, cam), gray, depth).total
             best = gputrack.best_k(dev, total, 5)
             res = gputrack.least_squares(lambda x: gputrack.to_numpy(x) - 1.0, np.zeros((3, 2)), device=dev)
             return np.concatenate([gputrack.to_numpy(total), gputrack.to_numpy(best.indices), res.x.ravel()])

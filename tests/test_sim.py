@@ -290,7 +290,7 @@ def test_template_bad_input():
 
 def test_template_cost_is_lowest_at_the_true_pose():
     """With the block-reduction op: the template scores the true pose better than perturbed ones."""
-    from gputrack.ops.template import rgbd_cost
+    from gputrack.ops.template import RgbdScene, rgbd_cost
 
     dev = gputrack.device("numpy")
     seq = sequence(0, frames=30, seed=0)
@@ -303,7 +303,7 @@ def test_template_cost_is_lowest_at_the_true_pose():
     poses[3, 3] += 15.0  # torso x
     poses[4, 1] += 3 * DEG  # torso turn
     transforms = forward_kinematics(None, CHAIN, poses).astype(np.float32)
-    cost = rgbd_cost(dev, transforms, rgb, dep, f.gray, f.depth, DEFAULT_CAMERA)
+    cost = rgbd_cost(dev, transforms, RgbdScene(rgb, dep, DEFAULT_CAMERA), f.gray, f.depth)
     total = np.asarray(cost.total)
     assert np.argmin(total) == 0, total
 

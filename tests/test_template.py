@@ -5,6 +5,7 @@ per-point loop written from the conventions in gputrack/ops/template.py.
 """
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -14,7 +15,10 @@ from tolerances import assert_matches
 import gputrack
 from gputrack.models.camera import Camera
 from gputrack.models.chain import rotation_zyx
-from gputrack.ops.template import MAX_PARTS, SparseTemplate, rgbd_cost, rgbd_residuals
+from gputrack.models.upper_body import upper_body
+from gputrack.ops.pf import pf_stage
+from gputrack.ops.pose_residuals import pose_residuals
+from gputrack.ops.template import MAX_PARTS, RgbdScene, SparseTemplate, rgbd_cost, rgbd_residuals
 
 REF = gputrack.device("numpy")
 
@@ -59,12 +63,14 @@ def _rot(a):
     return rotation_zyx(a[2], a[1], a[0])
 
 
-def run_cost(device, tf, rgb, dep, gray, depth, cam, **kw):
-    return rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.01, **kw)
+def run_cost(device, tf, rgb, dep, gray, depth, cam, *, out=None, **kw):
+    """rgbd_cost against the scene of ``rgb``, ``dep``, ``cam`` with c_depth = 0.01 and the constants ``kw``."""
+    return rgbd_cost(device, tf, RgbdScene(rgb, dep, cam, c_depth=0.01, **kw), gray, depth, out=out)
 
 
-def run_res(device, tf, rgb, dep, gray, depth, cam, **kw):
-    return rgbd_residuals(device, tf, rgb, dep, gray, depth, cam, c_depth=0.01, **kw)
+def run_res(device, tf, rgb, dep, gray, depth, cam, *, out=None, **kw):
+    """rgbd_residuals as :func:`run_cost` calls rgbd_cost."""
+    return rgbd_residuals(device, tf, RgbdScene(rgb, dep, cam, c_depth=0.01, **kw), gray, depth, out=out)
 
 
 # -- the reference against a per-point loop ------------------------------------------------------
@@ -317,7 +323,7 @@ def test_exact_pose_scores_zero_depth_cost(device):
     tf[:, 0, :, :3] = np.eye(3)
     tf[0, 0, 2, 3] = z0
     tf[1, 0, 2, 3] = z0 + 0.2
-    cost = rgbd_cost(device, tf, rgb, dep, np.ones((h, w), np.float32), depth, cam, c_depth=0.05)
+    cost = rgbd_cost(device, tf, RgbdScene(rgb, dep, cam, c_depth=0.05), np.ones((h, w), np.float32), depth)
     d = gputrack.to_numpy(cost.depth)
     assert d[0] == pytest.approx(0.0, abs=1e-6)
     assert d[1] == pytest.approx(10 * 0.04 / (0.0025 + 0.04), rel=1e-5)
@@ -345,12 +351,11 @@ def test_template_is_uploaded_once(device):
     rng = np.random.default_rng(6)
     tf, rgb, dep, gray, depth, cam = make_scene(rng, 33, 40, 20)
     d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
-    rgb.to(device)
-    dep.to(device)
+    scene = RgbdScene(rgb, dep, cam, c_depth=0.01).to(device)
     before = device.transfers.copy()
     for _ in range(3):
-        run_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
-        run_res(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+        rgbd_cost(device, d_tf, scene, d_gray, d_depth)
+        rgbd_residuals(device, d_tf, scene, d_gray, d_depth)
     moved = device.transfers - before
     assert (moved.h2d, moved.d2h) == (0, 0)
 
@@ -394,7 +399,7 @@ def test_cost_accuracy_many_points(device):
     tf[:, 0, :, :3] = np.eye(3)
     tf[:, 0, 2, 3] = [1.0, 1.001, 1.0003]
     depth = np.full((h, w), 1.0, np.float32)
-    cost = rgbd_cost(device, tf, rgb, dep, np.full((h, w), 3.0, np.float32), depth, cam, c_depth=0.1)
+    cost = rgbd_cost(device, tf, RgbdScene(rgb, dep, cam, c_depth=0.1), np.full((h, w), 3.0, np.float32), depth)
     dz = np.float64(np.float32([1.0, 1.001, 1.0003])) - 1.0  # d' = 1 - Z with Z as float32 holds it
     want = n * dz**2 / (0.01 + dz**2)
     np.testing.assert_allclose(gputrack.to_numpy(cost.depth), want, rtol=2e-5, atol=1e-6)
@@ -405,20 +410,12 @@ def test_cost_accuracy_many_points(device):
 def test_bad_input(device):
     rng = np.random.default_rng(0)
     tf, rgb, dep, gray, depth, cam = make_scene(rng, 4, 10, 10, j=3)
-    ok = {"transforms": tf, "rgb": rgb, "depth": dep, "gray": gray, "depth_image": depth, "camera": cam}
+    scene = RgbdScene(rgb, dep, cam)
+    ok = {"transforms": tf, "gray": gray, "depth_image": depth}
 
     def call(**kw):
         args = {**ok, **kw}
-        return rgbd_cost(
-            device,
-            args["transforms"],
-            args["rgb"],
-            args["depth"],
-            args["gray"],
-            args["depth_image"],
-            args["camera"],
-            **{k: v for k, v in kw.items() if k not in ok},
-        )
+        return rgbd_cost(device, args["transforms"], scene, args["gray"], args["depth_image"])
 
     with pytest.raises(ValueError, match=r"transforms: expected shape \(B=4, J=3, 3, 4\), got \(4, 3, 3, 3\)"):
         call(transforms=tf[:, :, :, :3])
@@ -430,7 +427,7 @@ def test_bad_input(device):
         call(transforms=bad)
     with pytest.raises(ValueError, match="B = 0"):
         call(transforms=tf[:0])
-    with pytest.raises(ValueError, match=r"rgb.part: expected part indices in \[0, J=2\)"):
+    with pytest.raises(ValueError, match=r"scene\.rgb\.part: expected part indices in \[0, J=2\)"):
         call(transforms=np.ascontiguousarray(tf[:, :2]))
     with pytest.raises(ValueError, match=r"depth_image: expected shape \(H=48, W=64\)"):
         call(depth_image=depth[:-1])
@@ -442,21 +439,22 @@ def test_bad_input(device):
         call(gray=g)
     with pytest.raises(ValueError, match="at least 2 x 2"):
         call(gray=gray[:1], depth_image=depth[:1])
+    # the templates, the camera and the constants are checked once, when the scene is made
     with pytest.raises(TypeError, match="rgb: expected a gputrack.SparseTemplate"):
-        call(rgb=rgb.xyz)
+        RgbdScene(rgb.xyz, dep, cam)
     with pytest.raises(TypeError, match="camera: expected a gputrack.Camera"):
-        call(camera=(1, 1, 0, 0))
+        RgbdScene(rgb, dep, (1, 1, 0, 0))
     with pytest.raises(ValueError, match=r"lam: expected a number in \[0.0, 1.0\]"):
-        call(lam=1.5)
+        RgbdScene(rgb, dep, cam, lam=1.5)
     with pytest.raises(ValueError, match="c_depth: expected a number > 0"):
-        call(c_depth=0.0)
+        RgbdScene(rgb, dep, cam, c_depth=0.0)
     with pytest.raises(ValueError, match="depth_tol: expected a number >= 0.0, got -1"):
-        call(depth_tol=-1.0)
+        RgbdScene(rgb, dep, cam, depth_tol=-1.0)
     with pytest.raises(TypeError, match="expected a gputrack.Device"):
-        rgbd_cost("numpy", tf, rgb, dep, gray, depth, cam)
+        rgbd_cost("numpy", tf, scene, gray, depth)
     if device.backend != "numpy":
         with pytest.raises(ValueError, match="transforms: expected an array on numpy"):
-            rgbd_cost(REF, device.asarray(tf), rgb, dep, gray, depth, cam)
+            rgbd_cost(REF, device.asarray(tf), scene, gray, depth)
 
 
 def test_bad_templates_and_cameras():
@@ -516,6 +514,144 @@ def test_extreme_gray_values_give_the_references_cost(device, image):
     assert_matches(device, res, run_res(REF, tf, rgb, dep, big, depth, cam), scale=5.0)
     flat = run_cost(REF, tf, rgb, dep, np.full_like(gray, 7.0), depth, cam)
     np.testing.assert_allclose(want.rgb, flat.rgb, rtol=1e-5)
+
+
+# -- the scene (templates, camera, eq. 17-19's constants) ------------------------------------------
+def whole(message: str) -> str:
+    """A ``pytest.raises(match=...)`` pattern that matches ``message`` whole, nothing more or less."""
+    return "^" + re.escape(message) + r"\Z"
+
+
+@pytest.mark.parametrize(
+    "args,kw,error,message",
+    [
+        ("xyz", {}, TypeError, "rgb: expected a gputrack.SparseTemplate, got ndarray"),
+        ("no depth", {}, TypeError, "depth: expected a gputrack.SparseTemplate, got NoneType"),
+        ("camera as depth", {}, TypeError, "depth: expected a gputrack.SparseTemplate, got Camera"),
+        ("tuple camera", {}, TypeError, "camera: expected a gputrack.Camera, got tuple"),
+        ("ok", {"lam": 2}, ValueError, "lam: expected a number in [0.0, 1.0], got 2"),
+        ("ok", {"lam": -0.25}, ValueError, "lam: expected a number in [0.0, 1.0], got -0.25"),
+        ("ok", {"lam": float("nan")}, ValueError, "lam: expected a finite number, got nan"),
+        ("ok", {"lam": "0.9"}, TypeError, "lam: expected a real number, got str"),
+        ("ok", {"lam": True}, TypeError, "lam: expected a real number, got bool"),
+        ("ok", {"c_rgb": 0}, ValueError, "c_rgb: expected a number > 0, got 0"),
+        ("ok", {"c_rgb": -0.5}, ValueError, "c_rgb: expected a number > 0, got -0.5"),
+        ("ok", {"c_rgb": np.inf}, ValueError, "c_rgb: expected a finite number, got inf"),
+        ("ok", {"c_depth": -1}, ValueError, "c_depth: expected a number > 0, got -1"),
+        ("ok", {"c_depth": 0.0}, ValueError, "c_depth: expected a number > 0, got 0.0"),
+        ("ok", {"c_depth": None}, TypeError, "c_depth: expected a real number, got NoneType"),
+        ("ok", {"depth_tol": -1}, ValueError, "depth_tol: expected a number >= 0.0, got -1"),
+        ("ok", {"depth_tol": -1e-3}, ValueError, "depth_tol: expected a number >= 0.0, got -0.001"),
+    ],
+)
+def test_scene_rejects_bad_input(args, kw, error, message):
+    rng = np.random.default_rng(0)
+    _tf, rgb, dep, _gray, _depth, cam = make_scene(rng, 4, 10, 6)
+    positional = {"ok": (rgb, dep, cam), "xyz": (rgb.xyz, dep, cam), "no depth": (rgb, None, cam),
+                  "camera as depth": (rgb, cam, cam), "tuple camera": (rgb, dep, tuple(cam.as_array()))}[args]  # fmt: skip
+    with pytest.raises(error, match=whole(message)):
+        RgbdScene(*positional, **kw)
+
+
+def test_scene_accepts_the_ranges_edges():
+    rng = np.random.default_rng(0)
+    _tf, rgb, dep, _gray, _depth, cam = make_scene(rng, 4, 10, 6, j=3)
+    for lam in (0, 1, 0.0, 1.0, np.float32(0.5), np.int64(1)):
+        assert RgbdScene(rgb, dep, cam, lam=lam).lam == float(lam)
+    scene = RgbdScene(rgb, dep, cam, c_rgb=np.float64(1e-9), c_depth=7, depth_tol=0)
+    assert (scene.c_rgb, scene.c_depth, scene.depth_tol) == (1e-9, 7.0, 0.0)
+    assert all(type(v) is float for v in (scene.lam, scene.c_rgb, scene.c_depth, scene.depth_tol))
+    assert scene.rgb is rgb and scene.depth is dep and scene.camera is cam
+    assert scene.n == 16 and scene.n_parts == max(rgb.n_parts, dep.n_parts) == 3
+    with pytest.raises(AttributeError, match="RgbdScene is read-only"):  # checked once: no unchecked values later
+        scene.lam = 2
+    assert scene.lam == 0.9
+
+
+def test_scene_default_c_rgb_is_half_over_n(device):
+    """c_rgb=None (the default) is eq. 17's 0.5/N, N the RGB template's points: it scores as that number."""
+    rng = np.random.default_rng(17)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 9, 23, 11)
+    scene = RgbdScene(rgb, dep, cam)
+    assert scene.c_rgb == 0.5 / 23
+    assert RgbdScene(rgb, dep, cam, c_rgb=None).c_rgb == 0.5 / 23
+    assert RgbdScene(rgb, dep, cam, c_rgb=0.25).c_rgb == 0.25
+    explicit = RgbdScene(rgb, dep, cam, c_rgb=0.5 / 23)
+    got, want = rgbd_cost(device, tf, scene, gray, depth), rgbd_cost(device, tf, explicit, gray, depth)
+    for f in ("total", "rgb", "depth"):
+        np.testing.assert_array_equal(gputrack.to_numpy(getattr(got, f)), gputrack.to_numpy(getattr(want, f)))
+    np.testing.assert_array_equal(gputrack.to_numpy(rgbd_residuals(device, tf, scene, gray, depth)),
+                                  gputrack.to_numpy(rgbd_residuals(device, tf, explicit, gray, depth)))  # fmt: skip
+    # a c_rgb of another value scores otherwise (the constant reaches the kernels)
+    other = gputrack.to_numpy(rgbd_cost(device, tf, RgbdScene(rgb, dep, cam, c_rgb=0.25), gray, depth).rgb)
+    assert (other[3:] != gputrack.to_numpy(got.rgb)[3:]).all()
+
+
+def test_scene_with_templates_keeps_the_camera_and_constants(device):
+    rng = np.random.default_rng(19)
+    tf, rgb, dep, gray, depth, cam = make_scene(rng, 7, 20, 12)
+    _tf2, rgb2, dep2, _gray2, _depth2, _cam2 = make_scene(rng, 7, 31, 9)
+    scene = RgbdScene(rgb, dep, cam, lam=0.3, c_rgb=0.02, c_depth=0.07, depth_tol=0.01)
+    other = scene.with_templates(rgb2, dep2)
+    assert isinstance(other, RgbdScene) and other is not scene
+    assert other.rgb is rgb2 and other.depth is dep2 and other.camera is cam and other.n == 40
+    assert (other.lam, other.c_rgb, other.c_depth, other.depth_tol) == (0.3, 0.02, 0.07, 0.01)
+    assert scene.rgb is rgb and scene.depth is dep and scene.n == 32  # the scene itself is unchanged
+    want = rgbd_cost(device, tf, RgbdScene(rgb2, dep2, cam, lam=0.3, c_rgb=0.02, c_depth=0.07, depth_tol=0.01),
+                     gray, depth)  # fmt: skip
+    got = rgbd_cost(device, tf, other, gray, depth)
+    for f in ("total", "rgb", "depth"):
+        np.testing.assert_array_equal(gputrack.to_numpy(getattr(got, f)), gputrack.to_numpy(getattr(want, f)))
+    # the default c_rgb stays eq. 17's rule, 0.5/N of the new RGB template
+    assert RgbdScene(rgb, dep, cam).with_templates(rgb2, dep2).c_rgb == 0.5 / 31
+    # the new templates are checked as a new scene's
+    with pytest.raises(TypeError, match=whole("rgb: expected a gputrack.SparseTemplate, got ndarray")):
+        scene.with_templates(rgb2.xyz, dep2)
+    with pytest.raises(TypeError, match=whole("depth: expected a gputrack.SparseTemplate, got NoneType")):
+        scene.with_templates(rgb2, None)
+
+
+def _four_ops(device, scene, gray, depth, *, j):
+    """The four ops that score against a scene, each called as a function of nothing (chain of j parts)."""
+    chain = upper_body()
+    assert chain.n_parts == j
+    params = np.repeat(chain.rest_params(np.float32)[None], 3, axis=0)
+    sigma = np.full(chain.n_params, 0.01, np.float32)
+    tf = gputrack.to_numpy(gputrack.forward_kinematics(REF, chain, params))
+    return {
+        "rgbd_cost": lambda: rgbd_cost(device, tf, scene, gray, depth),
+        "rgbd_residuals": lambda: rgbd_residuals(device, tf, scene, gray, depth),
+        "pose_residuals": lambda: pose_residuals(device, chain, params, scene, gray, depth),
+        "pf_stage": lambda: pf_stage(device, chain, params, sigma, 12, 1, scene, gray, depth),
+    }
+
+
+@pytest.mark.parametrize("op", ["rgbd_cost", "rgbd_residuals", "pose_residuals", "pf_stage"])
+def test_every_op_takes_a_scene(device, op):
+    j = upper_body().n_parts
+    rng = np.random.default_rng(23)
+    _tf, rgb, dep, gray, depth, cam = make_scene(rng, 3, 10, 6, j=j)
+    assert _four_ops(device, RgbdScene(rgb, dep, cam), gray, depth, j=j)[op]() is not None  # a scene: fine
+    for thing, name in ((rgb, "SparseTemplate"), ((rgb, dep), "tuple"), (None, "NoneType"), (cam, "Camera")):
+        with pytest.raises(TypeError, match=whole(f"scene: expected a gputrack.RgbdScene, got {name}")):
+            _four_ops(device, thing, gray, depth, j=j)[op]()
+
+
+@pytest.mark.parametrize("op", ["rgbd_cost", "rgbd_residuals", "pose_residuals", "pf_stage"])
+def test_every_op_rejects_a_scene_with_parts_beyond_j(device, op):
+    """A template point on part J (the hypotheses' parts are 0..J-1) is refused, RGB or depth."""
+    j = upper_body().n_parts
+    rng = np.random.default_rng(29)
+    _tf, rgb, dep, gray, depth, cam = make_scene(rng, 3, 10, 6, j=j)
+    rgb_over = SparseTemplate(rgb.xyz, np.where(np.arange(rgb.n) == 4, j, rgb.part), rgb.value)
+    dep_over = SparseTemplate(dep.xyz, np.where(np.arange(dep.n) == 2, j + 2, dep.part))
+    for scene, message in (
+        (RgbdScene(rgb_over, dep, cam), f"scene.rgb.part: expected part indices in [0, J={j}), got {j}"),
+        (RgbdScene(rgb, dep_over, cam), f"scene.depth.part: expected part indices in [0, J={j}), got {j + 2}"),
+    ):
+        assert scene.n_parts > j
+        with pytest.raises(ValueError, match=whole(message)):
+            _four_ops(device, scene, gray, depth, j=j)[op]()
 
 
 def test_selftest(device):

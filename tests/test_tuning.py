@@ -11,7 +11,7 @@ from tolerances import assert_matches
 import gputrack
 from gputrack import tuning, tuning_cache
 from gputrack.ops import backend_module
-from gputrack.ops.template import rgbd_cost, rgbd_residuals
+from gputrack.ops.template import RgbdScene, rgbd_cost, rgbd_residuals
 from gputrack.sim.problems import template_scene
 
 
@@ -196,8 +196,9 @@ def test_every_candidate_matches_the_reference(device, monkeypatch):
     if device.backend == "numpy":
         pytest.skip("the reference has no launch parameters")
     tf, rgb, dep, gray, depth, cam = _scene()
-    want = rgbd_cost(REF, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
-    want_res = rgbd_residuals(REF, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+    scene = RgbdScene(rgb, dep, cam, c_depth=0.05)
+    want = rgbd_cost(REF, tf, scene, gray, depth)
+    want_res = rgbd_residuals(REF, tf, scene, gray, depth)
     backend = backend_module(device, "template")
     launched = spy_launches(monkeypatch, backend, device.backend)
     asked = []
@@ -207,11 +208,11 @@ def test_every_candidate_matches_the_reference(device, monkeypatch):
             launched.clear()
             asked.clear()
             if op == "rgbd_cost":
-                got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+                got = rgbd_cost(device, tf, scene, gray, depth)
                 for f in ("total", "rgb", "depth"):
                     assert_matches(device, getattr(got, f), getattr(want, f), err_msg=f"{op} {f} {params}")
             else:
-                got = rgbd_residuals(device, tf, rgb, dep, gray, depth, cam, c_depth=0.05)
+                got = rgbd_residuals(device, tf, scene, gray, depth)
                 assert_matches(device, got, want_res, scale=5.0, err_msg=f"{op} {params}")
             assert launched == [params] and asked == [op]
 
@@ -249,8 +250,9 @@ def test_cli_tune_stores_a_choice_and_the_op_uses_it(device, tmp_path, monkeypat
     monkeypatch.setitem(tuning.PROBLEMS, "rgbd_cost", problem)
 
     tf, rgb, dep, gray, depth, cam = _scene()
+    scene = RgbdScene(rgb, dep, cam)
     launched = spy_launches(monkeypatch, backend, device.backend)
-    rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
+    rgbd_cost(device, tf, scene, gray, depth)
     assert launched == [default]  # no cache entry yet
 
     assert cli.main(["tune", "--device", device.spec, "--op", "rgbd_cost", "--min-time", "0.001"]) == 0
@@ -261,13 +263,13 @@ def test_cli_tune_stores_a_choice_and_the_op_uses_it(device, tmp_path, monkeypat
     assert entry["rgbd_cost"]["B=64,N=32"]["params"] == winner
 
     launched.clear()
-    got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
+    got = rgbd_cost(device, tf, scene, gray, depth)
     assert launched == [winner]
-    want = rgbd_cost(REF, tf, rgb, dep, gray, depth, cam)
+    want = rgbd_cost(REF, tf, scene, gray, depth)
     assert_matches(device, got.total, want.total)
     # another size bucket keeps the default
     launched.clear()
-    rgbd_cost(device, tf[:3], rgb, dep, gray, depth, cam)
+    rgbd_cost(device, tf[:3], scene, gray, depth)
     assert launched == [default]
 
 
@@ -341,9 +343,10 @@ def test_op_with_a_corrupt_cache_warns_and_uses_the_default(device, tmp_path, mo
     path.write_text('{"version": 1, "devices": ')
     monkeypatch.setenv("GPUTRACK_TUNING_CACHE", str(path))
     tf, rgb, dep, gray, depth, cam = _scene()
+    scene = RgbdScene(rgb, dep, cam)
     with pytest.warns(RuntimeWarning, match="ignoring the tuning cache"):
-        got = rgbd_cost(device, tf, rgb, dep, gray, depth, cam)
-    assert_matches(device, got.total, rgbd_cost(REF, tf, rgb, dep, gray, depth, cam).total)
+        got = rgbd_cost(device, tf, scene, gray, depth)
+    assert_matches(device, got.total, rgbd_cost(REF, tf, scene, gray, depth).total)
 
 
 def test_every_kalman_candidate_matches_the_reference(device, monkeypatch):

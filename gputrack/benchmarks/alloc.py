@@ -72,19 +72,18 @@ def _kalman(device, T, rng):
 
 def _rgbd(device, B, rng):
     """(fresh, out) callables: rgbd_cost of B hypotheses."""
-    from ..ops.template import rgbd_cost
+    from ..ops.template import RgbdScene, rgbd_cost
 
     tf, rgb, dep, gray, depth, cam = pf_scene(rng, B)
     d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
-    rgb.to(device)
-    dep.to(device)
-    keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+    scene = RgbdScene(rgb, dep, cam).to(device)  # once per template, as a tracker does
+    keep = rgbd_cost(device, d_tf, scene, d_gray, d_depth)
 
     def fresh():
-        return rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)
+        return rgbd_cost(device, d_tf, scene, d_gray, d_depth)
 
     def into():
-        return rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep)
+        return rgbd_cost(device, d_tf, scene, d_gray, d_depth, out=keep)
 
     return fresh, into
 

@@ -51,8 +51,10 @@ def cases(device, args):
         )
     from ..models.upper_body import pf_sigma
     from ..ops.pf import pf_stage
+    from ..ops.template import RgbdScene
 
     rgb, dep = sparse_template(seq.chain, seq.params[0], n, n)
+    scene = RgbdScene(rgb, dep, tracker.camera).to(device)  # once per template, as the tracker does
     cand = tracker.candidates.astype("float32")
     g, d = device.asarray(frame.gray), device.asarray(frame.depth)
     d_cand = device.asarray(cand)
@@ -61,10 +63,9 @@ def cases(device, args):
         out.append(
             Case(
                 f"pf_stage {name} group K={args.samples}",
-                run=lambda s=sigma: pf_stage(device, seq.chain, d_cand, s, args.samples, 7, rgb, dep, g, d,
-                                             tracker.camera),  # fmt: skip
-                reference=lambda s=sigma: pf_stage(reference, seq.chain, cand, s, args.samples, 7, rgb, dep,
-                                                   frame.gray, frame.depth, tracker.camera),  # fmt: skip
+                run=lambda s=sigma: pf_stage(device, seq.chain, d_cand, s, args.samples, 7, scene, g, d),
+                reference=lambda s=sigma: pf_stage(reference, seq.chain, cand, s, args.samples, 7, scene,
+                                                   frame.gray, frame.depth),  # fmt: skip
                 params={"K": args.samples, "C": 10, "N": n, "N_depth": n, "group": name},
             )
         )

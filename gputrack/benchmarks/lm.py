@@ -55,14 +55,16 @@ def add_arguments(parser):
 
 def _rgbd_residual_fn(device, chain, rgb, dep, gray, depth, cam):
     from ..ops.pose_residuals import pose_residuals
+    from ..ops.template import RgbdScene
 
+    scene = RgbdScene(rgb, dep, cam).to(device)  # once per template, as the tracker does
     g = device.asarray(gray)
     d = device.asarray(depth)
     buffers = {}  # per number of points: the residuals of the last call, reused
 
     def residuals(X):
         n = X.shape[0]
-        r = pose_residuals(device, chain, X, rgb, dep, g, d, cam, central=True, out=buffers.get(n))
+        r = pose_residuals(device, chain, X, scene, g, d, central=True, out=buffers.get(n))
         if device.backend != "numpy":  # the reference's results are NumPy arrays the caller may keep
             buffers[n] = r
         return r

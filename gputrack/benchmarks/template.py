@@ -29,34 +29,33 @@ def cases(device, args):
     from ..registry import device as get_device
     from ..ops.particles import best_k, sample_around
     from ..ops.ncc import patch_ncc
-    from ..ops.template import rgbd_cost, rgbd_residuals
+    from ..ops.template import RgbdScene, rgbd_cost, rgbd_residuals
 
     ref = get_device("numpy")
     rng = np.random.default_rng(0)
     b, n = args.batch, args.points
     tf, rgb, dep, gray, depth, cam = pf_scene(rng, b, n, n)
     d_tf, d_gray, d_depth = device.asarray(tf), device.asarray(gray), device.asarray(depth)
-    rgb.to(device)
-    dep.to(device)
+    scene = RgbdScene(rgb, dep, cam).to(device)  # once per template, as a tracker does
     params = {"B": b, "N": n, "N'": n, "J": 5, "H": 480, "W": 640, "candidates": 10}
 
     def e2e_cost():
-        out = rgbd_cost(device, tf, rgb, dep, d_gray, d_depth, cam)
+        out = rgbd_cost(device, tf, scene, d_gray, d_depth)
         return device.to_numpy(out.total)
 
-    keep = rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam)  # result buffers reused with out=
+    keep = rgbd_cost(device, d_tf, scene, d_gray, d_depth)  # result buffers reused with out=
     out = [
         Case(
             f"rgbd_cost B={b} N=N'={n} 640x480",
-            run=lambda: rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam),
-            reference=lambda: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam),
+            run=lambda: rgbd_cost(device, d_tf, scene, d_gray, d_depth),
+            reference=lambda: rgbd_cost(ref, tf, scene, gray, depth),
             end_to_end=e2e_cost,
             params=params,
         ),
         Case(
             f"rgbd_cost out= B={b} N=N'={n} 640x480",
-            run=lambda: rgbd_cost(device, d_tf, rgb, dep, d_gray, d_depth, cam, out=keep),
-            reference=lambda: rgbd_cost(ref, tf, rgb, dep, gray, depth, cam),
+            run=lambda: rgbd_cost(device, d_tf, scene, d_gray, d_depth, out=keep),
+            reference=lambda: rgbd_cost(ref, tf, scene, gray, depth),
             params={**params, "out": True},
         ),
     ]
@@ -64,12 +63,12 @@ def cases(device, args):
         if lm_b > b:
             raise SystemExit(f"--lm-batch: expected at most --batch={b} hypotheses, got {lm_b}")
         d_lm = device.asarray(tf[:lm_b])
-        res = rgbd_residuals(device, d_lm, rgb, dep, d_gray, d_depth, cam)
+        res = rgbd_residuals(device, d_lm, scene, d_gray, d_depth)
         out.append(
             Case(
                 f"rgbd_residuals out= B={lm_b} N=N'={n}",
-                run=lambda d_lm=d_lm, res=res: rgbd_residuals(device, d_lm, rgb, dep, d_gray, d_depth, cam, out=res),
-                reference=lambda lm_b=lm_b: rgbd_residuals(ref, tf[:lm_b], rgb, dep, gray, depth, cam),
+                run=lambda d_lm=d_lm, res=res: rgbd_residuals(device, d_lm, scene, d_gray, d_depth, out=res),
+                reference=lambda lm_b=lm_b: rgbd_residuals(ref, tf[:lm_b], scene, gray, depth),
                 params={**params, "B": lm_b, "out": True},
             )
         )

@@ -48,7 +48,7 @@ from .pose_residuals import pose_residuals  # noqa: E402
 from .rows import scatter_rows  # noqa: E402
 from .point_groups import PointGroups, assign_points  # noqa: E402
 from .ncc import patch_ncc, patch_ncc_per_point  # noqa: E402
-from .template import RgbdCost, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
+from .template import RgbdCost, RgbdScene, SparseTemplate, rgbd_cost, rgbd_residuals  # noqa: E402
 from .background import background_median, foreground_mask, update_background  # noqa: E402
 from .depth_points import depth_points, floor_background  # noqa: E402
 from .clusters import compact_labels, dbscan, radius_components  # noqa: E402
@@ -63,6 +63,7 @@ __all__ = [
     "LeastSquaresSolver",
     "PointGroups",
     "RgbdCost",
+    "RgbdScene",
     "SharedMatrix",
     "SparseTemplate",
     "assign_points",

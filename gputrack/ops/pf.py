@@ -3,7 +3,7 @@
 :func:`pf_stage` is the composition
 
     samples = sample_around(device, candidates, sigma, n, seed, keep_candidates=True)   # eq. 12
-    scores = rgbd_cost(device, forward_kinematics(device, chain, samples), ...).total   # eq. 17-19
+    scores = rgbd_cost(device, forward_kinematics(device, chain, samples), scene, ...).total  # eq. 17-19
     best = best_k(device, scores, k, rows=samples)
 
 as one op, so that a backend can run it without a wait or an allocation. The numpy backend runs
@@ -28,23 +28,23 @@ from . import backend_module
 from ._args import arg, check_device
 from .kinematics import forward_kinematics
 from .particles import BestK, _seed, best_k, best_k_out, sample_around
-from .template import rgbd_cost, scene_args
+from .template import frame_args, rgbd_cost
 
 __all__ = ["pf_stage"]
 
 
 def pf_stage(
-    device, chain, candidates, sigma, n, seed, rgb, depth, gray, depth_image, camera, *,
-    k=None, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0, out=None,
-) -> BestK:  # fmt: skip
+    device, chain, candidates, sigma, n, seed, scene, gray, depth_image, *, k=None, out=None
+) -> BestK:
     """Draw ``n`` samples around the candidates, score them with eq. 17-19, keep the best ``k``.
 
     chain: the :class:`gputrack.models.Chain` the parameters pose; candidates: (C, P) float32
     (NumPy or on the device), P = chain.n_params; sigma: (P,) standard deviations >= 0, a NumPy
     array (the host decides from it which parts move); n: samples (>= C; sample j belongs to
     candidate j C // n, and the first sample of each block is the candidate itself); seed: an
-    integer in [0, 2**64), a new one per call; rgb, depth, gray, depth_image, camera, lam, c_rgb,
-    c_depth, depth_tol: as in :func:`gputrack.ops.template.rgbd_cost`; k: how many to keep (default C).
+    integer in [0, 2**64), a new one per call; scene (a :class:`gputrack.RgbdScene` whose templates'
+    parts index the chain's parts), gray, depth_image: as in :func:`gputrack.ops.template.rgbd_cost`;
+    k: how many to keep (default C).
 
     Returns :class:`gputrack.ops.particles.BestK`: ``rows`` (k, P) float32, the next candidates,
     ``scores`` (k,) their costs (eq. 19) ascending, ``indices`` (k,) their sample indices.
@@ -76,15 +76,14 @@ def pf_stage(
     fused = device.backend in ("taichi", "opencl")
     outs = best_k_out(device, out, int(k), dims["P"], cand) if fused or out is not None else None  # checks out
     lo, hi = _seed(seed)
-    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol,
-                         chain.n_parts)  # fmt: skip
+    g, d = frame_args(device, scene, gray, depth_image, chain.n_parts)
     if fused:
         moved = chain.dependency_mask()[:, sig != 0].any(axis=1)  # parts that a sampled parameter poses
+        rgb, dep, cam, p = scene.kernel_args(device)
         idx, val, rows = backend_module(device, "pf").pf_stage(
-            device, chain, cand, constant(device, sig), int(n), lo, hi, rgb.on(device), depth.on(device), g, d,
-            camera.as_array(), moved, int(k), outs, **p,
-        )  # fmt: skip
+            device, chain, cand, constant(device, sig), int(n), lo, hi, rgb, dep, g, d, cam, moved, int(k), outs, **p
+        )
         return BestK(idx, val, rows)
     samples = sample_around(device, cand, constant(device, sig), int(n), seed, keep_candidates=True)
-    cost = rgbd_cost(device, forward_kinematics(device, chain, samples), rgb, depth, g, d, camera, **p)
+    cost = rgbd_cost(device, forward_kinematics(device, chain, samples), scene, g, d)
     return best_k(device, cost.total, int(k), rows=samples, out=out)

@@ -2,7 +2,7 @@
 
 :func:`pose_residuals` is the composition
 
-    rgbd_residuals(device, forward_kinematics(device, chain, params), rgb, depth, ...)   # eq. 1-11, 20-21
+    rgbd_residuals(device, forward_kinematics(device, chain, params), scene, ...)   # eq. 1-11, 20-21
 
 as one op, so that a backend can run it as one launch: the residual function of a
 :func:`gputrack.least_squares` fit of the chain to an RGB-D frame. With ``central=True`` it also
@@ -29,20 +29,16 @@ from ..uploads import constant
 from . import backend_module
 from ._args import arg, check_device, out_array
 from .kinematics import forward_kinematics
-from .template import rgbd_residuals, scene_args
+from .template import frame_args, rgbd_residuals
 
 __all__ = ["pose_residuals"]
 
 
-def pose_residuals(
-    device, chain, params, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0,
-    depth_tol=0.0, central=False, out=None,
-):  # fmt: skip
+def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=False, out=None):
     """Residuals of eq. 20-21 for n parameter vectors of ``chain``: (n, N + N') float32.
 
     chain: a :class:`gputrack.models.Chain`; params: (n, P) float32 (NumPy or on the device),
-    P = chain.n_params; rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
-    depth_tol: as in
+    P = chain.n_params; scene (a :class:`gputrack.RgbdScene`), gray, depth_image: as in
     :func:`gputrack.ops.template.rgbd_residuals` (the templates' parts index the chain's parts).
     ``out``: an (n, N + N') float32 array on the device to write into.
 
@@ -63,19 +59,18 @@ def pose_residuals(
     n = params.shape[0]
     if n == 0:
         raise ValueError(f"params: expected at least one parameter vector (n >= 1), got shape {tuple(params.shape)}")
-    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol,
-                         chain.n_parts)  # fmt: skip
-    out = out_array(device, out, "out", (n, rgb.n + depth.n))
+    g, d = frame_args(device, scene, gray, depth_image, chain.n_parts)
+    out = out_array(device, out, "out", (n, scene.n))
     if device.backend != "taichi":
-        return rgbd_residuals(device, forward_kinematics(device, chain, params), rgb, depth, g, d, camera, **p, out=out)
+        return rgbd_residuals(device, forward_kinematics(device, chain, params), scene, g, d, out=out)
     be = backend_module(device, "pose_residuals")
     stride = 2 * P + 1
     plan = None
     if central and n % stride == 0:
         plan = _device_plan(device, chain, n // stride, be.lanes(device))
     _, offsets = chain_tables(device, chain, np.float32)
-    return be.pose_residuals(device, chain, params, offsets, rgb.on(device), depth.on(device), g, d,
-                             camera.as_array(), out, plan, **p)  # fmt: skip
+    rgb, dep, cam, p = scene.kernel_args(device)
+    return be.pose_residuals(device, chain, params, offsets, rgb, dep, g, d, cam, out, plan, **p)
 
 
 _PLANS: weakref.WeakKeyDictionary = per_device_cache()  # device -> {(chain, B, lanes): plan}

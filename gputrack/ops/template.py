@@ -37,13 +37,17 @@ Transforms given as NumPy arrays are checked and rejected when not finite. Trans
 on the device are not checked (that would cost a download): a point under a non-finite
 transform is invalid (it adds 1), so such a hypothesis scores badly, never NaN.
 
-Steady-state use (a filter stage every frame): upload the frame once, keep the templates on
-the device, and reuse the result buffers::
+What the hypotheses are scored against, besides the frame's two images, is one
+:class:`RgbdScene`: the two templates, the camera and eq. 17-19's constants, checked once when it
+is made (a filter makes about 20 cost and residual calls a frame against the same scene).
 
-    rgb.to(dev); depth.to(dev)                         # once per template (cached per device)
-    gray_d, depth_d = dev.asarray(gray), dev.asarray(depth_mm)   # once per frame
-    cost = rgbd_cost(dev, transforms_d, rgb, depth, gray_d, depth_d, cam)
-    cost = rgbd_cost(dev, transforms_d, rgb, depth, gray_d, depth_d, cam, out=cost)  # no allocation
+Steady-state use (a filter stage every frame): make the scene once per template, upload the
+frame once, and reuse the result buffers::
+
+    scene = RgbdScene(rgb, depth, cam, lam=0.9).to(dev)              # once per template
+    gray_d, depth_d = dev.asarray(gray), dev.asarray(depth_mm)        # once per frame
+    cost = rgbd_cost(dev, transforms_d, scene, gray_d, depth_d)
+    cost = rgbd_cost(dev, transforms_d, scene, gray_d, depth_d, out=cost)  # no allocation
 """
 
 from __future__ import annotations
@@ -61,6 +65,7 @@ from ._args import arg, check_device, out_array, shape_of
 
 __all__ = [
     "RgbdCost",
+    "RgbdScene",
     "SparseTemplate",
     "rgbd_cost",
     "rgbd_residuals",
@@ -218,58 +223,116 @@ def _check_scalar(value, name, *, low=None, high=None, positive=False):
     return v
 
 
-def _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol):
-    check_device(device)
-    dims = {}
-    tf = arg(device, transforms, "transforms", ("B", "J", 3, 4), dims)
-    if dims["B"] == 0:
-        raise ValueError("transforms: expected at least one hypothesis, got B = 0")
-    g, d, p = scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol, dims["J"])
-    return tf, g, d, p
+class RgbdScene:
+    """What B hypotheses are scored against besides the frame's images (paper 000 eq. 17-21).
+
+    rgb, depth: :class:`SparseTemplate` (N and N' points); camera: :class:`gputrack.models.Camera`;
+    ``lam`` in [0, 1] weighs the depth cost (eq. 19); ``c_rgb`` (> 0, None: 0.5/N, eq. 17) and
+    ``c_depth`` (> 0, mm) are the robust functions' scales; ``depth_tol`` (mm, >= 0): the depth
+    difference that counts as none (0: the paper's eq. 18; see the module docstring).
+
+    Everything is checked here, once; the ops check only that the hypotheses' parts cover the
+    templates' (``n_parts``) and the frame's images. ``scene.to(device)`` uploads the templates now
+    (otherwise the first op on the device does, once). ``with_templates`` gives the scene of new
+    templates with the same camera and constants (a tracker's template of the next frame).
+    """
+
+    def __init__(self, rgb, depth, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0):
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera: expected a gputrack.Camera, got {type(camera).__name__}")
+        checked = {
+            "rgb": _check_template(rgb, "rgb"),
+            "depth": _check_template(depth, "depth"),
+            "camera": camera,
+            "lam": _check_scalar(lam, "lam", low=0.0, high=1.0),
+            "_c_rgb": None if c_rgb is None else _check_scalar(c_rgb, "c_rgb", positive=True),
+            "c_depth": _check_scalar(c_depth, "c_depth", positive=True),
+            "depth_tol": _check_scalar(depth_tol, "depth_tol", low=0.0),
+            "_camera": camera.as_array(),
+        }
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name, value):  # checked once, so read-only: make another scene instead
+        raise AttributeError(f"RgbdScene is read-only (its values were checked when it was made): cannot set "
+                             f"{name!r}; make a new scene (RgbdScene(...) or scene.with_templates(...))")  # fmt: skip
+
+    @property
+    def c_rgb(self) -> float:
+        return 0.5 / self.rgb.n if self._c_rgb is None else self._c_rgb  # eq. 17: c = 0.5/N
+
+    @property
+    def n(self) -> int:
+        """N + N': the residuals per hypothesis (RGB points, then depth points)."""
+        return self.rgb.n + self.depth.n
+
+    @property
+    def n_parts(self) -> int:
+        """The smallest J the templates fit (1 + their largest part index)."""
+        return max(self.rgb.n_parts, self.depth.n_parts)
+
+    def with_templates(self, rgb, depth) -> RgbdScene:
+        """This scene with other templates (camera and constants kept)."""
+        return RgbdScene(rgb, depth, self.camera, lam=self.lam, c_rgb=self._c_rgb, c_depth=self.c_depth,
+                         depth_tol=self.depth_tol)  # fmt: skip
+
+    def to(self, device: Device) -> RgbdScene:
+        """Upload the templates to ``device`` now (once) and return this scene."""
+        self.rgb.to(device)
+        self.depth.to(device)
+        return self
+
+    def __repr__(self) -> str:
+        return (f"RgbdScene(rgb={self.rgb!r}, depth={self.depth!r}, lam={self.lam:g}, c_rgb={self.c_rgb:g}, "
+                f"c_depth={self.c_depth:g}, depth_tol={self.depth_tol:g})")  # fmt: skip
+
+    def kernel_args(self, device: Device) -> tuple:
+        """(rgb on device, depth on device, camera (4,) f32, constants) as the backends take them."""
+        consts = {"lam": self.lam, "c_rgb": self.c_rgb, "c_depth": self.c_depth, "depth_tol": self.depth_tol}
+        return self.rgb.on(device), self.depth.on(device), self._camera, consts
 
 
-def scene_args(device, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth, depth_tol, n_parts):
-    """Check what the RGB-D cost scores against (templates on ``n_parts`` parts, images, camera,
-    eq. 17-19 constants); return (gray, depth image) on the device and the constants."""
-    _check_template(rgb, "rgb")
-    _check_template(depth, "depth")
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a gputrack.Camera, got {type(camera).__name__}")
-    lam = _check_scalar(lam, "lam", low=0.0, high=1.0)
-    c_rgb = 0.5 / rgb.n if c_rgb is None else _check_scalar(c_rgb, "c_rgb", positive=True)  # eq. 17: c = 0.5/N
-    c_depth = _check_scalar(c_depth, "c_depth", positive=True)
-    depth_tol = _check_scalar(depth_tol, "depth_tol", low=0.0)
+def frame_args(device, scene, gray, depth_image, n_parts):
+    """Check a scene for hypotheses of ``n_parts`` parts and the frame's images on ``device``; return
+    (gray, depth image) on the device."""
+    if not isinstance(scene, RgbdScene):
+        raise TypeError(f"scene: expected a gputrack.RgbdScene, got {type(scene).__name__}")
     if n_parts == 0:
         raise ValueError("transforms: expected at least one part, got J = 0")
-    for t, name in ((rgb, "rgb"), (depth, "depth")):
+    for t, name in ((scene.rgb, "rgb"), (scene.depth, "depth")):
         if t.n_parts > n_parts:
-            raise ValueError(f"{name}.part: expected part indices in [0, J={n_parts}), got {t.n_parts - 1}")
+            raise ValueError(f"scene.{name}.part: expected part indices in [0, J={n_parts}), got {t.n_parts - 1}")
     img = {}
     # depth images may hold non-finite values: they mean "no measurement"
     g = arg(device, gray, "gray", ("H", "W"), img)
     d = arg(device, depth_image, "depth_image", ("H", "W"), img, finite=False)
     if img["H"] < 2 or img["W"] < 2:
         raise ValueError(f"gray: expected an image of at least 2 x 2 pixels, got {img['H']} x {img['W']}")
-    return g, d, {"lam": lam, "c_rgb": c_rgb, "c_depth": c_depth, "depth_tol": depth_tol}
+    return g, d
 
 
-def rgbd_cost(
-    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0,
-    out=None,
-) -> RgbdCost:
+def _rgbd_args(device, transforms, scene, gray, depth_image):
+    check_device(device)
+    dims = {}
+    tf = arg(device, transforms, "transforms", ("B", "J", 3, 4), dims)
+    if dims["B"] == 0:
+        raise ValueError("transforms: expected at least one hypothesis, got B = 0")
+    g, d = frame_args(device, scene, gray, depth_image, dims["J"])
+    return tf, g, d
+
+
+def rgbd_cost(device, transforms, scene, gray, depth_image, *, out=None) -> RgbdCost:
     """RGB-D sparse-template cost of B hypotheses (paper 000 eq. 17-19), one kernel launch.
 
-    transforms: (B, J, 3, 4) float32 camera-from-part transforms; rgb, depth: SparseTemplate
-    (N and N' points, part indices < J); gray: (H, W) float32 intensities; depth_image: (H, W)
-    float32 depth in the units of the template (mm), 0 or non-finite = no measurement;
-    camera: Camera. ``c_rgb=None`` means 0.5/N; ``depth_tol`` (mm, >= 0): the depth difference
-    that counts as none (0: the paper's eq. 18). Returns :class:`RgbdCost` (total, rgb, depth),
-    each (B,) float32. ``out``: an RgbdCost of (B,) float32 arrays on the device (e.g. an earlier
-    result) to write into instead of allocating (a filter stage that runs every frame saves the
-    allocations). See the module docstring for the exact conventions.
+    transforms: (B, J, 3, 4) float32 camera-from-part transforms; scene: :class:`RgbdScene` (the
+    templates' part indices < J); gray: (H, W) float32 intensities; depth_image: (H, W) float32
+    depth in the units of the template (mm), 0 or non-finite = no measurement. Returns
+    :class:`RgbdCost` (total, rgb, depth), each (B,) float32. ``out``: an RgbdCost of (B,) float32
+    arrays on the device (e.g. an earlier result) to write into instead of allocating (a filter
+    stage that runs every frame saves the allocations). See the module docstring for the exact
+    conventions.
     """
-    tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
-                              depth_tol)  # fmt: skip
+    tf, g, d = _rgbd_args(device, transforms, scene, gray, depth_image)
     nb = tf.shape[0]
     if out is not None and not isinstance(out, RgbdCost):
         raise TypeError(f"out: expected a gputrack.RgbdCost (e.g. an earlier result), got {type(out).__name__}")
@@ -277,16 +340,12 @@ def rgbd_cost(
         out_array(device, None if out is None else getattr(out, f), f"out.{f}", (nb,))
         for f in ("total", "rgb", "depth")
     )
-    backend_module(device, "template").rgbd_cost(
-        device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), *outs, **p
-    )
+    rgb, dep, cam, p = scene.kernel_args(device)
+    backend_module(device, "template").rgbd_cost(device, tf, rgb, dep, g, d, cam, *outs, **p)
     return out if out is not None else RgbdCost(*outs)
 
 
-def rgbd_residuals(
-    device, transforms, rgb, depth, gray, depth_image, camera, *, lam=0.9, c_rgb=None, c_depth=5.0, depth_tol=0.0,
-    out=None,
-):
+def rgbd_residuals(device, transforms, scene, gray, depth_image, *, out=None):
     """Residuals of eq. 20-21 for B hypotheses: (B, N + N') float32, RGB points then depth points.
 
     r_i = sqrt(1-lam) d_i / sqrt(c^2 + d_i^2), r'_i = sqrt(lam) d'_i / sqrt(c'^2 + d'_i^2); an
@@ -294,10 +353,8 @@ def rgbd_residuals(
     sum(r**2, axis=1) equals ``rgbd_cost(...).total``. Same arguments as :func:`rgbd_cost`;
     ``out``: a (B, N + N') float32 array on the device to write into.
     """
-    tf, g, d, p = _rgbd_args(device, transforms, rgb, depth, gray, depth_image, camera, lam, c_rgb, c_depth,
-                              depth_tol)  # fmt: skip
-    res = out_array(device, out, "out", (tf.shape[0], rgb.n + depth.n))
-    backend_module(device, "template").rgbd_residuals(
-        device, tf, rgb.on(device), depth.on(device), g, d, camera.as_array(), res, **p
-    )
+    tf, g, d = _rgbd_args(device, transforms, scene, gray, depth_image)
+    res = out_array(device, out, "out", (tf.shape[0], scene.n))
+    rgb, dep, cam, p = scene.kernel_args(device)
+    backend_module(device, "template").rgbd_residuals(device, tf, rgb, dep, g, d, cam, res, **p)
     return res

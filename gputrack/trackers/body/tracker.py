@@ -35,7 +35,7 @@ from ...ops.lm import LeastSquaresSolver
 from ...ops.model_template import model_template
 from ...ops.pf import pf_stage
 from ...ops.pose_residuals import pose_residuals
-from ...ops.template import SparseTemplate
+from ...ops.template import RgbdScene, SparseTemplate
 from ...scheduler import Scheduler, SkipFrame, Stage
 
 log = logging.getLogger("gputrack")
@@ -76,6 +76,9 @@ class BodyTrackerConfig:
     recover_ratio: float = 2.0
     recover_window: int = 30
     recover_sigma: float = 2.0
+    # constant-velocity start: the better half of the C candidates is also moved by the last
+    # frame's motion (the other half starts where the last frame ended); False: the paper's start
+    predict: bool = True
 
     def __post_init__(self):
         for name in ("candidates", "samples", "stages", "n_rgb", "n_depth", "template_every"):
@@ -143,8 +146,10 @@ class BodyTracker:
         self.params = p0
         self.candidates = np.repeat(p0[None], cfg.candidates, axis=0)
         self.frame_index = 0
+        self._motion = None  # the last tracked frame's change of the estimate (predict)
         self._rng = np.random.default_rng(cfg.seed)
         self._templates = None
+        self._scene = None  # the templates with the camera and eq. 17-19's constants (RgbdScene)
         self._given_templates = None  # templates passed to track() for this frame
         # constant device data, uploaded once: per-stage (and per-cascade-group) sigmas
         sigma = pf_sigma(self.chain) if sigma is None else np.asarray(sigma, dtype=np.float64)
@@ -225,20 +230,19 @@ class BodyTracker:
                                             cfg.n_depth))  # fmt: skip
 
     def _set_templates(self, rgb, dep):
-        rgb.to(self.device)
-        dep.to(self.device)
+        cfg = self.config
+        self._scene = RgbdScene(rgb, dep, self.camera, lam=cfg.lam, c_depth=cfg.c_depth,
+                                depth_tol=cfg.depth_tol).to(self.device)  # fmt: skip
         self._templates = (rgb, dep)
         parts = np.concatenate([rgb.part, dep.part])
         self._sparsity = self.chain.jacobian_sparsity(parts)
 
-    def _residuals(self, gray, depth):
-        rgb, dep = self._templates
-        dev, cfg = self.device, self.config
+    def _residuals(self, scene, gray, depth):
+        dev, central = self.device, self.config.sparse_jacobian
 
         def residuals(points):  # with the sparse Jacobian, only the entries it reads (Fig. 2)
-            key = (points.shape[0], rgb.n + dep.n)
-            r = pose_residuals(dev, self.chain, points, rgb, dep, gray, depth, self.camera, lam=cfg.lam,
-                               c_depth=cfg.c_depth, depth_tol=cfg.depth_tol, central=cfg.sparse_jacobian,
+            key = (points.shape[0], scene.n)
+            r = pose_residuals(dev, self.chain, points, scene, gray, depth, central=central,
                                out=self._residual_out.get(key))  # fmt: skip
             self._residual_out[key] = r
             return r
@@ -252,8 +256,8 @@ class BodyTracker:
                          outputs=("estimate", "cost"), profile=self._profile)  # fmt: skip
 
     def _stages(self, sigmas) -> list[Stage]:
-        cfg, images = self.config, ("gray", "depth", "rgb", "dep")
-        stages = [Stage("template", self._template_stage, writes=("rgb", "dep"))]
+        cfg, images = self.config, ("gray", "depth", "scene")
+        stages = [Stage("template", self._template_stage, writes=("scene",))]
         calls = 0
         for s in range(cfg.stages):
             for g, sigma in enumerate(sigmas[s]):
@@ -281,7 +285,7 @@ class BodyTracker:
                 raise SkipFrame(str(e)) from None
         else:
             return
-        b["rgb"], b["dep"] = self._templates
+        b["scene"] = self._scene
 
     def _pf_stage(self, sigma, prev: str, out: str):
         """One particle-filter stage (sec. 3.1, eq. 12-19) around the candidates in ``prev``; two
@@ -290,9 +294,8 @@ class BodyTracker:
 
         def stage(b):
             seed = int(self._rng.integers(2**63))
-            best = pf_stage(self.device, self.chain, b[prev], sigma, cfg.samples, seed, b["rgb"], b["dep"], b["gray"],
-                            b["depth"], self.camera, k=cfg.candidates, lam=cfg.lam, c_depth=cfg.c_depth,
-                            depth_tol=cfg.depth_tol, out=b.get(out))  # fmt: skip
+            best = pf_stage(self.device, self.chain, b[prev], sigma, cfg.samples, seed, b["scene"], b["gray"],
+                            b["depth"], k=cfg.candidates, out=b.get(out))  # fmt: skip
             b[out], b["candidates"], b["scores"] = best, best.rows, best.scores
 
         return stage
@@ -300,7 +303,7 @@ class BodyTracker:
     def _lm_stage(self, b):
         """Sec. 3.4, eq. 20-24: LM on all C candidates at once; the estimate sorted by cost."""
         cfg = self.config
-        res = self._lm.solve(self._residuals(b["gray"], b["depth"]), b["candidates"].astype(np.float64),
+        res = self._lm.solve(self._residuals(b["scene"], b["gray"], b["depth"]), b["candidates"].astype(np.float64),
                              jac_sparsity=self._sparsity if cfg.sparse_jacobian else None)  # fmt: skip
         order = np.argsort(res.cost, kind="stable")
         b["estimate"], b["cost"] = res.x[order], float(res.cost[order[0]])
@@ -324,7 +327,7 @@ class BodyTracker:
             return self._keep("no valid depth in the frame")
         self._given_templates = templates
         try:
-            out = self.scheduler.run(gray=gray, depth=depth, start=self.candidates.astype(np.float32))
+            out = self.scheduler.run(gray=gray, depth=depth, start=self._start())
         except SkipFrame as e:
             return self._keep(str(e))
         finally:
@@ -336,11 +339,20 @@ class BodyTracker:
             return self._keep("the estimate is not finite")
         if not np.isfinite(best_cost):
             return self._keep(f"the frame gives no finite cost ({best_cost})")
+        self._motion = candidates[0] - self.params
         self.candidates = candidates
         self.params = candidates[0].copy()
         self.frame_index += 1
         self._costs.append(best_cost)
         return BodyEstimate(self.params.copy(), best_cost, 1.0, candidates.copy())
+
+    def _start(self) -> np.ndarray:
+        """(C, P) float32: the candidates the frame starts from (see BodyTrackerConfig.predict)."""
+        c = self.candidates
+        if self.config.predict and self._motion is not None:
+            h = len(c) // 2
+            c = np.concatenate([c[: len(c) - h], c[:h] + self._motion])
+        return c.astype(np.float32)
 
     def _suspect(self, cost: float) -> bool:
         """A cost jump (a lost part): above recover_ratio x the median of the recent frames' costs."""
@@ -359,7 +371,7 @@ class BodyTracker:
         self.recoveries += 1
         self._given_templates = self._templates
         try:
-            out = self._recovery.run(gray=gray, depth=depth, start=self.candidates.astype(np.float32))
+            out = self._recovery.run(gray=gray, depth=depth, start=self._start())
         except SkipFrame:
             return candidates, cost
         finally:
@@ -373,4 +385,5 @@ class BodyTracker:
     def _keep(self, why: str) -> BodyEstimate:
         log.warning("frame %d: %s; keeping the last pose", self.frame_index, why)
         self.frame_index += 1
+        self._motion = None
         return BodyEstimate(self.params.copy(), float("nan"), 0.0, self.candidates.copy(), why)
