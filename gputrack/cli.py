@@ -167,7 +167,8 @@ def cmd_demo(args) -> int:
 
     report = body.run(dev, frames=args.frames, sequence_index=args.sequence, lm=args.lm, stages=args.stages,
                        shoulders=args.shoulders, seed=args.seed, template_every=args.template_every,
-                       depth_tol=args.depth_tol, n_depth=args.depth_points, save=args.save)  # fmt: skip
+                       depth_tol=args.depth_tol, n_depth=args.depth_points, predict=not args.no_predict,
+                       save=args.save)  # fmt: skip
     if args.json:
         body.write_json(report, args.json)
     return 0
@@ -270,7 +271,8 @@ def cmd_track_body(args) -> int:
     scale = args.depth_scale or extras.get("depth_scale", DEPTH_SCALE)
     base = BodyTrackerConfig(c_depth=50.0, lam=0.5) if args.rigid else BodyTrackerConfig()
     changes = {k: v for k, v in (("lm_iterations", args.lm), ("stages", args.stages), ("samples", args.samples),
-                                 ("c_depth", args.c_depth), ("lam", args.lam), ("depth_tol", args.depth_tol))
+                                 ("c_depth", args.c_depth), ("lam", args.lam), ("depth_tol", args.depth_tol),
+                                 ("predict", False if args.no_predict else None))
                if v is not None}  # fmt: skip
     try:
         config = dataclasses.replace(base, **changes)
@@ -412,6 +414,8 @@ def main(argv=None) -> int:
     )
     p.add_argument("--depth-points", type=_int_at_least(1), default=128, metavar="N",
                    help="depth template points N' (default 128)")  # fmt: skip
+    p.add_argument("--no-predict", action="store_true", help="start each frame where the last ended (the paper); "
+                   "default: half the candidates also moved by the last frame's motion")  # fmt: skip
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--save", metavar="DIR", help="write pictures (frames with the model and template points, "
                    "the per-part errors over the frames)")  # fmt: skip
@@ -480,6 +484,8 @@ def main(argv=None) -> int:
                    help="lambda of eq. 19, the depth term's weight (default 0.9; 0.5 with --rigid)")  # fmt: skip
     p.add_argument("--depth-tol", type=_float_above(0.0, inclusive=True), metavar="MM",
                    help="depth differences up to MM count as none (default 0)")  # fmt: skip
+    p.add_argument("--no-predict", action="store_true", help="start each frame where the last ended (the paper); "
+                   "default: half the candidates also moved by the last frame's motion")  # fmt: skip
     p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
     p.add_argument("--out", metavar="FILE", help="write the JSON lines here (default stdout)")
     p.add_argument("--save", metavar="DIR", help="write every 10th frame with the model and the template points")

@@ -3,8 +3,8 @@
 
 The sequence's first ``--loop`` frames are rendered once and played forth and back (0, 1, ..., L-1,
 L-2, ..., 1, 0, 1, ...): a seamless loop of any sequence (the pose is continuous; the motion turns at
-the ends). The tracker runs ``--frames`` frames with the paper's settings (PF 3 stages, K = 1500, LM
-10, the template every frame) and reports:
+the ends). The tracker runs ``--frames`` frames with the default settings (the paper's PF 3 stages, K = 1500, LM
+10, the template every frame; ``--no-predict``: the paper's start, see BodyTrackerConfig.predict) and reports:
 
 - lost frames: an arm part's axis more than ``--lost`` degrees (10) off the truth (Tables 5-6 measure);
 - episodes: runs of consecutive lost frames (count, longest, the worst error in any);
@@ -50,6 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--loop", type=int, default=96, help="frames of the sequence played forth and back (96)")
     ap.add_argument("--lost", type=float, default=10.0, help="an arm part this many degrees off is lost (10)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-predict", action="store_true", help="the paper's start (no constant-velocity candidates)")
     ap.add_argument("--json", default=None, help="write the figures as JSON ('-': stdout)")
     ap.add_argument("--per-frame", action="store_true", help="with --json: the per-frame errors too")
     args = ap.parse_args(argv)
@@ -58,7 +59,7 @@ def main(argv=None) -> int:
 
     import gputrack
     from gputrack.sim import SEQUENCES, sequence
-    from gputrack.trackers.body import BodyTracker, arm_axis_errors
+    from gputrack.trackers.body import BodyTracker, BodyTrackerConfig, arm_axis_errors
 
     dev = gputrack.device(args.device)
     seq = sequence(args.sequence, frames=args.loop, seed=args.seed)
@@ -66,7 +67,8 @@ def main(argv=None) -> int:
           f"{args.loop} forth and back, {dev.spec} ({dev.name}); rendering the loop ...", flush=True)  # fmt: skip
     frames = list(seq)
     order = np.concatenate([np.arange(args.loop), np.arange(args.loop - 2, 0, -1)])
-    tracker = BodyTracker(dev, seq.params[0], profile=False)
+    config = BodyTrackerConfig(predict=not args.no_predict)
+    tracker = BodyTracker(dev, seq.params[0], profile=False, config=config)
     errors = np.zeros((args.frames, 4))
     bad = 0
     ms = np.zeros(args.frames)
@@ -96,7 +98,7 @@ def main(argv=None) -> int:
         growth = (m1 - m0) / (k1 - k0) * 1000
     report = {
         "device": dev.spec, "sequence": args.sequence, "name": SEQUENCES[args.sequence], "frames": args.frames,
-        "loop": args.loop, "lost_deg": args.lost, "lost_fraction": float(lost.mean()), "episodes": len(eps),
+        "loop": args.loop, "predict": config.predict, "lost_deg": args.lost, "lost_fraction": float(lost.mean()), "episodes": len(eps),
         "longest_episode": max((n for _, n in eps), default=0), "worst_deg": float(worst.max()),
         "median_error_deg": float(np.median(errors)), "nan_or_kept_frames": bad,
         "median_frame_ms": float(np.median(ms)), "rss_growth_mb_per_1000_frames": growth,

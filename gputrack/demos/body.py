@@ -41,6 +41,7 @@ def run(
     depth_tol: float = 0.0,
     n_depth: int = 128,
     samples: int = 1500,
+    predict: bool = True,
     save: str | None = None,
     out=None,
 ) -> dict:
@@ -54,11 +55,12 @@ def run(
         start = shoulders_off(start, seed)
     config = BodyTrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed,
                            template_every=template_every, depth_tol=depth_tol, n_depth=n_depth,
-                               samples=samples)  # fmt: skip
+                               samples=samples, predict=predict)  # fmt: skip
     tracker = BodyTracker(device, start, config=config)
     print(f"gputrack demo body: sequence {seq.index} ({SEQUENCES[seq.index]}), {frames} frames, device "
           f"{device.spec} ({device.name}), PF {stages} stages x K={config.samples}, LM {lm} iterations, "
           f"N'={n_depth} depth points, depth tolerance {depth_tol:g} mm"
+          + ("" if predict else ", no motion prediction")
           + (", shoulders estimated (started 30 mm off)" if shoulders else ""), file=out)  # fmt: skip
     if save:
         os.makedirs(save, exist_ok=True)
@@ -95,6 +97,7 @@ def run(
             "template_every": template_every,
             "depth_tol": depth_tol,
             "n_depth": n_depth,
+            "predict": predict,
         },
         "mean_arm_axis_error_deg": mean,
         "frames": per_frame,
