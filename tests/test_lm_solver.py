@@ -196,6 +196,34 @@ def test_a_solver_solves_again_and_again_on_its_own_buffers(device):
     assert not solver._bufs.held
 
 
+def test_a_solver_whose_residual_count_changes_keeps_a_bounded_pool(device):
+    """A tracker's LM sees another M whenever its template's point count changes: the buffers of the
+    sizes it no longer uses go back to the device's pool, which keeps at most POOL_MAX of them (the
+    oldest sizes dropped, their cached host copies too), and the answers stay those of a fresh solve."""
+    if device.backend == "numpy":
+        pytest.skip("the numpy device has no buffer pool (NumPy arrays are made per call)")
+    from gputrack.ops.lm import _Buffers
+
+    solver = LeastSquaresSolver(device, (2, 2), max_iter=5, damping_scale="minpack")
+    x0 = np.array([[1.0, 0.0], [2.0, -2.0]])
+    pool = _Buffers._free.setdefault(device, {})
+    for M in range(8, 8 + 3 * _Buffers.POOL_MAX, 3):
+        t = np.linspace(0, 2, M)
+
+        def fit(X, t=t):
+            return X[:, :1] * np.exp(X[:, 1:2] * t) - 2.5 * np.exp(-1.3 * t)
+
+        got = solver.solve(_host(fit), x0)
+        want = least_squares(_host(fit), x0, device=gputrack.device("numpy"), max_iter=5, damping_scale="minpack")
+        np.testing.assert_allclose(got.x, want.x, rtol=1e-4 if device.fp64 else 1e-2)
+        assert sum(len(v) for v in pool.values()) <= _Buffers.POOL_MAX
+    held = {id(arr) for _, arr in solver._bufs.held.values()}
+    pooled = {id(a) for v in pool.values() for a in v}
+    sent = _Buffers._sent.get(device, {})
+    assert set(sent) <= held | pooled  # no cached copy keeps a dropped buffer alive
+    solver.close()
+
+
 def test_solver_settings_and_solve_inputs_are_checked(device):
     with pytest.raises(ValueError, match=r"^damping_scale: expected one of 'identity', 'marquardt', 'minpack', got 'jacobi'\Z"):
         LeastSquaresSolver(device, (2, 3), damping_scale="jacobi")

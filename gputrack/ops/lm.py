@@ -923,10 +923,13 @@ class _Buffers:
     at its end, so the next one reuses them; a nested solve takes buffers of its own).
 
     Allocating a Taichi ndarray costs ~0.5 ms, a solve needs seven. Uploads into a reused buffer
-    are counted in ``device.transfers`` like any other.
+    are counted in ``device.transfers`` like any other. The pool keeps at most ``POOL_MAX`` buffers
+    per device, the least recently returned sizes dropped first: a solver whose residual count
+    changes from call to call (a tracker's template of N + N' points) holds only its current sizes.
     """
 
-    _free: ClassVar[weakref.WeakKeyDictionary] = per_device_cache()
+    POOL_MAX = 32
+    _free: ClassVar[weakref.WeakKeyDictionary] = per_device_cache()  # device -> {key: [arrays]}, oldest first
     _sent: ClassVar[weakref.WeakKeyDictionary] = per_device_cache()  # cached uploads
 
     def __init__(self, device):
@@ -941,11 +944,26 @@ class _Buffers:
             return have[1]
         free = self._free.setdefault(dev, {})
         if have is not None and have[0][0] != "host":  # another size: back to the pool
-            free.setdefault(have[0], []).append(have[1])
+            self._give_back(free, *have)
         avail = free.get(key)
         arr = avail.pop() if avail else dev.empty(shape, dtype)
+        if avail == []:
+            del free[key]
         self.held[role] = (key, arr)
         return arr
+
+    def _give_back(self, free: dict, key, arr):
+        """``arr`` into the pool (its size the most recent), then the oldest sizes dropped beyond POOL_MAX."""
+        free[key] = [*free.pop(key, []), arr]
+        n = sum(len(v) for v in free.values())
+        sent = self._sent.get(self.device, {})
+        while n > self.POOL_MAX:
+            oldest = next(iter(free))
+            dropped = free[oldest].pop(0)
+            sent.pop(id(dropped), None)  # its host copy goes too (it holds a reference to the buffer)
+            if not free[oldest]:
+                del free[oldest]
+            n -= 1
 
     def empty(self, role, shape, dtype):
         if self.device.backend == "numpy":
@@ -1009,7 +1027,7 @@ class _Buffers:
         free = self._free.setdefault(self.device, {})
         for key, arr in held.values():
             if key[0] != "host":
-                free.setdefault(key, []).append(arr)
+                self._give_back(free, key, arr)
 
 
 def _rel_step(dt, pdt=None, diff="central") -> float:

@@ -164,7 +164,7 @@ class BodyTracker:
         self._lm = LeastSquaresSolver(device, self.candidates.shape, max_iter=cfg.lm_iterations, step=self._lm_step,
                                       points_dtype=np.float32, early_stop=False) if cfg.lm_iterations else None  # fmt: skip
         self._sparsity = None
-        self._residual_out = {}  # pose_residuals' output arrays by shape, reused as out=
+        self._residual_out = {}  # rows -> pose_residuals' output array (of the last N + N'), reused as out=
         self._profile = profile
         self.scheduler = self._scheduler(self._sigmas)
         # the recovery pass (see BodyTrackerConfig.recover_ratio): the same stages, wider sigmas,
@@ -241,11 +241,13 @@ class BodyTracker:
         dev, central = self.device, self.config.sparse_jacobian
 
         def residuals(points):  # with the sparse Jacobian, only the entries it reads (Fig. 2)
-            key = (points.shape[0], scene.n)
-            r = pose_residuals(dev, self.chain, points, scene, gray, depth, central=central,
-                               out=self._residual_out.get(key))  # fmt: skip
-            self._residual_out[key] = r
-            return r
+            rows = points.shape[0]  # the stack of a step, then the points of the last one
+            out = self._residual_out.get(rows)
+            if out is not None and out.shape[1] != scene.n:
+                out = None  # the template's point count changed: a new array replaces the old one
+            out = self._residual_out[rows] = pose_residuals(dev, self.chain, points, scene, gray, depth,
+                                                            central=central, out=out)  # fmt: skip
+            return out
 
         return residuals
 
