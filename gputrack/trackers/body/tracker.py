@@ -77,7 +77,10 @@ class BodyTrackerConfig:
     recover_window: int = 30
     recover_sigma: float = 2.0
     # constant-velocity start: the better half of the C candidates is also moved by the last
-    # frame's motion (the other half starts where the last frame ended); False: the paper's start
+    # frame's motion (the other half starts where the last frame ended); False: the paper's start.
+    # With the LM the motion is measured to ~0.2 deg, and long runs stop losing arms (perf/README.md);
+    # the particle filter alone measures it to ~1 deg, and the start helps fast motion (arm_swing's
+    # forearms 1.4 -> 1.0 deg) but not slow (arm_cross from rest: 0.8 -> 1.0 deg)
     predict: bool = True
 
     def __post_init__(self):
