@@ -9,6 +9,7 @@ the ends). The tracker runs ``--frames`` frames with the default settings (the p
 - lost frames: an arm part's axis more than ``--lost`` degrees (10) off the truth (Tables 5-6 measure);
 - episodes: runs of consecutive lost frames (count, longest, the worst error in any);
 - frames with a NaN pose or confidence 0;
+- the recovery passes run (BodyTrackerConfig.recover_ratio) and how many of them were kept;
 - the median frame time (ms) and the resident memory's growth per 1000 frames, from frame
   max(20 % of the run, min(1100, half of it)) (after warm-up and the profiler's 1000-frame history) to the end.
 
@@ -102,12 +103,14 @@ def main(argv=None) -> int:
         "longest_episode": max((n for _, n in eps), default=0), "worst_deg": float(worst.max()),
         "median_error_deg": float(np.median(errors)), "nan_or_kept_frames": bad,
         "median_frame_ms": float(np.median(ms)), "rss_growth_mb_per_1000_frames": growth,
+        "recovery_passes": tracker.recoveries, "recovery_kept": tracker.recovered,
     }  # fmt: skip
     print(f"lost frames (an arm part > {args.lost:g} deg): {lost.mean():.2%}; episodes {len(eps)}, longest "
           f"{report['longest_episode']} frames; worst {worst.max():.1f} deg; median error "
           f"{report['median_error_deg']:.3f} deg; NaN or kept frames {bad}; median frame "
           f"{report['median_frame_ms']:.1f} ms; memory growth "
-          + ("n/a" if growth is None else f"{growth:+.2f} MB per 1000 frames"))  # fmt: skip
+          + ("n/a" if growth is None else f"{growth:+.2f} MB per 1000 frames")
+          + f"; recovery passes {tracker.recoveries} ({tracker.recovered} kept)")  # fmt: skip
     if args.json:
         if args.per_frame:
             report["errors_deg"] = errors.round(4).tolist()

@@ -210,7 +210,8 @@ def test_soak_body_reports_its_figures(tmp_path):
     assert doc["device"] == "numpy" and doc["frames"] == 4 and len(doc["errors_deg"]) == 4
     assert 0.0 <= doc["lost_fraction"] <= 1.0 and doc["nan_or_kept_frames"] == 0
     assert doc["median_frame_ms"] > 0 and doc["rss_growth_mb_per_1000_frames"] is not None
-    assert "lost frames (an arm part > 10 deg)" in proc.stdout
+    assert 0 <= doc["recovery_kept"] <= doc["recovery_passes"] and doc["predict"] is True
+    assert "lost frames (an arm part > 10 deg)" in proc.stdout and "recovery passes" in proc.stdout
 
 
 def test_soak_episodes():
