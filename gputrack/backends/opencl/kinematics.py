@@ -10,10 +10,13 @@ from ...models.chain import chain_tables
 
 @per_device
 def _kernel(device, double: int):
-    """The kernel, once per device and precision (retrieving it from the program each call is costly)."""
+    """The kernel, once per device and precision (retrieving it from the program each call is costly).
+    float32 on a CPU device takes the native sines (GT_FK_NATIVE, see kernels/gt_kinematics.clh)."""
     import pyopencl as cl
 
-    return cl.Kernel(device.program("gt_kinematics.cl", {"GT_FK_DOUBLE": double}), "gt_forward_kinematics")
+    native = int(not double and device.info.kind == "cpu")
+    defines = {"GT_FK_DOUBLE": double, "GT_FK_NATIVE": native}
+    return cl.Kernel(device.program("gt_kinematics.cl", defines), "gt_forward_kinematics")
 
 
 def forward_kinematics(device, chain, params, out):
