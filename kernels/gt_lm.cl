@@ -449,27 +449,30 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
         for (int n = lid; n < P; n += ls)
             ib[GT_LM_I_FIN + n] = isfinite(L[n * P + n]) ? 1 : 0;
 #else
+    // the P x M entries shared out over the work-items (consecutive m: consecutive work-items); a
+    // non-finite difference clears its column's flag
+    if (running && !final_)
+        for (int n = lid; n < P; n += ls)
+            ib[GT_LM_I_FIN + n] = 1;
+    barrier(CLK_GLOBAL_MEM_FENCE);
     if (running && !final_) {
-        for (int n = lid; n < P; n += ls) {
-            int okn = 1;
-            __global REAL *row = Jt + n * M;
-            const REAL dn = den[n];
-            // the row moved by +eps and the one it is compared with: moved by -eps (central, eq. 24)
-            // or the point's (forward)
-            const int central = SR == 2 * P + 1;
-            __global const RTYPE *rp = R + ((long)b * SR + 1 + (central ? 2 * n : n)) * M;
-            __global const RTYPE *rm = central ? rp + M : R + (long)b * SR * M;
-            for (int m = 0; m < M; ++m) {
-                REAL v = 0;
-                if (!has_mask || mask[m * P + n] != 0) {
-                    const REAL d = (REAL)rp[m] - (REAL)rm[m];  // r(x + eps e_n) - r(x -+ eps e_n)
-                    okn &= isfinite(d) ? 1 : 0;
-                    if (dn != 0)
-                        v = d / dn;  // eq. 24
-                }
-                row[m] = v;
+        const int central = SR == 2 * P + 1;
+        for (int q = lid; q < P * M; q += ls) {
+            const int n = q / M, m = q - n * M;
+            REAL v = 0;
+            if (!has_mask || mask[m * P + n] != 0) {
+                // the row moved by +eps and the one it is compared with: moved by -eps (central,
+                // eq. 24) or the point's (forward)
+                __global const RTYPE *rp = R + ((long)b * SR + 1 + (central ? 2 * n : n)) * M;
+                __global const RTYPE *rm = central ? rp + M : R + (long)b * SR * M;
+                const REAL d = (REAL)rp[m] - (REAL)rm[m];  // r(x + eps e_n) - r(x -+ eps e_n)
+                if (!isfinite(d))
+                    atomic_and(ib + GT_LM_I_FIN + n, 0);
+                const REAL dn = den[n];
+                if (dn != 0)
+                    v = d / dn;  // eq. 24
             }
-            ib[GT_LM_I_FIN + n] = okn;
+            Jt[n * M + m] = v;
         }
     }
 #endif
