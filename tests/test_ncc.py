@@ -24,7 +24,9 @@ def ncc_scene(rng, b, k, s, h=40, w=56):
     return pts, tpl, img
 
 
-@pytest.mark.parametrize("b,k,s", [(1, 1, 1), (1, 1, 2), (13, 10, 16), (129, 3, 5), (1000, 10, 16)])
+@pytest.mark.parametrize(
+    "b,k,s", [(1, 1, 1), (1, 1, 2), (13, 10, 16), (129, 3, 5), (1000, 10, 16), (37, 4, 4), (21, 3, 8), (17, 3, 12)]
+)
 def test_patch_ncc_matches_reference(device, b, k, s):
     rng = np.random.default_rng(b * 100 + k + s)
     pts, tpl, img = ncc_scene(rng, b, k, s)
@@ -127,3 +129,28 @@ def test_extreme_finite_values_are_clamped_alike_on_every_backend(device):
     np.testing.assert_allclose(patch_ncc_per_point(REF, pts, cases["template x -2**47"][1], img), -plain, atol=1e-5)
     assert np.abs(patch_ncc_per_point(REF, pts, tpl, signs)).max() > 0.1  # a real score, not 0
     np.testing.assert_array_equal(patch_ncc_per_point(REF, pts, cases["template x 1e30"][1], img), 0.0)
+
+
+@pytest.mark.parametrize("s", [4, 8, 12, 16])
+def test_extreme_values_are_clamped_alike_at_vector_widths(device, s):
+    """The clamp to +-INTENSITY_MAX at the patch sizes a backend may vectorise (S a multiple of 4 or
+    8, as kernels/gt_ncc.cl does): pixels and template values of +-3e38 or scaled past the limit
+    score as the reference's clamped input."""
+    rng = np.random.default_rng(s)
+    pts, tpl, img = ncc_scene(rng, 19, 3, s)
+    tpl[0] = img[4 : 4 + s, 6 : 6 + s]
+    pts[0, 0] = (6 + (s - 1) / 2, 4 + (s - 1) / 2)
+    signs = np.where(img > 100, 3e38, -3e38).astype(np.float32)
+    cases = {
+        "image of +-3e38": (signs, tpl),
+        "image x 1e36": ((img * 1e36).astype(np.float32), tpl),
+        "template x -1e30": (img, (tpl * -1e30).astype(np.float32)),
+        "both x 2**40": ((img * 2.0**40).astype(np.float32), (tpl * 2.0**40).astype(np.float32)),
+    }
+    for name, (im, tp) in cases.items():
+        want = patch_ncc_per_point(REF, pts, tp, im)
+        assert np.isfinite(want).all(), name
+        assert_matches(device, patch_ncc_per_point(device, pts, tp, im), want, scale=10.0, err_msg=name)
+        assert_matches(device, patch_ncc(device, pts, tp, im), want.astype(np.float64).sum(axis=1), scale=30.0,
+                       err_msg=name)  # fmt: skip
+    assert np.abs(patch_ncc_per_point(REF, pts, tpl, signs)).max() > 0.1  # a real score, not 0
