@@ -139,6 +139,17 @@ def test_the_start_moves_the_better_half_by_the_last_motion(arm_cross):
         np.testing.assert_array_equal(start[C - h :], moved.astype(np.float32))
         tracker.track(np.full_like(frames[2].gray, 0.5), np.zeros_like(frames[2].depth))  # kept: no motion
         np.testing.assert_array_equal(tracker._start(), tracker.candidates.astype(np.float32))
+    # the shoulder positions (the 20-parameter chain) are the body's build: the filter does not sample
+    # them and the start does not move them
+    seq = sequence("shoulder_spread", frames=3, seed=0, shoulders=True)
+    tracker = BodyTracker(device, shoulders_off(seq.params[0], 0), config=BodyTrackerConfig(
+        lm_iterations=3, samples=200, shoulders=True))  # fmt: skip
+    before = tracker.params.copy()
+    tracker.track(seq[1].gray, seq[1].depth)
+    motion, cand, start = tracker.params - before, tracker.candidates, tracker._start()
+    assert np.abs(motion[14:]).max() > 0  # the LM moved them
+    np.testing.assert_array_equal(start[5:, 14:], cand[:5, 14:].astype(np.float32))
+    np.testing.assert_array_equal(start[5:, :14], (cand[:5, :14] + motion[:14]).astype(np.float32))
 
 
 SHOULDER_TRIALS = 3

@@ -77,7 +77,8 @@ class BodyTrackerConfig:
     recover_window: int = 30
     recover_sigma: float = 2.0
     # constant-velocity start: the better half of the C candidates is also moved by the last
-    # frame's motion (the other half starts where the last frame ended); False: the paper's start.
+    # frame's motion (of the parameters the filter samples; the other half starts where the last
+    # frame ended); False: the paper's start.
     # With the LM the motion is measured to ~0.2 deg, and long runs stop losing arms (perf/README.md);
     # the particle filter alone measures it to ~1 deg, and the start helps fast motion (arm_swing's
     # forearms 1.4 -> 1.0 deg) but not slow (arm_cross from rest: 0.8 -> 1.0 deg)
@@ -158,6 +159,9 @@ class BodyTracker:
         sigma = pf_sigma(self.chain) if sigma is None else np.asarray(sigma, dtype=np.float64)
         if sigma.shape != (self.chain.n_params,) or not np.isfinite(sigma).all() or (sigma < 0).any():
             raise ValueError(f"sigma: expected ({self.chain.n_params},) finite values >= 0, got {sigma!r}")
+        # the motion of the constant-velocity start: of the parameters the filter samples (the
+        # shoulder positions of the 20-parameter chain are the body's build, not motion)
+        self._moves = sigma > 0
         groups = self._groups() if cfg.cascade else [np.ones(self.chain.n_params, bool)]
         self._sigmas = [[(sigma * g / 2**s).astype(np.float32) for g in groups] for s in range(cfg.stages)]
         angle = np.zeros(self.chain.n_params, bool)
@@ -356,7 +360,7 @@ class BodyTracker:
         c = self.candidates
         if self.config.predict and self._motion is not None:
             h = len(c) // 2
-            c = np.concatenate([c[: len(c) - h], c[:h] + self._motion])
+            c = np.concatenate([c[: len(c) - h], c[:h] + np.where(self._moves, self._motion, 0.0)])
         return c.astype(np.float32)
 
     def _suspect(self, cost: float) -> bool:
