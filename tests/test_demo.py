@@ -171,3 +171,27 @@ def test_demo_body_save_option_reaches_the_demo(tmp_path, monkeypatch):
     monkeypatch.setattr(body, "run", lambda dev, **kw: seen.update(kw) or {})
     assert main(["demo", "body", "--device", "numpy", "--frames", "2", "--save", str(tmp_path / "pics")]) == 0
     assert seen["save"] == str(tmp_path / "pics") and seen["frames"] == 2
+
+
+def test_demo_body_no_predict_reaches_the_tracker(monkeypatch):
+    """--no-predict gives the paper's start (BodyTrackerConfig.predict=False); the default keeps it."""
+    import io
+
+    import gputrack
+    from gputrack.demos import body
+
+    configs = []
+    real = body.BodyTracker
+
+    def tracker(device, start, config):
+        configs.append(config)
+        return real(device, start, config=config)
+
+    monkeypatch.setattr(body, "BodyTracker", tracker)
+    for argv, want in ((["--no-predict"], False), ([], True)):
+        report = body.run(gputrack.device("numpy"), frames=2, lm=0, samples=50, predict=not argv, out=io.StringIO())
+        assert configs[-1].predict is want and report["config"]["predict"] is want
+    seen = {}
+    monkeypatch.setattr(body, "run", lambda dev, **kw: seen.update(kw) or {})
+    assert main(["demo", "body", "--device", "numpy", "--frames", "2", "--no-predict"]) == 0
+    assert seen["predict"] is False
