@@ -269,7 +269,8 @@ def cmd_track_body(args) -> int:
     except INPUT_ERRORS as e:
         return _fail(name, e)
     scale = args.depth_scale or extras.get("depth_scale", DEPTH_SCALE)
-    base = BodyTrackerConfig(c_depth=50.0, lam=0.5) if args.rigid else BodyTrackerConfig()
+    # rigid: the parameters are the frame-to-frame motion, whose last value is the constant-velocity start
+    base = BodyTrackerConfig(c_depth=50.0, lam=0.5, predict=False) if args.rigid else BodyTrackerConfig()
     changes = {k: v for k, v in (("lm_iterations", args.lm), ("stages", args.stages), ("samples", args.samples),
                                  ("c_depth", args.c_depth), ("lam", args.lam), ("depth_tol", args.depth_tol),
                                  ("predict", False if args.no_predict else None))

@@ -102,9 +102,20 @@ def test_track_body_on_a_written_recording(frame, recording, tmp_path, capsys):
     assert pic is not None and pic.shape == raw.shape and (pic != raw).any(axis=2).mean() > 0.01
 
 
-def test_track_body_rigid_path_and_mixed_sizes(recording, tmp_path, capsys):
-    """--rigid reaches the frame-template path (frame 0: the identity, no pose file needed); a later frame
-    of another size stops the run with the file named, after the lines so far."""
+def test_track_body_rigid_path_and_mixed_sizes(recording, tmp_path, capsys, monkeypatch):
+    """--rigid reaches the frame-template path (frame 0: the identity, no pose file needed), with the
+    rigid settings (its parameters are the frame-to-frame motion: no constant-velocity start on top);
+    a later frame of another size stops the run with the file named, after the lines so far."""
+    from gputrack.trackers.body import tracker as tracker_module
+
+    configs = []
+    real_init = tracker_module.BodyTracker.__init__
+
+    def init(self, *a, **kw):
+        configs.append(kw["config"])
+        real_init(self, *a, **kw)
+
+    monkeypatch.setattr(tracker_module.BodyTracker, "__init__", init)
     root, paths = copy_of(recording, tmp_path)
     cv2.imwrite(str(root / "depth" / "00001.png"), np.full((240, 320), 9000, np.uint16))
     out = tmp_path / "motion.jsonl"
@@ -115,6 +126,7 @@ def test_track_body_rigid_path_and_mixed_sizes(recording, tmp_path, capsys):
     assert "depth/00001.png: expected a 640 x 480 image" in err and "got 320 x 240" in err, err
     first = json.loads(out.read_text().splitlines()[0])
     assert first["params"] == [0.0] * 6 and first["pose"] == np.eye(4).tolist()
+    assert len(configs) == 1 and configs[0].predict is False and (configs[0].c_depth, configs[0].lam) == (50.0, 0.5)
 
 
 def test_pairing_by_number_and_by_time(tmp_path):

@@ -373,7 +373,9 @@ def track_recording(device, rgb: str, depth: str, out, *, camera: Camera | None 
         p0 = np.zeros(6) if start is None else np.asarray(start, dtype=np.float64)
         if p0.shape != (6,):
             raise ValueError(f"{start_name}: expected the 6 parameters of the first motion, got shape {p0.shape}")
-        config = config or BodyTrackerConfig(c_depth=50.0, lam=0.5)
+        # the parameters are the motion from one frame to the next: starting from the last motion is
+        # already a constant-velocity start (moving it by its change would extrapolate the acceleration)
+        config = config or BodyTrackerConfig(c_depth=50.0, lam=0.5, predict=False)
         sigma = np.array([1 * deg, 1 * deg, 1 * deg, 10.0, 10.0, 10.0]) if sigma is None else sigma
     else:
         if start is None:
