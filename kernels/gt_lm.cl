@@ -154,20 +154,38 @@ __kernel void gt_lm_solve(__global const REAL *J, __global const REAL *r, __glob
 // ------------------------------------------------------------------------------------------------
 // solver: packed state (gputrack.ops.lm.Layout), one launch per iteration
 
-// a . b over M contiguous values, four partial sums
-static REAL gt_dot(__global const REAL *a, __global const REAL *b, const int M)
+#ifdef REAL_IS_DOUBLE
+#define REAL2 double2
+#define REAL4 double4
+#else
+#define REAL2 float2
+#define REAL4 float4
+#endif
+
+// The dots of rows a0, a1 with rows b0, b1 (M contiguous values each; a . b as four partial sums,
+// the lanes of a vector: lane k sums m = k mod 4, the tail into lane 0), four independent chains.
+static REAL4 gt_dot22(__global const REAL *a0, __global const REAL *a1, __global const REAL *b0,
+                      __global const REAL *b1, const int M)
 {
-    REAL s0 = 0, s1 = 0, s2 = 0, s3 = 0;
+    REAL4 s00 = 0, s01 = 0, s10 = 0, s11 = 0;
     int m = 0;
     for (; m + 3 < M; m += 4) {
-        s0 += a[m] * b[m];
-        s1 += a[m + 1] * b[m + 1];
-        s2 += a[m + 2] * b[m + 2];
-        s3 += a[m + 3] * b[m + 3];
+        const REAL4 x0 = vload4(0, a0 + m), x1 = vload4(0, a1 + m);
+        const REAL4 y0 = vload4(0, b0 + m), y1 = vload4(0, b1 + m);
+        s00 += x0 * y0;
+        s01 += x0 * y1;
+        s10 += x1 * y0;
+        s11 += x1 * y1;
     }
-    for (; m < M; ++m)
-        s0 += a[m] * b[m];
-    return (s0 + s1) + (s2 + s3);
+    REAL t00 = s00.x, t01 = s01.x, t10 = s10.x, t11 = s11.x;
+    for (; m < M; ++m) {
+        t00 += a0[m] * b0[m];
+        t01 += a0[m] * b1[m];
+        t10 += a1[m] * b0[m];
+        t11 += a1[m] * b1[m];
+    }
+    return (REAL4)((t00 + s00.y) + (s00.z + s00.w), (t01 + s01.y) + (s01.z + s01.w),
+                   (t10 + s10.y) + (s10.z + s10.w), (t11 + s11.y) + (s11.z + s11.w));
 }
 
 // Entry q of the lower triangle of a P x P matrix, row by row: (i, j) with j <= i.
@@ -402,19 +420,23 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
         __global const JTYPE *Jb = Jg + (long)b * M * P;
 #ifdef LM_P
         // P a build define: row i of J^T J and J^T r per work-item, the P columns in registers (row
-        // m of J: x = J[m, i] times the contiguous row)
+        // m of J: x = J[m, i] times the contiguous row); the j loops unrolled, else PoCL keeps acc in
+        // memory as a per-work-item array (a load and a store per FMA, ~2x slower)
         for (int i = lid; i < LM_P; i += ls) {
             REAL acc[LM_P];
             REAL ag = 0;
+#pragma unroll
             for (int j = 0; j < LM_P; ++j)
                 acc[j] = 0;
             for (int m = 0; m < M; ++m) {
                 __global const JTYPE *Jm = Jb + m * LM_P;
                 const REAL x = (REAL)Jm[i];
                 ag += x * (REAL)rt[m];
+#pragma unroll
                 for (int j = 0; j < LM_P; ++j)
                     acc[j] += x * (REAL)Jm[j];
             }
+#pragma unroll
             for (int j = 0; j < LM_P; ++j)
                 L[i * LM_P + j] = acc[j];
             Jt[i] = ag;
@@ -457,22 +479,30 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     barrier(CLK_GLOBAL_MEM_FENCE);
     if (running && !final_) {
         const int central = SR == 2 * P + 1;
-        for (int q = lid; q < P * M; q += ls) {
-            const int n = q / M, m = q - n * M;
-            REAL v = 0;
-            if (!has_mask || mask[m * P + n] != 0) {
-                // the row moved by +eps and the one it is compared with: moved by -eps (central,
-                // eq. 24) or the point's (forward)
-                __global const RTYPE *rp = R + ((long)b * SR + 1 + (central ? 2 * n : n)) * M;
-                __global const RTYPE *rm = central ? rp + M : R + (long)b * SR * M;
-                const REAL d = (REAL)rp[m] - (REAL)rm[m];  // r(x + eps e_n) - r(x -+ eps e_n)
-                if (!isfinite(d))
-                    atomic_and(ib + GT_LM_I_FIN + n, 0);
-                const REAL dn = den[n];
-                if (dn != 0)
-                    v = d / dn;  // eq. 24
+        // a uniform loop over m with consecutive work-items on consecutive m (PoCL runs the
+        // work-items of each pass as the inner, vectorised loop)
+        for (int n = 0; n < P; ++n) {
+            // the row moved by +eps and the one it is compared with: moved by -eps (central, eq. 24)
+            // or the point's (forward)
+            __global const RTYPE *rp = R + ((long)b * SR + 1 + (central ? 2 * n : n)) * M;
+            __global const RTYPE *rm = central ? rp + M : R + (long)b * SR * M;
+            const REAL dn = den[n];
+            int fin = 1;  // a non-finite difference clears the column's flag
+            for (int m0 = 0; m0 < M; m0 += ls) {
+                const int m = m0 + lid;
+                if (m < M) {
+                    REAL v = 0;
+                    if (!has_mask || mask[m * P + n] != 0) {
+                        const REAL d = (REAL)rp[m] - (REAL)rm[m];  // r(x + eps e_n) - r(x -+ eps e_n)
+                        fin &= isfinite(d) ? 1 : 0;
+                        if (dn != 0)
+                            v = d / dn;  // eq. 24
+                    }
+                    Jt[n * M + m] = v;
+                }
             }
-            Jt[n * M + m] = v;
+            if (!fin)
+                atomic_and(ib + GT_LM_I_FIN + n, 0);
         }
     }
 #endif
@@ -571,26 +601,45 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                 g[q - P * P] = Jt[q - P * P];
         }
 #else
-        const int npairs = P * (P + 1) / 2;
-        for (int q = lid; q < npairs + P; q += ls) {
-            if (q < npairs) {
-                const int2 ij = gt_pair(q);
-                const int i = ij.x, j = ij.y;
-                const REAL s = gt_dot(Jt + i * M, Jt + j * M, M);
-                A[i * P + j] = s;
-                A[j * P + i] = s;
+        // by 2 x 2 blocks (rows i0, i1 of J^T J, columns j0, j1; four dots over shared loads) and
+        // pairs of J^T r entries; i1 = i0 (j1 = j0) past the last row (column)
+        const int nb = (P + 1) / 2, nblk = nb * (nb + 1) / 2;
+        for (int q = lid; q < nblk + nb; q += ls) {
+            if (q < nblk) {
+                const int2 IJ = gt_pair(q);
+                const int i0 = 2 * IJ.x, j0 = 2 * IJ.y, i1 = min(i0 + 1, P - 1), j1 = min(j0 + 1, P - 1);
+                const REAL4 s = gt_dot22(Jt + i0 * M, Jt + i1 * M, Jt + j0 * M, Jt + j1 * M, M);
+                A[i0 * P + j0] = s.x;
+                A[j0 * P + i0] = s.x;
+                if (j1 != j0 && j1 <= i0) {
+                    A[i0 * P + j1] = s.y;
+                    A[j1 * P + i0] = s.y;
+                }
+                if (i1 != i0) {
+                    A[i1 * P + j0] = s.z;
+                    A[j0 * P + i1] = s.z;
+                    if (j1 != j0) {
+                        A[i1 * P + j1] = s.w;
+                        A[j1 * P + i1] = s.w;
+                    }
+                }
             } else {
-                const int i = q - npairs;
-                __global const REAL *ri = Jt + i * M;
-                REAL s0 = 0, s1 = 0;
+                const int i0 = 2 * (q - nblk), i1 = min(i0 + 1, P - 1);
+                __global const REAL *r0 = Jt + i0 * M, *r1 = Jt + i1 * M;
+                REAL2 s0 = 0, s1 = 0;  // lane k sums m = k mod 2, the tail into lane 0
                 int m = 0;
                 for (; m + 1 < M; m += 2) {
-                    s0 += ri[m] * (REAL)rt[m];
-                    s1 += ri[m + 1] * (REAL)rt[m + 1];
+                    const REAL2 rr = (REAL2)((REAL)rt[m], (REAL)rt[m + 1]);
+                    s0 += vload2(0, r0 + m) * rr;
+                    s1 += vload2(0, r1 + m) * rr;
                 }
-                for (; m < M; ++m)
-                    s0 += ri[m] * (REAL)rt[m];
-                g[i] = s0 + s1;
+                REAL t0 = s0.x, t1 = s1.x;
+                for (; m < M; ++m) {
+                    t0 += r0[m] * (REAL)rt[m];
+                    t1 += r1[m] * (REAL)rt[m];
+                }
+                g[i0] = t0 + s0.y;
+                g[i1] = t1 + s1.y;
             }
         }
 #endif
