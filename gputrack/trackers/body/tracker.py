@@ -286,7 +286,8 @@ class BodyTracker:
     def _template_stage(self, b):
         """Sec. 2.3: the 3D sparse template, rendered at the previous estimate when due (or given)."""
         if self._given_templates is not None:
-            self._set_templates(*self._given_templates)
+            if self._given_templates is not self._templates:  # the recovery pass gives the frame's own
+                self._set_templates(*self._given_templates)
         elif self._templates is None or self.frame_index % self.config.template_every == 0:
             try:
                 self._update_template()
@@ -335,15 +336,16 @@ class BodyTracker:
         if not (np.isfinite(depth) & (depth > 0)).any():
             return self._keep("no valid depth in the frame")
         self._given_templates = templates
+        start = self._start()
         try:
-            out = self.scheduler.run(gray=gray, depth=depth, start=self._start())
+            out = self.scheduler.run(gray=gray, depth=depth, start=start)
         except SkipFrame as e:
             return self._keep(str(e))
         finally:
             self._given_templates = None
         candidates, best_cost = out["estimate"], out["cost"]
         if self._suspect(best_cost):
-            candidates, best_cost = self._recover(gray, depth, candidates, best_cost)
+            candidates, best_cost = self._recover(gray, depth, start, candidates, best_cost)
         if not np.isfinite(candidates).all():
             return self._keep("the estimate is not finite")
         if not np.isfinite(best_cost):
@@ -370,7 +372,7 @@ class BodyTracker:
             return False
         return cost > cfg.recover_ratio * float(np.median(self._costs))
 
-    def _recover(self, gray, depth, candidates, cost):
+    def _recover(self, gray, depth, start, candidates, cost):
         """Track the frame again from the same start, the sigmas widened, the template kept; the lower
         cost wins."""
         cfg = self.config
@@ -380,7 +382,7 @@ class BodyTracker:
         self.recoveries += 1
         self._given_templates = self._templates
         try:
-            out = self._recovery.run(gray=gray, depth=depth, start=self._start())
+            out = self._recovery.run(gray=gray, depth=depth, start=start)
         except SkipFrame:
             return candidates, cost
         finally:
