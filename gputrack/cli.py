@@ -51,6 +51,8 @@ def _float_above(low: float, *, inclusive: bool = False, high: float = float("in
 
 
 DEVICE_HELP = "device spec (default: GPUTRACK_DEVICE, else the best available)"
+NO_PREDICT_HELP = ("start each frame where the last ended (the paper); default: half the candidates also moved "
+                   "by the last frame's motion")
 
 
 def format_devices(infos) -> str:
@@ -415,8 +417,7 @@ def main(argv=None) -> int:
     )
     p.add_argument("--depth-points", type=_int_at_least(1), default=128, metavar="N",
                    help="depth template points N' (default 128)")  # fmt: skip
-    p.add_argument("--no-predict", action="store_true", help="start each frame where the last ended (the paper); "
-                   "default: half the candidates also moved by the last frame's motion")  # fmt: skip
+    p.add_argument("--no-predict", action="store_true", help=NO_PREDICT_HELP)
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--save", metavar="DIR", help="write pictures (frames with the model and template points, "
                    "the per-part errors over the frames)")  # fmt: skip
@@ -485,8 +486,7 @@ def main(argv=None) -> int:
                    help="lambda of eq. 19, the depth term's weight (default 0.9; 0.5 with --rigid)")  # fmt: skip
     p.add_argument("--depth-tol", type=_float_above(0.0, inclusive=True), metavar="MM",
                    help="depth differences up to MM count as none (default 0)")  # fmt: skip
-    p.add_argument("--no-predict", action="store_true", help="start each frame where the last ended (the paper); "
-                   "default: half the candidates also moved by the last frame's motion")  # fmt: skip
+    p.add_argument("--no-predict", action="store_true", help=NO_PREDICT_HELP)
     p.add_argument("--device", type=_device_spec, help=DEVICE_HELP)
     p.add_argument("--out", metavar="FILE", help="write the JSON lines here (default stdout)")
     p.add_argument("--save", metavar="DIR", help="write every 10th frame with the model and the template points")
