@@ -11,11 +11,12 @@ from ...models.chain import chain_tables
 @per_device
 def _kernel(device, double: int):
     """The kernel, once per device and precision (retrieving it from the program each call is costly).
-    float32 on a CPU device takes the native sines (GT_FK_NATIVE, see kernels/gt_kinematics.clh)."""
+    float32 on a CPU device takes the vectorisable sines of kernels/gt_math.clh (GT_FK_POLY, see
+    kernels/gt_kinematics.clh)."""
     import pyopencl as cl
 
-    native = int(not double and device.info.kind == "cpu")
-    defines = {"GT_FK_DOUBLE": double, "GT_FK_NATIVE": native}
+    poly = int(not double and device.info.kind == "cpu")
+    defines = {"GT_FK_DOUBLE": double, "GT_FK_POLY": poly}
     return cl.Kernel(device.program("gt_kinematics.cl", defines), "gt_forward_kinematics")
 
 

@@ -27,7 +27,7 @@ def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidate
     c, p = cand.shape
     out = device.empty((n, p), np.float32) if out is None else out
     _kernel(device, "gt_sample_around")(
-        device.queue, ((p + 1) // 2, n), None, cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
+        device.queue, ((p + 1) // 2 * n,), None, cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
         n, lo, hi, int(keep_candidates), out.buffer.data,
     )  # fmt: skip
     return out
