@@ -178,6 +178,36 @@ typedef iv mv;
 #define MT_SEL(a, b, m) select((a), (b), (m))
 #endif
 
+// The texture's sine. CPU builds in double (GT_MT_DOUBLE, GT_MT_LANES > 1): PoCL's double8 sin
+// was two thirds of the render; this one is fma and select only (vectorised): j = rint(x 2/pi) by
+// adding and removing 1.5 * 2**52 (|x| < 2**50), r = x - j pi/2 with pi/2 in three doubles (the
+// first fma exact), then fdlibm's (musl's) __sin / __cos kernels on [-pi/4, pi/4] and the quadrant's
+// swap and signs: within an ulp or two of libm (tests/test_model_template.py pins the render to the
+// reference's np.sin). Elsewhere the device's sin.
+#if GT_MT_DOUBLE && GT_MT_LANES > 1
+inline rv mt_sin(const rv x)
+{
+    const rv j = fma(x, 0.63661977236758134308, 6755399441055744.0) - 6755399441055744.0;
+    rv r = fma(-j, 1.5707963267948966, x);
+    r = fma(-j, 6.123233995736766e-17, r);
+    r = fma(-j, -1.4973849048591698e-33, r);
+    const rv z = r * r, w = z * z;
+    const rv sr = fma(z, fma(z, 2.75573137070700676789e-06, -1.98412698298579493134e-04), 8.33333333332248946124e-03) +
+                  (z * w) * fma(z, 1.58969099521155010221e-10, -2.50507602534068634195e-08);
+    const rv sn = fma(z * r, fma(z, sr, -1.66666666666666324348e-01), r);  // musl __sin(r, 0, 1)
+    const rv cr = z * fma(z, fma(z, 2.48015872894767294178e-05, -1.38888888888741095749e-03), 4.16666666666666019037e-02) +
+                  (w * w) * fma(z, fma(z, -1.13596475577881948265e-11, 2.08757232129817482790e-09),
+                                -2.75573143513906633035e-07);
+    const rv hz = 0.5 * z, c1 = 1.0 - hz;
+    const rv cs = c1 + (((1.0 - c1) - hz) + z * cr);  // musl __cos(r, 0)
+    const mv q = convert_long8(j) & 3;
+    const rv s = MT_SEL(sn, cs, (q & 1) != 0);  // sin(r + q pi/2): sin r, cos r, -sin r, -cos r
+    return MT_SEL(s, -s, (q & 2) != 0);
+}
+#else
+#define mt_sin(x) sin(x)
+#endif
+
 // the smaller root of a t^2 + 2 b t + c = 0 from disc = b^2 - a c (INFINITY where none or a = 0);
 // the callers compute disc without the cancellation of b^2 - a c (Lagrange's identity)
 inline rv gt_mt_root(const rv a, const rv b, const rv disc)
@@ -231,10 +261,13 @@ inline rv gt_mt_intersect(const int kind, const real ou, const real ov, const re
 // c1), kind, axis, start, end, radii; waves (J, Wv, 4): (k_x, k_y, k_z, phase); consts: fx, fy, cx,
 // cy, amp, shading (all reals)
 __kernel void gt_mt_render(__global const real *table, __global const real *waves, __global const real *consts,
-                           const int J, const int Wv, const int H, const int W, const int r0, const int c0,
-                           const int c1, __global int *part, __global float *values, __global float *pts)
+                           const int J, const int Wv, const int H, const int W, const int r0, const int r1,
+                           const int c0, const int c1, __global int *part, __global float *values,
+                           __global float *pts)
 {
     const int c = c0 + MT_L * get_global_id(0), r = r0 + get_global_id(1);
+    if (c >= c1 || r >= r1)  // the NDRange is padded to whole work-groups
+        return;
     const int n = min(MT_L, c1 - c);
     const real fx = consts[0], fy = consts[1], cx = consts[2], cy = consts[3];
     const rv cf = MT_TOR(c + MT_IDS);
@@ -293,7 +326,7 @@ __kernel void gt_mt_render(__global const real *table, __global const real *wave
         __global const real *wv = waves + j * Wv * 4;
         rv sum = (rv)MT_R(0.0);
         for (int w = 0; w < Wv; ++w)
-            sum += sin(wv[4 * w] * y0 + (wv[4 * w + 1] * y1 + (wv[4 * w + 2] * y2 + wv[4 * w + 3])));
+            sum += mt_sin(wv[4 * w] * y0 + (wv[4 * w + 1] * y1 + (wv[4 * w + 2] * y2 + wv[4 * w + 3])));
         const rv g = clamp(MT_R(0.5) + amp * sum, MT_R(0.02), MT_R(0.98)) * (MT_R(1.0) - shading + shading * cosv);
         gray = MT_SEL(gray, g, rmine);
         x0 = MT_SEL(x0, y0, rmine);
@@ -352,6 +385,8 @@ __kernel void gt_mt_classify(__global const int *part, __global const float *val
         }
     }
     const int c = c0 + MT_L * gc, r = r0 + gr;
+    if (c >= c1 || r >= r1)  // the NDRange is padded to whole work-groups
+        return;
     const int nl = min(MT_L, c1 - c);
     const int i = r * W + c, HW = H * W;
     const iv p = mt_loadi(part + r * W, c, c0, c1, -1);
@@ -440,9 +475,11 @@ inline void gt_mt_flush(__global int *stats, const int p, const int count_col, c
 // NDRange (r1 - r0): per part the area, the interior count and the two (row, column) ranges, one
 // flush of atomics per run of same-part (or same-part interior) pixels of a row
 __kernel void gt_mt_stats(__global const int *part, __global const int *interior, const int W, const int r0,
-                          const int c0, const int c1, __global int *stats)
+                          const int r1, const int c0, const int c1, __global int *stats)
 {
     const int r = r0 + get_global_id(0);
+    if (r >= r1)  // the NDRange is padded to whole work-groups
+        return;
     __global const int *pr = part + r * W;
     __global const int *ir = interior + r * W;
     int pa = -1, sa = c0, pi = -1, si = c0;  // the open runs: part and first column
@@ -473,10 +510,12 @@ __kernel void gt_mt_stats(__global const int *part, __global const int *interior
 // bins[k][start_j + atomic_inc(&surv[k][j])], start_j the areas of the parts before j
 __kernel void gt_mt_bin(__global const int *part, __global const int *interior, __global const long *num,
                         __global const int *stats, const int H,
-                        const int W, const int r0, const int c0, const int c1, __global int *bins,
+                        const int W, const int r0, const int r1, const int c0, const int c1, __global int *bins,
                         __global int *surv, const int J)
 {
     const int r = r0 + get_global_id(0), HW = H * W;
+    if (r >= r1)  // the NDRange is padded to whole work-groups
+        return;
     int pp = -1, start = 0, all = 0;  // the part of the last candidate, its bin start, its pool rule
     for (int c = c0; c < c1; ++c) {
         const int o = r * W + c;

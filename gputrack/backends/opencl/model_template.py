@@ -29,10 +29,10 @@ __all__ = ["classify", "emit", "render", "render_dtype"]
 
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
-    "gt_mt_render": [None, None, None, _I, _I, _I, _I, _I, _I, _I, None, None, None],
+    "gt_mt_render": [None, None, None, _I, _I, _I, _I, _I, _I, _I, _I, None, None, None],
     "gt_mt_classify": [None, None, _I, _I, _I, _I, _I, _I, _F, _F, _I, _I, _I, None, None, None, None, None],
-    "gt_mt_stats": [None, None, _I, _I, _I, _I, None],
-    "gt_mt_bin": [None, None, None, None, _I, _I, _I, _I, _I, None, None, _I],
+    "gt_mt_stats": [None, None, _I, _I, _I, _I, _I, None],
+    "gt_mt_bin": [None, None, None, None, _I, _I, _I, _I, _I, _I, None, None, _I],
     "gt_mt_emit": [None, None, None, _I, _I, None, None, None, None, None, None, None, None, None, _I, _I, None, None],
 }
 
@@ -81,6 +81,19 @@ def _upload_table(device, table: np.ndarray):
     return kept["array"].buffer.data
 
 
+#: Work-group shapes of the crop's kernels: fixed, the NDRange padded to whole groups (the kernels
+#: skip the padding). Left to the driver, PoCL made the whole crop one work-group (one thread) and
+#: built a new kernel for every new crop size (0.5-1 s each: every frame of a moving model).
+CROP_WG = (4, 8)
+ROWS_WG = 8
+
+
+def _crop_range(cols, rows):
+    """The padded NDRange and the work-group shape of a (cols, rows) crop kernel."""
+    a, b = CROP_WG
+    return (-(-cols // a) * a, -(-rows // b) * b), CROP_WG
+
+
 def _lim(s2) -> int:
     """The largest integer d^2 with d^2 < s2 (the spacing test on integer offsets, exactly)."""
     return int(math.ceil(float(s2))) - 1
@@ -99,9 +112,9 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
     wv = constant(device, np.ascontiguousarray(waves, dt))
     cs = constant(device, np.ascontiguousarray(consts, dt))
     L = lanes(device)
-    _kernel(device, "gt_mt_render")(device.queue, (-(-(c1 - c0) // L), r1 - r0), None, tb, wv.buffer.data,
-                                    cs.buffer.data, J, Wv, H, W, r0, c0, c1, part.buffer.data, values.buffer.data,
-                                    local.buffer.data)  # fmt: skip
+    glob, wg = _crop_range(-(-(c1 - c0) // L), r1 - r0)
+    _kernel(device, "gt_mt_render")(device.queue, glob, wg, tb, wv.buffer.data, cs.buffer.data, J, Wv, H, W, r0, r1,
+                                    c0, c1, part.buffer.data, values.buffer.data, local.buffer.data)  # fmt: skip
 
 
 def classify(device, part, values, crop, scales, window, border, interior, num, cnt, bins, stats, surv):
@@ -124,11 +137,13 @@ def classify(device, part, values, crop, scales, window, border, interior, num, 
         cl.enqueue_copy(q, stb, init)
         cl.enqueue_copy(q, svb, np.zeros((2, J), np.int32))
         return
-    _kernel(device, "gt_mt_classify")(q, (-(-(c1 - c0) // lanes(device)), r1 - r0), None, pb, vb, H, W, r0, r1, c0,
-                                      c1, float(sc[0]), float(sc[1]), int(window) // 2, int(border), J, ib, nb, cnb,
-                                      stb, svb)  # fmt: skip
-    _kernel(device, "gt_mt_stats")(q, (r1 - r0,), None, pb, ib, W, r0, c0, c1, stb)
-    _kernel(device, "gt_mt_bin")(q, (r1 - r0,), None, pb, ib, nb, stb, H, W, r0, c0, c1, bins.buffer.data, svb, J)
+    glob, wg = _crop_range(-(-(c1 - c0) // lanes(device)), r1 - r0)
+    _kernel(device, "gt_mt_classify")(q, glob, wg, pb, vb, H, W, r0, r1, c0, c1, float(sc[0]), float(sc[1]),
+                                      int(window) // 2, int(border), J, ib, nb, cnb, stb, svb)  # fmt: skip
+    rows = (-(-(r1 - r0) // ROWS_WG) * ROWS_WG,)
+    _kernel(device, "gt_mt_stats")(q, rows, (ROWS_WG,), pb, ib, W, r0, r1, c0, c1, stb)
+    _kernel(device, "gt_mt_bin")(q, rows, (ROWS_WG,), pb, ib, nb, stb, H, W, r0, r1, c0, c1, bins.buffer.data, svb,
+                                 J)  # fmt: skip
 
 
 def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num, cnt, dist, used, s2, out0, out1):
