@@ -17,7 +17,7 @@ import numpy as np
 
 from ... import tuning_cache
 from ...tuning_cache import Tunable
-from .program import source
+from .program import ndrange, source
 from ...device import per_device
 
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
@@ -219,5 +219,5 @@ def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     vw = lanes(device)
     knl = _gate_kernel(device, x.dtype, n, m, _pt(H), _pt(R), pats[2], pats[3], vw)
     args = (_data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D))
-    _enqueue(device, knl, ((T + vw - 1) // vw,), None, args)
+    _enqueue(device, knl, *ndrange((T + vw - 1) // vw), args)
     return out

@@ -6,6 +6,7 @@ import numpy as np
 
 from ...device import per_device
 from ...models.chain import chain_tables
+from .program import ndrange
 
 
 @per_device
@@ -27,8 +28,7 @@ def forward_kinematics(device, chain, params, out):
     kernel = _kernel(device, int(params.dtype == np.float64))
     kernel(
         device.queue,
-        (b,),
-        None,
+        *ndrange(b),
         params.buffer.data,
         table.buffer.data,
         offsets.buffer.data,

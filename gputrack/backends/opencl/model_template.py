@@ -24,6 +24,7 @@ import numpy as np
 from ...device import per_device, per_device_cache
 from ...uploads import constant
 from .depth_points import enqueue_upload
+from .program import ndrange
 
 __all__ = ["classify", "emit", "render", "render_dtype"]
 
@@ -81,17 +82,9 @@ def _upload_table(device, table: np.ndarray):
     return kept["array"].buffer.data
 
 
-#: Work-group shapes of the crop's kernels: fixed, the NDRange padded to whole groups (the kernels
-#: skip the padding). Left to the driver, PoCL made the whole crop one work-group (one thread) and
-#: built a new kernel for every new crop size (0.5-1 s each: every frame of a moving model).
+#: Work-group shape of the crop's kernels (program.ndrange: fixed, the NDRange padded; left to the
+#: driver, PoCL made a crop one work-group and built a new kernel for every new crop size)
 CROP_WG = (4, 8)
-ROWS_WG = 8
-
-
-def _crop_range(cols, rows):
-    """The padded NDRange and the work-group shape of a (cols, rows) crop kernel."""
-    a, b = CROP_WG
-    return (-(-cols // a) * a, -(-rows // b) * b), CROP_WG
 
 
 def _lim(s2) -> int:
@@ -112,7 +105,7 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
     wv = constant(device, np.ascontiguousarray(waves, dt))
     cs = constant(device, np.ascontiguousarray(consts, dt))
     L = lanes(device)
-    glob, wg = _crop_range(-(-(c1 - c0) // L), r1 - r0)
+    glob, wg = ndrange(-(-(c1 - c0) // L), r1 - r0, group=CROP_WG)
     _kernel(device, "gt_mt_render")(device.queue, glob, wg, tb, wv.buffer.data, cs.buffer.data, J, Wv, H, W, r0, r1,
                                     c0, c1, part.buffer.data, values.buffer.data, local.buffer.data)  # fmt: skip
 
@@ -137,13 +130,12 @@ def classify(device, part, values, crop, scales, window, border, interior, num, 
         cl.enqueue_copy(q, stb, init)
         cl.enqueue_copy(q, svb, np.zeros((2, J), np.int32))
         return
-    glob, wg = _crop_range(-(-(c1 - c0) // lanes(device)), r1 - r0)
+    glob, wg = ndrange(-(-(c1 - c0) // lanes(device)), r1 - r0, group=CROP_WG)
     _kernel(device, "gt_mt_classify")(q, glob, wg, pb, vb, H, W, r0, r1, c0, c1, float(sc[0]), float(sc[1]),
                                       int(window) // 2, int(border), J, ib, nb, cnb, stb, svb)  # fmt: skip
-    rows = (-(-(r1 - r0) // ROWS_WG) * ROWS_WG,)
-    _kernel(device, "gt_mt_stats")(q, rows, (ROWS_WG,), pb, ib, W, r0, r1, c0, c1, stb)
-    _kernel(device, "gt_mt_bin")(q, rows, (ROWS_WG,), pb, ib, nb, stb, H, W, r0, r1, c0, c1, bins.buffer.data, svb,
-                                 J)  # fmt: skip
+    rows = ndrange(r1 - r0, group=(8,))
+    _kernel(device, "gt_mt_stats")(q, *rows, pb, ib, W, r0, r1, c0, c1, stb)
+    _kernel(device, "gt_mt_bin")(q, *rows, pb, ib, nb, stb, H, W, r0, r1, c0, c1, bins.buffer.data, svb, J)
 
 
 def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num, cnt, dist, used, s2, out0, out1):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
+from .program import ndrange
 
 _I, _U, _F = np.int32, np.uint32, np.float32
 # scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
@@ -27,7 +28,7 @@ def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidate
     c, p = cand.shape
     out = device.empty((n, p), np.float32) if out is None else out
     _kernel(device, "gt_sample_around")(
-        device.queue, ((p + 1) // 2 * n,), None, cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
+        device.queue, *ndrange((p + 1) // 2 * n), cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
         n, lo, hi, int(keep_candidates), out.buffer.data,
     )  # fmt: skip
     return out

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
+from .program import ndrange
 
 _I = np.int32
 _ARGS = {
@@ -42,15 +43,15 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
     idx = device.empty((rows + 2 * T,), np.int32)
     act = active.buffer.data if active is not None else counts.buffer.data
     q = device.queue
-    _kernel(device, "gt_pg_factors")(q, (T,), None, spreads.buffer.data, means.buffer.data, act, g.buffer.data, T,
+    _kernel(device, "gt_pg_factors")(q, *ndrange(T), spreads.buffer.data, means.buffer.data, act, g.buffer.data, T,
                                      int(active is not None), np.float32(gamma))  # fmt: skip
     _kernel(device, "gt_pg_sort")(q, (1,), None, g.buffer.data, T)
     if rows:
-        _kernel(device, "gt_pg_assign")(q, (rows,), None, points.buffer.data, velocities.buffer.data,
+        _kernel(device, "gt_pg_assign")(q, *ndrange(rows), points.buffer.data, velocities.buffer.data,
                                         means.buffer.data, g.buffer.data, labels.buffer.data, rows, int(N), T,
                                         np.float32(gamma))  # fmt: skip
     _kernel(device, "gt_pg_order")(q, (1,), None, labels.buffer.data, idx.buffer.data, rows, int(N), T)
-    _kernel(device, "gt_pg_moments")(q, (T,), None, points.buffer.data, velocities.buffer.data, means.buffer.data,
+    _kernel(device, "gt_pg_moments")(q, *ndrange(T), points.buffer.data, velocities.buffer.data, means.buffer.data,
                                      idx.buffer.data, counts.buffer.data, mean.buffer.data, cov.buffer.data, rows, T)  # fmt: skip
     return out
 
@@ -67,13 +68,13 @@ def group_frame(device, table, points, constants, n, labels):
     idx = _scratch(device, "idx", rows + 2 * T + 2 * K + 1 + T * K, np.int32)
     q = device.queue
     tab, pts, c, lab = table.buffer.data, points.buffer.data, constants.buffer.data, labels.buffer.data
-    _kernel(device, "gt_gf_predict")(q, (T,), None, tab, c, g, T)
+    _kernel(device, "gt_gf_predict")(q, *ndrange(T), tab, c, g, T)
     _kernel(device, "gt_gf_buckets")(q, (1,), None, g, idx, rows, T, K)
     if rows:
-        _kernel(device, "gt_gf_assign")(q, (rows,), None, pts, tab, c, g, idx, lab, rows, int(n), T, K)
+        _kernel(device, "gt_gf_assign")(q, *ndrange(rows), pts, tab, c, g, idx, lab, rows, int(n), T, K)
     _kernel(device, "gt_pg_order")(q, (1,), None, lab, idx, rows, int(n), T)
-    _kernel(device, "gt_gf_update")(q, (T,), None, pts, tab, c, g, idx, rows, T)
-    _kernel(device, "gt_gf_candidates")(q, (T,), None, tab, g, T)
+    _kernel(device, "gt_gf_update")(q, *ndrange(T), pts, tab, c, g, idx, rows, T)
+    _kernel(device, "gt_gf_candidates")(q, *ndrange(T), tab, g, T)
     return table, labels
 
 

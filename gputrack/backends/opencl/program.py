@@ -76,3 +76,18 @@ def _build(device, source_name: str, defines: tuple):
         return cl.Program(device.context, path.read_text()).build(options=options)
     except cl.RuntimeError as e:
         raise RuntimeError(f"building {source_name} failed on {device.cl_device.name}: {e}") from None
+
+
+#: Work-group shapes of :func:`ndrange` by dimensions.
+GROUP = {1: (64,), 2: (8, 8)}
+
+
+def ndrange(*sizes: int, group: tuple[int, ...] | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The NDRange over ``sizes`` work-items padded to whole work-groups of a fixed shape, and that
+    shape, for kernels that skip the work-items past ``sizes``. Left to choose (local size None),
+    PoCL made a range of a few thousand items one work-group, run by one thread, and built a new
+    kernel variant for every new range (0.5-1 s each: every new number of tracks, samples or rows)."""
+    group = group or GROUP[len(sizes)]
+    if len(group) != len(sizes):
+        raise ValueError(f"group: expected {len(sizes)} dimensions, got {group}")
+    return tuple(max(-(-int(n) // g), 1) * g for n, g in zip(sizes, group)), tuple(group)
