@@ -156,13 +156,16 @@ def device_residuals(device, B, t, y):
     else:
         import pyopencl as cl
 
+        from ..backends.opencl.program import ndrange
+
         kernel = cl.Kernel(device.program("gt_bench_expfit.cl"), "gt_bench_expfit")
 
         lanes = 8  # GT_EXPFIT_LANES of gt_bench_expfit.cl (its double8): one work-item per (group, point)
 
         def launch(X, R, nper):
-            kernel(device.queue, ((M + lanes - 1) // lanes, X.shape[0]), None, X.buffer.data, td.buffer.data, yd.buffer.data,
-                   R.buffer.data, np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
+            # one row of points per work-group column: the kernel skips only the padding past M
+            kernel(device.queue, *ndrange((M + lanes - 1) // lanes, X.shape[0], group=(8, 1)), X.buffer.data, td.buffer.data,
+                   yd.buffer.data, R.buffer.data, np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
 
     def residuals(X):
         n = X.shape[0]

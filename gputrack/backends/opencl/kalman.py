@@ -17,7 +17,7 @@ import numpy as np
 
 from ... import tuning_cache
 from ...tuning_cache import Tunable
-from .program import ndrange, source
+from .program import enqueue, ndrange, source
 from ...device import per_device
 
 MODE_PREDICT, MODE_LINEAR, MODE_STEREO = 0, 1, 2
@@ -140,25 +140,6 @@ def _gate_kernel(device, dt, n, m, pt_h, pt_r, pat_h, pat_r, vw):
     return cl.Kernel(prg, "gt_gate")
 
 
-@per_device
-def _last_args(device) -> dict:
-    """cl.Kernel -> the arguments it was last given on ``device`` (set_args is skipped when unchanged)."""
-    return {}
-
-
-def _enqueue(device, knl, gsize, lsize, args):
-    """Launch ``knl``; its arguments are set only when they differ from its previous launch
-    (buffers compared by identity, scalars by value), as in a tracker's steady state."""
-    import pyopencl as cl
-
-    seen = _last_args(device)
-    last = seen.get(knl)
-    if last is None or len(last) != len(args) or any(a is not b and a != b for a, b in zip(args, last)):
-        knl.set_args(*args)
-        seen[knl] = args
-    cl.enqueue_nd_range_kernel(device.queue, knl, gsize, lsize)
-
-
 def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.0, 0.0, 0.0, 0.0), params=None):
     T, n = x.shape
     params = params or _launch_params(device, T, n)
@@ -174,10 +155,10 @@ def _run(device, x, P, z, F, Q, H, R, mask, gain_scale, mode, out, pats, cam=(0.
     knl = _variant_kernel(device, dt, n, m, mode, F, Q, H, R, mask, gain_scale, pats, vw)
     real = dt.type
     items = (T + vw - 1) // vw
-    _enqueue(
-        device, knl, ((items + wg - 1) // wg * wg,) if wg else (items,), (wg,) if wg else None,
-        (_data(x), _data(P), _data(z), _data(F), _data(Q), _data(H), _data(R), _data(mask), _data(gain_scale),
-         _data(xo), _data(Po), _data(st), real(cam[0]), real(cam[1]), real(cam[2]), real(cam[3]), np.int32(T)),
+    enqueue(
+        device, knl, *ndrange(items, group=(wg,) if wg else None),
+        _data(x), _data(P), _data(z), _data(F), _data(Q), _data(H), _data(R), _data(mask), _data(gain_scale),
+        _data(xo), _data(Po), _data(st), real(cam[0]), real(cam[1]), real(cam[2]), real(cam[3]), np.int32(T),
     )  # fmt: skip
     return (xo, Po) if mode == MODE_PREDICT else (xo, Po, st)
 
@@ -219,5 +200,5 @@ def mahalanobis(device, x, P, H, R, z, out=None, pats=(-1, -1, -1, -1)):
     vw = lanes(device)
     knl = _gate_kernel(device, x.dtype, n, m, _pt(H), _pt(R), pats[2], pats[3], vw)
     args = (_data(x), _data(P), _data(H), _data(R), _data(z), _data(out), np.int32(T), np.int32(D))
-    _enqueue(device, knl, *ndrange((T + vw - 1) // vw), args)
+    enqueue(device, knl, *ndrange((T + vw - 1) // vw), *args)
     return out

@@ -6,7 +6,7 @@ import numpy as np
 
 from ...device import per_device
 from ...models.chain import chain_tables
-from .program import ndrange
+from .program import enqueue, ndrange
 
 
 @per_device
@@ -26,8 +26,9 @@ def forward_kinematics(device, chain, params, out):
     b, p = params.shape
     j = chain.n_parts
     kernel = _kernel(device, int(params.dtype == np.float64))
-    kernel(
-        device.queue,
+    enqueue(
+        device,
+        kernel,
         *ndrange(b),
         params.buffer.data,
         table.buffer.data,

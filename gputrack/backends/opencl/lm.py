@@ -10,6 +10,7 @@ import numpy as np
 
 from ...abi import LMLayout, LMStatus
 from ...device import per_device
+from .program import enqueue, ndrange
 
 RUNNING = int(LMStatus.RUNNING)
 _CTYPE = {"float32": "float", "float64": "double"}
@@ -177,10 +178,10 @@ def solver_init(state, X0, K, X):
     dev, lay = state.device, state.lay
     B = lay.B
     prg = _program(dev, state.S.dtype, None, X.dtype, None, x0type=X0.dtype)
-    _kernel(dev, prg, "gt_lm_init")(
-        dev.queue,
-        (B,),
-        None,
+    enqueue(
+        dev,
+        _kernel(dev, prg, "gt_lm_init"),
+        *ndrange(B),
         X0.buffer.data,
         K.buffer.data,
         state.S.buffer.data,
@@ -210,8 +211,9 @@ def solver_update(state, R, X, *, first, final, jac=None):
     kernel = _update_kernel(state, R.dtype, X.dtype, jac.dtype if jac is not None else None)
     Jg = jac if jac is not None else R
     ls = state.ls if jac is None or lay.P > STATIC_P_MAX else state.ls_jac
-    kernel(
-        dev.queue,
+    enqueue(
+        dev,
+        kernel,
         (B * ls,),
         (ls,),
         state.S.buffer.data,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import ndrange
+from .program import enqueue, ndrange
 
 _I, _U, _F = np.int32, np.uint32, np.float32
 # scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
@@ -27,8 +27,8 @@ def _kernel(device, name):
 def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidates, out=None):
     c, p = cand.shape
     out = device.empty((n, p), np.float32) if out is None else out
-    _kernel(device, "gt_sample_around")(
-        device.queue, *ndrange((p + 1) // 2 * n), cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
+    enqueue(
+        device, _kernel(device, "gt_sample_around"), *ndrange((p + 1) // 2 * n), cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
         n, lo, hi, int(keep_candidates), out.buffer.data,
     )  # fmt: skip
     return out
@@ -50,8 +50,8 @@ def best_k(device, scores, k, rows, out):
     p = rows.shape[1] if rows is not None else 0
     rows_buf = rows.buffer.data if rows is not None else scores.buffer.data
     sel_buf = sel.buffer.data if sel is not None else val.buffer.data
-    _kernel(device, "gt_best_k")(
-        device.queue, (1,), None, scores.buffer.data, scores.shape[0], k, idx.buffer.data,
+    enqueue(
+        device, _kernel(device, "gt_best_k"), (1,), (1,), scores.buffer.data, scores.shape[0], k, idx.buffer.data,
         val.buffer.data, keys, rows_buf, p, sel_buf,
     )  # fmt: skip
     return idx, val, sel

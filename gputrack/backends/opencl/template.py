@@ -12,7 +12,7 @@ import numpy as np
 from ... import tuning_cache
 from ...device import per_device
 from ...tuning_cache import Tunable
-from .program import source
+from .program import enqueue, ndrange, source
 
 CPU_LANES = 8
 WORK_GROUP = 4
@@ -127,9 +127,9 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, pa
     )  # fmt: skip
     if reuse is not None:
         source = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=0, REUSE=1)
-        source(device.queue, ((sources + wg - 1) // wg * wg,), (wg,), *args)
+        enqueue(device, source, *ndrange(sources, group=(wg,)), *args)
     kernel = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=int(residuals), REUSE=2 if reuse is not None else 0)
-    kernel(device.queue, ((groups + wg - 1) // wg * wg,), (wg,), *args)
+    enqueue(device, kernel, *ndrange(groups, group=(wg,)), *args)
 
 
 def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *, lam, c_rgb, c_depth, depth_tol,
