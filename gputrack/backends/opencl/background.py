@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
+from .program import enqueue
 
 _I, _F = np.int32, np.float32
 #: the OpenCL C type of each pixel dtype of the ops
@@ -42,7 +43,7 @@ def background_median(device, frames, pixel, missing, out):
     F = frames.shape[0]
     H, W = out.shape
     k = _kernel(device, "gt_background_median", pixel, size_class(F))
-    k(device.queue, (W, H), None, frames.buffer.data, F, H, W, *_missing(missing), out.buffer.data)
+    enqueue(device, k, (W, H), None, frames.buffer.data, F, H, W, *_missing(missing), out.buffer.data)
     return out
 
 
@@ -50,14 +51,14 @@ def update_background(device, bg, frame, pixel, rate, mask, missing, out):
     H, W = out.shape
     k = _kernel(device, "gt_update_background", pixel, 0)
     m = mask.buffer.data if mask is not None else bg.buffer.data  # not read without a mask
-    k(device.queue, (H * W,), None, bg.buffer.data, frame.buffer.data, m, int(mask is not None), float(rate),
-      *_missing(missing), out.buffer.data)  # fmt: skip
+    enqueue(device, k, (H * W,), None, bg.buffer.data, frame.buffer.data, m, int(mask is not None), float(rate),
+            *_missing(missing), out.buffer.data)  # fmt: skip
     return out
 
 
 def foreground_mask(device, frame, bg, pixel, threshold, missing, nearer, out):
     H, W = out.shape
     k = _kernel(device, "gt_foreground_mask", pixel, 0)
-    k(device.queue, (H * W,), None, frame.buffer.data, bg.buffer.data, float(threshold), *_missing(missing),
-      int(nearer), out.buffer.data)  # fmt: skip
+    enqueue(device, k, (H * W,), None, frame.buffer.data, bg.buffer.data, float(threshold), *_missing(missing),
+            int(nearer), out.buffer.data)  # fmt: skip
     return out

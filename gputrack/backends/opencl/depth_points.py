@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
+from .program import enqueue
 from .background import CL_PIXEL
 
 _I, _U, _F = np.int32, np.uint32, np.float32
@@ -140,14 +141,14 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     g = bg.buffer.data
     common = (H, W, a, b, float(threshold), float(max_range), int(nearer))
     chunks = (W + CHUNK - 1) // CHUNK
-    _kernel(device, "gt_dp_keys", pixel)(q, (H * W,), None, d, g, *common, s["below"])
-    _kernel(device, "gt_dp_count", pixel)(q, (chunks, H), None, s["below"], H, W, s["hist"])
-    _kernel(device, "gt_dp_plan", pixel)(q, (1,), None, s["hist"], H * chunks, out.shape[0], s["offs"], s["info"])
-    _kernel(device, "gt_dp_compact", pixel)(q, (chunks, H), None, s["below"], H, W, a, b, s["hist"], s["offs"],
-                                            s["info"], s["k0"], s["i0"])  # fmt: skip
-    _kernel(device, "gt_dp_select", pixel)(q, (1,), None, d, W, s["info"], s["k0"], s["i0"], s["k1"], s["i1"],
-                                           s["cnt"], out.shape[0], float(fx), float(fy), float(cx), float(cy),
-                                           out.buffer.data)  # fmt: skip
+    enqueue(device, _kernel(device, "gt_dp_keys", pixel), (H * W,), None, d, g, *common, s["below"])
+    enqueue(device, _kernel(device, "gt_dp_count", pixel), (chunks, H), None, s["below"], H, W, s["hist"])
+    enqueue(device, _kernel(device, "gt_dp_plan", pixel), (1,), None, s["hist"], H * chunks, out.shape[0], s["offs"],
+            s["info"])  # fmt: skip
+    enqueue(device, _kernel(device, "gt_dp_compact", pixel), (chunks, H), None, s["below"], H, W, a, b, s["hist"],
+            s["offs"], s["info"], s["k0"], s["i0"])  # fmt: skip
+    enqueue(device, _kernel(device, "gt_dp_select", pixel), (1,), None, d, W, s["info"], s["k0"], s["i0"], s["k1"],
+            s["i1"], s["cnt"], out.shape[0], float(fx), float(fy), float(cx), float(cy), out.buffer.data)  # fmt: skip
     info = s["host_info"]
     device.transfers.d2h += info.nbytes
     if host_out is None:

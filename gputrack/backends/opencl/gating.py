@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import ndrange
+from .program import enqueue, ndrange
 
 PD_EPS_FACTOR = 4.0
 STRIP_SLACK = 1e-3  # as gputrack/backends/taichi/gating.py
@@ -35,7 +35,7 @@ def gate_pairs(device, x, P, H, R, z, D, threshold, active, sorted_z, out):
     T, n = x.shape
     knl = _kernel(device, x.dtype, n, H.shape[0], active is not None, sorted_z)
     act = active.buffer.data if active is not None else count.buffer.data
-    knl(device.queue, *ndrange(T), x.buffer.data, P.buffer.data, H.buffer.data, R.buffer.data, z.buffer.data, act,
-        count.buffer.data, det.buffer.data, d2.buffer.data, trace.buffer.data, T, int(D), det.shape[1],
-        threshold)  # fmt: skip
+    enqueue(device, knl, *ndrange(T), x.buffer.data, P.buffer.data, H.buffer.data, R.buffer.data, z.buffer.data, act,
+            count.buffer.data, det.buffer.data, d2.buffer.data, trace.buffer.data, T, int(D), det.shape[1],
+            threshold)  # fmt: skip
     return out

@@ -106,8 +106,8 @@ def render(device, chain, transforms, texture, table, waves, consts, crop, part,
     cs = constant(device, np.ascontiguousarray(consts, dt))
     L = lanes(device)
     glob, wg = ndrange(-(-(c1 - c0) // L), r1 - r0, group=CROP_WG)
-    enqueue(device, _kernel(device, "gt_mt_render"), glob, wg, tb, wv.buffer.data, cs.buffer.data, J, Wv, H, W,
-            r0, r1, c0, c1, part.buffer.data, values.buffer.data, local.buffer.data)  # fmt: skip
+    enqueue(device, _kernel(device, "gt_mt_render"), glob, wg, tb, wv.buffer.data, cs.buffer.data, J, Wv, H, W, r0, r1,
+            c0, c1, part.buffer.data, values.buffer.data, local.buffer.data)  # fmt: skip
 
 
 def classify(device, part, values, crop, scales, window, border, interior, num, cnt, bins, stats, surv):
@@ -135,8 +135,8 @@ def classify(device, part, values, crop, scales, window, border, interior, num, 
             float(sc[1]), int(window) // 2, int(border), J, ib, nb, cnb, stb, svb)  # fmt: skip
     rows = ndrange(r1 - r0, group=(8,))
     enqueue(device, _kernel(device, "gt_mt_stats"), *rows, pb, ib, W, r0, r1, c0, c1, stb)
-    enqueue(device, _kernel(device, "gt_mt_bin"), *rows, pb, ib, nb, stb, H, W, r0, r1, c0, c1, bins.buffer.data,
-            svb, J)  # fmt: skip
+    enqueue(device, _kernel(device, "gt_mt_bin"), *rows, pb, ib, nb, stb, H, W, r0, r1, c0, c1, bins.buffer.data, svb,
+            J)  # fmt: skip
 
 
 def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, num, cnt, dist, used, s2, out0, out1):
@@ -152,5 +152,5 @@ def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, n
     o1 = (out1 if out1.shape[0] else dummy).buffer.data
     enqueue(device, _kernel(device, "gt_mt_emit"), (J, 2), (1, 1), part.buffer.data, values.buffer.data,
             local.buffer.data, H, W, plan.buffer.data, stats.buffer.data, surv.buffer.data, bins.buffer.data,
-            interior.buffer.data, num.buffer.data, cnt.buffer.data, dist.buffer.data, used.buffer.data, _lim(s2), J,
-            o0, o1)  # fmt: skip
+            interior.buffer.data, num.buffer.data, cnt.buffer.data, dist.buffer.data, used.buffer.data, _lim(s2), J, o0,
+            o1)  # fmt: skip

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import ndrange
+from .program import enqueue, ndrange
 
 # scalar argument types per kernel (None = a buffer): pyopencl then packs the arguments directly
 _I = np.int32
@@ -36,8 +36,8 @@ def patch_ncc(device, pts, tpl, img, *, per_point):
     args = (pts.buffer.data, nb, nk, tpl.buffer.data, s, img.buffer.data, h, w)
     if per_point:
         out = device.empty((nb, nk), np.float32)
-        _kernel(device, "gt_patch_ncc_points")(device.queue, *ndrange(nb * nk), *args, out.buffer.data)
+        enqueue(device, _kernel(device, "gt_patch_ncc_points"), *ndrange(nb * nk), *args, out.buffer.data)
     else:
         out = device.empty((nb,), np.float32)
-        _kernel(device, "gt_patch_ncc")(device.queue, *ndrange(nb), *args, out.buffer.data)
+        enqueue(device, _kernel(device, "gt_patch_ncc"), *ndrange(nb), *args, out.buffer.data)
     return out

@@ -28,8 +28,8 @@ def sample_around(device, cand, sig, n, lo, hi, *, per_candidate, keep_candidate
     c, p = cand.shape
     out = device.empty((n, p), np.float32) if out is None else out
     enqueue(
-        device, _kernel(device, "gt_sample_around"), *ndrange((p + 1) // 2 * n), cand.buffer.data, c, p, sig.buffer.data, int(per_candidate),
-        n, lo, hi, int(keep_candidates), out.buffer.data,
+        device, _kernel(device, "gt_sample_around"), *ndrange((p + 1) // 2 * n), cand.buffer.data, c, p,
+        sig.buffer.data, int(per_candidate), n, lo, hi, int(keep_candidates), out.buffer.data,
     )  # fmt: skip
     return out
 

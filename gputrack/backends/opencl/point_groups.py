@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import ndrange
+from .program import enqueue, ndrange
 
 _I = np.int32
 _ARGS = {
@@ -42,17 +42,16 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
     g = device.empty((T, G), np.float32)
     idx = device.empty((rows + 2 * T,), np.int32)
     act = active.buffer.data if active is not None else counts.buffer.data
-    q = device.queue
-    _kernel(device, "gt_pg_factors")(q, *ndrange(T), spreads.buffer.data, means.buffer.data, act, g.buffer.data, T,
-                                     int(active is not None), np.float32(gamma))  # fmt: skip
-    _kernel(device, "gt_pg_sort")(q, (1,), None, g.buffer.data, T)
+    enqueue(device, _kernel(device, "gt_pg_factors"), *ndrange(T), spreads.buffer.data, means.buffer.data, act,
+            g.buffer.data, T, int(active is not None), np.float32(gamma))  # fmt: skip
+    enqueue(device, _kernel(device, "gt_pg_sort"), (1,), None, g.buffer.data, T)
     if rows:
-        _kernel(device, "gt_pg_assign")(q, *ndrange(rows), points.buffer.data, velocities.buffer.data,
-                                        means.buffer.data, g.buffer.data, labels.buffer.data, rows, int(N), T,
-                                        np.float32(gamma))  # fmt: skip
-    _kernel(device, "gt_pg_order")(q, (1,), None, labels.buffer.data, idx.buffer.data, rows, int(N), T)
-    _kernel(device, "gt_pg_moments")(q, *ndrange(T), points.buffer.data, velocities.buffer.data, means.buffer.data,
-                                     idx.buffer.data, counts.buffer.data, mean.buffer.data, cov.buffer.data, rows, T)  # fmt: skip
+        enqueue(device, _kernel(device, "gt_pg_assign"), *ndrange(rows), points.buffer.data, velocities.buffer.data,
+                means.buffer.data, g.buffer.data, labels.buffer.data, rows, int(N), T, np.float32(gamma))  # fmt: skip
+    enqueue(device, _kernel(device, "gt_pg_order"), (1,), None, labels.buffer.data, idx.buffer.data, rows, int(N), T)
+    enqueue(device, _kernel(device, "gt_pg_moments"), *ndrange(T), points.buffer.data, velocities.buffer.data,
+            means.buffer.data, idx.buffer.data, counts.buffer.data, mean.buffer.data, cov.buffer.data, rows,
+            T)  # fmt: skip
     return out
 
 
@@ -66,15 +65,14 @@ def group_frame(device, table, points, constants, n, labels):
     K = max(1, min(2 * T, 16384 // T))  # as the Taichi kernel's buckets
     g = _scratch(device, "g", T * GC, np.float32)
     idx = _scratch(device, "idx", rows + 2 * T + 2 * K + 1 + T * K, np.int32)
-    q = device.queue
     tab, pts, c, lab = table.buffer.data, points.buffer.data, constants.buffer.data, labels.buffer.data
-    _kernel(device, "gt_gf_predict")(q, *ndrange(T), tab, c, g, T)
-    _kernel(device, "gt_gf_buckets")(q, (1,), None, g, idx, rows, T, K)
+    enqueue(device, _kernel(device, "gt_gf_predict"), *ndrange(T), tab, c, g, T)
+    enqueue(device, _kernel(device, "gt_gf_buckets"), (1,), None, g, idx, rows, T, K)
     if rows:
-        _kernel(device, "gt_gf_assign")(q, *ndrange(rows), pts, tab, c, g, idx, lab, rows, int(n), T, K)
-    _kernel(device, "gt_pg_order")(q, (1,), None, lab, idx, rows, int(n), T)
-    _kernel(device, "gt_gf_update")(q, *ndrange(T), pts, tab, c, g, idx, rows, T)
-    _kernel(device, "gt_gf_candidates")(q, *ndrange(T), tab, g, T)
+        enqueue(device, _kernel(device, "gt_gf_assign"), *ndrange(rows), pts, tab, c, g, idx, lab, rows, int(n), T, K)
+    enqueue(device, _kernel(device, "gt_pg_order"), (1,), None, lab, idx, rows, int(n), T)
+    enqueue(device, _kernel(device, "gt_gf_update"), *ndrange(T), pts, tab, c, g, idx, rows, T)
+    enqueue(device, _kernel(device, "gt_gf_candidates"), *ndrange(T), tab, g, T)
     return table, labels
 
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ...device import per_device
-from .program import ndrange
+from .program import enqueue, ndrange
 
 _I = np.int32
 ARG_TYPES = [None, None, None, _I, _I, _I]
@@ -29,6 +29,6 @@ def scatter_rows(device, dst, index, src, K):
         name, row = "gt_scatter_words", row_bytes // 4
     else:
         name, row = "gt_scatter_bytes", row_bytes
-    _kernel(device, name)(device.queue, *ndrange(row, K), dst.buffer.data, index.buffer.data, src.buffer.data, row, K,
-                          src.shape[0])  # fmt: skip
+    enqueue(device, _kernel(device, name), *ndrange(row, K), dst.buffer.data, index.buffer.data, src.buffer.data, row,
+            K, src.shape[0])  # fmt: skip
     return dst

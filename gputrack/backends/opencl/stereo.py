@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
+from .program import enqueue
 
 #: disparities a work-item (gt_stereo.cl): 16 in a short16 for uint8 input (every cost fits in
 #: 16 bits), 8 in an int8 for float32 input
@@ -53,12 +54,11 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     G = -(-D // nl)
     Dp = G * nl
     Wp = W + Dp + 2 * nl
-    q = device.queue
     y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
     pl, pr = ints(H * Wp), ints(H * Wp)
     name = "gt_stereo_prefilter_u8" if L.dtype == np.uint8 else "gt_stereo_prefilter_f32"
-    _kernel(device, name, nl)(q, (H,), (1,), L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
-                              out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
+    enqueue(device, _kernel(device, name, nl), (H,), (1,), L.buffer.data, R.buffer.data, pl.buffer.data, pr.buffer.data,
+            out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
     tiles, order, run_tile = tiles
@@ -81,11 +81,12 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     ldisp = device.empty((Pc,), np.int32)
     rmark = device.empty((P2c,), np.int32)
     b = lambda a: a.buffer.data  # noqa: E731
-    _kernel(device, "gt_stereo_left_costs", nl)(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
-                                                b(vsum), b(cost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_left_wta", nl)(q, (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp), b(rmark),
-                                              b(run_tile_d), b(marked_d), b(out), S, D, U, W)  # fmt: skip
-    _kernel(device, "gt_stereo_right_costs", nl)(q, (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d), b(order_d),
-                                                 b(marked_d), b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
-    _kernel(device, "gt_stereo_right_check", nl)(q, (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S, D, block, W)
+    enqueue(device, _kernel(device, "gt_stereo_left_costs", nl), (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d),
+            b(order_d), b(vsum), b(cost), T, D, block, Wp)  # fmt: skip
+    enqueue(device, _kernel(device, "gt_stereo_left_wta", nl), (S,), (1,), b(runs_d), b(mask_d), b(cost), b(ldisp),
+            b(rmark), b(run_tile_d), b(marked_d), b(out), S, D, U, W)  # fmt: skip
+    enqueue(device, _kernel(device, "gt_stereo_right_costs", nl), (G, T), (1, 1), b(pl), b(pr), b(runs_d), b(tiles_d),
+            b(order_d), b(marked_d), b(rmark), b(vsum), b(rcost), T, D, block, Wp)  # fmt: skip
+    enqueue(device, _kernel(device, "gt_stereo_right_check", nl), (S,), (1,), b(runs_d), b(ldisp), b(rcost), b(out), S,
+            D, block, W)  # fmt: skip
     return out
