@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue
+from .program import enqueue, ndrange
 
 #: as gputrack/backends/taichi/clusters.py: cells of side r (1 - CELL_SLACK) / sqrt(dim), the box
 #: p +- r (1 + CELL_SLACK) searched; buckets are a power of two >= 2N, scanned in chunks of CHUNK
@@ -86,28 +86,28 @@ def _run(device, points, n, r2, ms, out, is_dbscan):
     b = _scratch(device, N, dim)
     q = device.queue
     pts = points.buffer.data
+    rng = ndrange(N)  # the kernels over the N rows skip the padding (each tests n, start[H], heads[n] or N)
     cl.enqueue_fill_buffer(q, b["cnt"], np.int32(0), 0, 4 * H)
     cl.enqueue_fill_buffer(q, b["loose"], np.int32(0), 0, 4 * H)
-    enqueue(device, k["gt_clu_bin"], (N,), None, pts, b["cnt"], b["key"], b["rank"], b["parent"], b["core"], n, mask,
-            inv)  # fmt: skip
+    enqueue(device, k["gt_clu_bin"], *rng, pts, b["cnt"], b["key"], b["rank"], b["parent"], b["core"], n, mask, inv)
     enqueue(device, k["gt_clu_chunk_sums"], (chunks,), None, b["cnt"], b["csum"])
     enqueue(device, k["gt_clu_scan_chunks"], (1,), None, b["csum"], b["start"], chunks, H)
     enqueue(device, k["gt_clu_chunk_scan"], (chunks,), None, b["cnt"], b["csum"], b["start"])
-    enqueue(device, k["gt_clu_place"], (N,), None, pts, b["key"], b["rank"], b["start"], b["order"], b["spts"], n)
+    enqueue(device, k["gt_clu_place"], *rng, pts, b["key"], b["rank"], b["start"], b["order"], b["spts"], n)
     grid = (b["spts"], b["order"], b["start"])
     if is_dbscan:
-        enqueue(device, k["gt_clu_count"], (N,), None, *grid, b["core"], mask, r2, w, inv, int(ms), H)
+        enqueue(device, k["gt_clu_count"], *rng, *grid, b["core"], mask, r2, w, inv, int(ms), H)
     cl.enqueue_fill_buffer(q, b["heads"], np.int32(0), 4 * n, 4)  # heads[n]: the number of heads
     link = (*grid, b["core"], b["parent"], b["loose"], b["heads"], mask, r2)
-    enqueue(device, k["gt_clu_link_cell"], (N,), None, *link, inv, H, n)
-    enqueue(device, k["gt_clu_box"], (N,), None, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
+    enqueue(device, k["gt_clu_link_cell"], *rng, *link, inv, H, n)
+    enqueue(device, k["gt_clu_box"], *rng, *grid, b["core"], b["heads"], b["box"], mask, inv, n)
     # one work-item per cell head, uneven work: on a CPU device one-item work-groups spread it over
     # the cores (the heads are the first items); a GPU keeps the driver's work-group size
     local = (1,) if device.info.kind == "cpu" else None
     enqueue(device, k["gt_clu_link_cells"], (N,), local, *link[:-2], b["box"], mask, r2, w, inv, H, n)
-    enqueue(device, k["gt_clu_label"], (N,), None, b["parent"], b["core"], out.buffer.data, n, N)
+    enqueue(device, k["gt_clu_label"], *rng, b["parent"], b["core"], out.buffer.data, n, N)
     if is_dbscan:
-        enqueue(device, k["gt_clu_border"], (N,), None, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
+        enqueue(device, k["gt_clu_border"], *rng, *grid, b["core"], out.buffer.data, mask, r2, w, inv, H)
     return out
 
 
