@@ -156,7 +156,7 @@ def device_residuals(device, B, t, y):
     else:
         import pyopencl as cl
 
-        from ..backends.opencl.program import ndrange
+        from ..backends.opencl.program import enqueue, ndrange
 
         kernel = cl.Kernel(device.program("gt_bench_expfit.cl"), "gt_bench_expfit")
 
@@ -164,8 +164,9 @@ def device_residuals(device, B, t, y):
 
         def launch(X, R, nper):
             # one row of points per work-group column: the kernel skips only the padding past M
-            kernel(device.queue, *ndrange((M + lanes - 1) // lanes, X.shape[0], group=(8, 1)), X.buffer.data, td.buffer.data,
-                   yd.buffer.data, R.buffer.data, np.int32(X.shape[1]), np.int32(M), np.int32(nper))  # fmt: skip
+            enqueue(device, kernel, *ndrange((M + lanes - 1) // lanes, X.shape[0], group=(8, 1)), X.buffer.data,
+                    td.buffer.data, yd.buffer.data, R.buffer.data, np.int32(X.shape[1]), np.int32(M),
+                    np.int32(nper))  # fmt: skip
 
     def residuals(X):
         n = X.shape[0]

@@ -73,10 +73,10 @@ def normal_equations(device, J, r, out):
     JtJ, Jtr = out
     prg = _program(device, J.dtype)
     n = B * P
-    _kernel(device, prg, "gt_normal_equations")(
-        device.queue,
-        (n,),
-        None,
+    enqueue(
+        device,
+        _kernel(device, prg, "gt_normal_equations"),
+        *ndrange(n),
         J.buffer.data,
         r.buffer.data,
         JtJ.buffer.data,
@@ -93,10 +93,10 @@ def lm_step(device, JtJ, Jtr, damping, out):
     delta, ok = out
     W = _work(device, (B, P, P), Jtr.dtype)
     prg = _program(device, Jtr.dtype)
-    _kernel(device, prg, "gt_lm_step")(
-        device.queue,
-        (B,),
-        None,
+    enqueue(
+        device,
+        _kernel(device, prg, "gt_lm_step"),
+        *ndrange(B),
         JtJ.buffer.data,
         Jtr.buffer.data,
         damping.buffer.data,
@@ -115,8 +115,9 @@ def lm_solve(device, J, r, damping, out):
     W = _work(device, (B, P, P), J.dtype)
     prg = _program(device, J.dtype)
     ls = _local_size(device, P)
-    _kernel(device, prg, "gt_lm_solve")(
-        device.queue,
+    enqueue(
+        device,
+        _kernel(device, prg, "gt_lm_solve"),
         (B * ls,),
         (ls,),
         J.buffer.data,
