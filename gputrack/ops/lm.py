@@ -938,7 +938,7 @@ class _Buffers:
 
     def _take(self, role, shape, dtype, kind="work"):
         dev = self.device
-        key = (kind, tuple(shape), np.dtype(dtype).name)
+        key = (kind, tuple(shape), np.dtype(dtype))  # a dtype, not its name: NumPy builds .name on each read
         have = self.held.get(role)
         if have is not None and have[0] == key:
             return have[1]
@@ -984,7 +984,7 @@ class _Buffers:
     def host_array(self, role, shape, dtype):
         """A NumPy array of ``role`` kept between solves (the points on a backend whose kernels
         write host memory in place)."""
-        key = ("host", tuple(shape), np.dtype(dtype).name)
+        key = ("host", tuple(shape), np.dtype(dtype))
         have = self.held.get(role)
         if have is None or have[0] != key:
             have = (key, np.empty(shape, dtype))
