@@ -108,12 +108,7 @@ def enqueue(device, kernel, gsize, lsize, *args) -> None:
 
     seen = _last_args(device)
     last = seen.get(kernel)
-    if last is None or len(last) != len(args):
+    if last is None or len(last) != len(args) or any(a is not b and a != b for a, b in zip(args, last)):
         kernel.set_args(*args)
-    else:
-        for i, (a, b) in enumerate(zip(args, last)):
-            if a is not b and a != b:
-                kernel.set_args(*args)
-                break
     seen[kernel] = args
     cl.enqueue_nd_range_kernel(device.queue, kernel, gsize, lsize)
