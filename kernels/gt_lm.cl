@@ -30,7 +30,7 @@
 #error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
 #endif
 #define MAX_CHOL_TRIES 40
-#define GT_LM_JB 16  // columns of J^T J a work-item sums at once when P is a runtime value
+#define LM_JB 16  // columns of J^T J a work-item sums at once when P is a runtime value
 // GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling, one of
 // GT_LM_SCALE_IDENTITY / _MARQUARDT / _MINPACK (gputrack.abi.LMScale).
 
@@ -443,21 +443,21 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
             Jt[i] = ag;
         }
 #else
-        // P a runtime value: per work-item row i of J^T J against a block of GT_LM_JB columns j0..
+        // P a runtime value: per work-item row i of J^T J against a block of LM_JB columns j0..
         // (the blocks that reach the diagonal or beyond; the others are their mirror), the block's
-        // sums in registers: one load of J[m, i] and GT_LM_JB contiguous loads per GT_LM_JB FMAs
+        // sums in registers: one load of J[m, i] and LM_JB contiguous loads per LM_JB FMAs
         // (the columns past P read column P - 1 and are dropped). A work-item per entry (i, j), with
         // two strided loads per FMA, took 0.84 ms a launch for the face bundle's P = 92 on PoCL; 0.46.
-        const int nblk = (P + GT_LM_JB - 1) / GT_LM_JB;
+        const int nblk = (P + LM_JB - 1) / LM_JB;
         for (int q = lid; q < P * nblk + P; q += ls) {
             if (q < P * nblk) {
-                const int i = q / nblk, j0 = (q - i * nblk) * GT_LM_JB;
-                if (j0 + GT_LM_JB <= i)
+                const int i = q / nblk, j0 = (q - i * nblk) * LM_JB;
+                if (j0 + LM_JB <= i)
                     continue;  // below the diagonal: the mirror of a block another work-item sums
-                int col[GT_LM_JB];
-                REAL acc[GT_LM_JB];
+                int col[LM_JB];
+                REAL acc[LM_JB];
 #pragma unroll
-                for (int k = 0; k < GT_LM_JB; ++k) {
+                for (int k = 0; k < LM_JB; ++k) {
                     col[k] = min(j0 + k, P - 1);
                     acc[k] = 0;
                 }
@@ -465,11 +465,11 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                     __global const JTYPE *Jm = Jb + (long)m * P;
                     const REAL xi = (REAL)Jm[i];
 #pragma unroll
-                    for (int k = 0; k < GT_LM_JB; ++k)
+                    for (int k = 0; k < LM_JB; ++k)
                         acc[k] += xi * (REAL)Jm[col[k]];
                 }
 #pragma unroll
-                for (int k = 0; k < GT_LM_JB; ++k) {
+                for (int k = 0; k < LM_JB; ++k) {
                     const int j = j0 + k;
                     if (j >= i && j < P) {
                         L[i * P + j] = acc[k];
