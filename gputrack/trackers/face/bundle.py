@@ -36,9 +36,10 @@ multilinear model: linear; the generic PCA model: constant, with S' = 0), so
 X = mean + (L0 + sum_p s_p G_p) a with L0 = basis(0), G_p = basis(e_p) - L0 (:func:`model_terms`).
 
 **Solve** (:func:`bundle_adjust`): a :class:`gputrack.LeastSquaresSolver` with B = 1, the analytic Jacobian
-and the box, on any device (:class:`IncrementalBundle` holds its solvers from frame to frame). Residuals and Jacobian are computed on the host in float64 and written into
-two device buffers kept per device and problem size (:func:`_outputs`), so a tracker's every frame reuses
-the same device memory (and the solver's own pool reuses its state buffers).
+and the box, on any device (:class:`IncrementalBundle` holds its solvers from frame to frame). Residuals
+and Jacobian are computed on the host in float64 and handed to the solver as NumPy arrays (its ``host``
+mode): taichi:cpu's kernels read them in place, other devices copy them into buffers the solver keeps
+from solve to solve, without waiting.
 
 **Key frames** (:class:`IncrementalBundle`, sec. 3.1, eq. 10): see its docstring.
 """
@@ -50,7 +51,6 @@ import logging
 
 import numpy as np
 
-from ...device import per_device, to_numpy
 from ...models.camera import Camera
 from ...models.pose import rodrigues, rotation_coefficients, skew
 from ...ops.lm import LeastSquaresSolver, LMStatus
@@ -384,9 +384,9 @@ class BundleProblem:
         norm = np.sqrt(np.einsum("mp,mp->p", J0, J0))
         d = np.where((self.upper > self.lower) & (norm > 1e-12 * max(norm.max(), 1e-300)), 1.0 / np.maximum(norm, 1e-300),
                      1.0)  # fmt: skip
-        fns = _Callables(self, device, d)
+        fns = _Callables(self, d)
         res = solver.solve(fns.residuals, (self.x0 / d)[None], jacobian=fns.jacobian, lower=self.lower / d,
-                           upper=self.upper / d, damping=DAMPING)  # fmt: skip
+                           upper=self.upper / d, damping=DAMPING, host=True)  # fmt: skip
         x = np.clip(res.x[0].astype(np.float64) * d, self.lower, self.upper)
         cost = self.cost(x)
         rv, tv, ex, s = self.unpack(x)
@@ -395,42 +395,28 @@ class BundleProblem:
                             iterations=int(res.iterations[0]))  # fmt: skip
 
 
-@per_device(maxsize=8)
-def _outputs(device, M: int, P: int, dtype: str):
-    """The residual (1, M) and Jacobian (1, M, P) buffers on ``device``, reused by every solve of that size."""
-    return device.empty((1, M), dtype), device.empty((1, M, P), dtype)
-
-
 class _Callables:
-    """The residual and Jacobian callables handed to least_squares. Both are evaluated at the same point
-    each iteration: the residual call computes the Jacobian too and keeps it for the Jacobian call that
-    least_squares makes next at the same points (its protocol). On a device the results are written into the reused buffers of :func:`_outputs`."""
+    """The residual and Jacobian callables handed to the solver in its host mode (NumPy points in,
+    NumPy results out). Both are evaluated at the same point each iteration: the residual call
+    computes the Jacobian too and keeps it for the Jacobian call that the solver makes next at the
+    same points (its protocol)."""
 
-    def __init__(self, problem: BundleProblem, device, scale):
-        self.problem, self.device, self.scale = problem, device, scale
+    def __init__(self, problem: BundleProblem, scale):
+        self.problem, self.scale = problem, scale
         self._J, self._dtype = None, np.dtype(np.float64)
 
-    def _out(self, value, dtype, which):
-        if self.device.backend == "numpy":
-            return value.astype(dtype)
-        buf = _outputs(self.device, self.problem.rows, self.problem.P, np.dtype(dtype).name)[which]
-        return self.device.asarray(value.astype(dtype), out=buf)
-
     def residuals(self, X):
-        Xn = to_numpy(X)
-        x = Xn.astype(np.float64) * self.scale
+        x = X.astype(np.float64) * self.scale
         r, self._J = self.problem.evaluate(x, jacobian=x.shape[0] == 1)
-        self._dtype = Xn.dtype
-        return self._out(r, Xn.dtype, 0)
+        self._dtype = X.dtype
+        return r.astype(X.dtype, copy=False)
 
     def jacobian(self, X):
-        # least_squares calls this at the points of the residual call just before it (its protocol), so
-        # the Jacobian computed there is used without downloading X again
         if self._J is None:
             self.residuals(X)
         J = self._J * self.scale
         self._J = None
-        return self._out(J, self._dtype, 1)
+        return J.astype(self._dtype, copy=False)
 
 
 @dataclasses.dataclass(frozen=True)
