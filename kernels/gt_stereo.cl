@@ -130,6 +130,24 @@ __kernel void gt_stereo_left_costs(__global const GT_T *pl, __global const GT_T 
     }
 }
 
+// the smallest lane of v, by halves (.lo / .hi): log2(lanes) vector minima
+#if GT_STEREO_LANES == 16
+inline int gt_stereo_hmin(const int16 v)
+{
+    const int8 a = min(v.lo, v.hi);
+    const int4 b = min(a.lo, a.hi);
+    const int2 c = min(b.lo, b.hi);
+    return min(c.x, c.y);
+}
+#else
+inline int gt_stereo_hmin(const int8 v)
+{
+    const int4 b = min(v.lo, v.hi);
+    const int2 c = min(b.lo, b.hi);
+    return min(c.x, c.y);
+}
+#endif
+
 // the smallest cost among c[0 .. n) (Dp slots, n <= Dp) and the smallest d that has it, a vector at a time
 inline int gt_stereo_argmin(const __global GT_T *c, const int n, const int Dp, int *cost)
 {
@@ -142,22 +160,10 @@ inline int gt_stereo_argmin(const __global GT_T *c, const int n, const int Dp, i
         best = select(best, v, take);
         at = select(at, d, take);
     }
-    int cb = best.s0, db = at.s0;  // across the lanes: the smallest cost, then the smallest d
-    int bs[GT_STEREO_LANES], as[GT_STEREO_LANES];
-#if GT_STEREO_LANES == 16
-    vstore16(best, 0, bs);
-    vstore16(at, 0, as);
-#else
-    vstore8(best, 0, bs);
-    vstore8(at, 0, as);
-#endif
-    for (int j = 1; j < GT_STEREO_LANES; ++j)
-        if (bs[j] < cb || (bs[j] == cb && as[j] < db)) {
-            cb = bs[j];
-            db = as[j];
-        }
+    // across the lanes: the smallest cost, then the smallest d among the lanes that have it
+    const int cb = gt_stereo_hmin(best);
     *cost = cb;
-    return db;
+    return gt_stereo_hmin(select((GT_VI)(INT_MAX), at, best == (GT_VI)(cb)));
 }
 
 __kernel void gt_stereo_left_wta(__global const int *runs, __global const uchar *mask, __global const GT_T *cost,
