@@ -80,6 +80,7 @@ def _sobel(img: ti.template(), y, x, cap, is_float: ti.template()):
 @functools.lru_cache(maxsize=None)
 def _kernel(LANES: int, T):
     """The stereo kernel with cost vectors of ``LANES`` integers of type ``T`` (module docstring)."""
+    assert LANES in (8, 16), LANES
     V = ti.types.vector(LANES, T)
     VI = ti.types.vector(LANES, ti.i32)
 
@@ -96,11 +97,19 @@ def _kernel(LANES: int, T):
             take = (v < best) & (d < n)  # strict: each lane keeps its smallest d
             best = ti.select(take, v, best)
             idx = ti.select(take, d, idx)
-        cb, db = best[0], idx[0]
-        for j in ti.static(range(1, LANES)):
-            if best[j] < cb or (best[j] == cb and idx[j] < db):
-                cb, db = best[j], idx[j]
-        return cb, db
+        cb = _hmin(best)  # across the lanes: the smallest cost, then the smallest d among its lanes
+        return cb, _hmin(ti.select(best == cb, idx, VI(BIG)))
+
+    @ti.func
+    def _hmin(v):
+        """The smallest lane of the integer vector v (LANES 8 or 16), by halves: no branches."""
+        a = ti.Vector([ti.min(v[j], v[j + LANES // 2]) for j in ti.static(range(LANES // 2))])
+        b = ti.Vector([ti.min(a[j], a[j + LANES // 4]) for j in ti.static(range(LANES // 4))])
+        c = ti.Vector([ti.min(b[j], b[j + LANES // 8]) for j in ti.static(range(LANES // 8))])
+        m = c[0]
+        if ti.static(LANES == 16):
+            m = ti.min(c[0], c[1])
+        return m
 
     @ti.kernel
     def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
@@ -204,11 +213,7 @@ def _kernel(LANES: int, T):
                         d = lane + g * LANES
                         c = ti.cast(cost[p + g], ti.i32)
                         rival |= ((d < best - 1) | (d > best + 1)) & (d < D) & (100 * c <= (100 + U) * cb)
-                    unique = True
-                    for j in ti.static(range(LANES)):
-                        if rival[j] != 0:
-                            unique = False
-                    if unique:
+                    if _hmin(ti.select(rival == 0, VI(1), VI(0))) == 1:  # no lane found a rival
                         val = ti.cast(best, ti.f32)
                         if best > 0 and best < D - 1:  # the parabola's vertex
                             cm = ti.cast(cost[p + (best - 1) // LANES][(best - 1) % LANES], ti.i32)
