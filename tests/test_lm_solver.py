@@ -164,6 +164,31 @@ def test_a_parameter_without_effect_gets_unit_damping(device):
         np.testing.assert_allclose(res.x[0], [2.0, 0.25, 1e-3], rtol=1e-5)
 
 
+def test_a_start_one_rounding_inside_a_bound_starts_on_it(device):
+    """A parameter held at its upper bound by the gradient: started exactly on the bound or one unit in
+    the last place below it, the solve takes the same steps (the kernels hold a parameter at a bound by
+    an exact comparison; without moving such a start onto the bound, the nearly collinear second
+    column would be free for the first step and that step, clipped back, would move the first
+    parameter elsewhere)."""
+    A = np.array([[1.0, 1.0], [1.0, 1.001], [1.0, 0.999], [1.0, 1.002]])
+    b = A @ np.array([1.0, 3.0])  # the unconstrained optimum: x1 = 3, beyond the bound 2
+
+    def r(X):
+        return X @ A.T - b
+
+    upper = np.array([np.inf, 2.0])
+    runs = []
+    for x1 in (2.0, np.nextafter(2.0, 0.0)):
+        res = least_squares(_host(r), np.array([[0.0, x1]]), device=device, upper=upper, max_iter=1,
+                            damping_scale="marquardt")  # fmt: skip
+        runs.append(res.x[0].astype(np.float64))
+    on, inside = runs
+    assert inside[1] == 2.0  # held on the bound
+    np.testing.assert_allclose(inside, on, rtol=1e-6)
+    free = np.linalg.lstsq(A[:, :1], b - 2.0 * A[:, 1], rcond=None)[0][0]  # the optimum with x1 = 2
+    assert abs(on[0] - free) < abs(on[0] - 1.0)  # the step went towards it, not towards the free optimum
+
+
 # ------------------------------------------------------------------------------------------------
 # the solver object
 
