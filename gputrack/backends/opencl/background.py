@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue
+from .program import enqueue, scalar_types
 
 _I, _F = np.int32, np.float32
 #: the OpenCL C type of each pixel dtype of the ops
@@ -26,7 +26,7 @@ def _kernel(device, name, pixel, max_frames):
     if max_frames:
         defines["GT_MAX_FRAMES"] = max_frames
     found = cl.Kernel(device.program("gt_background.cl", defines), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 

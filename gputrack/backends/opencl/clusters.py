@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 #: as gputrack/backends/taichi/clusters.py: cells of side r (1 - CELL_SLACK) / sqrt(dim), the box
 #: p +- r (1 + CELL_SLACK) searched; buckets are a power of two >= 2N, scanned in chunks of CHUNK
@@ -45,7 +45,7 @@ def _kernels(device, dim):
     found = {}
     for name, types in _SCALARS.items():
         k = cl.Kernel(prog, name)
-        k.set_scalar_arg_dtypes(types)
+        scalar_types(k, types)
         found[name] = k
     return found
 

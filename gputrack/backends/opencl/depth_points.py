@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue
+from .program import enqueue, scalar_types
 from .background import CL_PIXEL
 
 _I, _U, _F = np.int32, np.uint32, np.float32
@@ -37,7 +37,7 @@ def _kernel(device, name, pixel):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_depth_points.cl", {"GT_PIXEL": CL_PIXEL[pixel]}), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 

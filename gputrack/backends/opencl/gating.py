@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 PD_EPS_FACTOR = 4.0
 STRIP_SLACK = 1e-3  # as gputrack/backends/taichi/gating.py
@@ -26,7 +26,7 @@ def _kernel(device, dtype, n, m, has_active, sorted_z):
         "STRIP_SLACK": repr(STRIP_SLACK),
     }
     found = cl.Kernel(device.program("gt_gating.cl", defines), "gt_gate_pairs")
-    found.set_scalar_arg_dtypes([None] * 10 + [np.int32, np.int32, np.int32, dtype.type])
+    scalar_types(found, [None] * 10 + [np.int32, np.int32, np.int32, dtype.type])
     return found
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from ...device import per_device, per_device_cache
 from ...uploads import constant
 from .depth_points import enqueue_upload
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 __all__ = ["classify", "emit", "render", "render_dtype"]
 
@@ -63,7 +63,7 @@ def _kernel(device, name):
 
     defines = {"GT_MT_LANES": lanes(device), "GT_MT_DOUBLE": int(double(device))}  # one program for every kernel
     found = cl.Kernel(device.program("gt_model_template.cl", defines), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 # scalar argument types per kernel (None = a buffer): pyopencl then packs the arguments directly
 _I = np.int32
@@ -25,7 +25,7 @@ def _kernel(device, name):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_ncc.cl"), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 _I, _U, _F = np.int32, np.uint32, np.float32
 # scalar argument types (None = a buffer): pyopencl then packs the arguments directly (fast launches)
@@ -20,7 +20,7 @@ def _kernel(device, name):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_particles.cl"), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 

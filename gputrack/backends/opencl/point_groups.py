@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 _I = np.int32
 _ARGS = {
@@ -31,7 +31,7 @@ def _kernel(device, name):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_point_groups.cl"), name)
-    found.set_scalar_arg_dtypes(_ARGS[name])
+    scalar_types(found, _ARGS[name])
     return found
 
 

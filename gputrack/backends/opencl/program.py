@@ -10,6 +10,8 @@ import functools
 import os
 from pathlib import Path
 
+import numpy as np
+
 from ...abi import cl_defines
 from ...device import per_device
 
@@ -99,16 +101,46 @@ def _last_args(device) -> dict:
     return {}
 
 
+def scalar_types(kernel, dtypes) -> None:
+    """``kernel.set_scalar_arg_dtypes(dtypes)``, remembered on the kernel for :func:`enqueue` (which
+    sets a changed Python scalar argument alone with its type)."""
+    kernel.set_scalar_arg_dtypes(dtypes)
+    kernel.gt_scalar_dtypes = tuple(dtypes)
+
+
 def enqueue(device, kernel, gsize, lsize, *args) -> None:
-    """Launch ``kernel`` on the device's queue, setting its arguments only where they differ from its
-    last launch (buffers by handle, scalars by value): PyOpenCL's ``kernel(queue, ...)`` sets every
-    argument each call, 50-90 us a launch on PoCL here against ~8 us for the launch itself.
-    Scalars are typed as the kernel's ``set_scalar_arg_dtypes`` says, or must be NumPy scalars."""
+    """Launch ``kernel`` on the device's queue, setting only the arguments that differ from its last
+    launch (buffers by handle, scalars by value), one ``set_arg`` each: PyOpenCL's ``kernel(queue,
+    ...)`` and ``set_args`` set every argument, 50-90 us a launch on PoCL here (83 us for the LM
+    update's 13) against ~8 us for the launch itself. Scalars are typed as :func:`scalar_types`
+    says, or must be NumPy scalars."""
     import pyopencl as cl
 
     seen = _last_args(device)
     last = seen.get(kernel)
-    if last is None or len(last) != len(args) or any(a is not b and a != b for a, b in zip(args, last)):
+    if last is None or len(last) != len(args):
         kernel.set_args(*args)
+    else:
+        changed = [i for i, (a, b) in enumerate(zip(args, last)) if a is not b and a != b]
+        if changed:
+            _set_changed(kernel, args, changed)
     seen[kernel] = args
     cl.enqueue_nd_range_kernel(device.queue, kernel, gsize, lsize)
+
+
+def _set_changed(kernel, args, changed) -> None:
+    """Arguments ``changed`` (indices) of ``args`` into ``kernel``, one by one; a Python scalar takes
+    its type from the kernel's scalar dtypes (all of them set at once where it has none)."""
+    dtypes = getattr(kernel, "gt_scalar_dtypes", ())
+    values = []
+    for i in changed:
+        a = args[i]
+        if isinstance(a, (bool, int, float)) and not isinstance(a, np.generic):
+            dt = dtypes[i] if i < len(dtypes) else None
+            if dt is None:
+                kernel.set_args(*args)
+                return
+            a = np.dtype(dt).type(a)
+        values.append((i, a))
+    for i, a in values:
+        kernel.set_arg(i, a)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue, ndrange
+from .program import enqueue, ndrange, scalar_types
 
 _I = np.int32
 ARG_TYPES = [None, None, None, _I, _I, _I]
@@ -19,7 +19,7 @@ def _kernel(device, name):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_rows.cl"), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES)
+    scalar_types(found, ARG_TYPES)
     return found
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...device import per_device
-from .program import enqueue
+from .program import enqueue, scalar_types
 
 #: disparities a work-item (gt_stereo.cl): 16 in a short16 for uint8 input (every cost fits in
 #: 16 bits), 8 in an int8 for float32 input
@@ -32,7 +32,7 @@ def _kernel(device, name, lanes=LANES):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_stereo.cl", {"GT_STEREO_LANES": lanes}), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from ... import tuning_cache
 from ...device import per_device
 from ...tuning_cache import Tunable
-from .program import enqueue, ndrange, source
+from .program import enqueue, ndrange, scalar_types, source
 
 CPU_LANES = 8
 WORK_GROUP = 4
@@ -87,7 +87,7 @@ def _built_kernel(device, name, defines):
     import pyopencl as cl
 
     found = cl.Kernel(device.program("gt_template.cl", dict(defines)), name)
-    found.set_scalar_arg_dtypes(ARG_TYPES[name])
+    scalar_types(found, ARG_TYPES[name])
     return found
 
 
