@@ -141,8 +141,8 @@ def _inside_class(level_of_class_stackframe):
     """Taichi's test whether a decorated kernel or function is defined in a class body (the
     statement of the frame ``level_of_class_stackframe`` up starts with ``class`` or
     ``@...data_oriented``), reading that one line through ``linecache`` where Taichi's own
-    ``inspect.getframeinfo`` looks the whole module's source up: ~2 ms a definition, ~0.5 s for the
-    package's ~250 kernels and functions at import."""
+    ``inspect.getframeinfo`` looks the whole module's source up (measured under cProfile: 1.3 s for
+    the 246 definitions the body tracker's first frame imports)."""
     try:
         frame = sys._getframe(level_of_class_stackframe)
         line = linecache.getline(frame.f_code.co_filename, frame.f_lineno, frame.f_globals).strip()
