@@ -30,34 +30,46 @@
 #error "build with the ABI defines of gputrack/abi.py (cl_defines; gputrack/backends/opencl/program.py)"
 #endif
 #define MAX_CHOL_TRIES 40
+#ifdef REAL_IS_DOUBLE
+#define REAL2 double2
+#define REAL4 double4
+#else
+#define REAL2 float2
+#define REAL4 float4
+#endif
 #define LM_JB 16  // columns of J^T J a work-item sums at once when P is a runtime value
 // GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling, one of
 // GT_LM_SCALE_IDENTITY / _MARQUARDT / _MINPACK (gputrack.abi.LMScale).
 
 // In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
+// sum_k<n a[k] b[k] in four interleaved partial sums (vectorised: the compiler may not reorder one
+// running sum), the tail after them
+static REAL gt_lm_dot(__global const REAL *a, __global const REAL *b, const int n)
+{
+    REAL4 acc = (REAL4)(0);
+    int k = 0;
+    for (; k + 4 <= n; k += 4)
+        acc += vload4(0, a + k) * vload4(0, b + k);
+    REAL s = (acc.x + acc.y) + (acc.z + acc.w);
+    for (; k < n; ++k)
+        s += a[k] * b[k];
+    return s;
+}
+
 static int gt_chol_solve(__global REAL *W, __global REAL *rhs, const int P, const REAL C)
 {
     for (int j = 0; j < P; ++j) {
-        REAL s = W[j * P + j] + C;
-        for (int k = 0; k < j; ++k)
-            s -= W[j * P + k] * W[j * P + k];
+        __global const REAL *rj = W + j * P;
+        const REAL s = W[j * P + j] + C - gt_lm_dot(rj, rj, j);
         if (!(s > 0) || !isfinite(s))
             return 0;
         const REAL d = sqrt(s);
         W[j * P + j] = d;
-        for (int i = j + 1; i < P; ++i) {
-            REAL v = W[i * P + j];
-            for (int k = 0; k < j; ++k)
-                v -= W[i * P + k] * W[j * P + k];
-            W[i * P + j] = v / d;
-        }
+        for (int i = j + 1; i < P; ++i)
+            W[i * P + j] = (W[i * P + j] - gt_lm_dot(W + i * P, rj, j)) / d;
     }
-    for (int i = 0; i < P; ++i) {
-        REAL v = rhs[i];
-        for (int k = 0; k < i; ++k)
-            v -= W[i * P + k] * rhs[k];
-        rhs[i] = v / W[i * P + i];
-    }
+    for (int i = 0; i < P; ++i)
+        rhs[i] = (rhs[i] - gt_lm_dot(W + i * P, rhs, i)) / W[i * P + i];
     for (int i = P - 1; i >= 0; --i) {
         REAL v = rhs[i];
         for (int k = i + 1; k < P; ++k)
@@ -154,14 +166,6 @@ __kernel void gt_lm_solve(__global const REAL *J, __global const REAL *r, __glob
 
 // ------------------------------------------------------------------------------------------------
 // solver: packed state (gputrack.ops.lm.Layout), one launch per iteration
-
-#ifdef REAL_IS_DOUBLE
-#define REAL2 double2
-#define REAL4 double4
-#else
-#define REAL2 float2
-#define REAL4 float4
-#endif
 
 // The dots of rows a0, a1 with rows b0, b1 (M contiguous values each; a . b as four partial sums,
 // the lanes of a vector: lane k sums m = k mod 4, the tail into lane 0), four independent chains.
