@@ -265,7 +265,7 @@ class BundleProblem:
         self._target = np.where(w[..., None] > 0, np.nan_to_num(lm), 0.0)
         self.x0 = self.pack(rv, tv, ex, s)
         self.lower, self.upper = self._box(_pose_range(pose_range), expression_range, identity_sigmas, fixed_first)
-        depth = self._geometry(self.x0[None])[3][..., 2]
+        depth = self._geometry(*self.unpack(self.x0[None]))[3][..., 2]
         if (depth <= MIN_DEPTH).any():
             i, k = (int(j) for j in np.argwhere(depth[0] <= MIN_DEPTH)[0])
             raise ValueError(f"tvecs: expected every model point in front of the camera (depth > {MIN_DEPTH} mm), "
@@ -305,12 +305,12 @@ class BundleProblem:
         return lower, upper
 
     # -- evaluation ------------------------------------------------------------------------------
-    def _geometry(self, x, R=None):
-        """For points x (B, P): R (B, n, 3, 3), the expression basis Bs (B, K, 3, A'), RX (B, n, K, 3),
-        Y = RX + t (B, n, K, 3) camera-frame points (eq. 4-5); R given or from the rvecs of x."""
+    def _geometry(self, rv, tv, ex, s, R=None):
+        """For the :meth:`unpack` parts of points (B, P): R (B, n, 3, 3), the expression basis Bs
+        (B, K, 3, A'), RX (B, n, K, 3), Y = RX + t (B, n, K, 3) camera-frame points (eq. 4-5); R given
+        or from rv."""
         tm, n, K, A = self.terms, self.n, self.K, self.A
-        rv, tv, ex, s = self.unpack(x)
-        B = x.shape[0]
+        B = rv.shape[0]
         if R is None:
             R = _rotations(rv, left=False)[0]
         Bs = tm.L0 + (s @ self._G2).reshape(B, K, 3, A)  # eq. 4: basis of a for identity s
@@ -332,9 +332,9 @@ class BundleProblem:
         x = np.atleast_2d(np.asarray(x, np.float64))
         B, n, K, F, S = x.shape[0], self.n, self.K, self.F, self.S
         tm, cam, sw = self.terms, self.camera, self._sw
-        rv, _, ex, _ = self.unpack(x)
+        rv, tv, ex, s = self.unpack(x)
         R, Jl = _rotations(rv, left=jacobian)
-        R, Bs, RX, Y = self._geometry(x, R)
+        R, Bs, RX, Y = self._geometry(rv, tv, ex, s, R)
         iz = 1.0 / np.maximum(Y[..., 2], MIN_DEPTH)  # eq. 5: the projection
         uv = np.empty((*Y.shape[:-1], 2))
         uv[..., 0] = cam.fx * Y[..., 0] * iz + cam.cx
