@@ -41,7 +41,6 @@
 // GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling, one of
 // GT_LM_SCALE_IDENTITY / _MARQUARDT / _MINPACK (gputrack.abi.LMScale).
 
-// In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
 // sum_k<n a[k] b[k] in four interleaved partial sums (vectorised: the compiler may not reorder one
 // running sum), the tail after them
 static REAL gt_lm_dot(__global const REAL *a, __global const REAL *b, const int n)
@@ -56,6 +55,7 @@ static REAL gt_lm_dot(__global const REAL *a, __global const REAL *b, const int 
     return s;
 }
 
+// In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
 static int gt_chol_solve(__global REAL *W, __global REAL *rhs, const int P, const REAL C)
 {
     for (int j = 0; j < P; ++j) {
