@@ -33,9 +33,14 @@
 #ifdef REAL_IS_DOUBLE
 #define REAL2 double2
 #define REAL4 double4
+#define GT_TO_REAL4(v) convert_double4(v)
 #else
 #define REAL2 float2
 #define REAL4 float4
+#define GT_TO_REAL4(v) convert_float4(v)
+#endif
+#ifdef LM_P
+#define LM_NV ((LM_P + 3) / 4)  // vectors of four in a row of J (the last padded with zeros)
 #endif
 #define LM_JB 16  // columns of J^T J a work-item sums at once when P is a runtime value
 // GT_LM_G_SCALE (an ABI define): the global of S holding the damping's scaling, one of
@@ -392,6 +397,19 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
 // (SR = 2P+1: trial point and perturbed copies; SR = 1: trial point only, with Jg its Jacobian
 // (B, M, P) when USE_JAC, or the last call when FINAL). X: (B*SX, P) receives the next points.
 // S small state, W workspace (device only), Out (B, P + 5) the result (gputrack.ops.lm.Layout).
+#if defined(USE_JAC) && defined(LM_P)
+// entries j0..j0+3 of a row of J (LM_P entries), zeros past its end
+static REAL4 gt_lm_jrow4(__global const JTYPE *row, const int j0)
+{
+#if LM_P % 4
+    if (j0 + 4 > LM_P)
+        return (REAL4)((REAL)row[j0], j0 + 1 < LM_P ? (REAL)row[j0 + 1] : (REAL)0,
+                       j0 + 2 < LM_P ? (REAL)row[j0 + 2] : (REAL)0, (REAL)0);
+#endif
+    return GT_TO_REAL4(vload4(0, row + j0));
+}
+#endif
+
 __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, __global XTYPE *X,
                            __global const RTYPE *R, __global const JTYPE *Jg, __global REAL *Out, const int M,
                            const int SR, const int SX, const int first, const int final_)
@@ -424,27 +442,51 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     if (running && !final_) {
         __global const JTYPE *Jb = Jg + (long)b * M * P;
 #ifdef LM_P
-        // P a build define: row i of J^T J and J^T r per work-item, the P columns in registers (row
-        // m of J: x = J[m, i] times the contiguous row); the j loops unrolled, else PoCL keeps acc in
-        // memory as a per-work-item array (a load and a store per FMA, ~2x slower)
-        for (int i = lid; i < LM_P; i += ls) {
-            REAL acc[LM_P];
-            REAL ag = 0;
+        // P a build define: blocks of four rows i0..i0+3 of J^T J (and of J^T r) per work-item, in
+        // registers: row m of J times its four entries at i0.., the columns from i0's vector of
+        // four on (the upper triangle; the rest is their mirror), loaded four at a time, rows and
+        // columns past P read as zeros. On PoCL (P = 20, M = 256) 0.04 ms against 0.16 ms for a
+        // row per work-item with scalar sums (per-work-item arrays that PoCL keeps in memory).
+        for (int rb = lid; rb < LM_NV; rb += ls) {
+            const int i0 = 4 * rb;
+            REAL4 a0[LM_NV], a1[LM_NV], a2[LM_NV], a3[LM_NV], ag = (REAL4)(0);
 #pragma unroll
-            for (int j = 0; j < LM_P; ++j)
-                acc[j] = 0;
+            for (int v = 0; v < LM_NV; ++v)
+                a0[v] = a1[v] = a2[v] = a3[v] = (REAL4)(0);
             for (int m = 0; m < M; ++m) {
                 __global const JTYPE *Jm = Jb + m * LM_P;
-                const REAL x = (REAL)Jm[i];
+                const REAL4 x = gt_lm_jrow4(Jm, i0);
                 ag += x * (REAL)rt[m];
 #pragma unroll
-                for (int j = 0; j < LM_P; ++j)
-                    acc[j] += x * (REAL)Jm[j];
+                for (int v = 0; v < LM_NV; ++v)
+                    if (v >= rb) {
+                        const REAL4 c = gt_lm_jrow4(Jm, 4 * v);
+                        a0[v] = fma((REAL4)(x.x), c, a0[v]);
+                        a1[v] = fma((REAL4)(x.y), c, a1[v]);
+                        a2[v] = fma((REAL4)(x.z), c, a2[v]);
+                        a3[v] = fma((REAL4)(x.w), c, a3[v]);
+                    }
             }
+            REAL t[4][4], tg[4];
+            vstore4(ag, 0, tg);
+            for (int k = 0; k < 4 && i0 + k < LM_P; ++k)
+                Jt[i0 + k] = tg[k];
 #pragma unroll
-            for (int j = 0; j < LM_P; ++j)
-                L[i * LM_P + j] = acc[j];
-            Jt[i] = ag;
+            for (int v = 0; v < LM_NV; ++v)
+                if (v >= rb) {
+                    vstore4(a0[v], 0, t[0]);
+                    vstore4(a1[v], 0, t[1]);
+                    vstore4(a2[v], 0, t[2]);
+                    vstore4(a3[v], 0, t[3]);
+                    for (int k = 0; k < 4; ++k)
+                        for (int e = 0; e < 4; ++e) {
+                            const int i = i0 + k, j = 4 * v + e;
+                            if (i < LM_P && j < LM_P && j >= i) {
+                                L[i * LM_P + j] = t[k][e];
+                                L[j * LM_P + i] = t[k][e];
+                            }
+                        }
+                }
         }
 #else
         // P a runtime value: per work-item row i of J^T J against a block of LM_JB columns j0..

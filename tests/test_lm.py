@@ -619,6 +619,23 @@ def test_sparse_mask_without_rows_protocol(device):
         least_squares(host_residual(_chain), x0, device=device, jac_sparsity=CHAIN_MASK * 0.5)
 
 
+# the Jacobian-callable update builds P <= STATIC_P_MAX (32) into the kernels: blocks of four
+# rows and columns on OpenCL (P % 4 = 0..3), vectors of columns on taichi:cpu
+@pytest.mark.parametrize("P", [1, 3, 4, 6, 9, 20, 32])
+def test_jacobian_callable_matches_reference_for_each_built_p(device, P):
+    B, M = 3, P + 9
+    res, jac = _linear_sine(B, M, P, seed=100 + P)
+    x0 = np.full((B, P), 0.05)
+    for host in (False, True):
+        got = least_squares(res, x0, device=device, jacobian=jac, lower=-0.3, upper=0.3, max_iter=5, host=host)
+        ref = least_squares(res, x0, device=REF, jacobian=jac, lower=-0.3, upper=0.3, max_iter=5, dtype=got.dtype)
+        f32 = got.dtype == np.float32
+        assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} host={host}")
+        assert_matches(device, got.cost, ref.cost, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} host={host}")
+        if not f32:
+            np.testing.assert_array_equal(got.iterations, ref.iterations)
+
+
 def test_jacobian_callable(device):
     def jac(X):
         Xn = gputrack.to_numpy(X).astype(np.float64)

@@ -319,3 +319,48 @@ def test_host_callables_take_the_same_steps(device):
         seen.clear()
     with pytest.raises(ValueError, match=r"^diff: expected one of 'central', 'forward', got 'backward'\Z"):
         LeastSquaresSolver(device, (2, 2), diff="backward")
+
+
+def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeypatch):
+    """On an OpenCL device with fine-grained shared virtual memory (PoCL on a CPU) a host-mode solve
+    hands the callables points the kernels wrote in place and copies their results on the host: no
+    OpenCL copy per iteration, the same results as the reference."""
+    if device.backend != "opencl":
+        pytest.skip(f"{device.spec}: OpenCL's shared memory")
+    import pyopencl as cl
+
+    from gputrack.backends.opencl import lm as cl_lm
+
+    if not cl_lm.reads_host(device):
+        pytest.skip(f"{device.spec}: no fine-grained buffer SVM on a host-unified device (results are copied)")
+    t = np.linspace(0, 2, 24)
+    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
+    seen = []
+
+    def res(X):
+        seen.append(X)
+        return _expfit(X)
+
+    def jac(X):
+        e = np.exp(X[:, 1:2] * t)
+        return np.stack([e, X[:, :1] * t * e], axis=2)
+
+    copies = []
+    real_copy = cl.enqueue_copy
+    monkeypatch.setattr(cl, "enqueue_copy", lambda *a, **k: (copies.append(1), real_copy(*a, **k))[1])
+    counts = {}
+    for iters in (2, 8):
+        solver = LeastSquaresSolver(device, (3, 2), max_iter=iters, early_stop=False, damping_scale="minpack")
+        solver.solve(res, x0, host=True, jacobian=jac)  # the constants' upload is kept from here on
+        copies.clear()
+        seen.clear()
+        got = solver.solve(res, x0, host=True, jacobian=jac)
+        counts[iters] = len(copies)
+        solver.close()
+        assert all(isinstance(X.base, cl.SVMAllocation) for X in seen)
+        assert all(X is seen[0] for X in seen)  # one array of points, rewritten by each launch
+        want = LeastSquaresSolver(REF, (3, 2), max_iter=iters, early_stop=False, damping_scale="minpack").solve(
+            res, x0, jacobian=jac)  # fmt: skip
+        np.testing.assert_allclose(got.x, want.x, rtol=1e-10, atol=1e-12)
+        np.testing.assert_array_equal(got.iterations, want.iterations)
+    assert counts[2] == counts[8] <= 2, counts  # the start points up, the results down

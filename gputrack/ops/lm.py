@@ -514,10 +514,12 @@ class LeastSquaresSolver:
     is the iteration's one host round trip. With ``solve(..., host=True)`` (NumPy callables) the
     points are handed as NumPy: on taichi:cpu (and the reference) the kernels write them straight
     into a NumPy array the solver holds and read the callables' NumPy results where they are (no
-    copy, no per-iteration allocation; the bytes are counted as transfers all the same); on the
-    other devices they are downloaded once per residual call (the Jacobian call reuses them) into
-    a held host array and the results are uploaded into held device buffers (asynchronously on
-    OpenCL). ``early_stop=False`` downloads nothing until the end
+    copy, no per-iteration allocation; the bytes are counted as transfers all the same); on an
+    OpenCL device with fine-grained shared virtual memory (PoCL on a CPU) the points are a NumPy
+    array in that memory and the results are copied into another on the host (one command and
+    one wait an iteration); on the other devices they are downloaded once per residual call (the
+    Jacobian call reuses them) into a held host array and the results are uploaded into held
+    device buffers (asynchronously on OpenCL). ``early_stop=False`` downloads nothing until the end
     (stopped problems stay frozen on the device; the batch runs ``max_iter`` iterations). The
     result, B (P + 5) values (x, cost, damping, status, iterations, reason), is downloaded once at
     the end. Exact sizes: :class:`Layout`.
@@ -771,10 +773,11 @@ class _Run:
     launch per iteration, on the solver's buffers.
 
     With ``host`` the callables get NumPy points and give NumPy results: where the backend's
-    kernels read and write host memory in place (``reads_host``: the NumPy reference, taichi:cpu)
-    the points are written by the kernels straight into a NumPy array the solver holds, and the
-    results are read where the callable left them (nothing is copied; the bytes are counted as
-    transfers all the same); elsewhere the points are downloaded into a held host array and the
+    kernels read and write host memory in place (``reads_host``: the NumPy reference, taichi:cpu,
+    OpenCL with fine-grained shared virtual memory) the points are written by the kernels straight
+    into a NumPy array the solver holds (``_Buffers.shared_array``), and the results are read where
+    the callable left them (OpenCL: copied on the host into shared memory first; the bytes are
+    counted as transfers all the same); elsewhere the points are downloaded into a held host array and the
     results uploaded into held device buffers, once each per call."""
 
     def __init__(self, solver, residuals, jacobian, mask, host=False):
@@ -868,7 +871,7 @@ class _Run:
         x0_up = x0_32 if np.array_equal(x0_32, x0) else x0.astype(dt)  # float32 when exact
         K_d = bufs.upload_cached("K", K)
         X0_d = bufs.upload("X0", x0_up)
-        points = bufs.host_array if self.direct else bufs.empty
+        points = bufs.shared_array if self.direct else bufs.empty
         X_full = points("X", (B * S_rows, P), self.pdt)
         X_last = X_full if S_rows == 1 else points("X_last", (B, P), self.pdt)
         state = be.solver_state(self.device, lay, bufs.empty("S", (lay.s_size(),), dt),
@@ -963,7 +966,7 @@ class _Buffers:
         if have is not None and have[0] == key:
             return have[1]
         free = self._free.setdefault(dev, {})
-        if have is not None and have[0][0] != "host":  # another size: back to the pool
+        if have is not None and have[0][0] not in ("host", "shared"):  # another size: back to the pool
             self._give_back(free, *have)
         avail = free.get(key)
         arr = avail.pop() if avail else dev.empty(shape, dtype)
@@ -1011,6 +1014,17 @@ class _Buffers:
             self.held[role] = have
         return have[1]
 
+    def shared_array(self, role, shape, dtype):
+        """A host array of ``role`` kept between solves that the backend's kernels read and write
+        in place (``reads_host``; the backend's ``shared_empty`` where it has one)."""
+        key = ("shared", tuple(shape), np.dtype(dtype))
+        have = self.held.get(role)
+        if have is None or have[0] != key:
+            alloc = getattr(backend_module(self.device, "lm"), "shared_empty", None)
+            have = (key, alloc(self.device, shape, dtype) if alloc else np.empty(shape, dtype))
+            self.held[role] = have
+        return have[1]
+
     def download(self, role, arr):
         """``arr`` (a device array) into the host array of ``role`` (counted); returns the host array."""
         host = self.host_array(role, arr.shape, arr.dtype)
@@ -1046,7 +1060,7 @@ class _Buffers:
             return
         free = self._free.setdefault(self.device, {})
         for key, arr in held.values():
-            if key[0] != "host":
+            if key[0] not in ("host", "shared"):
                 self._give_back(free, key, arr)
 
 

@@ -139,9 +139,12 @@ class State:
         self.device, self.lay, self.S, self.I, self.Out = device, lay, S, I, Out
         self.W = None
         self.ls = _local_size(device, lay.P)
-        self.ls_jac = min(self.ls, lay.P)  # the Jacobian-callable variant: a work-item per row of J^T J
+        # the Jacobian-callable variant (P built in): a work-item per block of four rows of J^T J
+        self.ls_jac = min(self.ls, (lay.P + 3) // 4)
         self.kernels = {}  # (residual, points, Jacobian dtypes) -> the update kernel
         self.x0type = None  # the start points' dtype (solver_init): the update's program has it too
+        self.stage = {}  # role -> a shared array the host callables' results are copied into
+        self.tags = {}  # id -> (shared array, its cl.SVM kernel argument)
 
 
 def upload_into(device, arr, host, asynchronous=False):
@@ -164,8 +167,54 @@ def download_into(device, arr, host):
 
 
 def reads_host(device) -> bool:
-    """Kernels read device buffers only: the solver's host callables' arrays are copied."""
-    return False
+    """Whether the solver's host callables get their points in place: on a device that shares the
+    host's memory through fine-grained SVM (PoCL on a CPU), the points are NumPy arrays in shared
+    virtual memory (:func:`shared_empty`) that the kernels write, and the callables' results are
+    copied on the host into shared arrays the kernels read. An iteration is then one command and one
+    wait, against four commands (two uploads, the launch, the download of the points), each a
+    hand-off to PoCL's worker threads. Elsewhere (a discrete GPU) the arrays are copied."""
+    return _fine_svm(device)
+
+
+@per_device
+def _fine_svm(device) -> bool:
+    import pyopencl as cl
+
+    d = device.cl_device
+    try:
+        caps = d.svm_capabilities
+    except (cl.Error, AttributeError):  # an OpenCL 1.2 device
+        return False
+    return bool(d.host_unified_memory) and bool(caps & cl.device_svm_capabilities.FINE_GRAIN_BUFFER)
+
+
+def shared_empty(device, shape, dtype):
+    """A NumPy array in fine-grained shared virtual memory (:func:`reads_host` devices): the host
+    and the kernels use the same bytes, consistent at the launches and the waits."""
+    import pyopencl as cl
+
+    flags = cl.svm_mem_flags.READ_WRITE | cl.svm_mem_flags.SVM_FINE_GRAIN_BUFFER
+    return cl.svm_empty(device.context, flags, shape, dtype, alignment=128)
+
+
+def _arg(state, a, role):
+    """What a kernel takes for an array of the solver: a DeviceArray's buffer; a NumPy array in
+    shared memory as itself; any other NumPy array (a callable's result) copied into the shared
+    array of ``role`` first."""
+    import pyopencl as cl
+
+    if not isinstance(a, np.ndarray):
+        return a.buffer.data
+    if not isinstance(a.base, cl.SVMAllocation):
+        stage = state.stage.get(role)
+        if stage is None or stage.shape != a.shape or stage.dtype != a.dtype:
+            stage = state.stage[role] = shared_empty(state.device, a.shape, a.dtype)
+        np.copyto(stage, a)
+        a = stage
+    tag = state.tags.get(id(a))
+    if tag is None or tag[0] is not a:
+        tag = state.tags[id(a)] = (a, cl.SVM(a))
+    return tag[1]
 
 
 def solver_state(device, lay, S, I, Out):
@@ -191,12 +240,14 @@ def solver_init(state, X0, K, X):
         K.buffer.data,
         state.S.buffer.data,
         state.I.buffer.data,
-        X.buffer.data,
+        _arg(state, X, "X"),
         np.int32(B),
         np.int32(lay.P),
         np.int32(X.shape[0] // B),
         np.int32(K.shape[0] - lay.kglob),
     )
+    if isinstance(X, np.ndarray):  # the host reads the points next
+        dev.queue.finish()
 
 
 def _update_kernel(state, rtype, xtype, jtype):
@@ -225,9 +276,9 @@ def solver_update(state, R, X, *, first, final, jac=None):
         state.S.buffer.data,
         state.I.buffer.data,
         state.W.buffer.data,
-        X.buffer.data,
-        R.buffer.data,
-        Jg.buffer.data,
+        _arg(state, X, "X"),
+        _arg(state, R, "R"),
+        _arg(state, Jg, "J") if jac is not None else _arg(state, R, "R"),
         state.Out.buffer.data,
         np.int32(R.shape[1]),
         np.int32(R.shape[0] // B),
@@ -235,6 +286,8 @@ def solver_update(state, R, X, *, first, final, jac=None):
         np.int32(bool(first)),
         np.int32(bool(final)),
     )
+    if isinstance(X, np.ndarray):  # the host reads the points next
+        dev.queue.finish()
 
 
 def solver_active(state) -> int:
