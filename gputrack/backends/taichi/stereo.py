@@ -1,11 +1,9 @@
 """Taichi kernels of :mod:`gputrack.ops.stereo` (conventions there): one launch, five loops.
 
-1. NaN into the output; on the rows the runs' windows read: the prefiltered integer images
-   (x-Sobel clipped to [-cap, cap], plus cap), kept
-   with LANES columns of padding on the left and max_disparity + LANES on the right (so that a
-   lane of a disparity group past max_disparity reads inside the array);
-   then each image's LANES-pixel neighbourhoods as vectors (right: P_R(x), P_R(x-1), ...;
-   left: P_L(x), P_L(x+1), ...), so that a group's window column is one vector load.
+1. NaN into the output; on the rows the runs' windows read, a row per thread: the prefiltered
+   integer images (x-Sobel clipped to [-cap, cap], plus cap; LANES columns at a time as vectors),
+   kept with LANES columns of padding on the left and max_disparity + LANES on the right (so that
+   a lane of a disparity group past max_disparity reads inside the array).
 2. One thread per (tile of runs, group of LANES disparities) (gputrack/ops/stereo.py
    ``run_tiles``: the runs of a band of 16 rows whose column ranges touch): the window column
    sums V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| over the tile's columns,
@@ -13,22 +11,33 @@
    differences per column and row, not block), then running box sums along each run of the row
    (2 additions per pixel), LANES disparities at once in an integer vector (SIMD on the CPU:
    compiled with ``scalarize=False``; 16 int16 lanes for uint8 input on the CPU archs, 8 int32
-   lanes otherwise, :func:`lanes`), into a cost buffer (pixel, d).
+   lanes otherwise, :func:`lanes`), into a cost buffer (pixel, d). A row's right-image pixels of
+   the group, P_R(x - d0), ..., P_R(x - d0 - LANES + 1), are one vector that slides along the
+   columns: one load and a lane shift a column.
 3. One thread per run: winner, uniqueness, parabola vertex; the right-image position x - d of
    each winner is marked.
 4. One thread per (tile, group): the right image's costs C_R(x_r, d') = C(x_r + d', d') the same
    way over the columns of the tile's marked span (its smallest and largest marked position,
-   gathered by atomic min / max in 3), stored at the marked positions only.
+   gathered by atomic min / max in 3), stored at the marked positions only; the left-image
+   pixels P_L(x + d0), ..., P_L(x + d0 + LANES - 1) slide the same way.
 5. One thread per run: the right winners and the left-right check.
+
+On taichi:cpu the runs, tiles and mask are NumPy arrays the kernel reads in place (no copy
+launches); elsewhere they are uploaded.
 
 Measured on the 2-core VM (taichi:cpu, VGA, 100 runs of 100 pixels, left costs only, each column
 sum over the window's 9 rows): 40 ms with one scalar thread per (run, d) and 2-D indexing, 17 ms
 with flat indexing, 5.1 ms with 8-lane vectors gathered by 8 scalar loads (16 lanes: 9.7 ms),
-1.7 ms with the neighbourhood vectors. Carrying the column sums down the tiles' rows then took
-the left costs of the benchmark's masked VGA pair from ~17-21 to ~12 ms (mean of 5, loaded VM).
-16 int16 lanes instead of 8 int32 (uint8 input, 2026-11-27, loaded VM, Taichi's kernel profiler
-on the group benchmark's pair with 17 % foreground): left costs 17.0 -> 7.0 ms, right costs
-18.7 -> 7.6 ms; the whole call 59 -> 40 ms of CPU time (median of 15, old and new alternating).
+1.7 ms with each pixel's neighbourhood vector stored beforehand (up to 2026-11-27: 32 bytes a
+pixel and image, ~23 MB written a VGA call). Carrying the column sums down the tiles' rows then
+took the left costs of the benchmark's masked VGA pair from ~17-21 to ~12 ms (mean of 5, loaded
+VM). 16 int16 lanes instead of 8 int32 (uint8 input, 2026-11-27, loaded VM, Taichi's kernel
+profiler on the group benchmark's pair with 17 % foreground): left costs 17.0 -> 7.0 ms, right
+costs 18.7 -> 7.6 ms; the whole call 59 -> 40 ms of CPU time (median of 15, old and new
+alternating). Sliding vectors instead of the stored neighbourhoods, the prefilter by vectors of
+LANES columns and the tables read in place (2026-11-27, night, the same pair, kernel profiler,
+two rounds in turn): the kernel's loops 14.9 / 11.8 -> 9.5 / 10.1 ms (mean), prefilter and
+neighbourhoods 5.4-7.1 -> 1.1 ms (min), 8 -> 2 launches a call.
 """
 
 import functools
@@ -66,15 +75,15 @@ def _q(v, is_float: ti.template()):
 
 
 @ti.func
+def _col(img: ti.template(), y, x, is_float: ti.template()):
+    """The x-Sobel's column sum I(y - 1, x) + 2 I(y, x) + I(y + 1, x) (integer levels)."""
+    return _q(img[y - 1, x], is_float) + 2 * _q(img[y, x], is_float) + _q(img[y + 1, x], is_float)
+
+
+@ti.func
 def _sobel(img: ti.template(), y, x, cap, is_float: ti.template()):
-    h, w = img.shape[0], img.shape[1]
-    p = cap
-    if y >= 1 and y < h - 1 and x >= 1 and x < w - 1:
-        s = (_q(img[y - 1, x + 1], is_float) + 2 * _q(img[y, x + 1], is_float) + _q(img[y + 1, x + 1], is_float)) - (
-            _q(img[y - 1, x - 1], is_float) + 2 * _q(img[y, x - 1], is_float) + _q(img[y + 1, x - 1], is_float)
-        )
-        p = ti.min(ti.max(s, -cap), cap) + cap
-    return p
+    """The prefiltered pixel (y, x) inside the image's border: the x-Sobel clipped to [-cap, cap], plus cap."""
+    return ti.min(ti.max(_col(img, y, x + 1, is_float) - _col(img, y, x - 1, is_float), -cap), cap) + cap
 
 
 @functools.lru_cache(maxsize=None)
@@ -111,10 +120,41 @@ def _kernel(LANES: int, T):
             m = ti.min(c[0], c[1])
         return m
 
+    @ti.func
+    def _sobel_lanes(img: ti.template(), p: ti.template(), y, x0, at, cap, is_float: ti.template()):
+        """p[at + l] = the clipped x-Sobel of img at (y, x0 + l) plus cap, l < LANES."""
+        a = VI([_q(img[y - 1, x0 + 1 + j], is_float) - _q(img[y - 1, x0 - 1 + j], is_float)
+                for j in ti.static(range(LANES))])  # fmt: skip
+        b = VI([_q(img[y, x0 + 1 + j], is_float) - _q(img[y, x0 - 1 + j], is_float) for j in ti.static(range(LANES))])
+        c = VI([_q(img[y + 1, x0 + 1 + j], is_float) - _q(img[y + 1, x0 - 1 + j], is_float)
+                for j in ti.static(range(LANES))])  # fmt: skip
+        v = ti.min(ti.max(a + 2 * b + c, -cap), cap) + cap
+        for j in ti.static(range(LANES)):
+            p[at + j] = ti.cast(v[j], T)
+
+    @ti.func
+    def _right_lanes(p: ti.template(), at):
+        """P_R(at), P_R(at - 1), ..., P_R(at - LANES + 1) as a vector (lane l: disparity d0 + l)."""
+        return V([p[at - j] for j in ti.static(range(LANES))])
+
+    @ti.func
+    def _right_slide(v, nxt):
+        """The vector of _right_lanes one column on: P_R(at + 1) in lane 0, the others one lane up."""
+        return V([nxt] + [v[j] for j in ti.static(range(LANES - 1))])
+
+    @ti.func
+    def _left_lanes(p: ti.template(), at):
+        """P_L(at), P_L(at + 1), ..., P_L(at + LANES - 1) as a vector (lane l: disparity d0 + l)."""
+        return V([p[at + j] for j in ti.static(range(LANES))])
+
+    @ti.func
+    def _left_slide(v, nxt):
+        """The vector of _left_lanes one column on: the others one lane down, P_L(at + LANES) last."""
+        return V([v[j + 1] for j in ti.static(range(LANES - 1))] + [nxt])
+
     @ti.kernel
     def _stereo(left: ti.types.ndarray(ndim=2), right: ti.types.ndarray(ndim=2),
                 pl: ti.types.ndarray(dtype=T, ndim=1), pr: ti.types.ndarray(dtype=T, ndim=1),
-                plv: ti.types.ndarray(dtype=V, ndim=1), prv: ti.types.ndarray(dtype=V, ndim=1),
                 mask: ti.types.ndarray(dtype=ti.u8, ndim=2), runs: ti.types.ndarray(dtype=ti.i32, ndim=2),
                 tiles: ti.types.ndarray(dtype=ti.i32, ndim=2), order: ti.types.ndarray(dtype=ti.i32, ndim=1),
                 run_tile: ti.types.ndarray(dtype=ti.i32, ndim=1), marked: ti.types.ndarray(dtype=ti.i32, ndim=2),
@@ -132,33 +172,26 @@ def _kernel(LANES: int, T):
         for y in range(out.shape[0]):
             for x in range(W):
                 out[y, x] = nan
-        for yy, xp in ti.ndrange(y1 - y0, Wp):
+        for yy in range(y1 - y0):  # a row per thread: its prefilter, then its neighbourhoods from it
             y = y0 + yy
-            x = xp - LANES
-            a, b = cap, cap
-            if x >= 0 and x < W:
-                a = _sobel(left, y, x, cap, is_float)
-                b = _sobel(right, y, x, cap, is_float)
-            pl[y * Wp + xp] = ti.cast(a, T)
-            pr[y * Wp + xp] = ti.cast(b, T)
-        for yy in range(y1 - y0):
-            for xp in range(Wp):
-                at = (y0 + yy) * Wp + xp
-                lv, rv = V(0), V(0)
-                if xp >= LANES and xp < Wp - LANES:  # inside the row: no padding to fill in
-                    for j in ti.static(range(LANES)):
-                        lv[j] = pl[at + j]
-                        rv[j] = pr[at - j]
-                else:
-                    for j in ti.static(range(LANES)):
-                        lv[j] = ti.cast(cap, T)
-                        rv[j] = ti.cast(cap, T)
-                        if xp + j < Wp:
-                            lv[j] = pl[at + j]
-                        if xp - j >= 0:
-                            rv[j] = pr[at - j]
-                plv[at] = lv
-                prv[at] = rv
+            row = y * Wp
+            pad = ti.cast(cap, T)
+            inner = y >= 1 and y < left.shape[0] - 1 and W >= 3
+            for xp in range(Wp):  # the padding, and the image's border (no x-Sobel there)
+                if not inner or xp <= LANES or xp >= LANES + W - 1:
+                    pl[row + xp] = pad
+                    pr[row + xp] = pad
+            if inner:
+                # the x-Sobel of columns 1..W-2, LANES columns at a time as vectors (their loads
+                # consecutive), the rest one by one
+                nv = (W - 2) // LANES
+                for c in range(nv):
+                    x0 = 1 + c * LANES
+                    _sobel_lanes(left, pl, y, x0, row + LANES + x0, cap, is_float)
+                    _sobel_lanes(right, pr, y, x0, row + LANES + x0, cap, is_float)
+                for x in range(1 + nv * LANES, W - 1):
+                    pl[row + LANES + x] = ti.cast(_sobel(left, y, x, cap, is_float), T)
+                    pr[row + LANES + x] = ti.cast(_sobel(right, y, x, cap, is_float), T)
         # 2. left costs, one thread per (tile, group): the window column sums
         #    V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried
         #    down its rows (the row entering added, the one leaving subtracted), then running box sums
@@ -170,20 +203,29 @@ def _kernel(LANES: int, T):
             vb = voff * G + g * w  # this thread's column sums
             first = xa - r
             i = i0
+            n = xb - xa + 2 * r + 1
             for y in range(by0, by1 + 1):
-                for j in range(xb - xa + 2 * r + 1):
-                    at = (y - r) * Wp + LANES + first + j  # the window's top row
-                    v = V(0)
-                    if y == by0:
-                        for k in range(B):
-                            t = pl[at + k * Wp] - prv[at + k * Wp - d0]  # lane l: P_L(x) - P_R(x - d0 - l)
-                            v += ti.max(t, -t)
-                    else:
-                        add, sub = at + (B - 1) * Wp, at - Wp
-                        t1 = pl[add] - prv[add - d0]
-                        t2 = pl[sub] - prv[sub - d0]
-                        v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
-                    vsum[vb + j] = v
+                if y == by0:  # the window's B rows, a pass along the columns each
+                    for j in range(n):
+                        vsum[vb + j] = V(0)
+                    for k in range(B):
+                        at = (y - r + k) * Wp + LANES + first
+                        pv = _right_lanes(pr, at - d0)
+                        for j in range(n):
+                            if j > 0:
+                                pv = _right_slide(pv, pr[at + j - d0])
+                            t = pl[at + j] - pv  # lane l: P_L(x) - P_R(x - d0 - l)
+                            vsum[vb + j] = vsum[vb + j] + ti.max(t, -t)
+                else:  # the row entering added, the one leaving subtracted
+                    add, sub = (y + r) * Wp + LANES + first, (y - r - 1) * Wp + LANES + first
+                    pa, ps = _right_lanes(pr, add - d0), _right_lanes(pr, sub - d0)
+                    for j in range(n):
+                        if j > 0:
+                            pa = _right_slide(pa, pr[add + j - d0])
+                            ps = _right_slide(ps, pr[sub + j - d0])
+                        t1 = pl[add + j] - pa
+                        t2 = pl[sub + j] - ps
+                        vsum[vb + j] = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
                 while i < i1 and runs[order[i], 0] == y:
                     q = order[i]
                     x0, x1, off = runs[q, 1], runs[q, 2], runs[q, 3]
@@ -240,21 +282,29 @@ def _kernel(LANES: int, T):
             vb = voff * G + g * w
             first = xa - D + 1 - r  # column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
             i = i0
+            jlo, jhi = mlo - r - first, mhi + r - first
             for y in range(by0, by1 + 1):
-                if mlo <= mhi:
-                    for j in range(mlo - r - first, mhi + r - first + 1):
-                        at = (y - r) * Wp + LANES + first + j
-                        v = V(0)
-                        if y == by0:
-                            for k in range(B):
-                                t = plv[at + k * Wp + d0] - pr[at + k * Wp]  # lane l: P_L(x + d0 + l) - P_R(x)
-                                v += ti.max(t, -t)
-                        else:
-                            add, sub = at + (B - 1) * Wp, at - Wp
-                            t1 = plv[add + d0] - pr[add]
-                            t2 = plv[sub + d0] - pr[sub]
-                            v = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
-                        vsum[vb + j] = v
+                if mlo <= mhi and y == by0:
+                    for j in range(jlo, jhi + 1):
+                        vsum[vb + j] = V(0)
+                    for k in range(B):
+                        at = (y - r + k) * Wp + LANES + first
+                        pv = _left_lanes(pl, at + jlo + d0)
+                        for j in range(jlo, jhi + 1):
+                            if j > jlo:
+                                pv = _left_slide(pv, pl[at + j + d0 + LANES - 1])
+                            t = pv - pr[at + j]  # lane l: P_L(x + d0 + l) - P_R(x)
+                            vsum[vb + j] = vsum[vb + j] + ti.max(t, -t)
+                elif mlo <= mhi:
+                    add, sub = (y + r) * Wp + LANES + first, (y - r - 1) * Wp + LANES + first
+                    pa, ps = _left_lanes(pl, add + jlo + d0), _left_lanes(pl, sub + jlo + d0)
+                    for j in range(jlo, jhi + 1):
+                        if j > jlo:
+                            pa = _left_slide(pa, pl[add + j + d0 + LANES - 1])
+                            ps = _left_slide(ps, pl[sub + j + d0 + LANES - 1])
+                        t1 = pa - pr[add + j]
+                        t2 = ps - pr[sub + j]
+                        vsum[vb + j] = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
                 while i < i1 and runs[order[i], 0] == y:
                     q = order[i]
                     x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
@@ -314,14 +364,18 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     order_host[:S], run_tile_host[:S] = order, run_tile
     marked = np.empty((NBc, 2), np.int32)
     marked[:, 0], marked[:, 1] = W, -1  # no marked position yet
-    runs_d, tiles_d, order_d, run_tile_d, marked_d = (
-        device.asarray(a) for a in (runs_host, tiles_host, order_host, run_tile_host, marked))  # pooled shapes
-    mask_d = device.asarray(mask if mask is not None else np.ones((H, W), np.uint8))
+    small = (runs_host, tiles_host, order_host, run_tile_host, marked)
+    if mask is None:
+        mask = np.ones((H, W), np.uint8)
+    if current_arch() == "cpu":  # the kernel reads (and writes ``marked``) NumPy arrays in place: no copy launches
+        device.transfers.h2d += sum(a.nbytes for a in small)
+        runs_d, tiles_d, order_d, run_tile_d, marked_d = small
+    else:
+        runs_d, tiles_d, order_d, run_tile_d, marked_d = (device.asarray(a).buffer for a in small)  # pooled shapes
+    mask_d = np.ascontiguousarray(mask) if current_arch() == "cpu" else device.asarray(mask).buffer
     i32 = ti.i32
     arrays = (L.buffer, R.buffer, scratch(device, "stereo pl", (H * Wp,), T),
-              scratch(device, "stereo pr", (H * Wp,), T), scratch(device, "stereo plv", (H * Wp,), V),
-              scratch(device, "stereo prv", (H * Wp,), V), mask_d.buffer, runs_d.buffer, tiles_d.buffer,
-              order_d.buffer, run_tile_d.buffer, marked_d.buffer,
+              scratch(device, "stereo pr", (H * Wp,), T), mask_d, runs_d, tiles_d, order_d, run_tile_d, marked_d,
               scratch(device, "stereo vsum", (Vc * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
               scratch(device, "stereo rcost", (P2c * G,), V), scratch(device, "stereo ldisp", (Pc,), i32),
               scratch(device, "stereo rmark", (P2c,), i32), out.buffer)  # fmt: skip
