@@ -6,7 +6,7 @@ import pytest
 import scipy.optimize
 
 import gputrack
-from gputrack.ops.lm import LeastSquaresSolver, least_squares
+from gputrack.ops.lm import Layout, LeastSquaresSolver, least_squares
 from gputrack.ops.lm import LMStatus as Status
 
 REF = gputrack.device("numpy")
@@ -364,3 +364,8 @@ def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeyp
         np.testing.assert_allclose(got.x, want.x, rtol=1e-10, atol=1e-12)
         np.testing.assert_array_equal(got.iterations, want.iterations)
     assert counts[2] == counts[8] <= 2, counts  # the start points up, the results down
+    # points the kernel writes must be shared: a plain NumPy array would be written in a copy
+    state = cl_lm.State(device, Layout(3, 2, 24, False), *(device.empty((4,), np.float64) for _ in range(2)),
+                        device.empty((4,), np.float64))  # fmt: skip
+    with pytest.raises(TypeError, match=r"^points: expected an array of the solver's shared memory"):
+        cl_lm._arg(state, np.zeros((3, 2)), "X")

@@ -199,13 +199,16 @@ def shared_empty(device, shape, dtype):
 
 def _arg(state, a, role):
     """What a kernel takes for an array of the solver: a DeviceArray's buffer; a NumPy array in
-    shared memory as itself; any other NumPy array (a callable's result) copied into the shared
-    array of ``role`` first."""
+    shared memory as itself; any other NumPy array (a callable's result, read by the kernel)
+    copied into the shared array of ``role`` first. The points ("X", written by the kernel) must
+    be in shared memory."""
     import pyopencl as cl
 
     if not isinstance(a, np.ndarray):
         return a.buffer.data
     if not isinstance(a.base, cl.SVMAllocation):
+        if role == "X":
+            raise TypeError("points: expected an array of the solver's shared memory (shared_empty), got a NumPy array")
         stage = state.stage.get(role)
         if stage is None or stage.shape != a.shape or stage.dtype != a.dtype:
             stage = state.stage[role] = shared_empty(state.device, a.shape, a.dtype)
@@ -266,8 +269,8 @@ def solver_update(state, R, X, *, first, final, jac=None):
     dev, lay = state.device, state.lay
     B = lay.B
     kernel = _update_kernel(state, R.dtype, X.dtype, jac.dtype if jac is not None else None)
-    Jg = jac if jac is not None else R
     ls = state.ls if jac is None or lay.P > STATIC_P_MAX else state.ls_jac
+    r_arg = _arg(state, R, "R")  # also the Jacobian's argument without one (unused)
     enqueue(
         dev,
         kernel,
@@ -277,8 +280,8 @@ def solver_update(state, R, X, *, first, final, jac=None):
         state.I.buffer.data,
         state.W.buffer.data,
         _arg(state, X, "X"),
-        _arg(state, R, "R"),
-        _arg(state, Jg, "J") if jac is not None else _arg(state, R, "R"),
+        r_arg,
+        _arg(state, jac, "J") if jac is not None else r_arg,
         state.Out.buffer.data,
         np.int32(R.shape[1]),
         np.int32(R.shape[0] // B),
