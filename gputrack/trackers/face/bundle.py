@@ -91,16 +91,16 @@ SPREAD_RTOL = 1e-9
 # rotations
 
 
-def _rotations(r: np.ndarray, left: bool = True):
-    """(..., 3) Rodrigues vectors -> R (..., 3, 3) (as ``rodrigues``) and, with ``left``, the left
-    Jacobian of SO(3) J_l (..., 3, 3): R(r + dr) = exp([J_l dr]x) R(r) + O(dr^2); both from the same
-    coefficients and [r]x (else None)."""
+def _rotations(r: np.ndarray):
+    """(..., 3) Rodrigues vectors -> R (..., 3, 3) (as ``rodrigues``) and the left Jacobian of SO(3)
+    J_l (..., 3, 3): R(r + dr) = exp([J_l dr]x) R(r) + O(dr^2); both from the same coefficients and
+    [r]x."""
     a, b, c = rotation_coefficients(r)
     K = skew(r)
     K2 = K @ K
+    a, b, c = (v[..., None, None] for v in (a, b, c))
     eye = np.eye(3)
-    R = eye + a[..., None, None] * K + b[..., None, None] * K2
-    return R, (eye + b[..., None, None] * K + c[..., None, None] * K2) if left else None
+    return eye + a * K + b * K2, eye + b * K + c * K2
 
 
 def keyframe_spread(rvecs) -> np.ndarray:
@@ -312,7 +312,7 @@ class BundleProblem:
         tm, n, K, A = self.terms, self.n, self.K, self.A
         B = rv.shape[0]
         if R is None:
-            R = _rotations(rv, left=False)[0]
+            R = rodrigues(rv)
         Bs = tm.L0 + (s @ self._G2).reshape(B, K, 3, A)  # eq. 4: basis of a for identity s
         X = tm.mean + (ex @ Bs.reshape(B, K * 3, A).transpose(0, 2, 1)).reshape(B, n, K, 3)  # eq. 4: M_i(a_i, s)
         RX = X @ R.transpose(0, 1, 3, 2)
@@ -333,7 +333,7 @@ class BundleProblem:
         B, n, K, F, S = x.shape[0], self.n, self.K, self.F, self.S
         tm, cam, sw = self.terms, self.camera, self._sw
         rv, tv, ex, s = self.unpack(x)
-        R, Jl = _rotations(rv, left=jacobian)
+        R, Jl = _rotations(rv) if jacobian else (rodrigues(rv), None)
         R, Bs, RX, Y = self._geometry(rv, tv, ex, s, R)
         iz = 1.0 / np.maximum(Y[..., 2], MIN_DEPTH)  # eq. 5: the projection
         uv = np.empty((*Y.shape[:-1], 2))
