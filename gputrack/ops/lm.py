@@ -25,6 +25,7 @@ the bad-input policy; :func:`least_squares` is its one-shot form.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import logging
 import operator
@@ -775,10 +776,10 @@ class _Run:
     With ``host`` the callables get NumPy points and give NumPy results: where the backend's
     kernels read and write host memory in place (``reads_host``: the NumPy reference, taichi:cpu,
     OpenCL with fine-grained shared virtual memory) the points are written by the kernels straight
-    into a NumPy array the solver holds (``_Buffers.shared_array``), and the results are read where
-    the callable left them (OpenCL: copied on the host into shared memory first; the bytes are
-    counted as transfers all the same); elsewhere the points are downloaded into a held host array and the
-    results uploaded into held device buffers, once each per call."""
+    into a NumPy array the solver holds (``_Buffers.host_array(..., shared=True)``), and the results
+    are read where the callable left them (OpenCL: copied on the host into shared memory first; the
+    bytes are counted as transfers all the same); elsewhere the points are downloaded into a held
+    host array and the results uploaded into held device buffers, once each per call."""
 
     def __init__(self, solver, residuals, jacobian, mask, host=False):
         self.s, self.device, self.fn, self.jac, self.mask = solver, solver.device, residuals, jacobian, mask
@@ -871,7 +872,7 @@ class _Run:
         x0_up = x0_32 if np.array_equal(x0_32, x0) else x0.astype(dt)  # float32 when exact
         K_d = bufs.upload_cached("K", K)
         X0_d = bufs.upload("X0", x0_up)
-        points = bufs.shared_array if self.direct else bufs.empty
+        points = functools.partial(bufs.host_array, shared=True) if self.direct else bufs.empty
         X_full = points("X", (B * S_rows, P), self.pdt)
         X_last = X_full if S_rows == 1 else points("X_last", (B, P), self.pdt)
         state = be.solver_state(self.device, lay, bufs.empty("S", (lay.s_size(),), dt),
@@ -939,6 +940,9 @@ class _Run:
         return np.tile(block, (B, 1)), np.ones((B, M), np.uint8)
 
 
+_HOST_KINDS = ("host", "shared")  # held NumPy arrays (_Buffers.host_array), never in the device pool
+
+
 class _Buffers:
     """The device buffers of one :class:`LeastSquaresSolver`, by role (state, workspace, points,
     constants, ...): taken at first use from the device's LM pool (or allocated), kept between
@@ -966,7 +970,7 @@ class _Buffers:
         if have is not None and have[0] == key:
             return have[1]
         free = self._free.setdefault(dev, {})
-        if have is not None and have[0][0] not in ("host", "shared"):  # another size: back to the pool
+        if have is not None and have[0][0] not in _HOST_KINDS:  # another size: back to the pool
             self._give_back(free, *have)
         avail = free.get(key)
         arr = avail.pop() if avail else dev.empty(shape, dtype)
@@ -1004,23 +1008,14 @@ class _Buffers:
         dev.transfers.h2d += host.nbytes
         return arr
 
-    def host_array(self, role, shape, dtype):
-        """A NumPy array of ``role`` kept between solves (the points on a backend whose kernels
-        write host memory in place)."""
-        key = ("host", tuple(shape), np.dtype(dtype))
+    def host_array(self, role, shape, dtype, shared=False):
+        """A NumPy array of ``role`` kept between solves; ``shared``: one the backend's kernels read
+        and write in place (the points where the backend ``reads_host``; its ``shared_empty`` where
+        it has one)."""
+        key = ("shared" if shared else "host", tuple(shape), np.dtype(dtype))
         have = self.held.get(role)
         if have is None or have[0] != key:
-            have = (key, np.empty(shape, dtype))
-            self.held[role] = have
-        return have[1]
-
-    def shared_array(self, role, shape, dtype):
-        """A host array of ``role`` kept between solves that the backend's kernels read and write
-        in place (``reads_host``; the backend's ``shared_empty`` where it has one)."""
-        key = ("shared", tuple(shape), np.dtype(dtype))
-        have = self.held.get(role)
-        if have is None or have[0] != key:
-            alloc = getattr(backend_module(self.device, "lm"), "shared_empty", None)
+            alloc = getattr(backend_module(self.device, "lm"), "shared_empty", None) if shared else None
             have = (key, alloc(self.device, shape, dtype) if alloc else np.empty(shape, dtype))
             self.held[role] = have
         return have[1]
@@ -1060,7 +1055,7 @@ class _Buffers:
             return
         free = self._free.setdefault(self.device, {})
         for key, arr in held.values():
-            if key[0] not in ("host", "shared"):
+            if key[0] not in _HOST_KINDS:
                 self._give_back(free, key, arr)
 
 
