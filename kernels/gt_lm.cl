@@ -393,10 +393,6 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
     gt_lm_points(ib[GT_LM_I_STATUS] == GT_LM_RUNNING ? xt : x, den, lo, hi, h, Xb, SX, P, rel);
 }
 
-// One LM iteration for every running problem. R: (B*SR, M) residuals of the last call
-// (SR = 2P+1: trial point and perturbed copies; SR = 1: trial point only, with Jg its Jacobian
-// (B, M, P) when USE_JAC, or the last call when FINAL). X: (B*SX, P) receives the next points.
-// S small state, W workspace (device only), Out (B, P + 5) the result (gputrack.ops.lm.Layout).
 #ifdef USE_JAC
 // entries j0..j0+3 of a row of J of P entries, zeros past its end
 static REAL4 gt_lm_jpart4(__global const JTYPE *row, const int j0, const int P)
@@ -408,19 +404,10 @@ static REAL4 gt_lm_jpart4(__global const JTYPE *row, const int j0, const int P)
 }
 #endif
 
-#if defined(USE_JAC) && defined(LM_P)
-// entries j0..j0+3 of a row of J (LM_P entries), zeros past its end
-static REAL4 gt_lm_jrow4(__global const JTYPE *row, const int j0)
-{
-#if LM_P % 4
-    if (j0 + 4 > LM_P)
-        return (REAL4)((REAL)row[j0], j0 + 1 < LM_P ? (REAL)row[j0 + 1] : (REAL)0,
-                       j0 + 2 < LM_P ? (REAL)row[j0 + 2] : (REAL)0, (REAL)0);
-#endif
-    return GT_TO_REAL4(vload4(0, row + j0));
-}
-#endif
-
+// One LM iteration for every running problem. R: (B*SR, M) residuals of the last call
+// (SR = 2P+1: trial point and perturbed copies; SR = 1: trial point only, with Jg its Jacobian
+// (B, M, P) when USE_JAC, or the last call when FINAL). X: (B*SX, P) receives the next points.
+// S small state, W workspace (device only), Out (B, P + 5) the result (gputrack.ops.lm.Layout).
 __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, __global XTYPE *X,
                            __global const RTYPE *R, __global const JTYPE *Jg, __global REAL *Out, const int M,
                            const int SR, const int SX, const int first, const int final_)
@@ -466,12 +453,12 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                 a0[v] = a1[v] = a2[v] = a3[v] = (REAL4)(0);
             for (int m = 0; m < M; ++m) {
                 __global const JTYPE *Jm = Jb + m * LM_P;
-                const REAL4 x = gt_lm_jrow4(Jm, i0);
+                const REAL4 x = gt_lm_jpart4(Jm, i0, LM_P);
                 ag += x * (REAL)rt[m];
 #pragma unroll
                 for (int v = 0; v < LM_NV; ++v)
                     if (v >= rb) {
-                        const REAL4 c = gt_lm_jrow4(Jm, 4 * v);
+                        const REAL4 c = gt_lm_jpart4(Jm, 4 * v, LM_P);
                         a0[v] = fma((REAL4)(x.x), c, a0[v]);
                         a1[v] = fma((REAL4)(x.y), c, a1[v]);
                         a2[v] = fma((REAL4)(x.z), c, a2[v]);
