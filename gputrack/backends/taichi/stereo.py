@@ -123,12 +123,9 @@ def _kernel(LANES: int, T):
     @ti.func
     def _sobel_lanes(img: ti.template(), p: ti.template(), y, x0, at, cap, is_float: ti.template()):
         """p[at + l] = the clipped x-Sobel of img at (y, x0 + l) plus cap, l < LANES."""
-        a = VI([_q(img[y - 1, x0 + 1 + j], is_float) - _q(img[y - 1, x0 - 1 + j], is_float)
+        s = VI([_col(img, y, x0 + 1 + j, is_float) - _col(img, y, x0 - 1 + j, is_float)
                 for j in ti.static(range(LANES))])  # fmt: skip
-        b = VI([_q(img[y, x0 + 1 + j], is_float) - _q(img[y, x0 - 1 + j], is_float) for j in ti.static(range(LANES))])
-        c = VI([_q(img[y + 1, x0 + 1 + j], is_float) - _q(img[y + 1, x0 - 1 + j], is_float)
-                for j in ti.static(range(LANES))])  # fmt: skip
-        v = ti.min(ti.max(a + 2 * b + c, -cap), cap) + cap
+        v = ti.min(ti.max(s, -cap), cap) + cap
         for j in ti.static(range(LANES)):
             p[at + j] = ti.cast(v[j], T)
 
@@ -167,12 +164,12 @@ def _kernel(LANES: int, T):
         r = B // 2
         W = out.shape[1]
         G = (D + LANES - 1) // LANES  # disparity groups: a pixel's vectors in the cost buffers
-        # 1. NaN; the prefilter (padding: cap) of the rows the windows read; their neighbourhood vectors
-        # (parallel over rows, serial along them: a 2-D parallel loop divides per element)
+        # 1. NaN; the prefilter (padding: cap) of the rows the windows read (parallel over rows,
+        # serial along them: a 2-D parallel loop divides per element)
         for y in range(out.shape[0]):
             for x in range(W):
                 out[y, x] = nan
-        for yy in range(y1 - y0):  # a row per thread: its prefilter, then its neighbourhoods from it
+        for yy in range(y1 - y0):  # a row per thread
             y = y0 + yy
             row = y * Wp
             pad = ti.cast(cap, T)
