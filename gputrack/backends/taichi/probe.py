@@ -40,7 +40,7 @@ def probe_arch(arch: str) -> dict:
     if arch == "cuda" and not ti._lib.core.with_cuda():
         return {"available": False, "reason": "no CUDA driver found (libcuda.so not loadable or no NVIDIA GPU)"}
     if arch == "vulkan" and not ti._lib.core.with_vulkan():
-        return {"available": False, "reason": "this Taichi build has no Vulkan support"}
+        return {"available": False, "reason": "no Vulkan loader (libvulkan.so.1 not loadable) or no Vulkan in this Taichi build"}
     try:
         runtime.start(arch)
     except Exception as e:  # noqa: BLE001 - the reason is reported, not hidden
