@@ -93,3 +93,18 @@ def test_cli_bench_lists_the_definitions_not_the_harness(capsys):
     files = sorted(p.stem for p in Path(benchmarks.__file__).parent.glob("*.py") if p.stem not in ("__init__", "harness"))
     assert names == files and "harness" not in names
     assert {"alloc", "body", "kalman", "lm", "template", "tracking", "transfer"} <= set(names)
+
+
+def test_table_columns_fit_the_longest_case_name():
+    """A case name longer than the default column does not run into the device column: every
+    row's figures end where the header's do."""
+    t = {"median_ms": 1.5, "p10_ms": 1.0, "p90_ms": 2.0}
+    rows = [
+        {"case": "short", "spec": "opencl", "device": t},
+        {"case": "body frame, PF 3 stages + LM 10, template kept", "spec": "taichi:cuda", "device": t},
+    ]
+    head, rule, *lines = harness.format_table(rows).splitlines()
+    end = head.index("median ms") + len("median ms")
+    for line, r in zip(lines, rows, strict=True):
+        assert line.startswith(r["case"] + " ") and line[len(r["case"]) :].split()[0] == r["spec"], line
+        assert line[:end].endswith(" 1.500"), line

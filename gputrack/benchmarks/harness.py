@@ -174,7 +174,9 @@ def run_cases(device, cases: list[Case], *, min_time: float = 0.2, progress=None
 
 def format_table(rows: list[dict]) -> str:
     """Rows from :func:`run_cases` as a text table (ms per call, and ratios)."""
-    head = f"{'case':<40}{'device':<16}{'median ms':>11}{'p10-p90 ms':>17}{'e2e ms':>9}{'numpy ms':>10}{'x numpy':>9}  peers"
+    cw = max([40] + [len(r["case"]) + 2 for r in rows])  # the case column fits the longest name
+    dw = max([16] + [len(r["spec"]) + 2 for r in rows])
+    head = f"{'case':<{cw}}{'device':<{dw}}{'median ms':>11}{'p10-p90 ms':>17}{'e2e ms':>9}{'numpy ms':>10}{'x numpy':>9}  peers"
     lines = [head, "-" * len(head)]
     for r in rows:
         d = r["device"]
@@ -183,7 +185,7 @@ def format_table(rows: list[dict]) -> str:
         ratio = f"{r['speedup_vs_reference']:.2f}" if "speedup_vs_reference" in r else "-"
         peers = ", ".join(f"{k} {v['median_ms']:.3f} ms (x{v['speedup']:.1f})" for k, v in r.get("peers", {}).items())
         spread = f"{d['p10_ms']:.3f}-{d['p90_ms']:.3f}"
-        lines.append(f"{r['case']:<40}{r['spec']:<16}{d['median_ms']:>11.3f}{spread:>17}{e2e:>9}{ref:>10}{ratio:>9}  {peers}")
+        lines.append(f"{r['case']:<{cw}}{r['spec']:<{dw}}{d['median_ms']:>11.3f}{spread:>17}{e2e:>9}{ref:>10}{ratio:>9}  {peers}")
     return "\n".join(lines)
 
 
