@@ -103,7 +103,7 @@ def test_table_columns_fit_the_longest_case_name():
         {"case": "short", "spec": "opencl", "device": t},
         {"case": "body frame, PF 3 stages + LM 10, template kept", "spec": "taichi:cuda", "device": t},
     ]
-    head, rule, *lines = harness.format_table(rows).splitlines()
+    head, _, *lines = harness.format_table(rows).splitlines()
     end = head.index("median ms") + len("median ms")
     for line, r in zip(lines, rows, strict=True):
         assert line.startswith(r["case"] + " ") and line[len(r["case"]) :].split()[0] == r["spec"], line
