@@ -3,17 +3,17 @@ on every device against the NumPy reference, the reference against numpy.nanmedi
 values, bad input, and real Kinect depth frames."""
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
+from tolerances import assert_matches
 
 import gputrack
 from gputrack.ops.background import MAX_FRAMES, background_median, foreground_mask, update_background
-from tolerances import assert_matches
+from gputrack.shared_data import shared_data
 
 REF = gputrack.device("numpy")
-KINECT = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl_kinect_frames"
+KINECT = shared_data("pcl_kinect_frames")
 
 
 def _frames(rng, F, H, W, dtype, missing):

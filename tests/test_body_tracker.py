@@ -1,20 +1,19 @@
 """Paper 000's upper-body tracker end to end on every backend, and its rigid case on real RGB-D data."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import FULL_PROTOCOL
 
 import gputrack
-from conftest import FULL_PROTOCOL
 from gputrack.models import rigid
 from gputrack.models.chain import joint_transform
+from gputrack.shared_data import shared_data
 from gputrack.sim import sequence, shoulders_off
 from gputrack.trackers.body import BodyTracker, BodyTrackerConfig
 from gputrack.trackers.body.metrics import arm_axis_errors, shoulder_camera_errors, shoulder_errors
 from gputrack.trackers.body.template import frame_template
 
-ICL = Path(__file__).resolve().parents[2] / "shared" / "data" / "icl_nuim_rgbd"
+ICL = shared_data("icl_nuim_rgbd")
 FRAMES = 7
 
 

@@ -8,16 +8,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tolerances import assert_matches
 
 import gputrack
 from gputrack.models.camera import Camera, DepthCamera
 from gputrack.ops.background import foreground_mask
 from gputrack.ops.depth_points import depth_points, floor_background
-from tolerances import assert_matches
+from gputrack.shared_data import shared_data
 
 REF = gputrack.device("numpy")
 CAM = Camera(525.0, 525.0, 320.0, 240.0)
-KINECT = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl_kinect_frames"
+KINECT = shared_data("pcl_kinect_frames")
 
 
 def _scene(rng, H, W, dtype=np.uint16):

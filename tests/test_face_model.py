@@ -22,7 +22,7 @@ def ict():
     try:
         return load_ict()
     except FileNotFoundError as e:
-        pytest.skip(f"the ICT face data is absent (it lives in shared/data beside the repository): {e}")
+        pytest.skip(f"the ICT face data is absent (it lives in shared/data beside the repository, or in $GPUTRACK_DATA): {e}")
 
 
 @pytest.fixture(scope="module")

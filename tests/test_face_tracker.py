@@ -39,7 +39,7 @@ def data():
     try:
         return _data()
     except FileNotFoundError as e:
-        pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository): {e}")
+        pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository, or $GPUTRACK_DATA/ict_face): {e}")
 
 
 def start_points(frames, noise=1.0, seed=0):

@@ -215,7 +215,7 @@ def test_op_under_mutation(device, case_tables, name):
     if name in DEEP_ONLY and not DEEP:
         pytest.skip(f"{name}: deep profile only (GPUTRACK_FUZZ=deep): {DEEP_ONLY[name]}")
     if name not in case_tables[SEEDS[0]]:
-        pytest.skip(f"{name}: the ICT face data is absent (shared/data/ict_face beside the repository)")
+        pytest.skip(f"{name}: the ICT face data is absent (shared/data/ict_face beside the repository, or $GPUTRACK_DATA/ict_face)")
     failures = []
     for k, seed in enumerate(SEEDS):
         failures += _check_case(device, case_tables[seed][name], k)

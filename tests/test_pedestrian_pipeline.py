@@ -3,7 +3,6 @@ background, a camera that is neither level nor 1 m up), the PCD reader's LZF, an
 commands (``gputrack demo pedestrians``, ``gputrack track pedestrians``) on tiny inputs."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,10 +10,11 @@ import pytest
 from gputrack.benchmarks.pedestrians import crowd_depth
 from gputrack.cli import main
 from gputrack.models import Camera
+from gputrack.shared_data import shared_data
 from gputrack.trackers.pedestrians import PedestrianConfig, PedestrianTracker
 from gputrack.trackers.pedestrians.pcd import depth_from_cloud, lzf_decompress, read_pcd
 
-DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "pcl_people" / "five_people.pcd"
+DATA = shared_data("pcl_people", "five_people.pcd")
 #: PCL's people test: ground plane (metres; d scaled to mm below) and Kinect intrinsics
 PLANE = (-0.0103586, 0.997011, 0.0765573, -1266.14)
 KINECT = Camera(525.0, 525.0, 319.5, 239.5)
@@ -34,7 +34,7 @@ def test_lzf_literals_and_overlapping_back_references():
 @pytest.fixture(scope="session")  # built once, not again per device
 def five_people():
     if not DATA.exists():
-        pytest.skip(f"{DATA} is absent (the shared test data lives beside the repository, not in it)")
+        pytest.skip(f"{DATA} is absent (the shared test data lives beside the repository or in $GPUTRACK_DATA, not in it)")
     cloud = read_pcd(str(DATA))
     assert cloud["x"].shape == (480, 640) and cloud["x"].dtype == np.float32
     return cloud

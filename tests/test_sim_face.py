@@ -32,7 +32,7 @@ def ict():
     try:
         return load_ict()
     except FileNotFoundError as e:
-        pytest.skip(f"the ICT face data is absent ({e}); it lives in shared/data/ict_face beside the repository")
+        pytest.skip(f"the ICT face data is absent ({e}); it lives in shared/data/ict_face beside the repository, or $GPUTRACK_DATA/ict_face")
 
 
 @pytest.fixture(scope="module")

@@ -40,6 +40,8 @@ import os
 
 import numpy as np
 
+from ..shared_data import shared_data
+
 __all__ = [
     "ICT_FILE",
     "LANDMARKS",
@@ -134,12 +136,8 @@ class IctFace:
 
 
 def default_ict_path() -> str:
-    """``$GPUTRACK_DATA/ict_face`` when set, else ``shared/data/ict_face`` beside the repository."""
-    base = os.environ.get("GPUTRACK_DATA")
-    if base is None:
-        here = os.path.dirname(os.path.abspath(__file__))
-        base = os.path.normpath(os.path.join(here, "..", "..", "..", "shared", "data"))
-    return os.path.join(base, "ict_face")
+    """``ict_face`` in the data folder (:func:`gputrack.shared_data.shared_data`)."""
+    return str(shared_data("ict_face"))
 
 
 def _read_npz(path: str, what: str) -> dict:
