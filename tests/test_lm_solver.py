@@ -4,6 +4,7 @@ badly scaled problems (parameters from 1e-6 to 1e3, far starts), every backend v
 import numpy as np
 import pytest
 import scipy.optimize
+from tolerances import assert_matches
 
 import gputrack
 from gputrack.ops.lm import Layout, LeastSquaresSolver, least_squares
@@ -319,6 +320,31 @@ def test_host_callables_take_the_same_steps(device):
         seen.clear()
     with pytest.raises(ValueError, match=r"^diff: expected one of 'central', 'forward', got 'backward'\Z"):
         LeastSquaresSolver(device, (2, 2), diff="backward")
+
+
+def test_the_final_update_asks_for_no_jacobian(device):
+    """A solve that runs all max_iter iterations calls the Jacobian once per update that reads one:
+    at the start and after each step but the last (the final update only accepts or rejects the
+    last trial), in both call protocols; the steps are the reference's."""
+    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
+    t = np.linspace(0, 2, 24)
+    calls = []
+
+    def jac(X):
+        calls.append(1)
+        X = gputrack.to_numpy(X).astype(np.float64)
+        e = np.exp(X[:, 1:2] * t)
+        return np.stack([e, X[:, :1] * t * e], axis=2)
+
+    want = LeastSquaresSolver(REF, (3, 2), max_iter=5, early_stop=False).solve(_host(_expfit), x0, jacobian=jac)
+    assert want.njev == len(calls) == 5 and want.nfev == 6
+    for host in (False, True):
+        calls.clear()
+        got = LeastSquaresSolver(device, (3, 2), max_iter=5, early_stop=False).solve(
+            _host(_expfit), x0, jacobian=jac, host=host
+        )
+        assert got.njev == len(calls) == 5 and got.nfev == 6, host
+        assert_matches(device, got.x, want.x, got.dtype, err_msg=f"host={host}")
 
 
 def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeypatch):

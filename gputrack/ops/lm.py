@@ -904,7 +904,7 @@ class _Run:
             if self.direct:
                 self.device.transfers.d2h += nxt.nbytes
             R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
-            if not central:
+            if not central and it < max_iter - 1:  # the final update reads no Jacobian (given the last)
                 Jg = self._call_jac(nxt)
         out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
         self._keep.clear()
