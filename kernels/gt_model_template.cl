@@ -737,3 +737,219 @@ __kernel void gt_mt_emit(__global const int *part, __global const float *values,
         out[4 * t + 3] = val[o];
     }
 }
+
+#define MT_WG_MAX 256  // the most work-items per part and kind of gt_mt_emit_wg (a power of two)
+
+// (*v, *i) becomes (v2, i2) if that is larger: the larger value, the smaller index among ties
+inline void mt_better(__local int *v, __local int *i, const int v2, const int i2)
+{
+    if (v2 > *v || (v2 == *v && i2 < *i)) {
+        *v = v2;
+        *i = i2;
+    }
+}
+
+// gt_mt_emit with a work-group per part and kind (GPUs, where one work-item walking the pool once
+// per fill point leaves the device idle): NDRange (J * wg, 2), work-groups (wg, 1), wg a power of
+// two <= MT_WG_MAX; the same picks. Step 6 (the heap) by the first work-item; step 7's pool
+// compacted in pixel order (each work-item counts a contiguous share of the pool's box, the counts
+// scanned, then each writes its share), the centroid seed an argmin and each fill point an argmax
+// over strided shares, reduced in local memory (larger value, then smaller pool index: the first in
+// pixel order, as gt_mt_emit); step 8 a point per work-item.
+__kernel void gt_mt_emit_wg(__global const int *part, __global const float *values, __global const float *pts,
+                            const int H, const int W, __global const int *plan, __global const int *stats,
+                            __global const int *surv, __global int *bins, __global const int *interior,
+                            __global const long *nums, __global const int *cnt, __global int *dist, __global int *used,
+                            const int lim, const int J, __global float *out0, __global float *out1)
+{
+    const int j = get_group_id(0), k = get_group_id(1), lid = get_local_id(0), wg = get_local_size(0), HW = H * W;
+    __local int tv[3][MT_WG_MAX], ti[3][MT_WG_MAX], sh[4];  // sh: taken, pool size, fill row, fill column
+    __local long tl[2][MT_WG_MAX];
+    __global const int *pl = plan + (k * J + j) * 4;
+    const int offset = pl[0], quota = pl[1], start = pl[2];  // quota <= 0: nothing to do (no early
+    // return: every work-item meets every barrier, which PoCL's work-group loops need)
+    __global float *out = (k == 0 ? out0 : out1) + 4 * offset;
+    __global int *slot = (__global int *)out;
+    __global int *bin = bins + k * HW + start;
+    __global const long *num = nums + k * HW;
+    // step 6, as gt_mt_emit
+    if (lid == 0) {
+        int size = quota > 0 ? surv[k * J + j] : 0, taken = 0;
+        for (int i = size / 2 - 1; i >= 0; --i)
+            gt_mt_sift(bin, i, size, num, cnt);
+        while (taken < quota && size > 0) {
+            const int px = bin[0];
+            bin[0] = bin[--size];
+            gt_mt_sift(bin, 0, size, num, cnt);
+            const int r = px / W, c = px - r * W;
+            int ok = 1;
+            for (int t = 0; t < taken && ok; ++t) {
+                const int rc = slot[4 * t], dr = r - (rc >> 16), dc = c - (rc & 0xffff);
+                ok = dr * dr + dc * dc > lim;
+            }
+            if (ok)
+                slot[4 * taken++] = r << 16 | c;
+        }
+        sh[0] = taken;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+    // step 7 where the extrema fall short of the quota; every work-item runs through every barrier
+    // below, the work itself empty where there is none (PoCL 3.1 crashed on a version of this kernel
+    // with barriers under such conditions)
+    const int taken = sh[0], fill = taken < quota;
+    {
+        __global const int *st = stats + j * GT_MT_STATS;
+        const int inner = st[1] > 0, b = inner ? 2 : 6;
+        const int pr0 = st[b], pr1 = fill ? st[b + 1] : st[b] - 1, pc0 = st[b + 2], pc1 = st[b + 3];
+        const int bw = max(0, pc1 - pc0 + 1), area = max(0, pr1 - pr0 + 1) * bw;
+        __global int *pool = bin;
+        __global int *dd = dist + k * HW + start;
+        const int share = (area + wg - 1) / wg, a0 = min(area, lid * share), a1 = min(area, a0 + share);
+        int mine = 0;
+        long sr = 0, sc = 0;
+        for (int a = a0; a < a1; ++a) {
+            const int r = pr0 + a / bw, c = pc0 + a % bw, o = r * W + c;
+            if (part[o] == j && (!inner || interior[o] != 0)) {
+                ++mine;
+                sr += r;
+                sc += c;
+            }
+        }
+        ti[0][lid] = mine;
+        tl[0][lid] = sr;
+        tl[1][lid] = sc;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (lid == 0) {  // exclusive scan of the counts, and the pool's row and column sums
+            int s = 0;
+            long tr = 0, tc = 0;
+            for (int t = 0; t < wg; ++t) {
+                const int x = ti[0][t];
+                ti[0][t] = s;
+                s += x;
+                tr += tl[0][t];
+                tc += tl[1][t];
+            }
+            sh[1] = s;
+            tl[0][0] = tr;
+            tl[1][0] = tc;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        const int n = sh[1];
+        const long srow = tl[0][0], scol = tl[1][0];
+        for (int a = a0, w = ti[0][lid]; a < a1; ++a) {
+            const int r = pr0 + a / bw, c = pc0 + a % bw, o = r * W + c;
+            if (part[o] == j && (!inner || interior[o] != 0))
+                pool[w++] = r << 16 | c;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);  // the pool, and every read of tl
+        // no extremum taken: the seed is the pool pixel nearest the pool's centroid (the first in pixel
+        // order among ties)
+        {
+            long best = LONG_MAX;
+            int first = INT_MAX;
+            const int ns = taken == 0 ? n : 0;
+            for (int i = lid; i < ns; i += wg) {
+                const long er = (long)n * (pool[i] >> 16) - srow, ec = (long)n * (pool[i] & 0xffff) - scol;
+                const long e = er * er + ec * ec;
+                if (e < best) {
+                    best = e;
+                    first = i;
+                }
+            }
+            tl[0][lid] = best;
+            ti[0][lid] = first;
+            barrier(CLK_LOCAL_MEM_FENCE);
+            for (int s = wg / 2; s > 0; s >>= 1) {
+                if (lid < s && (tl[0][lid + s] < tl[0][lid] || (tl[0][lid + s] == tl[0][lid] && ti[0][lid + s] < ti[0][lid]))) {
+                    tl[0][lid] = tl[0][lid + s];
+                    ti[0][lid] = ti[0][lid + s];
+                }
+                barrier(CLK_LOCAL_MEM_FENCE);
+            }
+            if (lid == 0 && fill && taken == 0)
+                slot[0] = n > 0 ? pool[ti[0][0]] : 0;  // 0: as gt_mt_emit with an empty pool
+        }
+        const int seeds = max(taken, 1), last = fill ? quota : seeds;
+        // the seeds' rows and columns: used[k][j][r], used[k][j][H + c] (0 / 1 over the pool's box)
+        __global int *urow = used + (k * J + j) * (H + W), *ucol = urow + H;
+        for (int x = pr0 + lid; x <= pr1; x += wg)
+            urow[x] = 0;
+        for (int x = pc0 + lid; x <= pc1; x += wg)
+            ucol[x] = 0;
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        if (lid == 0 && fill)
+            for (int t = 0; t < seeds; ++t) {
+                const int src = slot[4 * t];
+                urow[src >> 16] = ucol[src & 0xffff] = 1;
+            }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        int pr = 0, pc = 0;
+        for (int f = seeds; f < last; ++f) {
+            int v1 = 0, x1 = INT_MAX, v2 = 0, x2 = INT_MAX, v3 = -1, x3 = INT_MAX;
+            for (int i = lid; i < n; i += wg) {
+                const int rc = pool[i], r = rc >> 16, c = rc & 0xffff;
+                int d, fl;
+                if (f == seeds) {
+                    d = 1 << 28;
+                    for (int t = 0; t < seeds; ++t) {
+                        const int src = slot[4 * t], dr = r - (src >> 16), dc = c - (src & 0xffff);
+                        d = min(d, dr * dr + dc * dc);
+                    }
+                    fl = urow[r] << 1 | ucol[c];
+                } else {
+                    const int v = dd[i], dr = r - pr, dc = c - pc;
+                    d = min(v >> 2, dr * dr + dc * dc);
+                    fl = (v & 3) | (r == pr ? 2 : 0) | (c == pc ? 1 : 0);
+                }
+                dd[i] = d << 2 | fl;
+                const int s1 = fl == 0 ? d : 0, s2 = fl != 3 ? d : 0;
+                if (s1 > v1) {
+                    v1 = s1;
+                    x1 = i;
+                }
+                if (s2 > v2) {
+                    v2 = s2;
+                    x2 = i;
+                }
+                if (d > v3) {
+                    v3 = d;
+                    x3 = i;
+                }
+            }
+            tv[0][lid] = v1;
+            ti[0][lid] = x1;
+            tv[1][lid] = v2;
+            ti[1][lid] = x2;
+            tv[2][lid] = v3;
+            ti[2][lid] = x3;
+            barrier(CLK_LOCAL_MEM_FENCE);
+            for (int s = wg / 2; s > 0; s >>= 1) {
+                if (lid < s)
+                    for (int q = 0; q < 3; ++q)
+                        mt_better(&tv[q][lid], &ti[q][lid], tv[q][lid + s], ti[q][lid + s]);
+                barrier(CLK_LOCAL_MEM_FENCE);
+            }
+            if (lid == 0) {
+                const int pick = tv[0][0] > 0 ? ti[0][0] : tv[1][0] > 0 ? ti[1][0] : ti[2][0];
+                const int rc = pool[pick];
+                slot[4 * f] = rc;
+                sh[2] = rc >> 16;
+                sh[3] = rc & 0xffff;
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            pr = sh[2];
+            pc = sh[3];
+        }
+    }
+    barrier(CLK_GLOBAL_MEM_FENCE);  // the slots
+    // step 8
+    __global const float *val = values + k * HW;
+    for (int t = lid; t < quota; t += wg) {
+        const int rc = slot[4 * t];
+        const int o = (rc >> 16) * W + (rc & 0xffff);
+        out[4 * t] = pts[3 * o];
+        out[4 * t + 1] = pts[3 * o + 1];
+        out[4 * t + 2] = pts[3 * o + 2];
+        out[4 * t + 3] = val[o];
+    }
+}

@@ -147,3 +147,27 @@ def test_bad_input():
         model_images(REF, images.part, images.values, images.local, 3)
     with pytest.raises(ValueError, match="expected pixels of the model"):
         model_images(REF, np.full((4, 4), -1), np.zeros((2, 4, 4)), np.zeros((4, 4, 3)))
+
+
+@pytest.mark.parametrize("wg", [1, 2, 32, 128])
+def test_opencl_pick_per_work_group_matches_reference(device, wg, monkeypatch):
+    """The OpenCL pick run by a work-group per part and kind (GPUs, ``gt_mt_emit_wg``; wg = 1: the
+    CPU devices' ``gt_mt_emit``) gives the reference's points on the same images, on whatever
+    device runs it: the heap, the compaction in pixel order, the centroid seed and the fill's ties."""
+    if device.backend != "opencl":
+        pytest.skip("OpenCL kernel variants")
+    if wg > (device.info.max_work_group_size or wg):
+        pytest.skip(f"{device.spec}: work-groups of at most {device.info.max_work_group_size}")
+    from gputrack.backends.opencl import model_template as ocl
+
+    monkeypatch.setattr(ocl, "emit_group", lambda dev: wg)
+    for pose in sorted(POSES):
+        r = render(CHAIN, POSES[pose], background=None, depth_step=0)
+        values = np.stack([r.gray, r.depth])
+        for n, n_depth, window, border, spacing in ((128, 128, 5, 2, 4.0), (64, 300, 7, 0, 6.0), (1, 40, 5, 2, 16.0)):
+            opts = dict(window=window, border=border, spacing=spacing)
+            want = select_template(REF, model_images(REF, r.part, values, r.local, 5), n, n_depth, **opts)
+            got = select_template(device, model_images(device, r.part, values, r.local, 5), n, n_depth, **opts)
+            for w, g in zip(want, got):
+                np.testing.assert_array_equal(g.part, w.part, err_msg=f"{pose} n={n}")
+                np.testing.assert_array_equal(g.packed, w.packed, err_msg=f"{pose} n={n}")

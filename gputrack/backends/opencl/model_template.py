@@ -9,10 +9,12 @@ into its part's bin). ``render`` and the classes take GT_MT_LANES pixels of a ro
 render computes in double on devices with fp64 (GT_MT_DOUBLE=1: the part table, the texture's
 waves and the constants sent in float64, as the reference's float64 render), in float otherwise; it
 stores float32 either way.
-``emit``: one launch of a work-group of one per part and kind: the greedy extrema from a heap of
-the part's bin, the farthest-point fill over the compacted pool (GT_MT_LANES pixels per step), the
-points. No host wait in any of them (one in-order queue); the op downloads the counts after
-``classify``.
+``emit``: one launch, per part and kind the greedy extrema from a heap of the part's bin, the
+farthest-point fill over the compacted pool and the points: on CPU devices a work-group of one
+(``gt_mt_emit``, GT_MT_LANES pixels per step), on GPUs a work-group of :func:`emit_group`
+work-items (``gt_mt_emit_wg``: the pool's passes shared out, each fill point's argmax reduced in
+local memory; one work-item walking the pool took the H100's template to 34.5 ms). No host
+wait in any of them (one in-order queue); the op downloads the counts after ``classify``.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ ARG_TYPES = {
     "gt_mt_bin": [None, None, None, None, _I, _I, _I, _I, _I, _I, None, None, _I],
     "gt_mt_emit": [None, None, None, _I, _I, None, None, None, None, None, None, None, None, None, _I, _I, None, None],
 }
+ARG_TYPES["gt_mt_emit_wg"] = ARG_TYPES["gt_mt_emit"]
 
 
 CPU_LANES = 8
@@ -45,6 +48,21 @@ def lanes(device) -> int:
     """Pixels of a row per work-item of the render and classification kernels (GT_MT_LANES): explicit
     vector lanes on CPU devices, 1 on GPUs."""
     return CPU_LANES if device.info.kind == "cpu" else 1
+
+
+#: work-items per part and kind of the pick on GPUs (gt_mt_emit_wg; at most the kernel's MT_WG_MAX);
+#: not yet timed on a GPU
+EMIT_WG = 128
+
+
+def emit_group(device) -> int:
+    """Work-items per part and kind of the pick: 1 on CPU devices (``gt_mt_emit``, the fill's passes
+    in vector lanes), else EMIT_WG or the device's largest power of two below it
+    (``gt_mt_emit_wg``: the passes shared out, the argmax reduced in local memory)."""
+    if device.info.kind == "cpu":
+        return 1
+    most = min(EMIT_WG, device.info.max_work_group_size or EMIT_WG)
+    return 1 << (int(most).bit_length() - 1)
 
 
 def double(device) -> bool:
@@ -150,7 +168,9 @@ def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, n
     dummy = out0 if out0.shape[0] else out1
     o0 = (out0 if out0.shape[0] else dummy).buffer.data
     o1 = (out1 if out1.shape[0] else dummy).buffer.data
-    enqueue(device, _kernel(device, "gt_mt_emit"), (J, 2), (1, 1), part.buffer.data, values.buffer.data,
+    wg = emit_group(device)
+    name = "gt_mt_emit" if wg == 1 else "gt_mt_emit_wg"
+    enqueue(device, _kernel(device, name), (J * wg, 2), (wg, 1), part.buffer.data, values.buffer.data,
             local.buffer.data, H, W, plan.buffer.data, stats.buffer.data, surv.buffer.data, bins.buffer.data,
             interior.buffer.data, num.buffer.data, cnt.buffer.data, dist.buffer.data, used.buffer.data, _lim(s2), J, o0,
             o1)  # fmt: skip
