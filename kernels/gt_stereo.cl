@@ -130,6 +130,72 @@ __kernel void gt_stereo_left_costs(__global const GT_T *pl, __global const GT_T 
     }
 }
 
+// The GPU variant of the two cost kernels (gputrack/backends/opencl/stereo.py per_pixel): a
+// work-item per (pixel or marked right position, disparity group), each window summed whole
+// (block x block absolute differences a lane; integers, so the costs equal the carried sums of the
+// kernels above). A device with few, fast cores wants the carried sums; a GPU wants the work-items.
+
+// the run holding slot p of the offsets in column col (3: pixels, 4: right positions): the last run
+// whose offset is <= p (the offsets ascend with the runs)
+inline int gt_stereo_run_of(__global const int *runs, const int S, const int p, const int col)
+{
+    int lo = 0, hi = S - 1;
+    while (lo < hi) {
+        const int mid = (lo + hi + 1) >> 1;
+        if (runs[5 * mid + col] <= p)
+            lo = mid;
+        else
+            hi = mid - 1;
+    }
+    return lo;
+}
+
+// NDRange (P, G): C(x, d) of the runs' pixel p, lanes d0 .. d0 + LANES - 1, into cost[p]
+__kernel void gt_stereo_left_costs_px(__global const GT_T *pl, __global const GT_T *pr, __global const int *runs,
+                                      __global GT_T *cost, const int S, const int P, const int D, const int B,
+                                      const int Wp)
+{
+    const int p = get_global_id(0), g = get_global_id(1);
+    const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
+    if (p >= P || g >= G)
+        return;
+    const int s = gt_stereo_run_of(runs, S, p, 3), r = B / 2, d0 = g * GT_STEREO_LANES;
+    const int y = runs[5 * s], x = runs[5 * s + 1] + p - runs[5 * s + 3];
+    GT_V c = (GT_V)(0);
+    for (int k = 0; k < B; ++k) {
+        const int row = (y - r + k) * Wp + GT_STEREO_LANES + x - r;
+        for (int m = 0; m < B; ++m) {
+            const int o = row + m;
+            const GT_V t = (GT_V)(pl[o]) - GT_REVERSE(GT_VLOAD(0, pr + o - d0 - (GT_STEREO_LANES - 1)));
+            c += max(t, -t);  // lane l: |P_L(x) - P_R(x - d0 - l)|
+        }
+    }
+    GT_VSTORE(c, 0, cost + (size_t)p * Dp + d0);
+}
+
+// NDRange (P2, G), P2 the runs' right positions: C_R(xr, d) at the marked ones (rmark), into rcost
+__kernel void gt_stereo_right_costs_px(__global const GT_T *pl, __global const GT_T *pr, __global const int *runs,
+                                       __global const int *rmark, __global GT_T *rcost, const int S, const int P2,
+                                       const int D, const int B, const int Wp)
+{
+    const int q = get_global_id(0), g = get_global_id(1);
+    const int G = (D + GT_STEREO_LANES - 1) / GT_STEREO_LANES, Dp = G * GT_STEREO_LANES;
+    if (q >= P2 || g >= G || rmark[q] == 0)
+        return;
+    const int s = gt_stereo_run_of(runs, S, q, 4), r = B / 2, d0 = g * GT_STEREO_LANES;
+    const int y = runs[5 * s], xr = runs[5 * s + 1] - D + 1 + q - runs[5 * s + 4];
+    GT_V c = (GT_V)(0);
+    for (int k = 0; k < B; ++k) {
+        const int row = (y - r + k) * Wp + GT_STEREO_LANES + xr - r;
+        for (int m = 0; m < B; ++m) {
+            const int at = row + m;
+            const GT_V t = GT_VLOAD(0, pl + at + d0) - (GT_V)(pr[at]);
+            c += max(t, -t);  // lane l: |P_L(xr + d0 + l) - P_R(xr)|
+        }
+    }
+    GT_VSTORE(c, 0, rcost + (size_t)q * Dp + d0);
+}
+
 // the smallest lane of v, by halves (.lo / .hi): log2(lanes) vector minima
 #if GT_STEREO_LANES == 16
 inline int gt_stereo_hmin(const int16 v)

@@ -73,6 +73,29 @@ def test_matches_reference(device, H, W, D, block, dtype, shift):
         assert np.abs(np.nanmedian(inner) - shift) < 0.2
 
 
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_opencl_cost_kernels_match_reference(device, per_pixel, monkeypatch):
+    """Both OpenCL cost layouts on whatever device runs them: per tile of runs carrying the column
+    sums (CPU devices) and per pixel and disparity group summing each window (GPUs, work-groups of
+    GPU_GROUP), uint8 (16 lanes) and float32 (8 lanes), masked and not."""
+    if device.backend != "opencl":
+        pytest.skip("OpenCL kernel variants")
+    from gputrack.backends.opencl import stereo as ocl
+
+    monkeypatch.setattr(ocl, "per_pixel", lambda dev: per_pixel)
+    rng = np.random.default_rng(21)
+    for H, W, D, block, dtype, shift in ((61, 127, 16, 9, np.uint8, 7), (40, 90, 24, 5, np.float32, 11),
+                                         (33, 150, 40, 7, np.uint8, 19)):  # fmt: skip
+        left, right = random_pair(H, W, shift, rng)
+        if dtype == np.float32:
+            left, right = left.astype(np.float32) / 255, right.astype(np.float32) / 255
+        for mask in (None, blob_mask(H, W, rng)):
+            want = stereo_match(REF, left, right, mask=mask, max_disparity=D, block=block)
+            got = stereo_match(device, left, right, mask=mask, max_disparity=D, block=block)
+            assert_same_disparity(device, got, want)
+            assert np.isfinite(want).sum() > 200  # not vacuous: many winners compared
+
+
 def test_masked_result_is_the_unmasked_result_inside_the_mask(device):
     """The guarantee: at a mask pixel, exactly the unmasked result (the left-right check reads
     outside the mask as it must); NaN everywhere else. Bool, uint8 and device masks alike."""
