@@ -74,15 +74,14 @@ def test_matches_reference(device, H, W, D, block, dtype, shift):
 
 
 @pytest.mark.parametrize("per_pixel", [False, True])
-def test_opencl_cost_kernels_match_reference(device, per_pixel, monkeypatch):
-    """Both OpenCL cost layouts on whatever device runs them: per tile of runs carrying the column
-    sums (CPU devices) and per pixel and disparity group summing each window (GPUs, work-groups of
-    GPU_GROUP), uint8 (16 lanes) and float32 (8 lanes), masked and not."""
-    if device.backend != "opencl":
-        pytest.skip("OpenCL kernel variants")
-    from gputrack.backends.opencl import stereo as ocl
-
-    monkeypatch.setattr(ocl, "per_pixel", lambda dev: per_pixel)
+def test_both_cost_layouts_match_reference(device, per_pixel, monkeypatch):
+    """Both layouts of the costs on whatever device runs them: per tile of runs carrying the column
+    sums (CPU devices and archs, lavapipe) and per pixel and disparity group summing each window
+    (GPUs: OpenCL in work-groups of GPU_GROUP, taichi:cuda, Vulkan on a GPU), uint8 and float32
+    lanes, masked and not."""
+    if device.backend == "numpy":
+        pytest.skip("the reference has one layout")
+    monkeypatch.setattr(gputrack.ops.backend_module(device, "stereo"), "per_pixel", lambda dev: per_pixel)
     rng = np.random.default_rng(21)
     for H, W, D, block, dtype, shift in ((61, 127, 16, 9, np.uint8, 7), (40, 90, 24, 5, np.float32, 11),
                                          (33, 150, 40, 7, np.uint8, 19)):  # fmt: skip

@@ -22,6 +22,11 @@
    pixels P_L(x + d0), ..., P_L(x + d0 + LANES - 1) slide the same way.
 5. One thread per run: the right winners and the left-right check.
 
+On CUDA and on Vulkan on a GPU (:func:`per_pixel`) steps 2 and 4 are instead one thread per
+(pixel of the runs, group) and per (marked right position, group), each summing its window whole
+(the same integers): a VGA frame's few hundred tile threads left an H100 idle (~48 ms of matching
+in the group benchmark's 15 % frame on taichi:cuda); the per-pixel layout is not yet timed on a GPU.
+
 On taichi:cpu the runs, tiles and mask are NumPy arrays the kernel reads in place (no copy
 launches); elsewhere they are uploaded.
 
@@ -84,6 +89,26 @@ def _col(img: ti.template(), y, x, is_float: ti.template()):
 def _sobel(img: ti.template(), y, x, cap, is_float: ti.template()):
     """The prefiltered pixel (y, x) inside the image's border: the x-Sobel clipped to [-cap, cap], plus cap."""
     return ti.min(ti.max(_col(img, y, x + 1, is_float) - _col(img, y, x - 1, is_float), -cap), cap) + cap
+
+
+@ti.func
+def _run_of(runs: ti.template(), S, p, col: ti.template()):
+    """The run holding slot p of the offsets in column col (3: pixels, 4: right positions): the
+    last run whose offset is <= p (the offsets ascend with the runs)."""
+    lo, hi = 0, S - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if runs[mid, col] <= p:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+def per_pixel(device) -> bool:
+    """Whether the costs run a thread per pixel and disparity group (CUDA, Vulkan on a GPU) rather
+    than per tile of runs and group (the CPU archs, lavapipe)."""
+    return device.arch == "cuda" or (device.arch == "vulkan" and device.info.kind == "gpu")
 
 
 @functools.lru_cache(maxsize=None)
@@ -160,7 +185,7 @@ def _kernel(LANES: int, T):
                 rcost: ti.types.ndarray(dtype=V, ndim=1), ldisp: ti.types.ndarray(dtype=ti.i32, ndim=1),
                 rmark: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=2),
                 S: ti.i32, NB: ti.i32, D: ti.i32, B: ti.i32, U: ti.i32, cap: ti.i32, Wp: ti.i32, y0: ti.i32, y1: ti.i32,
-                nan: ti.f32, is_float: ti.template()):  # fmt: skip
+                nan: ti.f32, P: ti.i32, P2: ti.i32, is_float: ti.template(), per_px: ti.template()):  # fmt: skip
         r = B // 2
         W = out.shape[1]
         G = (D + LANES - 1) // LANES  # disparity groups: a pixel's vectors in the cost buffers
@@ -189,51 +214,64 @@ def _kernel(LANES: int, T):
                 for x in range(1 + nv * LANES, W - 1):
                     pl[row + LANES + x] = ti.cast(_sobel(left, y, x, cap, is_float), T)
                     pr[row + LANES + x] = ti.cast(_sobel(right, y, x, cap, is_float), T)
-        # 2. left costs, one thread per (tile, group): the window column sums
+        # 2. left costs. per_px: one thread per (pixel of the runs, group), its window summed whole.
+        #    Else one thread per (tile, group): the window column sums
         #    V(x) = sum over the window's rows of |P_L(x) - P_R(x - d)| of the tile's columns, carried
         #    down its rows (the row entering added, the one leaving subtracted), then running box sums
         #    along each run of the row: C(x, d) = C(x - 1, d) + V(x + r) - V(x - r - 1)
-        for b, g in ti.ndrange(NB, G):
-            by0, by1, xa, xb, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 3], tiles[b, 4],
-                                               tiles[b, 5], tiles[b, 6], tiles[b, 7])  # fmt: skip
-            d0 = g * LANES
-            vb = voff * G + g * w  # this thread's column sums
-            first = xa - r
-            i = i0
-            n = xb - xa + 2 * r + 1
-            for y in range(by0, by1 + 1):
-                if y == by0:  # the window's B rows, a pass along the columns each
-                    for j in range(n):
-                        vsum[vb + j] = V(0)
-                    for k in range(B):
-                        at = (y - r + k) * Wp + LANES + first
-                        pv = _right_lanes(pr, at - d0)
+        if ti.static(per_px):
+            for p, g in ti.ndrange(P, G):
+                s = _run_of(runs, S, p, 3)
+                y, x, d0 = runs[s, 0], runs[s, 1] + p - runs[s, 3], g * LANES
+                c = V(0)
+                for k in range(B):
+                    row = (y - r + k) * Wp + LANES + x - r
+                    for m in range(B):
+                        t = pl[row + m] - _right_lanes(pr, row + m - d0)  # lane l: P_L(x) - P_R(x - d0 - l)
+                        c += ti.max(t, -t)
+                cost[p * G + g] = c
+        else:
+            for b, g in ti.ndrange(NB, G):
+                by0, by1, xa, xb, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 3], tiles[b, 4],
+                                                   tiles[b, 5], tiles[b, 6], tiles[b, 7])  # fmt: skip
+                d0 = g * LANES
+                vb = voff * G + g * w  # this thread's column sums
+                first = xa - r
+                i = i0
+                n = xb - xa + 2 * r + 1
+                for y in range(by0, by1 + 1):
+                    if y == by0:  # the window's B rows, a pass along the columns each
+                        for j in range(n):
+                            vsum[vb + j] = V(0)
+                        for k in range(B):
+                            at = (y - r + k) * Wp + LANES + first
+                            pv = _right_lanes(pr, at - d0)
+                            for j in range(n):
+                                if j > 0:
+                                    pv = _right_slide(pv, pr[at + j - d0])
+                                t = pl[at + j] - pv  # lane l: P_L(x) - P_R(x - d0 - l)
+                                vsum[vb + j] = vsum[vb + j] + ti.max(t, -t)
+                    else:  # the row entering added, the one leaving subtracted
+                        add, sub = (y + r) * Wp + LANES + first, (y - r - 1) * Wp + LANES + first
+                        pa, ps = _right_lanes(pr, add - d0), _right_lanes(pr, sub - d0)
                         for j in range(n):
                             if j > 0:
-                                pv = _right_slide(pv, pr[at + j - d0])
-                            t = pl[at + j] - pv  # lane l: P_L(x) - P_R(x - d0 - l)
-                            vsum[vb + j] = vsum[vb + j] + ti.max(t, -t)
-                else:  # the row entering added, the one leaving subtracted
-                    add, sub = (y + r) * Wp + LANES + first, (y - r - 1) * Wp + LANES + first
-                    pa, ps = _right_lanes(pr, add - d0), _right_lanes(pr, sub - d0)
-                    for j in range(n):
-                        if j > 0:
-                            pa = _right_slide(pa, pr[add + j - d0])
-                            ps = _right_slide(ps, pr[sub + j - d0])
-                        t1 = pl[add + j] - pa
-                        t2 = pl[sub + j] - ps
-                        vsum[vb + j] = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
-                while i < i1 and runs[order[i], 0] == y:
-                    q = order[i]
-                    x0, x1, off = runs[q, 1], runs[q, 2], runs[q, 3]
-                    c = V(0)
-                    for k in range(B):
-                        c += vsum[vb + x0 - r - first + k]
-                    cost[off * G + g] = c
-                    for x in range(x0 + 1, x1 + 1):
-                        c += vsum[vb + x + r - first] - vsum[vb + x - r - 1 - first]
-                        cost[(off + x - x0) * G + g] = c
-                    i += 1
+                                pa = _right_slide(pa, pr[add + j - d0])
+                                ps = _right_slide(ps, pr[sub + j - d0])
+                            t1 = pl[add + j] - pa
+                            t2 = pl[sub + j] - ps
+                            vsum[vb + j] = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
+                    while i < i1 and runs[order[i], 0] == y:
+                        q = order[i]
+                        x0, x1, off = runs[q, 1], runs[q, 2], runs[q, 3]
+                        c = V(0)
+                        for k in range(B):
+                            c += vsum[vb + x0 - r - first + k]
+                        cost[off * G + g] = c
+                        for x in range(x0 + 1, x1 + 1):
+                            c += vsum[vb + x + r - first] - vsum[vb + x - r - 1 - first]
+                            cost[(off + x - x0) * G + g] = c
+                        i += 1
         # 3. left winners
         for s in range(S):
             y, x0, x1, off, roff = runs[s, 0], runs[s, 1], runs[s, 2], runs[s, 3], runs[s, 4]
@@ -267,57 +305,71 @@ def _kernel(LANES: int, T):
             if mlo <= mhi:  # the tile's marked span, for the right costs
                 ti.atomic_min(marked[run_tile[s], 0], mlo)
                 ti.atomic_max(marked[run_tile[s], 1], mhi)
-        # 4. right costs at the marked positions, the same way: V(x) = sum over the window's rows of
+        # 4. right costs at the marked positions, the same ways: per_px, a thread per (right position
+        #    of the runs, group) that is marked. Else V(x) = sum over the window's rows of
         #    |P_L(x + d) - P_R(x)| over the columns of the tile's marked span (garbage but in bounds
         #    where x + d >= W: such d are not candidates), C_R(xr, d) running along each run's
         #    positions in that span
-        for b, g in ti.ndrange(NB, G):
-            by0, by1, xa, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 4], tiles[b, 5],
-                                             tiles[b, 6], tiles[b, 7])  # fmt: skip
-            mlo, mhi = marked[b, 0], marked[b, 1]
-            d0 = g * LANES
-            vb = voff * G + g * w
-            first = xa - D + 1 - r  # column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
-            i = i0
-            jlo, jhi = mlo - r - first, mhi + r - first
-            for y in range(by0, by1 + 1):
-                if mlo <= mhi and y == by0:
-                    for j in range(jlo, jhi + 1):
-                        vsum[vb + j] = V(0)
+        if ti.static(per_px):
+            for q, g in ti.ndrange(P2, G):
+                if rmark[q] != 0:
+                    s = _run_of(runs, S, q, 4)
+                    y, xr, d0 = runs[s, 0], runs[s, 1] - D + 1 + q - runs[s, 4], g * LANES
+                    c = V(0)
                     for k in range(B):
-                        at = (y - r + k) * Wp + LANES + first
-                        pv = _left_lanes(pl, at + jlo + d0)
+                        row = (y - r + k) * Wp + LANES + xr - r
+                        for m in range(B):
+                            t = _left_lanes(pl, row + m + d0) - pr[row + m]  # lane l: P_L(xr + d0 + l) - P_R(xr)
+                            c += ti.max(t, -t)
+                    rcost[q * G + g] = c
+        else:
+            for b, g in ti.ndrange(NB, G):
+                by0, by1, xa, i0, i1, voff, w = (tiles[b, 0], tiles[b, 1], tiles[b, 2], tiles[b, 4], tiles[b, 5],
+                                                 tiles[b, 6], tiles[b, 7])  # fmt: skip
+                mlo, mhi = marked[b, 0], marked[b, 1]
+                d0 = g * LANES
+                vb = voff * G + g * w
+                first = xa - D + 1 - r  # column sums cover [first, first + w); those of [mlo - r, mhi + r] are used
+                i = i0
+                jlo, jhi = mlo - r - first, mhi + r - first
+                for y in range(by0, by1 + 1):
+                    if mlo <= mhi and y == by0:
+                        for j in range(jlo, jhi + 1):
+                            vsum[vb + j] = V(0)
+                        for k in range(B):
+                            at = (y - r + k) * Wp + LANES + first
+                            pv = _left_lanes(pl, at + jlo + d0)
+                            for j in range(jlo, jhi + 1):
+                                if j > jlo:
+                                    pv = _left_slide(pv, pl[at + j + d0 + LANES - 1])
+                                t = pv - pr[at + j]  # lane l: P_L(x + d0 + l) - P_R(x)
+                                vsum[vb + j] = vsum[vb + j] + ti.max(t, -t)
+                    elif mlo <= mhi:
+                        add, sub = (y + r) * Wp + LANES + first, (y - r - 1) * Wp + LANES + first
+                        pa, ps = _left_lanes(pl, add + jlo + d0), _left_lanes(pl, sub + jlo + d0)
                         for j in range(jlo, jhi + 1):
                             if j > jlo:
-                                pv = _left_slide(pv, pl[at + j + d0 + LANES - 1])
-                            t = pv - pr[at + j]  # lane l: P_L(x + d0 + l) - P_R(x)
-                            vsum[vb + j] = vsum[vb + j] + ti.max(t, -t)
-                elif mlo <= mhi:
-                    add, sub = (y + r) * Wp + LANES + first, (y - r - 1) * Wp + LANES + first
-                    pa, ps = _left_lanes(pl, add + jlo + d0), _left_lanes(pl, sub + jlo + d0)
-                    for j in range(jlo, jhi + 1):
-                        if j > jlo:
-                            pa = _left_slide(pa, pl[add + j + d0 + LANES - 1])
-                            ps = _left_slide(ps, pl[sub + j + d0 + LANES - 1])
-                        t1 = pa - pr[add + j]
-                        t2 = ps - pr[sub + j]
-                        vsum[vb + j] = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
-                while i < i1 and runs[order[i], 0] == y:
-                    q = order[i]
-                    x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
-                    rlo = x0 - D + 1
-                    k0, k1 = ti.max(0, mlo - rlo), ti.min(x1 - x0 + D - 1, mhi - rlo)
-                    if k0 <= k1:
-                        c = V(0)
-                        for k in range(B):
-                            c += vsum[vb + rlo + k0 - r - first + k]
-                        for k in range(k0, k1 + 1):
-                            xr = rlo + k
-                            if k > k0:
-                                c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
-                            if rmark[roff + k] != 0:
-                                rcost[(roff + k) * G + g] = c
-                    i += 1
+                                pa = _left_slide(pa, pl[add + j + d0 + LANES - 1])
+                                ps = _left_slide(ps, pl[sub + j + d0 + LANES - 1])
+                            t1 = pa - pr[add + j]
+                            t2 = ps - pr[sub + j]
+                            vsum[vb + j] = vsum[vb + j] + ti.max(t1, -t1) - ti.max(t2, -t2)
+                    while i < i1 and runs[order[i], 0] == y:
+                        q = order[i]
+                        x0, x1, roff = runs[q, 1], runs[q, 2], runs[q, 4]
+                        rlo = x0 - D + 1
+                        k0, k1 = ti.max(0, mlo - rlo), ti.min(x1 - x0 + D - 1, mhi - rlo)
+                        if k0 <= k1:
+                            c = V(0)
+                            for k in range(B):
+                                c += vsum[vb + rlo + k0 - r - first + k]
+                            for k in range(k0, k1 + 1):
+                                xr = rlo + k
+                                if k > k0:
+                                    c += vsum[vb + xr + r - first] - vsum[vb + xr - r - 1 - first]
+                                if rmark[roff + k] != 0:
+                                    rcost[(roff + k) * G + g] = c
+                        i += 1
         # 5. right winners (d' whose left window is inside the image, the smallest of equal costs)
         #    and the left-right check
         for s in range(S):
@@ -371,12 +423,13 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
         runs_d, tiles_d, order_d, run_tile_d, marked_d = (device.asarray(a).buffer for a in small)  # pooled shapes
     mask_d = np.ascontiguousarray(mask) if current_arch() == "cpu" else device.asarray(mask).buffer
     i32 = ti.i32
+    px = per_pixel(device)
     arrays = (L.buffer, R.buffer, scratch(device, "stereo pl", (H * Wp,), T),
               scratch(device, "stereo pr", (H * Wp,), T), mask_d, runs_d, tiles_d, order_d, run_tile_d, marked_d,
-              scratch(device, "stereo vsum", (Vc * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
+              scratch(device, "stereo vsum", ((1 if px else Vc) * G,), V), scratch(device, "stereo cost", (Pc * G,), V),
               scratch(device, "stereo rcost", (P2c * G,), V), scratch(device, "stereo ldisp", (Pc,), i32),
               scratch(device, "stereo rmark", (P2c,), i32), out.buffer)  # fmt: skip
     y0, y1 = (int(runs[0, 0]) - block // 2, int(runs[-1, 0]) + block // 2 + 1) if S else (0, 0)  # rows read
-    scalars = (S, NB, int(D), int(block), int(U), int(cap), Wp, y0, y1, math.nan)
-    launch(kernel, arrays, (is_float,), scalars=scalars, scalarize=False)
+    scalars = (S, NB, int(D), int(block), int(U), int(cap), Wp, y0, y1, math.nan, P, P + S * (D - 1))
+    launch(kernel, arrays, (is_float, px), scalars=scalars, scalarize=False)
     return out
