@@ -567,6 +567,44 @@ inline void gt_mt_sift(__global int *bin, int i, const int size, __global const 
     bin[i] = x;
 }
 
+// step 8: the points of slots t0, t0 + step, ... below quota (their pixels' local point and value)
+inline void gt_mt_points(__global float *out, __global const float *pts, __global const float *val, const int W,
+                         const int quota, const int t0, const int step)
+{
+    for (int t = t0; t < quota; t += step) {
+        const int rc = ((__global const int *)out)[4 * t];
+        const int o = (rc >> 16) * W + (rc & 0xffff);
+        out[4 * t] = pts[3 * o];
+        out[4 * t + 1] = pts[3 * o + 1];
+        out[4 * t + 2] = pts[3 * o + 2];
+        out[4 * t + 3] = val[o];
+    }
+}
+
+// step 6: the bin's size candidates strongest first (a max-heap in place), each taken into the slots
+// (r << 16 | c at slot[4 t]) unless a taken one lies at d^2 <= lim, until quota are; how many were
+inline int gt_mt_greedy(__global int *bin, int size, __global const long *num, __global const int *cnt,
+                        __global int *slot, const int quota, const int lim, const int W)
+{
+    int taken = 0;
+    for (int i = size / 2 - 1; i >= 0; --i)
+        gt_mt_sift(bin, i, size, num, cnt);
+    while (taken < quota && size > 0) {
+        const int px = bin[0];
+        bin[0] = bin[--size];
+        gt_mt_sift(bin, 0, size, num, cnt);
+        const int r = px / W, c = px - r * W;
+        int ok = 1;
+        for (int t = 0; t < taken && ok; ++t) {
+            const int rc = slot[4 * t], dr = r - (rc >> 16), dc = c - (rc & 0xffff);
+            ok = dr * dr + dc * dc > lim;
+        }
+        if (ok)
+            slot[4 * taken++] = r << 16 | c;
+    }
+    return taken;
+}
+
 // the first n (<= L) ints at p, lanes past n: fill
 inline iv mt_loadn(__global const int *p, const int n, const int fill)
 {
@@ -616,23 +654,7 @@ __kernel void gt_mt_emit(__global const int *part, __global const float *values,
     __global int *slot = (__global int *)out;  // slot t's pixel at slot[4 t]
     __global int *bin = bins + k * HW + start;
     __global const long *num = nums + k * HW;
-    // step 6
-    int size = surv[k * J + j], taken = 0;
-    for (int i = size / 2 - 1; i >= 0; --i)
-        gt_mt_sift(bin, i, size, num, cnt);
-    while (taken < quota && size > 0) {
-        const int px = bin[0];
-        bin[0] = bin[--size];
-        gt_mt_sift(bin, 0, size, num, cnt);
-        const int r = px / W, c = px - r * W;
-        int ok = 1;
-        for (int t = 0; t < taken && ok; ++t) {
-            const int rc = slot[4 * t], dr = r - (rc >> 16), dc = c - (rc & 0xffff);
-            ok = dr * dr + dc * dc > lim;
-        }
-        if (ok)
-            slot[4 * taken++] = r << 16 | c;
-    }
+    const int taken = gt_mt_greedy(bin, surv[k * J + j], num, cnt, slot, quota, lim, W);  // step 6
     // step 7
     if (taken < quota) {
         __global const int *st = stats + j * GT_MT_STATS;
@@ -726,16 +748,7 @@ __kernel void gt_mt_emit(__global const int *part, __global const float *values,
             pc = rc & 0xffff;
         }
     }
-    // step 8
-    __global const float *val = values + k * HW;
-    for (int t = 0; t < quota; ++t) {
-        const int rc = slot[4 * t];
-        const int o = (rc >> 16) * W + (rc & 0xffff);
-        out[4 * t] = pts[3 * o];
-        out[4 * t + 1] = pts[3 * o + 1];
-        out[4 * t + 2] = pts[3 * o + 2];
-        out[4 * t + 3] = val[o];
-    }
+    gt_mt_points(out, pts, values + k * HW, W, quota, 0, 1);  // step 8
 }
 
 #define MT_WG_MAX 256  // the most work-items per part and kind of gt_mt_emit_wg (a power of two)
@@ -772,26 +785,9 @@ __kernel void gt_mt_emit_wg(__global const int *part, __global const float *valu
     __global int *slot = (__global int *)out;
     __global int *bin = bins + k * HW + start;
     __global const long *num = nums + k * HW;
-    // step 6, as gt_mt_emit
-    if (lid == 0) {
-        int size = quota > 0 ? surv[k * J + j] : 0, taken = 0;
-        for (int i = size / 2 - 1; i >= 0; --i)
-            gt_mt_sift(bin, i, size, num, cnt);
-        while (taken < quota && size > 0) {
-            const int px = bin[0];
-            bin[0] = bin[--size];
-            gt_mt_sift(bin, 0, size, num, cnt);
-            const int r = px / W, c = px - r * W;
-            int ok = 1;
-            for (int t = 0; t < taken && ok; ++t) {
-                const int rc = slot[4 * t], dr = r - (rc >> 16), dc = c - (rc & 0xffff);
-                ok = dr * dr + dc * dc > lim;
-            }
-            if (ok)
-                slot[4 * taken++] = r << 16 | c;
-        }
-        sh[0] = taken;
-    }
+    // step 6
+    if (lid == 0)
+        sh[0] = quota > 0 ? gt_mt_greedy(bin, surv[k * J + j], num, cnt, slot, quota, lim, W) : 0;
     barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
     // step 7 where the extrema fall short of the quota; every work-item runs through every barrier
     // below, the work itself empty where there is none (PoCL 3.1 crashed on a version of this kernel
@@ -942,14 +938,5 @@ __kernel void gt_mt_emit_wg(__global const int *part, __global const float *valu
         }
     }
     barrier(CLK_GLOBAL_MEM_FENCE);  // the slots
-    // step 8
-    __global const float *val = values + k * HW;
-    for (int t = lid; t < quota; t += wg) {
-        const int rc = slot[4 * t];
-        const int o = (rc >> 16) * W + (rc & 0xffff);
-        out[4 * t] = pts[3 * o];
-        out[4 * t + 1] = pts[3 * o + 1];
-        out[4 * t + 2] = pts[3 * o + 2];
-        out[4 * t + 3] = val[o];
-    }
+    gt_mt_points(out, pts, values + k * HW, W, quota, lid, wg);  // step 8
 }
