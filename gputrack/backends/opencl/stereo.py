@@ -97,7 +97,7 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     cost, rcost = ints(Pc * Dp), ints(P2c * Dp)
     ldisp = device.empty((Pc,), np.int32)
     rmark = device.empty((P2c,), np.int32)
-    b = lambda a: a.buffer.data  # noqa: E731
+    b = lambda a: a.buffer.data
     per_run = ndrange(S, group=(GPU_GROUP,)) if gpu else ((S,), (1,))
     if gpu:
         P2 = P + S * (D - 1)  # the runs' right positions (each run's x1 - x0 + D)
