@@ -2,7 +2,8 @@
 
 Probes every backend, builds every OpenCL source of gputrack's ``kernels/`` on every OpenCL device,
 runs the numerical self-tests (:mod:`gputrack.selftest`) on every available device (each in its own
-process: Taichi runs one arch per process) and prints a table.
+process: Taichi runs one arch per process) and prints a table, with hints where a GPU is there but
+a backend cannot reach it (:func:`hints`).
 
 Exit status: 0 when every requested device (``--require``, default: none) is available and passes,
 and no available device fails a kernel build or a self-test; 1 otherwise.
@@ -15,12 +16,43 @@ and no available device fails a kernel build or a self-test; 1 otherwise.
 from __future__ import annotations
 
 import argparse
+import glob
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 #: seconds one device's self-tests may take (its process is then stopped and the device fails)
 SELFTEST_TIMEOUT = 900
+
+#: where a driver's OpenCL library may lie (NVIDIA's containers mount theirs under /usr/local/nvidia)
+LIBRARY_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
+                "/usr/local/nvidia/lib64", "/usr/local/nvidia/lib")  # fmt: skip
+#: where the OpenCL ICD loader looks for vendor files (``OCL_ICD_VENDORS`` overrides it)
+ICD_DIR = "/etc/OpenCL/vendors"
+
+
+def hints(infos, library_dirs=LIBRARY_DIRS, icd_dir=None) -> list[str]:
+    """What to install or register where a GPU is there but a backend cannot use it: NVIDIA's OpenCL
+    library found in ``library_dirs`` but no OpenCL GPU, and no ICD file in ``icd_dir`` naming it
+    (containers built from CUDA images often lack that file); Taichi's Vulkan without its loader."""
+    known = {d.spec: d for d in infos}
+    out = []
+    gpu_opencl = any(d.backend == "opencl" and d.available and d.kind == "gpu" for d in infos)
+    libs = sorted({p for d in library_dirs for p in glob.glob(os.path.join(d, "libnvidia-opencl.so*"))})
+    if not gpu_opencl and libs:
+        icd_dir = icd_dir or os.environ.get("OCL_ICD_VENDORS") or ICD_DIR
+        icds = glob.glob(os.path.join(icd_dir, "*.icd")) if os.path.isdir(icd_dir) else []
+        named = any("nvidia-opencl" in Path(f).read_text(errors="replace") for f in icds)
+        if not named:
+            out.append(f"NVIDIA's OpenCL library is installed ({libs[0]}) but no ICD file in {icd_dir} names it: "
+                       f"echo {os.path.basename(libs[0])} > {icd_dir}/nvidia.icd")  # fmt: skip
+    vk = known.get("taichi:vulkan")
+    if vk is not None and not vk.available and "loader" in vk.reason:
+        out.append("taichi:vulkan needs the Vulkan loader (Debian/Ubuntu: libvulkan1) and a driver: the GPU "
+                   "vendor's, or mesa-vulkan-drivers (lavapipe) on a CPU")  # fmt: skip
+    return out
 
 
 def format_devices(infos) -> str:
@@ -125,9 +157,13 @@ def run(args, out=print) -> int:
             if not r["ok"]:
                 problems.append(f"{info.spec}: self-test {r['check']} failed")
 
+    advice = hints(infos)
+    if advice:
+        out("\nhints\n  " + "\n  ".join(advice))
     out("\n" + ("all checks passed" if not problems else "problems:\n  " + "\n  ".join(problems)))
     if args.json:
-        doc = {"devices": [d.as_dict() for d in infos], "builds": builds, "selftests": tests, "problems": problems}
+        doc = {"devices": [d.as_dict() for d in infos], "builds": builds, "selftests": tests, "problems": problems,
+               "hints": advice}  # fmt: skip
         with open(args.json, "w") as f:
             json.dump(doc, f, indent=2)
     return 1 if problems else 0

@@ -189,3 +189,29 @@ def test_host_doctor_is_the_package_doctor():
     proc = subprocess.run([sys.executable, "host/doctor.py", "--help"], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0 and proc.stdout.startswith("usage: gputrack doctor"), proc.stdout + proc.stderr
     assert "--require" in proc.stdout and "--device SPEC" in proc.stdout
+
+
+def test_doctor_hints_where_a_gpu_backend_is_not_reachable(tmp_path):
+    """NVIDIA's OpenCL library without an ICD file naming it, and Vulkan without its loader, each
+    give an instruction; a registered library, an OpenCL GPU or a working Vulkan give none."""
+    from gputrack.device import DeviceInfo
+    from gputrack.doctor import hints
+
+    libs, icd = tmp_path / "lib", tmp_path / "vendors"
+    libs.mkdir()
+    icd.mkdir()
+    (libs / "libnvidia-opencl.so.1").write_bytes(b"")
+    (icd / "pocl.icd").write_text("libpocl.so.2\n")
+    cpu_cl = DeviceInfo("opencl", "opencl", True, name="PoCL", kind="cpu")
+    no_vk = DeviceInfo("taichi:vulkan", "taichi", False, reason="no Vulkan loader (libvulkan.so.1 not loadable) or ...")
+    got = hints([cpu_cl, no_vk], library_dirs=[str(libs)], icd_dir=str(icd))
+    assert len(got) == 2
+    assert f"echo libnvidia-opencl.so.1 > {icd}/nvidia.icd" in got[0]
+    assert "libvulkan1" in got[1]
+    (icd / "nvidia.icd").write_text("libnvidia-opencl.so.1\n")
+    assert hints([cpu_cl], library_dirs=[str(libs)], icd_dir=str(icd)) == []
+    (icd / "nvidia.icd").unlink()
+    gpu_cl = DeviceInfo("opencl", "opencl", True, name="NVIDIA H100", kind="gpu")
+    vk = DeviceInfo("taichi:vulkan", "taichi", True, name="NVIDIA H100", kind="gpu")
+    assert hints([gpu_cl, vk], library_dirs=[str(libs)], icd_dir=str(icd)) == []
+    assert hints([cpu_cl], library_dirs=[str(tmp_path / "none")], icd_dir=str(icd)) == []
