@@ -29,9 +29,10 @@ def test_asarray_dtypes(device, dtype):
     np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(x)), x)
 
 
-@pytest.mark.parametrize("shape", [(7,), (5, 3), (2, 3, 4), (3, 5, 3, 4), (2, 1, 3, 2, 2), (480, 640)])
+@pytest.mark.parametrize("shape", [(7,), (5, 3), (2, 3, 4), (3, 5, 3, 4), (2, 1, 3, 2, 2), (480, 640), (3, 17), (2, 2, 33)])
 def test_asarray_roundtrip_shapes(device, shape):
-    """Every rank round-trips exactly (ranks 1-4 take the device's copy kernels, 5 the fallback)."""
+    """Every rank round-trips exactly (ranks 1-4 take the device's copy kernels, 5 the fallback; rows
+    longer than a copy's lanes with a tail)."""
     x = np.random.default_rng(1).normal(size=shape).astype(np.float32)
     np.testing.assert_array_equal(gputrack.to_numpy(device.asarray(x)), x)
     # a non-contiguous view is uploaded as its values

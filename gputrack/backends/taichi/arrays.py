@@ -5,7 +5,9 @@ copy kernel moves several GB/s, where ``Ndarray.from_numpy``/``to_numpy`` move a
 Loops are nested per dimension (outermost parallel): Taichi's ``ti.grouped`` loop over an
 external array recomputes the multi-index per element and runs ten times slower. Arrays of up to
 ``SERIAL_COPY`` elements are copied on the calling thread (``serial``): a parallel loop's dispatch
-costs ~60 us on a CPU, more than copying them.
+costs ~60 us on a CPU, more than copying them. The 2-D and 3-D copies move COPY_LANES elements of
+a row at a time, loads before stores: a VGA upload or download 0.75-0.91 -> 0.55-0.65 ms (uint8)
+and 0.77-0.82 -> 0.58-0.63 ms (float32), three rounds in turn, median of 300 (2026-11-27).
 """
 
 import numpy as np
@@ -15,6 +17,8 @@ from .runtime import ti
 
 #: the largest copy (elements) done on the calling thread
 SERIAL_COPY = 1 << 16
+#: elements of a row a 2-D or 3-D copy loads before it stores them
+COPY_LANES = 16
 
 
 @ti.kernel
@@ -24,20 +28,33 @@ def _copy1(src: ti.types.ndarray(ndim=1), dst: ti.types.ndarray(ndim=1), serial:
         dst[i] = src[i]
 
 
+@ti.func
+def _copy_row(src: ti.template(), dst: ti.template(), lead: ti.template(), n):
+    """dst[lead + (j,)] = src[lead + (j,)] for j < n, COPY_LANES elements at a time: their loads
+    first, then their stores (Taichi reloads an array's address and shape after a store, so one
+    store per load is slower), the tail one by one."""
+    for k in range(n // COPY_LANES):
+        j0 = k * COPY_LANES
+        v = ti.Vector([src[(*lead, j0 + j)] for j in ti.static(range(COPY_LANES))])
+        for j in ti.static(range(COPY_LANES)):
+            dst[(*lead, j0 + j)] = v[j]
+    for j in range(n // COPY_LANES * COPY_LANES, n):
+        dst[(*lead, j)] = src[(*lead, j)]
+
+
 @ti.kernel
 def _copy2(src: ti.types.ndarray(ndim=2), dst: ti.types.ndarray(ndim=2), serial: ti.template()):
     ti.loop_config(serialize=serial)
     for i in range(src.shape[0]):
-        for j in range(src.shape[1]):
-            dst[i, j] = src[i, j]
+        _copy_row(src, dst, (i,), src.shape[1])
 
 
 @ti.kernel
 def _copy3(src: ti.types.ndarray(ndim=3), dst: ti.types.ndarray(ndim=3), serial: ti.template()):
     ti.loop_config(serialize=serial)
     for i in range(src.shape[0]):
-        for j, k in ti.ndrange(src.shape[1], src.shape[2]):
-            dst[i, j, k] = src[i, j, k]
+        for j in range(src.shape[1]):
+            _copy_row(src, dst, (i, j), src.shape[2])
 
 
 @ti.kernel
