@@ -92,15 +92,20 @@ def test_tracker_templates_equal_reference(device):
                                                                   (64, 300, 7, 0, 6.0)])  # fmt: skip
 def test_selection_matches_reference_exactly(device, pose, n, n_depth, window, border, spacing):
     """The same images (the reference's rendering) give the same points on every backend."""
+    _assert_selection_is_the_references(device, pose, n, n_depth, window, border, spacing)
+
+
+def _assert_selection_is_the_references(device, pose, n, n_depth, window, border, spacing):
+    """select_template on ``device`` of the reference's rendering of ``pose``: the reference's points."""
     r = render(CHAIN, POSES[pose], background=None, depth_step=0)
     values = np.stack([r.gray, r.depth])
-    opts = dict(window=window, border=border, spacing=spacing)
+    opts = {"window": window, "border": border, "spacing": spacing}
     want = select_template(REF, model_images(REF, r.part, values, r.local, 5), n, n_depth, **opts)
     got = select_template(device, model_images(device, r.part, values, r.local, 5), n, n_depth, **opts)
     for w, g in zip(want, got):
         assert isinstance(g, DeviceTemplate)
-        np.testing.assert_array_equal(g.part, w.part)
-        np.testing.assert_array_equal(g.packed, w.packed)
+        np.testing.assert_array_equal(g.part, w.part, err_msg=f"{pose} n={n}")
+        np.testing.assert_array_equal(g.packed, w.packed, err_msg=f"{pose} n={n}")
 
 
 @pytest.mark.parametrize("pose", sorted(POSES))
@@ -162,12 +167,5 @@ def test_opencl_pick_per_work_group_matches_reference(device, wg, monkeypatch):
 
     monkeypatch.setattr(ocl, "emit_group", lambda dev: wg)
     for pose in sorted(POSES):
-        r = render(CHAIN, POSES[pose], background=None, depth_step=0)
-        values = np.stack([r.gray, r.depth])
-        for n, n_depth, window, border, spacing in ((128, 128, 5, 2, 4.0), (64, 300, 7, 0, 6.0), (1, 40, 5, 2, 16.0)):
-            opts = dict(window=window, border=border, spacing=spacing)
-            want = select_template(REF, model_images(REF, r.part, values, r.local, 5), n, n_depth, **opts)
-            got = select_template(device, model_images(device, r.part, values, r.local, 5), n, n_depth, **opts)
-            for w, g in zip(want, got):
-                np.testing.assert_array_equal(g.part, w.part, err_msg=f"{pose} n={n}")
-                np.testing.assert_array_equal(g.packed, w.packed, err_msg=f"{pose} n={n}")
+        for selection in ((128, 128, 5, 2, 4.0), (64, 300, 7, 0, 6.0), (1, 40, 5, 2, 16.0)):
+            _assert_selection_is_the_references(device, pose, *selection)

@@ -62,7 +62,7 @@ def emit_group(device) -> int:
     if device.info.kind == "cpu":
         return 1
     most = min(EMIT_WG, device.info.max_work_group_size or EMIT_WG)
-    return 1 << (int(most).bit_length() - 1)
+    return 1 << (most.bit_length() - 1)
 
 
 def double(device) -> bool:
