@@ -393,6 +393,176 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
     gt_lm_points(ib[GT_LM_I_STATUS] == GT_LM_RUNNING ? xt : x, den, lo, hi, h, Xb, SX, P, rel);
 }
 
+#ifdef LM_WG_STEP
+// Whether parameter i is held at a bound by the gradient (its row and column of the step cleared).
+static int gt_lm_held(__global const REAL *x, __global const REAL *g, __global const REAL *lo,
+                      __global const REAL *hi, const int i)
+{
+    return (x[i] >= hi[i] && g[i] < 0) || (x[i] <= lo[i] && g[i] > 0);
+}
+
+// In place, by the whole work-group: the lower triangle of W (P x P, row stride P) -> its Cholesky
+// factor, column by column (the column scaled, then the trailing triangle updated by its outer
+// product, each shared out over the work-items). Returns 1 if positive definite, the same on
+// every work-item (flag: one local int). Every barrier is reached by every work-item.
+static int gt_chol_wg(__global REAL *W, const int P, const int lid, const int ls, __local int *flag)
+{
+    if (lid == 0)
+        *flag = 1;
+    for (int j = 0; j < P; ++j) {
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+        if (lid == 0 && *flag) {
+            const REAL s = W[j * P + j];
+            if (!(s > 0) || !isfinite(s))
+                *flag = 0;
+            else
+                W[j * P + j] = sqrt(s);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+        if (*flag) {
+            const REAL d = W[j * P + j];
+            for (int i = j + 1 + lid; i < P; i += ls)
+                W[i * P + j] /= d;
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        if (*flag) {  // entries (i, k), j < k <= i: row i - j - 1 of the trailing triangle
+            const int n = P - j - 1;
+            for (int q = lid; q < n * (n + 1) / 2; q += ls) {
+                const int2 ik = gt_pair(q);
+                const int i = j + 1 + ik.x, k = j + 1 + ik.y;
+                W[i * P + k] -= W[i * P + j] * W[k * P + j];
+            }
+        }
+    }
+    barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+    return *flag;
+}
+
+// 4. as gt_lm_next, by the whole work-group (GPUs, where one work-item's O(P^3) Cholesky of a
+// large P left the rest of the group idle: 2.7 ms a launch for the face bundle's P = 92 on an
+// H100): the factor and the two triangular solves column by column, the damped matrix and the
+// predicted reduction's products shared out; work-item 0 keeps the O(P) scalar work. wi: 3 local
+// ints, wr: 2 local REALs. Every work-item calls it (its barriers are reached by all); final_:
+// nothing but the result.
+static void gt_lm_next_wg(__global REAL *x, __global REAL *xt, __global REAL *g, __global REAL *den,
+                          __global const REAL *lo, __global const REAL *hi, __global const REAL *h,
+                          __global const REAL *A, __global REAL *L, __global REAL *D, __global REAL *tmp,
+                          __global REAL *sc, __global int *ib, __global XTYPE *Xb, const int SX, const int P,
+                          const REAL gtol, const REAL rel, const REAL ctiny, const REAL cmax, const int scale,
+                          const int final_, const int lid, const int ls, __local int *wi, __local REAL *wr)
+{
+    if (lid == 0) {
+        wi[0] = 0;  // go: a step to compute
+        if (!final_ && ib[GT_LM_I_STATUS] == GT_LM_RUNNING && ib[GT_LM_I_ACCEPTED]) {
+            REAL gmax = 0;  // as gt_lm_next
+            for (int i = 0; i < P; ++i) {
+                const REAL gi = g[i];
+                if (!((x[i] >= hi[i] && gi < 0) || (x[i] <= lo[i] && gi > 0))) {
+                    REAL v = fabs(gi);
+                    if (scale != GT_LM_SCALE_IDENTITY) {
+                        const REAL nrm = sqrt(A[i * P + i] * sc[GT_LM_SC_F]);
+                        v = nrm > 0 ? v / nrm : (REAL)0;
+                    }
+                    gmax = fmax(gmax, v);
+                }
+            }
+            if (gmax <= gtol) {
+                ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;
+                ib[GT_LM_I_REASON] = GT_LM_R_GTOL;
+            }
+        }
+        if (!final_ && ib[GT_LM_I_STATUS] == GT_LM_RUNNING) {
+            for (int i = 0; i < P; ++i) {
+                REAL d = 1;
+                if (scale != GT_LM_SCALE_IDENTITY) {
+                    d = A[i * P + i];
+                    if (scale == GT_LM_SCALE_MINPACK && ib[GT_LM_I_ITER] > 0)
+                        d = fmax(d, D[i]);
+                    d = d > 0 ? d : (REAL)1;
+                }
+                D[i] = d;
+            }
+            wi[0] = 1;
+            wr[0] = sc[GT_LM_SC_C];
+            wr[1] = gt_lm_cref(A, P, scale);
+        }
+    }
+    barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+    int ok = 0;
+    if (wi[0]) {  // the same on every work-item
+        for (int tries = 0; tries <= MAX_CHOL_TRIES; ++tries) {
+            const REAL C = wr[0];
+            for (int q = lid; q < P * (P + 1) / 2; q += ls) {  // the damped matrix, as gt_lm_next
+                const int2 ij = gt_pair(q);
+                const int i = ij.x, j = ij.y, ai = gt_lm_held(x, g, lo, hi, i);
+                if (j < i)
+                    L[i * P + j] = (ai || gt_lm_held(x, g, lo, hi, j)) ? (REAL)0 : A[i * P + j];
+                else
+                    L[i * P + i] = ai ? 1 + C : A[i * P + i] + C * D[i];
+            }
+            for (int i = lid; i < P; i += ls)
+                xt[i] = gt_lm_held(x, g, lo, hi, i) ? 0 : g[i];
+            ok = gt_chol_wg(L, P, lid, ls, wi + 1);
+            if (ok)
+                break;
+            if (lid == 0) {
+                wi[2] = C > cmax * wr[1];  // give up at this C
+                if (!wi[2])
+                    wr[0] = fmax(10 * C, ctiny * wr[1]);  // not PD: raise C tenfold and try again
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (wi[2])
+                break;
+        }
+        if (ok) {
+            // eq. 22: L L^T delta = rhs into the xt slots, forward then back, a column at a time
+            for (int j = 0; j < P; ++j) {
+                if (lid == 0)
+                    xt[j] /= L[j * P + j];
+                barrier(CLK_GLOBAL_MEM_FENCE);
+                for (int i = j + 1 + lid; i < P; i += ls)
+                    xt[i] -= L[i * P + j] * xt[j];
+                barrier(CLK_GLOBAL_MEM_FENCE);
+            }
+            for (int j = P - 1; j >= 0; --j) {
+                if (lid == 0)
+                    xt[j] /= L[j * P + j];
+                barrier(CLK_GLOBAL_MEM_FENCE);
+                for (int i = lid; i < j; i += ls)
+                    xt[i] -= L[j * P + i] * xt[j];
+                barrier(CLK_GLOBAL_MEM_FENCE);
+            }
+            for (int i = lid; i < P; i += ls)
+                xt[i] = fmin(fmax(x[i] - xt[i], lo[i]), hi[i]);  // projected step (paper 003 eq. 8-9)
+            barrier(CLK_GLOBAL_MEM_FENCE);
+            for (int i = lid; i < P; i += ls) {  // the predicted reduction's term of row i
+                const REAL si = x[i] - xt[i];
+                REAL As = 0;
+                for (int j = 0; j < P; ++j)
+                    As += A[i * P + j] * (x[j] - xt[j]);
+                tmp[i] = 2 * si * g[i] - si * As;
+            }
+            barrier(CLK_GLOBAL_MEM_FENCE);
+        }
+    }
+    if (lid == 0 && !final_) {
+        if (wi[0]) {
+            sc[GT_LM_SC_C] = wr[0];
+            if (!ok) {
+                ib[GT_LM_I_STATUS] = GT_LM_FAILED;
+                ib[GT_LM_I_REASON] = GT_LM_R_NOT_PD;
+            } else {
+                REAL pr = 0;
+                for (int i = 0; i < P; ++i)
+                    pr += tmp[i];
+                sc[GT_LM_SC_PRED] = pr;
+            }
+        }
+        gt_lm_points(ib[GT_LM_I_STATUS] == GT_LM_RUNNING ? xt : x, den, lo, hi, h, Xb, SX, P, rel);
+    }
+}
+#endif
+
 #ifdef USE_JAC
 // entries j0..j0+3 of a row of J of P entries, zeros past its end
 static REAL4 gt_lm_jpart4(__global const JTYPE *row, const int j0, const int P)
@@ -432,6 +602,10 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
     __global REAL *D = Jt + (long)P * M;  // the damping's scale of the last step
     const int weighted = scale != GT_LM_SCALE_IDENTITY && !first;  // xtol norms as MINPACK's ||D x||
     const int running = ib[GT_LM_I_STATUS] == GT_LM_RUNNING;
+#ifdef LM_WG_STEP
+    __local int wg_i[3];
+    __local REAL wg_r[2];
+#endif
 
     // 1. Jacobian at the evaluated trial: eq. 24 over the stored points, or given
 #ifdef USE_JAC
@@ -738,10 +912,18 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
 #endif
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
+#ifdef LM_WG_STEP
+    // 4. by the whole work-group (Jt's first P values are free after 3.: scratch for the prediction)
+    gt_lm_next_wg(x, xt, g, den, lo, hi, h, A, L, D, Jt, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax,
+                  scale, final_, lid, ls, wg_i, wg_r);
+    if (lid == 0)
+        gt_lm_export(x, sc, ib, Out + (long)b * (P + 5), P);
+#else
     if (lid == 0) {
         if (!final_)
             gt_lm_next(x, xt, g, den, lo, hi, h, A, L, D, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax,
                        scale);
         gt_lm_export(x, sc, ib, Out + (long)b * (P + 5), P);
     }
+#endif
 }

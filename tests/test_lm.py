@@ -636,6 +636,41 @@ def test_jacobian_callable_matches_reference_for_each_built_p(device, P):
             np.testing.assert_array_equal(got.iterations, ref.iterations)
 
 
+# P = 40, 92: the runtime-P update (the face bundle's P = 92); P = 20: built in, 5 work-items
+@pytest.mark.parametrize("P", [3, 20, 40, 92])
+def test_opencl_step_per_work_group_matches_reference(device, P, monkeypatch):
+    """The OpenCL update with its step shared out over the work-group (GPUs, ``LM_WG_STEP``: the
+    Cholesky column by column, the triangular solves, the predicted reduction) gives the
+    reference's solve on whatever device runs it: with a Jacobian callable and with central
+    differences, parameters held at the box's bounds, and a start whose J^T J is singular (the
+    damping raised until the factorisation succeeds)."""
+    if device.backend != "opencl":
+        pytest.skip("OpenCL kernel variants")
+    from gputrack.backends.opencl import lm as ocl
+
+    monkeypatch.setattr(ocl, "step_per_work_group", lambda dev: True)
+    B, M = 2, P + 9
+    res, jac = _linear_sine(B, M, P, seed=200 + P)
+    x0 = np.full((B, P), 0.05)
+    for kw in ({"jacobian": jac}, {}):
+        got = least_squares(res, x0, device=device, lower=-0.3, upper=0.3, max_iter=5, **kw)
+        ref = least_squares(res, x0, device=REF, lower=-0.3, upper=0.3, max_iter=5, dtype=got.dtype, **kw)
+        f32 = got.dtype == np.float32
+        what = f"P={P} {'jacobian' if kw else 'central'}"
+        assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=what)
+        assert_matches(device, got.cost, ref.cost, got.dtype, scale=1e3 if f32 else 1e2, err_msg=what)
+        assert ((got.x == -0.3) | (got.x == 0.3)).any(), what  # some parameters end at a bound
+        if not f32:
+            np.testing.assert_array_equal(got.iterations, ref.iterations)
+    # J^T J of rank 1 at C = 0: not positive definite until the damping is raised
+    flat = lambda X: np.repeat(gputrack.to_numpy(X)[:, :1] - 1.0, M, axis=1).astype(gputrack.to_numpy(X).dtype)
+    x1 = np.zeros((B, P))
+    got = least_squares(flat, x1, device=device, damping=0.0, max_iter=3)
+    ref = least_squares(flat, x1, device=REF, damping=0.0, max_iter=3, dtype=got.dtype)
+    assert_matches(device, got.x, ref.x, got.dtype, scale=1e3, err_msg=f"P={P} rank 1")
+    np.testing.assert_array_equal(got.status, ref.status)
+
+
 def test_jacobian_callable(device):
     def jac(X):
         Xn = gputrack.to_numpy(X).astype(np.float64)

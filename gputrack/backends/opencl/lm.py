@@ -20,7 +20,20 @@ _CTYPE = {"float32": "float", "float64": "double"}
 STATIC_P_MAX = 32
 
 
-def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0type=None, P=0):
+#: work-items per problem on GPUs where P > STATIC_P_MAX: the work-group's step updates the
+#: (P - j)^2 / 2 entries of the trailing triangle at column j (P = 92: 4186 at the first)
+GPU_GROUP_LARGE_P = 256
+
+
+def step_per_work_group(device) -> bool:
+    """Whether each iteration's step (damped Cholesky, triangular solves, predicted reduction) is
+    shared out over the problem's work-group (``LM_WG_STEP``: GPUs, where one work-item's O(P^3)
+    factorisation left the group idle, 2.7 ms a launch for P = 92 on an H100) rather than run by its
+    first work-item (CPU devices, where a work-group is one thread's loop over its work-items)."""
+    return device.info.kind != "cpu"
+
+
+def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0type=None, P=0, wg_step=False):
     rtype = rtype or real
     xtype = xtype or real
     jtype = jtype or rtype
@@ -41,6 +54,8 @@ def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0
     ):
         if np.dtype(dt) == np.float64:
             defines[key] = 1
+    if wg_step:
+        defines["LM_WG_STEP"] = 1
     if use_jac:
         defines["USE_JAC"] = 1
         if 0 < P <= STATIC_P_MAX:
@@ -59,6 +74,8 @@ def _kernel(device, prg, name):
 def _local_size(device, P):
     """Work-items per problem: enough to share out the P (P + 1) / 2 entries of J^T J."""
     want = 64 if P > 4 else 8
+    if P > STATIC_P_MAX and step_per_work_group(device):
+        want = GPU_GROUP_LARGE_P
     return int(max(1, min(want, device.info.max_work_group_size or want)))
 
 
@@ -260,7 +277,7 @@ def _update_kernel(state, rtype, xtype, jtype):
     k = state.kernels.get(key)
     if k is None:
         prg = _program(state.device, state.S.dtype, rtype, xtype, jtype, use_jac=jtype is not None, P=state.lay.P,
-                       x0type=state.x0type)  # fmt: skip
+                       x0type=state.x0type, wg_step=step_per_work_group(state.device))  # fmt: skip
         k = state.kernels[key] = _kernel(state.device, prg, "gt_lm_update")
     return k
 
