@@ -652,16 +652,19 @@ def test_opencl_step_per_work_group_matches_reference(device, P, monkeypatch):
     B, M = 2, P + 9
     res, jac = _linear_sine(B, M, P, seed=200 + P)
     x0 = np.full((B, P), 0.05)
+    # no tolerances: these problems reach their minimum within 5 iterations, where a relative
+    # reduction of ~1e-8 against ftol = 1e-8 stopped the solve one iteration apart on an H100 (its
+    # rounding) and on the reference
+    tols = {"ftol": 0.0, "xtol": 0.0, "gtol": 0.0}
     for kw in ({"jacobian": jac}, {}):
-        got = least_squares(res, x0, device=device, lower=-0.3, upper=0.3, max_iter=5, **kw)
-        ref = least_squares(res, x0, device=REF, lower=-0.3, upper=0.3, max_iter=5, dtype=got.dtype, **kw)
+        got = least_squares(res, x0, device=device, lower=-0.3, upper=0.3, max_iter=5, **tols, **kw)
+        ref = least_squares(res, x0, device=REF, lower=-0.3, upper=0.3, max_iter=5, dtype=got.dtype, **tols, **kw)
         f32 = got.dtype == np.float32
         what = f"P={P} {'jacobian' if kw else 'central'}"
         assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=what)
         assert_matches(device, got.cost, ref.cost, got.dtype, scale=1e3 if f32 else 1e2, err_msg=what)
         assert ((got.x == -0.3) | (got.x == 0.3)).any(), what  # some parameters end at a bound
-        if not f32:
-            np.testing.assert_array_equal(got.iterations, ref.iterations)
+        np.testing.assert_array_equal(got.status, ref.status, err_msg=what)
     # J^T J of rank 1 at C = 0: not positive definite until the damping is raised
     flat = lambda X: np.repeat(gputrack.to_numpy(X)[:, :1] - 1.0, M, axis=1).astype(gputrack.to_numpy(X).dtype)
     x1 = np.zeros((B, P))
