@@ -638,17 +638,19 @@ def test_jacobian_callable_matches_reference_for_each_built_p(device, P):
 
 # P = 40, 92: the runtime-P update (the face bundle's P = 92); P = 20: built in, 5 work-items
 @pytest.mark.parametrize("P", [3, 20, 40, 92])
-def test_opencl_step_per_work_group_matches_reference(device, P, monkeypatch):
-    """The OpenCL update with its step shared out over the work-group (GPUs, ``LM_WG_STEP``: the
-    Cholesky column by column, the triangular solves, the predicted reduction) gives the
-    reference's solve on whatever device runs it: with a Jacobian callable and with central
-    differences, parameters held at the box's bounds, and a start whose J^T J is singular (the
-    damping raised until the factorisation succeeds)."""
-    if device.backend != "opencl":
-        pytest.skip("OpenCL kernel variants")
-    from gputrack.backends.opencl import lm as ocl
+def test_step_shared_out_matches_reference(device, P, monkeypatch):
+    """The update with its step shared out over the problem's work-group (OpenCL on GPUs,
+    ``LM_WG_STEP``, forced here on any OpenCL device) or CUDA block (taichi:cuda, ``_step_block``):
+    the Cholesky column by column, the triangular solves, the predicted reduction. It gives the
+    reference's solve: with a Jacobian callable and with central differences, parameters held at
+    the box's bounds, and a start whose J^T J is singular (the damping raised until the
+    factorisation succeeds)."""
+    if device.backend == "opencl":
+        from gputrack.backends.opencl import lm as ocl
 
-    monkeypatch.setattr(ocl, "step_per_work_group", lambda dev: True)
+        monkeypatch.setattr(ocl, "step_per_work_group", lambda dev: True)
+    elif device.spec != "taichi:cuda":
+        pytest.skip("the step is shared out on OpenCL devices (forced) and on taichi:cuda (block barriers)")
     B, M = 2, P + 9
     res, jac = _linear_sine(B, M, P, seed=200 + P)
     x0 = np.full((B, P), 0.05)

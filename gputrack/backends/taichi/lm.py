@@ -1488,6 +1488,183 @@ def _step_tasks(S: nd, I: nd, W: nd, X: nd, Out: nd, M: ti.i32, ncol: ti.i32, it
             t += NI
 
 
+#: threads per problem of ``_step_block`` (CUDA): the trailing triangle of column j, (P - j)^2 / 2
+#: entries, shared out over them
+BLOCK_STEP = 256
+
+
+def _block_step() -> bool:
+    """Whether the step runs as ``_step_block``, a CUDA block per problem with block barriers
+    (``ti.simt.block.sync``, which Taichi compiles for CUDA only), rather than ``_step_tasks``'s
+    thread per problem: one thread's O(P^3) factorisation took ~3 ms a launch for the face bundle's
+    P = 92 on an H100."""
+    return current_arch() == "cuda"
+
+
+@ti.func
+def _tri(q):
+    """Entry q of a lower triangle, row by row: (i, k) with k <= i."""
+    i = ti.cast((ti.sqrt(8.0 * q + 1.0) - 1.0) * 0.5, ti.i32)
+    while i * (i + 1) // 2 > q:
+        i -= 1
+    while (i + 1) * (i + 2) // 2 <= q:
+        i += 1
+    return ti.Vector([i, q - i * (i + 1) // 2])
+
+
+@ti.func
+def _chol_block(W: ti.template(), L, P, lid, BLK: ti.template(), flag: ti.template(), dt: ti.template()) -> ti.i32:
+    """In place, by the problem's block: the lower triangle of W[L] (P x P) -> its Cholesky factor,
+    right-looking (column j scaled, then the trailing triangle updated by its outer product, each
+    shared out over the threads). Returns 1 if positive definite, the same on every thread (flag[1]);
+    every barrier is reached by every thread."""
+    if lid == 0:
+        flag[1] = 1
+    for j in range(P):
+        ti.simt.block.sync()
+        if lid == 0 and flag[1]:
+            s = W[L + j * P + j]
+            if s <= 0 or not _finite(s, dt):
+                flag[1] = 0
+            else:
+                W[L + j * P + j] = ti.sqrt(s)
+        ti.simt.block.sync()
+        if flag[1]:
+            d = W[L + j * P + j]
+            i = j + 1 + lid
+            while i < P:
+                W[L + i * P + j] /= d
+                i += BLK
+        ti.simt.block.sync()
+        if flag[1]:
+            n = P - j - 1
+            q = lid
+            while q < n * (n + 1) // 2:
+                ik = _tri(q)
+                i, k = j + 1 + ik[0], j + 1 + ik[1]
+                W[L + i * P + k] -= W[L + i * P + j] * W[L + k * P + j]
+                q += BLK
+    ti.simt.block.sync()
+    return flag[1]
+
+
+@ti.kernel
+def _step_block(S: nd, I: nd, W: nd, X: nd, Out: nd, M: ti.i32, dt: ti.template(), BLK: ti.template()):
+    """``_step_factor`` and the next points (``_step_tasks``) by a CUDA block of BLK threads per
+    problem: the gtol test and the damping's scale on thread 0; the damped matrix, its factor
+    (``_chol_block``), the triangular solves a column at a time and the predicted reduction's rows
+    shared out; raising C tenfold at a pivot that is not positive definite, as ``_phase_step``."""
+    B, P = I[LAY.IG_B], I[LAY.IG_P]
+    ti.loop_config(block_dim=BLK)
+    for t in range(B * BLK):
+        flag = ti.simt.block.SharedArray((3,), ti.i32)  # go, positive definite, give up
+        val = ti.simt.block.SharedArray((2,), dt)  # C, what the damping's limits are relative to
+        b, lid = t // BLK, t % BLK
+        base = b * _sb(P)
+        sc = base + LAY.S_NVEC * P
+        ib = _ib(b, P)
+        G = B * _sb(P)
+        A = b * _wb(P, M) + LAY.W_A * P * P
+        L = A + (LAY.W_L - LAY.W_A) * P * P
+        tmp = b * _wb(P, M) + LAY.W_NSQ * P * P  # J^T's first P entries: free after the normal equations
+        xo, xto, go = base + LAY.S_X * P, base + LAY.S_XT * P, base + LAY.S_G * P
+        loo, hio = base + LAY.S_LO * P, base + LAY.S_HI * P
+        scale = ti.cast(S[G + G_SCALE], ti.i32)
+        wd = _wd(b, P, M)
+        if lid == 0:
+            flag[0] = 0
+            if I[ib + LAY.I_STATUS] == RUNNING and I[ib + LAY.I_ACCEPTED]:
+                _gtol_test(S, I, W, b, A, P, G, scale, dt)  # projected gradient (active bounds removed)
+            if I[ib + LAY.I_STATUS] == RUNNING:
+                _damping_scale(I, W, b, A, wd, P, scale, dt)
+                flag[0] = 1
+                val[0] = S[sc + LAY.SC_C]
+                val[1] = _cref(W, A, P, scale, dt)
+        ti.simt.block.sync()
+        ok = 0
+        if flag[0]:
+            tries = 0
+            while tries <= MAX_CHOL_TRIES:
+                C = val[0]
+                q = lid
+                while q < P * (P + 1) // 2:  # J^T J + C D, held parameters' rows and columns unit
+                    ij = _tri(q)
+                    i, j = ij[0], ij[1]
+                    ai = _active(S, xo, loo, hio, go, i)
+                    if j < i:
+                        W[L + i * P + j] = ti.select(ai or _active(S, xo, loo, hio, go, j), ti.cast(0, dt),
+                                                     W[A + i * P + j])  # fmt: skip
+                    else:
+                        W[L + i * P + i] = ti.select(ai, 1 + C, W[A + i * P + i] + C * W[wd + i])
+                    q += BLK
+                i = lid
+                while i < P:
+                    S[xto + i] = ti.select(_active(S, xo, loo, hio, go, i), ti.cast(0, dt), S[go + i])
+                    i += BLK
+                ok = _chol_block(W, L, P, lid, BLK, flag, dt)  # eq. 22
+                if ok:
+                    break
+                if lid == 0:
+                    flag[2] = ti.i32(C > S[G + LAY.G_CMAX] * val[1])
+                    if not flag[2]:
+                        val[0] = ti.max(10 * C, S[G + LAY.G_CTINY] * val[1])  # not PD: raise C tenfold
+                ti.simt.block.sync()
+                if flag[2]:
+                    break
+                tries += 1
+            if ok:
+                for j in range(P):  # forward, a column at a time
+                    if lid == 0:
+                        S[xto + j] /= W[L + j * P + j]
+                    ti.simt.block.sync()
+                    i = j + 1 + lid
+                    while i < P:
+                        S[xto + i] -= W[L + i * P + j] * S[xto + j]
+                        i += BLK
+                    ti.simt.block.sync()
+                for jj in range(P):  # backward
+                    j = P - 1 - jj
+                    if lid == 0:
+                        S[xto + j] /= W[L + j * P + j]
+                    ti.simt.block.sync()
+                    i = lid
+                    while i < j:
+                        S[xto + i] -= W[L + j * P + i] * S[xto + j]
+                        i += BLK
+                    ti.simt.block.sync()
+                i = lid
+                while i < P:
+                    S[xto + i] = ti.min(ti.max(S[xo + i] - S[xto + i], S[loo + i]), S[hio + i])  # paper 003 eq. 8-9
+                    i += BLK
+                ti.simt.block.sync()
+                i = lid
+                while i < P:  # row i's term of the predicted reduction of ||r - J s||^2, s = x - xt
+                    si = S[xo + i] - S[xto + i]
+                    W[tmp + i] = 2 * si * S[go + i] - si * _dot_diff(W, A + i * P, S, xo, xto, P, dt)
+                    i += BLK
+                ti.simt.block.sync()
+        if lid == 0:
+            if flag[0]:
+                S[sc + LAY.SC_C] = val[0]
+                if not ok:
+                    I[ib + LAY.I_STATUS] = FAILED
+                    I[ib + LAY.I_REASON] = R_NOTPD
+                else:
+                    pr = ti.cast(0, dt)
+                    for i in range(P):
+                        pr += W[tmp + i]
+                    S[sc + LAY.SC_PRED] = pr
+            _export(S, I, Out, b, P)
+        ti.simt.block.sync()
+        src = xto
+        if I[ib + LAY.I_STATUS] != RUNNING:
+            src = xo  # stopped: the accepted x
+        n = lid
+        while n <= P:
+            _point_pair(S, X, b, n, src, B, P, S[G + LAY.G_REL], dt)
+            n += BLK
+
+
 GRIDS = (256, 1024, 4096, 16384, 65536, SPIRV_GRID_ITEMS)
 
 
@@ -1635,7 +1812,9 @@ def solver_update(state, R, X, *, first, final, jac=None):
         NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))
         launch(_update_tasks, (S, I, W, R.buffer, Jg.buffer, Out), (state.dt, bool(first), bool(final), jac is not None,
                                                                     NI))  # fmt: skip
-        if not final:
+        if not final and _block_step():
+            launch(_step_block, (S, I, W, X.buffer, Out), (state.dt, BLOCK_STEP), scalars=(state.lay.M,))
+        elif not final:
             ncol, nt = state.plan
             for it in range(nt):
                 launch(_step_tasks, (S, I, W, X.buffer, Out), (state.dt, _grid(B * (P + 1))),
