@@ -313,17 +313,15 @@ static REAL gt_lm_cref(__global const REAL *A, const int P, const int scale)
     return scale == GT_LM_SCALE_IDENTITY ? dmax + 1 : (REAL)1;
 }
 
-// 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group).
-// D: the damping's scale of the step: 1 (C I, eq. 22), diag(J^T J) (Marquardt) or its running
-// maximum over the problem's iterations (MINPACK); 1 for a zero column.
-static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __global REAL *den,
-                       __global const REAL *lo, __global const REAL *hi, __global const REAL *h,
-                       __global const REAL *A, __global REAL *L, __global REAL *D, __global REAL *sc,
-                       __global int *ib, __global XTYPE *Xb, const int SX, const int P, const REAL gtol,
-                       const REAL rel, const REAL ctiny, const REAL cmax, const int scale)
+// 4a. Of a problem whose trial was accepted, the gtol test (projected gradient; scaled modes:
+// MINPACK's |J_n^T r| / (||J_n|| ||r||)); then, if it is still running, the damping's scale D of its
+// step: 1 (C I, eq. 22), diag(J^T J) (Marquardt) or its running maximum over the problem's
+// iterations (MINPACK); 1 for a zero column. Returns whether a step is to be computed.
+static int gt_lm_prepare(__global const REAL *x, __global const REAL *g, __global const REAL *lo,
+                         __global const REAL *hi, __global const REAL *A, __global REAL *D,
+                         __global const REAL *sc, __global int *ib, const int P, const REAL gtol, const int scale)
 {
     if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING && ib[GT_LM_I_ACCEPTED]) {
-        // projected gradient; scaled modes: MINPACK's |J_n^T r| / (||J_n|| ||r||)
         REAL gmax = 0;
         for (int i = 0; i < P; ++i) {
             const REAL gi = g[i];
@@ -341,17 +339,29 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
             ib[GT_LM_I_REASON] = GT_LM_R_GTOL;
         }
     }
-    if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING) {
-        for (int i = 0; i < P; ++i) {
-            REAL d = 1;
-            if (scale != GT_LM_SCALE_IDENTITY) {
-                d = A[i * P + i];
-                if (scale == GT_LM_SCALE_MINPACK && ib[GT_LM_I_ITER] > 0)
-                    d = fmax(d, D[i]);
-                d = d > 0 ? d : (REAL)1;
-            }
-            D[i] = d;
+    if (ib[GT_LM_I_STATUS] != GT_LM_RUNNING)
+        return 0;
+    for (int i = 0; i < P; ++i) {
+        REAL d = 1;
+        if (scale != GT_LM_SCALE_IDENTITY) {
+            d = A[i * P + i];
+            if (scale == GT_LM_SCALE_MINPACK && ib[GT_LM_I_ITER] > 0)
+                d = fmax(d, D[i]);
+            d = d > 0 ? d : (REAL)1;
         }
+        D[i] = d;
+    }
+    return 1;
+}
+
+// 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group).
+static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __global REAL *den,
+                       __global const REAL *lo, __global const REAL *hi, __global const REAL *h,
+                       __global const REAL *A, __global REAL *L, __global REAL *D, __global REAL *sc,
+                       __global int *ib, __global XTYPE *Xb, const int SX, const int P, const REAL gtol,
+                       const REAL rel, const REAL ctiny, const REAL cmax, const int scale)
+{
+    if (gt_lm_prepare(x, g, lo, hi, A, D, sc, ib, P, gtol, scale)) {
         const REAL dmax = gt_lm_cref(A, P, scale);
         REAL C = sc[GT_LM_SC_C];
         int ok = 0;
@@ -452,37 +462,8 @@ static void gt_lm_next_wg(__global REAL *x, __global REAL *xt, __global REAL *g,
                           const int final_, const int lid, const int ls, __local int *wi, __local REAL *wr)
 {
     if (lid == 0) {
-        wi[0] = 0;  // go: a step to compute
-        if (!final_ && ib[GT_LM_I_STATUS] == GT_LM_RUNNING && ib[GT_LM_I_ACCEPTED]) {
-            REAL gmax = 0;  // as gt_lm_next
-            for (int i = 0; i < P; ++i) {
-                const REAL gi = g[i];
-                if (!((x[i] >= hi[i] && gi < 0) || (x[i] <= lo[i] && gi > 0))) {
-                    REAL v = fabs(gi);
-                    if (scale != GT_LM_SCALE_IDENTITY) {
-                        const REAL nrm = sqrt(A[i * P + i] * sc[GT_LM_SC_F]);
-                        v = nrm > 0 ? v / nrm : (REAL)0;
-                    }
-                    gmax = fmax(gmax, v);
-                }
-            }
-            if (gmax <= gtol) {
-                ib[GT_LM_I_STATUS] = GT_LM_CONVERGED;
-                ib[GT_LM_I_REASON] = GT_LM_R_GTOL;
-            }
-        }
-        if (!final_ && ib[GT_LM_I_STATUS] == GT_LM_RUNNING) {
-            for (int i = 0; i < P; ++i) {
-                REAL d = 1;
-                if (scale != GT_LM_SCALE_IDENTITY) {
-                    d = A[i * P + i];
-                    if (scale == GT_LM_SCALE_MINPACK && ib[GT_LM_I_ITER] > 0)
-                        d = fmax(d, D[i]);
-                    d = d > 0 ? d : (REAL)1;
-                }
-                D[i] = d;
-            }
-            wi[0] = 1;
+        wi[0] = !final_ && gt_lm_prepare(x, g, lo, hi, A, D, sc, ib, P, gtol, scale);  // go: a step to compute
+        if (wi[0]) {
             wr[0] = sc[GT_LM_SC_C];
             wr[1] = gt_lm_cref(A, P, scale);
         }
