@@ -238,6 +238,25 @@ def test_incremental_on_device_matches_reference(device, model, ict):
     np.testing.assert_array_equal(out[1][1], out[0][1])
 
 
+def test_a_profiled_bundle_reports_its_solves_and_adjusts_alike(model, ict):
+    """``profile=True``: a table per solver (the start's 10 and the per-frame 5 iterations) with the
+    parts of its solves; the identity is the unprofiled bundle's."""
+    sc = face_scene(model, ict, seed=3, n=8)
+    st = sc["start"]
+    out = []
+    for profile in (False, True):
+        ib = IncrementalBundle(REF, model, CAMERA, n=7, iterations=5, profile=profile)
+        ib.start(sc["landmarks"][:7], st["rvecs"][:7], st["tvecs"][:7], st["expressions"][:7])
+        out.append(ib.add(sc["landmarks"][7], st["rvecs"][7], st["tvecs"][7], st["expressions"][7]))
+    np.testing.assert_array_equal(out[1], out[0])
+    text = ib.profile_tables()
+    assert "10 iterations" in text and "5 iterations" in text
+    for stage in ("init", "residuals", "jacobian", "update", "result", "frame (median)"):
+        assert stage in text, stage
+    with pytest.raises(RuntimeError, match="made without profile=True"):
+        IncrementalBundle(REF, model, CAMERA).profile_tables()
+
+
 # ------------------------------------------------------------------------------------------------
 # incremental bundle adjustment
 

@@ -347,6 +347,31 @@ def test_the_final_update_asks_for_no_jacobian(device):
         assert_matches(device, got.x, want.x, got.dtype, err_msg=f"host={host}")
 
 
+def test_a_profiled_solver_records_each_part_and_takes_the_same_steps(device):
+    """``profile=True``: every part of a solve is a stage of ``solver.profiler`` (one frame a solve),
+    with the calls a solve makes; the result is the unprofiled solver's."""
+    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
+    t = np.linspace(0, 2, 24)
+
+    def jac(X):
+        X = gputrack.to_numpy(X).astype(np.float64)
+        e = np.exp(X[:, 1:2] * t)
+        return np.stack([e, X[:, :1] * t * e], axis=2)
+
+    plain = LeastSquaresSolver(device, (3, 2), max_iter=5, early_stop=False)
+    assert plain.profiler is None
+    want = plain.solve(_host(_expfit), x0, jacobian=jac)
+    prof = LeastSquaresSolver(device, (3, 2), max_iter=5, early_stop=False, profile=True)
+    for _ in range(2):
+        got = prof.solve(_host(_expfit), x0, jacobian=jac)
+    np.testing.assert_array_equal(got.x, want.x)
+    calls = {r["name"]: r["calls"] for r in prof.profiler.report()}
+    assert calls == {"init": 2, "residuals": 2 * 6, "jacobian": 2 * 5, "update": 2 * 6, "result": 2}
+    assert len(prof.profiler.frames) == 2
+    table = prof.profiler.table()
+    assert all(name in table for name in calls) and "frame (median)" in table
+
+
 def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeypatch):
     """On an OpenCL device with fine-grained shared virtual memory (PoCL on a CPU) a host-mode solve
     hands the callables points the kernels wrote in place and copies their results on the host: no

@@ -12,7 +12,10 @@ Cases:
   device-synchronised per-stage table over F frames;
 - ``face score N=1000``: eq. 13's NCC sum of N hypotheses (``patch_ncc``) alone; reference: NumPy;
 - ``face bundle step``: one :meth:`IncrementalBundle.add` (5 LM iterations, P = 92); peer:
-  scipy's ``least_squares`` (trf, the same box, residuals and analytic Jacobian, 5 iterations).
+  scipy's ``least_squares`` (trf, the same box, residuals and analytic Jacobian, 5 iterations);
+  ``--bundle-profile F`` prints, over F steps, the time of each part of its solves (the solver's
+  init, residual and Jacobian calls with their transfers, update launches, result), each between
+  two device synchronisations.
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ def add_arguments(parser):
     parser.add_argument("--particles", type=int, default=1000, help="hypotheses N (default 1000, the paper's)")
     parser.add_argument("--stages", type=int, default=0, metavar="F", help="print the per-stage table over F frames")
     parser.add_argument("--no-scipy", action="store_true", help="skip the scipy peer")
+    parser.add_argument("--bundle-profile", type=int, default=0, metavar="F",
+                        help="print where the bundle step's time goes (each solver call synchronised) over F steps")
 
 
 @functools.lru_cache(maxsize=2)
@@ -90,8 +95,8 @@ def _bundle_case(device, frames, scipy_peer):
     rng = np.random.default_rng(1)
     A = model.expression_mean
 
-    def make(dev):
-        ib = IncrementalBundle(dev, model, cam, identity_prior=1.0)
+    def make(dev, profile=False):
+        ib = IncrementalBundle(dev, model, cam, identity_prior=1.0, profile=profile)
         ib.start(lm, np.array([t[0] for t in truth[:7]]), np.array([t[1] for t in truth[:7]]), np.tile(A, (7, 1)))
         state = {"k": 7}
 
@@ -105,6 +110,7 @@ def _bundle_case(device, frames, scipy_peer):
         return step
 
     run, ref = make(device), make(get_device("numpy"))
+    run.profiled = lambda: make(device, profile=True)
     peers = {}
     if scipy_peer:
         from scipy.optimize import least_squares as scipy_ls
@@ -140,6 +146,15 @@ def cases(device, args):
     b_run, b_ref, peers = _bundle_case(device, args.frames, not args.no_scipy)
     out.append(Case("face bundle step (P=92, 5 iterations)", run=b_run, reference=b_ref, peers=peers,
                     params={"parameters": 92, "iterations": 5}))  # fmt: skip
+    if args.bundle_profile:
+        step = b_run.profiled()
+        for _ in range(2):  # the solvers' first solves compile
+            step()
+        for s in step.bundle._solvers.values():
+            s.profiler.reset()
+        for _ in range(args.bundle_profile):
+            step()
+        print(step.bundle.profile_tables(), file=sys.stderr, flush=True)
     if args.stages:
         prof = _tracker(device, args.frames, n, profile=True)
         for _ in range(2):

@@ -24,6 +24,7 @@ the bad-input policy; :func:`least_squares` is its one-shot form.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import inspect
@@ -36,6 +37,7 @@ import numpy as np
 
 from ..abi import LMLayout, LMReason, LMScale, LMStatus
 from ..device import Device, DeviceArray, as_host_array, foreign_array_error, per_device_cache
+from ..profiler import Profiler
 from . import backend_module
 from ._args import arg, check_device, check_shapes, compact, match_shape, out_arrays, real_array, shape_of
 
@@ -425,7 +427,10 @@ class LeastSquaresSolver:
     **Settings.** ``step`` (scalar or (P,) absolute finite-difference steps; None: relative, see
     below), ``diff`` (``"central"``, default, or ``"forward"`` differences), ``damping_scale``,
     ``max_iter``, ``ftol``, ``xtol``, ``gtol``, ``dtype``, ``points_dtype``, ``early_stop``: as
-    described below.
+    described below. ``profile=True`` times each part of a solve between two device
+    synchronisations (``init``, ``residuals``, ``jacobian``, ``update``, ``result``; a solve is a
+    frame) in ``solver.profiler`` (a :class:`gputrack.Profiler`: ``solver.profiler.table()``); the
+    waits slow the solve, so it is for finding where the time goes, not for running.
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
     on the ``numpy`` device, else a DeviceArray of ``device`` — in ``points_dtype`` (default: the
@@ -548,6 +553,7 @@ class LeastSquaresSolver:
         points_dtype=None,
         early_stop: bool = True,
         diff: str = "central",
+        profile: bool = False,
     ):
         device = check_device(device)
         B, P = _batch_shape(shape)
@@ -591,6 +597,7 @@ class LeastSquaresSolver:
         self._be = backend_module(device, "lm")
         self._bufs = _Buffers(device)
         self._busy = False
+        self.profiler = Profiler(device) if profile else None
 
     def __repr__(self):
         return (f"LeastSquaresSolver({self.device.spec}, B={self.B}, P={self.P}, {self.dtype.name}, "
@@ -676,7 +683,8 @@ class LeastSquaresSolver:
                                       e.astype(np.int8), e.astype(dt), 0, 0, 0, dt, e.astype(bool))  # fmt: skip
         self._busy = True
         try:
-            return _Run(self, residuals, jacobian, mask, host).run(x0c, lo, hi, c0, clipped)
+            with self.profiler.frame() if self.profiler else contextlib.nullcontext():
+                return _Run(self, residuals, jacobian, mask, host).run(x0c, lo, hi, c0, clipped)
         finally:
             self._busy = False
 
@@ -792,6 +800,7 @@ class _Run:
         self.direct = self.host and solver._be.reads_host(self.device)
         self._xh = None  # (device points, host copy) of the last download (host mode, not direct)
         self._keep = []  # host results an asynchronous upload still reads
+        self.stage = solver.profiler.stage if solver.profiler else _no_stage
 
     # -- user calls ------------------------------------------------------------------------------
     def _check_out(self, out, n, what, shape, role):
@@ -833,6 +842,10 @@ class _Run:
         return self._xh[1]
 
     def _call(self, X, need):
+        with self.stage("residuals"):  # the points' download, the call, its result's upload
+            return self._residuals(X, need)
+
+    def _residuals(self, X, need):
         n = X.shape[0]
         self.nfev += 1
         self.npoints += n
@@ -854,8 +867,9 @@ class _Run:
 
     def _call_jac(self, X):
         self.njev += 1
-        out = self.jac(self._points(X, fresh=False))
-        return self._check_out(out, X.shape[0], "jacobian", (self.B, self.M, self.P), "J")
+        with self.stage("jacobian"):
+            out = self.jac(self._points(X, fresh=False))
+            return self._check_out(out, X.shape[0], "jacobian", (self.B, self.M, self.P), "J")
 
     # -- loop ------------------------------------------------------------------------------------
     def run(self, x0, lo, hi, c0, clipped):
@@ -886,7 +900,8 @@ class _Run:
                 need_full, need_last = (bufs.upload_cached(f"need{i}", a) for i, a in enumerate(need_host))
         # the first points: x0 (and the perturbed points around it), written on the device
         first_X, first_need = (X_full, need_full) if max_iter > 0 else (X_last, need_last)
-        be.solver_init(state, X0_d, K_d, first_X)
+        with self.stage("init"):
+            be.solver_init(state, X0_d, K_d, first_X)
         if self.direct:
             self.device.transfers.d2h += first_X.nbytes
         R = self._call(first_X, first_need)  # fixes M
@@ -896,7 +911,8 @@ class _Run:
         for it in range(max_iter + 1):
             final = it == max_iter
             nxt = X_last if it == max_iter - 1 else X_full
-            be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
+            with self.stage("update"):
+                be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
             if final:
                 break
             if s.early_stop and be.solver_active(state) == 0:
@@ -906,7 +922,8 @@ class _Run:
             R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
             if not central and it < max_iter - 1:  # the final update reads no Jacobian (given the last)
                 Jg = self._call_jac(nxt)
-        out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
+        with self.stage("result"):
+            out = be.solver_result(state)  # (B, OB): x, F, C, status, iterations, reason
         self._keep.clear()
         L = LMLayout
         status = out[:, P + L.O_STATUS].astype(np.int8)
@@ -938,6 +955,11 @@ class _Run:
         else:  # forward: row 1 + n
             block[1:] = mask.T
         return np.tile(block, (B, 1)), np.ones((B, M), np.uint8)
+
+
+def _no_stage(name):
+    """The stage of a solver without a profiler: nothing recorded."""
+    return contextlib.nullcontext()
 
 
 _HOST_KINDS = ("host", "shared")  # held NumPy arrays (_Buffers.host_array), never in the device pool

@@ -372,12 +372,13 @@ class BundleProblem:
         return float(np.dot(r, r))
 
     # -- solve -----------------------------------------------------------------------------------
-    def solver(self, device, max_iter: int = 10) -> LeastSquaresSolver:
+    def solver(self, device, max_iter: int = 10, profile: bool = False) -> LeastSquaresSolver:
         """A :class:`gputrack.LeastSquaresSolver` for problems of this one's size (B = 1, P): hold it
-        and pass it to :meth:`solve` to solve problem after problem on the same device buffers."""
+        and pass it to :meth:`solve` to solve problem after problem on the same device buffers
+        (``profile``: the solver times each part of a solve, see :class:`gputrack.LeastSquaresSolver`)."""
         if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
             raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
-        return LeastSquaresSolver(device, (1, self.P), max_iter=int(max_iter), early_stop=False)
+        return LeastSquaresSolver(device, (1, self.P), max_iter=int(max_iter), early_stop=False, profile=profile)
 
     def solve(self, device, max_iter: int = 10, solver: LeastSquaresSolver | None = None) -> BundleResult:
         """Minimise eq. 6 in the box by Levenberg-Marquardt on ``device`` (B = 1): with ``solver`` (from
@@ -508,6 +509,8 @@ class IncrementalBundle:
     3. updates the identity as the running mean (eq. 10): s(t) = (t-1)/t s(t-1) + 1/t s', s' the
        adjustment's identity, t = :attr:`count` (1 after :meth:`start`, +1 per :meth:`add`).
 
+    ``profile=True``: each of its solvers times the parts of its solves (:meth:`profile_tables`).
+
     Attributes: :attr:`identity` s(t); :attr:`keyframes` (n,) frame numbers of the key frames in slot
     order (:meth:`start`'s frames are 0..n-1, each :meth:`add` the next number), the order of the
     arrays of :attr:`last`; :attr:`count` t; :attr:`last` the last :class:`BundleResult`.
@@ -515,7 +518,7 @@ class IncrementalBundle:
 
     def __init__(self, device, model, camera: Camera, *, n: int = 7, iterations: int = 5, init_iterations: int = 10,
                  pose_range=POSE_RANGE, expression_range=None, identity_sigmas=2.0,
-                 keep_previous: bool = False, identity_prior: float = 0.0):  # fmt: skip
+                 keep_previous: bool = False, identity_prior: float = 0.0, profile: bool = False):  # fmt: skip
         for name, v, lo in (("n", n, 1), ("iterations", iterations, 0), ("init_iterations", init_iterations, 0)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
@@ -536,6 +539,16 @@ class IncrementalBundle:
         self._frames = 0  # frame numbers handed out
         self._keys: dict | None = None
         self._solvers: dict = {}  # (P, max_iter) -> LeastSquaresSolver, holding its device buffers
+        self.profile = bool(profile)
+
+    def profile_tables(self) -> str:
+        """With ``profile=True``: the time of each part of the solves (:class:`gputrack.Profiler`
+        tables), one table per solver that has solved since its profiler's last reset (the start's
+        and the per-frame solves' sizes)."""
+        if not self.profile:
+            raise RuntimeError("IncrementalBundle.profile_tables: made without profile=True")
+        return "\n".join(s.profiler.table(f"bundle adjustment P={P}, {it} iterations on {self.device.spec}")
+                         for (P, it), s in self._solvers.items() if s.profiler.stats)
 
     @property
     def keyframes(self) -> np.ndarray:
@@ -554,7 +567,7 @@ class IncrementalBundle:
                                 weights=keys["weights"], identity_prior=self.identity_prior)  # fmt: skip
         key = (problem.P, int(max_iter))  # the start's and the per-frame solves: a solver each, kept
         if key not in self._solvers:
-            self._solvers[key] = problem.solver(self.device, max_iter)
+            self._solvers[key] = problem.solver(self.device, max_iter, profile=self.profile)
         res = problem.solve(self.device, max_iter, self._solvers[key])
         keys.update(rvecs=res.rvecs, tvecs=res.tvecs, expressions=res.expressions)
         self._keys, self.last = keys, res
