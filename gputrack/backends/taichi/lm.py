@@ -41,8 +41,11 @@ through one direct copy launch each (~15 us; ``from_numpy`` / ``to_numpy`` took 
 
 On taichi:vulkan (lavapipe, a CPU; B = 10, M = 256, P = 20, float64, 2 shared cores, 2026-11-26,
 bench medians): a solver iteration ~4 ms, ``lm_solve`` ~7 ms, most of it the dispatch of each
-task (``_grid``). A CUDA variant (shared-memory reductions) is not written: no GPU was available
-to measure one; CUDA runs the parallel archs' kernels.
+task (``_grid``). On CUDA the solver's step runs as ``_step_block`` (a block of BLOCK_STEP threads
+per problem with Taichi's block barriers, which it compiles for CUDA only): the parallel archs'
+``_step_tasks`` gave each problem's O(P^3) factorisation one thread, ~3 ms a launch for P = 92 on
+an H100 (the face bundle: its step 27.7 -> 9.8 ms, perf/README.md). The ops (``lm_step``,
+``lm_solve``) still factor on one thread per problem there.
 
 Finiteness is tested on the bit pattern (Taichi compiles with fast-math, where x != x may be
 folded away).
