@@ -3,7 +3,8 @@
 // -DRTYPE (residual input type), -DJTYPE (Jacobian input type, with USE_JAC), -DXTYPE
 // (points output type) and -DX0TYPE (start points input type); each defaults to float (a build
 // with only the ABI defines, as host/doctor.py makes, gives the all-float32 variant).
-// One work-group per problem; its work-items share the O(P^2 M) normal equations by rows.
+// One work-group per problem; its work-items share the O(P^2 M) normal equations by rows and, built
+// with LM_WG_STEP (GPUs), the step's O(P^3) factorisation (gt_lm_next_wg; else work-item 0 runs it).
 #ifndef REAL
 #define REAL float
 #endif

@@ -1,7 +1,8 @@
 """OpenCL launchers for the batched Levenberg-Marquardt (kernels/gt_lm.cl).
 
 One launch per op call (``lm_solve`` fuses the normal equations and the Cholesky step in one
-work-group per problem) and one per solver iteration (``gt_lm_update``, one work-group per problem).
+work-group per problem) and one per solver iteration (``gt_lm_update``, one work-group per problem;
+on GPUs its step shared out over the work-group: :func:`step_per_work_group`).
 """
 
 from __future__ import annotations
