@@ -428,8 +428,8 @@ class LeastSquaresSolver:
     below), ``diff`` (``"central"``, default, or ``"forward"`` differences), ``damping_scale``,
     ``max_iter``, ``ftol``, ``xtol``, ``gtol``, ``dtype``, ``points_dtype``, ``early_stop``: as
     described below. ``profile=True`` times each part of a solve between two device
-    synchronisations (``init``, ``residuals``, ``jacobian``, ``update``, ``result``; a solve is a
-    frame) in ``solver.profiler`` (a :class:`gputrack.Profiler`: ``solver.profiler.table()``); the
+    synchronisations (``init``, ``residuals``, ``jacobian``, ``update``, ``status`` with
+    ``early_stop``, ``result``; a solve is a frame) in ``solver.profiler`` (a :class:`gputrack.Profiler`: ``solver.profiler.table()``); the
     waits slow the solve, so it is for finding where the time goes, not for running.
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
@@ -915,8 +915,11 @@ class _Run:
                 be.solver_update(state, R, nxt, first=(it == 0), final=final, jac=Jg)
             if final:
                 break
-            if s.early_stop and be.solver_active(state) == 0:
-                break
+            if s.early_stop:
+                with self.stage("status"):
+                    active = be.solver_active(state)
+                if active == 0:
+                    break
             if self.direct:
                 self.device.transfers.d2h += nxt.nbytes
             R = self._call(nxt, need_last if (nxt is X_last and S_rows > 1) else need_full)
