@@ -1,8 +1,8 @@
 """Layers that only look down and no import cycles.
 
 The contracts are in pyproject.toml ([tool.importlinter]): the layers (cli, demos, benchmarks,
-tuning, selftest > sim > trackers > tracking, scheduler, profiler > ops > backends > models >
-device and the small modules below everything), trackers never import sim, ops never import
+tuning, selftest > sim > trackers > tracking, scheduler > ops > backends > models > registry >
+profiler > device and the small modules below everything), trackers never import sim, ops never import
 benchmarks, backends never import ops, and no cycles between sibling packages or modules. Layers
 that another change adds later are optional in the contract (in parentheses), so the contract
 holds before they exist and checks them once they do.

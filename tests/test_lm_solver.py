@@ -194,9 +194,19 @@ def test_a_start_one_rounding_inside_a_bound_starts_on_it(device):
 # the solver object
 
 
+T_EXP = np.linspace(0, 2, 24)
+X0_EXP = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
+
+
 def _expfit(X):
-    t = np.linspace(0, 2, 24)
-    return X[:, :1] * np.exp(X[:, 1:2] * t) - 2.5 * np.exp(-1.3 * t)
+    return X[:, :1] * np.exp(X[:, 1:2] * T_EXP) - 2.5 * np.exp(-1.3 * T_EXP)
+
+
+def _expfit_jac(X):
+    """The Jacobian of ``_expfit`` at the points X (NumPy or DeviceArray), float64."""
+    X = gputrack.to_numpy(X).astype(np.float64)
+    e = np.exp(X[:, 1:2] * T_EXP)
+    return np.stack([e, X[:, :1] * T_EXP * e], axis=2)
 
 
 def test_a_solver_solves_again_and_again_on_its_own_buffers(device):
@@ -285,14 +295,7 @@ def test_host_callables_take_the_same_steps(device):
     """solve(..., host=True): the callables get NumPy points (one array for the residual and the Jacobian
     call at the same points) and return NumPy arrays; the solve is the same as with the device
     protocol, for central and forward differences and a Jacobian callable."""
-    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
-    t = np.linspace(0, 2, 24)
-
-    def jac(X):
-        X = gputrack.to_numpy(X).astype(np.float64)
-        e = np.exp(X[:, 1:2] * t)
-        return np.stack([e, X[:, :1] * t * e], axis=2)
-
+    x0, jac = X0_EXP, _expfit_jac
     seen = []
 
     def res_host(X):
@@ -326,15 +329,12 @@ def test_the_final_update_asks_for_no_jacobian(device):
     """A solve that runs all max_iter iterations calls the Jacobian once per update that reads one:
     at the start and after each step but the last (the final update only accepts or rejects the
     last trial), in both call protocols; the steps are the reference's."""
-    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
-    t = np.linspace(0, 2, 24)
+    x0 = X0_EXP
     calls = []
 
     def jac(X):
         calls.append(1)
-        X = gputrack.to_numpy(X).astype(np.float64)
-        e = np.exp(X[:, 1:2] * t)
-        return np.stack([e, X[:, :1] * t * e], axis=2)
+        return _expfit_jac(X)
 
     want = LeastSquaresSolver(REF, (3, 2), max_iter=5, early_stop=False).solve(_host(_expfit), x0, jacobian=jac)
     assert want.njev == len(calls) == 5 and want.nfev == 6
@@ -350,14 +350,7 @@ def test_the_final_update_asks_for_no_jacobian(device):
 def test_a_profiled_solver_records_each_part_and_takes_the_same_steps(device):
     """``profile=True``: every part of a solve is a stage of ``solver.profiler`` (one frame a solve),
     with the calls a solve makes; the result is the unprofiled solver's."""
-    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
-    t = np.linspace(0, 2, 24)
-
-    def jac(X):
-        X = gputrack.to_numpy(X).astype(np.float64)
-        e = np.exp(X[:, 1:2] * t)
-        return np.stack([e, X[:, :1] * t * e], axis=2)
-
+    x0, jac = X0_EXP, _expfit_jac
     plain = LeastSquaresSolver(device, (3, 2), max_iter=5, early_stop=False)
     assert plain.profiler is None
     want = plain.solve(_host(_expfit), x0, jacobian=jac)
@@ -384,17 +377,12 @@ def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeyp
 
     if not cl_lm.reads_host(device):
         pytest.skip(f"{device.spec}: no fine-grained buffer SVM on a host-unified device (results are copied)")
-    t = np.linspace(0, 2, 24)
-    x0 = np.array([[1.0, 0.0], [2.0, -2.0], [4.0, 1.0]])
+    x0, jac = X0_EXP, _expfit_jac
     seen = []
 
     def res(X):
         seen.append(X)
         return _expfit(X)
-
-    def jac(X):
-        e = np.exp(X[:, 1:2] * t)
-        return np.stack([e, X[:, :1] * t * e], axis=2)
 
     copies = []
     real_copy = cl.enqueue_copy
