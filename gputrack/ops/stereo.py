@@ -41,8 +41,9 @@ Masked matching (``mask``: (H, W) bool or uint8, nonzero = foreground): the resu
 pixel is exactly the unmasked result there; every other pixel is NaN. The work scales with the
 foreground: the left costs are computed only along per-row runs of the mask, the right image's
 costs only at the positions x - d that the runs' winners point to, from window column sums carried
-down tiles of 16 rows (:func:`run_tiles`) and running box sums along the rows (a few operations
-per pixel and disparity).
+down tiles of 16 rows (:func:`run_tiles`; found only for the backends' CPU layouts, whose
+``needs_tiles`` says so) and running box sums along the rows (a few operations per pixel and
+disparity).
 A mask given as a device array is downloaded (its runs are found on the host).
 
 An unrectified pair (rows shifted vertically) mostly fails the uniqueness and left-right checks:
@@ -197,5 +198,6 @@ def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, u
         host_mask = m.view(np.uint8) if m.dtype == np.bool_ else (m != 0).view(np.uint8)
     out = out_array(device, out, "out", (H, W))
     runs = mask_runs(host_mask, H, W, D, block)
-    tiles = run_tiles(runs, D, block)
-    return backend_module(device, "stereo").stereo_match(device, L, R, host_mask, runs, tiles, D, block, U, cap, out)
+    be = backend_module(device, "stereo")
+    tiles = run_tiles(runs, D, block) if be.needs_tiles(device) else None
+    return be.stereo_match(device, L, R, host_mask, runs, tiles, D, block, U, cap, out)

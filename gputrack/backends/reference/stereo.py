@@ -68,6 +68,11 @@ def cost_volume(qL: np.ndarray, qR: np.ndarray, D: int, block: int) -> np.ndarra
     return np.where(ok, C, BIG)
 
 
+def needs_tiles(device) -> bool:
+    """The reference reads neither the runs nor their tiles."""
+    return False
+
+
 def stereo_match(device, left, right, mask, runs, tiles, D, block, uniqueness, cap, out):
     """Writes the (H, W) float32 disparity into ``out`` (NaN where invalid) and returns it; arguments
     validated by the op (``cap``: the prefilter's clip in integer units; ``mask``: uint8 (H, W) or
