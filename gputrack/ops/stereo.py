@@ -167,6 +167,12 @@ def run_tiles(runs: np.ndarray, max_disparity: int, block: int, rows: int = BAND
     return tiles, order.astype(np.int32), tile.astype(np.int32)
 
 
+def no_tiles(S: int) -> tuple:
+    """:func:`run_tiles`'s (tiles, order, run_tile) for a layout that reads no tiles: none, every run
+    in tile slot 0 (a backend keeps at least one slot, written and never read)."""
+    return np.zeros((0, 8), np.int32), np.zeros(S, np.int32), np.zeros(S, np.int32)
+
+
 def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, uniqueness=15, out=None):
     """(H, W) float32 disparity of a rectified pair, NaN where invalid (see the module).
 
@@ -199,5 +205,5 @@ def stereo_match(device, left, right, *, mask=None, max_disparity=64, block=9, u
     out = out_array(device, out, "out", (H, W))
     runs = mask_runs(host_mask, H, W, D, block)
     be = backend_module(device, "stereo")
-    tiles = run_tiles(runs, D, block) if be.needs_tiles(device) else None
+    tiles = run_tiles(runs, D, block) if be.needs_tiles(device) else no_tiles(len(runs))
     return be.stereo_match(device, L, R, host_mask, runs, tiles, D, block, U, cap, out)

@@ -44,14 +44,8 @@ def per_pixel(device) -> bool:
 
 def needs_tiles(device) -> bool:
     """Whether the costs read the runs' tiles (:func:`gputrack.ops.stereo.run_tiles`): the per-tile
-    layout only; the per-pixel one gets ``tiles=None`` (the op does not find them)."""
+    layout only (the per-pixel one gets none)."""
     return not per_pixel(device)
-
-
-def _no_tiles(S: int) -> tuple:
-    """(tiles, order, run_tile) for the per-pixel layout: no tile; every run's winners marked in
-    tile 0, which nothing reads."""
-    return np.zeros((0, 8), np.int32), np.zeros(S, np.int32), np.zeros(S, np.int32)
 
 
 @per_device
@@ -90,7 +84,7 @@ def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
             out.buffer.data, H, W, Wp, cap, y0, y1)  # fmt: skip
     if S == 0:
         return out
-    tiles, order, run_tile = _no_tiles(S) if tiles is None else tiles
+    tiles, order, run_tile = tiles
     T = len(tiles)
     P = int(runs[-1, 2] - runs[-1, 1] + 1 + runs[-1, 3])
     Vn = int(tiles[-1, 6] + tiles[-1, 7]) if T else 0  # column sums of every tile

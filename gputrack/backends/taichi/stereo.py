@@ -113,14 +113,8 @@ def per_pixel(device) -> bool:
 
 def needs_tiles(device) -> bool:
     """Whether the costs read the runs' tiles (:func:`gputrack.ops.stereo.run_tiles`): the per-tile
-    layout only; the per-pixel one gets ``tiles=None`` (the op does not find them)."""
+    layout only (the per-pixel one gets none)."""
     return not per_pixel(device)
-
-
-def _no_tiles(S: int) -> tuple:
-    """(tiles, order, run_tile) for the per-pixel layout: no tile; every run's winners marked in
-    tile 0, which nothing reads."""
-    return np.zeros((0, 8), np.int32), np.zeros(S, np.int32), np.zeros(S, np.int32)
 
 
 @functools.lru_cache(maxsize=None)
@@ -406,7 +400,7 @@ def _capacity(n: int) -> int:
 
 def stereo_match(device, L, R, mask, runs, tiles, D, block, U, cap, out):
     H, W = L.shape
-    tiles, order, run_tile = _no_tiles(len(runs)) if tiles is None else tiles
+    tiles, order, run_tile = tiles
     S, NB = len(runs), len(tiles)
     is_float = L.dtype == np.float32
     nl, T = lanes(is_float)
