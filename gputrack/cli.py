@@ -144,8 +144,11 @@ def cmd_demo(args) -> int:
     if args.what == "face":
         from .demos import face
 
+        from .trackers.face import FaceConfig
+
         report = face.run(dev, sequence=args.sequence, frames=args.frames, seed=args.seed, init=args.init,
-                          generic=not args.no_generic, floor=not args.no_floor, save=args.save)  # fmt: skip
+                          generic=not args.no_generic, floor=not args.no_floor, save=args.save,
+                          config=FaceConfig(particles=args.particles))  # fmt: skip
         if args.json:
             face.write_json(report, args.json)
         return 0
@@ -455,6 +458,8 @@ def main(argv=None) -> int:
                    help="start from the first 7 frames' feature points (+1 px noise) or from a Haar face box")
     p.add_argument("--no-generic", action="store_true", help="skip the generic PCA model's run")
     p.add_argument("--no-floor", action="store_true", help="skip the run with the true identity (the depth floor)")
+    p.add_argument("--particles", type=_int_in(1, 1_000_000), default=1000,
+                   help="hypotheses N of the particle filter (default 1000, the paper's)")
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--save", metavar="DIR", help="write pictures (frames with points and axes, errors over time)")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")

@@ -82,6 +82,7 @@ def test_shoulders_off_moves_each_shoulder_30mm():
     (["pedestrians", "--scale", "5"], "argument --scale: expected a finite number > 0 and <= 4, got '5'"),
     (["face", "--sequence", "9"], "argument --sequence: expected 0-4 or one of turns, depth, expressions, lighting, mixed, got '9'"),
     (["face", "--frames", "0"], "argument --frames: expected an integer in [1, 1000000], got '0'"),
+    (["face", "--particles", "0"], "argument --particles: expected an integer in [1, 1000000], got '0'"),
 ])  # fmt: skip
 def test_bad_demo_arguments_end_in_a_usage_line(argv, message, capsys):
     """argparse's usage line and exit status 2, not a traceback, for a bad demo argument."""
@@ -93,6 +94,20 @@ def test_bad_demo_arguments_end_in_a_usage_line(argv, message, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith(f"usage: gputrack demo {what}") and f"gputrack demo {what}: error: {message}" in err, err
+
+
+def test_face_demo_runs_the_filter_with_the_given_hypotheses(capsys):
+    """``gputrack demo face --particles N``: the tracker runs with N hypotheses (the header says so)."""
+    from gputrack.models.face import load_ict
+
+    try:
+        load_ict()
+    except (FileNotFoundError, ValueError) as e:
+        pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository, or $GPUTRACK_DATA/ict_face): {e}")
+    assert main(["demo", "face", "--device", "numpy", "--particles", "40", "--frames", "9", "--no-generic",
+                 "--no-floor"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "N = 40 particles" in out, out
 
 
 # -- pictures: ``gputrack demo body --save DIR`` -----------------------------------------------------------
