@@ -314,6 +314,13 @@ static REAL gt_lm_cref(__global const REAL *A, const int P, const int scale)
     return scale == GT_LM_SCALE_IDENTITY ? dmax + 1 : (REAL)1;
 }
 
+// Whether parameter i is held at a bound by the gradient (its row and column of the step cleared).
+static int gt_lm_held(__global const REAL *x, __global const REAL *g, __global const REAL *lo,
+                      __global const REAL *hi, const int i)
+{
+    return (x[i] >= hi[i] && g[i] < 0) || (x[i] <= lo[i] && g[i] > 0);
+}
+
 // 4a. Of a problem whose trial was accepted, the gtol test (projected gradient; scaled modes:
 // MINPACK's |J_n^T r| / (||J_n|| ||r||)); then, if it is still running, the damping's scale D of its
 // step: 1 (C I, eq. 22), diag(J^T J) (Marquardt) or its running maximum over the problem's
@@ -325,9 +332,8 @@ static int gt_lm_prepare(__global const REAL *x, __global const REAL *g, __globa
     if (ib[GT_LM_I_STATUS] == GT_LM_RUNNING && ib[GT_LM_I_ACCEPTED]) {
         REAL gmax = 0;
         for (int i = 0; i < P; ++i) {
-            const REAL gi = g[i];
-            if (!((x[i] >= hi[i] && gi < 0) || (x[i] <= lo[i] && gi > 0))) {
-                REAL v = fabs(gi);
+            if (!gt_lm_held(x, g, lo, hi, i)) {
+                REAL v = fabs(g[i]);
                 if (scale != GT_LM_SCALE_IDENTITY) {
                     const REAL nrm = sqrt(A[i * P + i] * sc[GT_LM_SC_F]);
                     v = nrm > 0 ? v / nrm : (REAL)0;
@@ -370,10 +376,10 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
             // parameters held at a bound by the gradient stay there (identity rows, rhs 0); the
             // damping C D on the diagonal
             for (int i = 0; i < P; ++i) {
-                const int ai = (x[i] >= hi[i] && g[i] < 0) || (x[i] <= lo[i] && g[i] > 0);
+                const int ai = gt_lm_held(x, g, lo, hi, i);
                 xt[i] = ai ? 0 : g[i];
                 for (int j = 0; j < i; ++j) {
-                    const int aj = (x[j] >= hi[j] && g[j] < 0) || (x[j] <= lo[j] && g[j] > 0);
+                    const int aj = gt_lm_held(x, g, lo, hi, j);
                     L[i * P + j] = (ai || aj) ? (REAL)0 : A[i * P + j];
                 }
                 L[i * P + i] = ai ? 1 + C : A[i * P + i] + C * D[i];
@@ -405,13 +411,6 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
 }
 
 #ifdef LM_WG_STEP
-// Whether parameter i is held at a bound by the gradient (its row and column of the step cleared).
-static int gt_lm_held(__global const REAL *x, __global const REAL *g, __global const REAL *lo,
-                      __global const REAL *hi, const int i)
-{
-    return (x[i] >= hi[i] && g[i] < 0) || (x[i] <= lo[i] && g[i] > 0);
-}
-
 // In place, by the whole work-group: the lower triangle of W (P x P, row stride P) -> its Cholesky
 // factor, column by column (the column scaled, then the trailing triangle updated by its outer
 // product, each shared out over the work-items). Returns 1 if positive definite, the same on
