@@ -143,7 +143,6 @@ def cmd_demo(args) -> int:
         args.parser.error(f"--device: {e}")
     if args.what == "face":
         from .demos import face
-
         from .trackers.face import FaceConfig
 
         report = face.run(dev, sequence=args.sequence, frames=args.frames, seed=args.seed, init=args.init,

@@ -253,6 +253,8 @@ def test_a_profiled_bundle_reports_its_solves_and_adjusts_alike(model, ict):
     assert "10 iterations" in text and "5 iterations" in text
     for stage in ("init", "residuals", "jacobian", "update", "result", "frame (median)"):
         assert stage in text, stage
+    ib.reset_profile()
+    assert ib.profile_tables() == ""  # no solve since
     with pytest.raises(RuntimeError, match="made without profile=True"):
         IncrementalBundle(REF, model, CAMERA).profile_tables()
 

@@ -150,8 +150,7 @@ def cases(device, args):
         step = b_run.profiled()
         for _ in range(2):  # the solvers' first solves compile
             step()
-        for s in step.bundle._solvers.values():
-            s.profiler.reset()
+        step.bundle.reset_profile()
         for _ in range(args.bundle_profile):
             step()
         print(step.bundle.profile_tables(), file=sys.stderr, flush=True)

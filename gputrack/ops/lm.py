@@ -429,8 +429,9 @@ class LeastSquaresSolver:
     ``max_iter``, ``ftol``, ``xtol``, ``gtol``, ``dtype``, ``points_dtype``, ``early_stop``: as
     described below. ``profile=True`` times each part of a solve between two device
     synchronisations (``init``, ``residuals``, ``jacobian``, ``update``, ``status`` with
-    ``early_stop``, ``result``; a solve is a frame) in ``solver.profiler`` (a :class:`gputrack.Profiler`: ``solver.profiler.table()``); the
-    waits slow the solve, so it is for finding where the time goes, not for running.
+    ``early_stop``, ``result``; a solve is a frame) in ``solver.profiler`` (a
+    :class:`gputrack.Profiler`: ``solver.profiler.table()``); the waits slow the solve, so it is
+    for finding where the time goes, not for running.
 
     **Residual function.** ``residuals(X)`` receives an (n, P) array of points — a NumPy array
     on the ``numpy`` device, else a DeviceArray of ``device`` — in ``points_dtype`` (default: the

@@ -550,6 +550,13 @@ class IncrementalBundle:
         return "\n".join(s.profiler.table(f"bundle adjustment P={P}, {it} iterations on {self.device.spec}")
                          for (P, it), s in self._solvers.items() if s.profiler.stats)
 
+    def reset_profile(self) -> None:
+        """With ``profile=True``: forget the solvers' figures so far (e.g. their first, compiling solves)."""
+        if not self.profile:
+            raise RuntimeError("IncrementalBundle.reset_profile: made without profile=True")
+        for s in self._solvers.values():
+            s.profiler.reset()
+
     @property
     def keyframes(self) -> np.ndarray:
         return np.array([] if self._keys is None else self._keys["frame"], dtype=np.int64)
