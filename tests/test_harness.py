@@ -34,6 +34,39 @@ def test_time_call_excludes_warmup_and_syncs_each_call():
     assert 0 <= t.p10_s <= t.median_s <= t.p90_s
 
 
+def test_time_interleaved_takes_turns():
+    """Each callable is timed in every round, one after the other (a drifting machine slows each
+    alike); warm-up calls first, the device's sync after each of its calls, the reps counted."""
+    log = []
+    fns = {
+        "a": (lambda: log.append("a"), lambda: log.append("sync")),
+        "b": (lambda: log.append("b"), None),
+    }
+    got = harness.time_interleaved(fns, rounds=3, warmup=1, min_time=0.0, min_reps=6)
+    calls = [x for x in log if x != "sync"]
+    assert calls[:2] == ["a", "b"]  # the warm-up calls
+    # then 3 rounds of ceil(6 / 3) = 2 calls each, a's before b's in every round
+    assert calls[2:] == ["a", "a", "b", "b"] * 3
+    assert log.count("sync") == 1 + 6
+    assert got["a"].reps == got["b"].reps == 6
+    for t in got.values():
+        assert 0 <= t.p10_s <= t.median_s <= t.p90_s
+    with pytest.raises(ValueError, match="rounds: expected an integer >= 1, got 0"):
+        harness.time_interleaved(fns, rounds=0)
+
+
+def test_run_cases_reports_every_callable_of_a_case():
+    from gputrack.registry import device
+
+    case = harness.Case("c", run=lambda: None, reference=lambda: None, end_to_end=lambda: None,
+                        peers={"p": lambda: None}, details=lambda: ("text", {"k": 1}))  # fmt: skip
+    (row,) = harness.run_cases(device("numpy"), [case], min_time=0.0)
+    assert {"device", "end_to_end", "reference", "peers", "speedup_vs_reference"} <= set(row)
+    assert row["device"]["reps"] >= 5 and row["reference"]["reps"] >= 5 and row["end_to_end"]["reps"] >= 5
+    assert set(row["peers"]) == {"p"} and row["peers"]["p"]["speedup"] > 0
+    assert row["details_text"] == "text" and row["details"] == {"k": 1}
+
+
 def test_bench_json_schema(tmp_path):
     out = tmp_path / "b.json"
     r = subprocess.run(

@@ -11,6 +11,10 @@ process), and times everything in the same run so every figure comes with a rati
 - warm-up calls are excluded (they include compilation);
 - the device is synchronised before the clock stops;
 - the repeat count grows until the total time reaches ``min_time`` (and at least ``min_reps``);
+- a case's callables (device, end to end, reference, peers) are timed in turns, ``ROUNDS`` rounds
+  of ``min_time / ROUNDS`` each (:func:`time_interleaved`): a machine whose speed drifts over the
+  seconds of a case (a shared VM's can change by 2x within minutes) then slows each of them alike,
+  and the ratios compare calls timed under the same conditions;
 - the median and the 10th/90th percentiles are reported.
 
 Output: a table, and with ``--json FILE`` a JSON document naming device, backend, versions and
@@ -104,6 +108,49 @@ def time_call(
     return Timing(float(np.median(arr)), float(np.percentile(arr, 10)), float(np.percentile(arr, 90)), len(times))
 
 
+#: rounds of :func:`time_interleaved` (each callable timed for min_time / ROUNDS per round)
+ROUNDS = 5
+
+
+def time_interleaved(fns: dict, *, rounds: int = ROUNDS, warmup: int = 2, min_time: float = 0.2, min_reps: int = 5,
+                     max_reps: int = 10_000) -> dict:  # fmt: skip
+    """Time the callables ``fns`` {name: (fn, sync or None)} in turns: after ``warmup`` untimed
+    calls of each, ``rounds`` rounds in which each callable is timed for ``min_time / rounds``
+    seconds (and at least ``ceil(min_reps / rounds)`` calls), one after the other. {name: Timing}
+    over all of its rounds' calls."""
+    if rounds < 1:
+        raise ValueError(f"rounds: expected an integer >= 1, got {rounds!r}")
+    for fn, sync in fns.values():
+        for _ in range(warmup):
+            fn()
+            if sync:
+                sync()
+    share, reps = min_time / rounds, -(-min_reps // rounds)
+    times: dict = {name: [] for name in fns}
+    for _ in range(rounds):
+        for name, (fn, sync) in fns.items():
+            mine = times[name]
+            spent, done, cap = 0.0, 0, max(1, max_reps // rounds)
+            while True:
+                more = repeat_count(spent, done, share, reps, cap)
+                if not more:
+                    break
+                for _ in range(more):
+                    t0 = time.perf_counter()
+                    fn()
+                    if sync:
+                        sync()
+                    dt = time.perf_counter() - t0
+                    mine.append(dt)
+                    spent += dt
+                    done += 1
+    out = {}
+    for name, ts in times.items():
+        arr = np.asarray(ts)
+        out[name] = Timing(float(np.median(arr)), float(np.percentile(arr, 10)), float(np.percentile(arr, 90)), len(ts))
+    return out
+
+
 def git_commit() -> str:
     """The git commit of the source tree gputrack runs from, or 'unknown'."""
     try:
@@ -154,19 +201,26 @@ def run_cases(device, cases: list[Case], *, min_time: float = 0.2, progress=None
         if progress:
             progress(f"{device.spec}: {case.name}")
         row = {"case": case.name, "params": case.params, "spec": device.spec}
-        t = time_call(case.run, device.synchronize, min_time=min_time)
+        fns = {"device": (case.run, device.synchronize)}
+        if case.end_to_end is not None:
+            fns["end_to_end"] = (case.end_to_end, device.synchronize)
+        if case.reference is not None:
+            fns["reference"] = (case.reference, None)
+        for peer, fn in case.peers.items():
+            fns[("peer", peer)] = (fn, None)
+        got = time_interleaved(fns, min_time=min_time)
+        t = got["device"]
         row["device"] = t.as_dict()
         if case.details is not None:
             row["details_text"], row["details"] = case.details()
         if case.end_to_end is not None:
-            row["end_to_end"] = time_call(case.end_to_end, device.synchronize, min_time=min_time).as_dict()
+            row["end_to_end"] = got["end_to_end"].as_dict()
         if case.reference is not None:
-            ref = time_call(case.reference, min_time=min_time)
-            row["reference"] = ref.as_dict()
-            row["speedup_vs_reference"] = ref.median_s / t.median_s
+            row["reference"] = got["reference"].as_dict()
+            row["speedup_vs_reference"] = got["reference"].median_s / t.median_s
         row["peers"] = {}
-        for peer, fn in case.peers.items():
-            pt = time_call(fn, min_time=min_time)
+        for peer in case.peers:
+            pt = got[("peer", peer)]
             row["peers"][peer] = {**pt.as_dict(), "speedup": pt.median_s / t.median_s}
         rows.append(row)
     return rows
