@@ -39,6 +39,15 @@ def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0
     xtype = xtype or real
     jtype = jtype or rtype
     x0type = x0type or real
+    if not (use_jac and 0 < P <= STATIC_P_MAX):
+        P = 0  # one program for every P where P is not built in
+    return _built(device, *(np.dtype(t) for t in (real, rtype, xtype, jtype, x0type)), bool(use_jac), P, bool(wg_step))
+
+
+@per_device
+def _built(device, real, rtype, xtype, jtype, x0type, use_jac, P, wg_step):
+    """The program of :func:`_program`'s variant, built once per device and variant (building its
+    defines and looking it up took 50-150 us a call on a loaded 2-core machine, every solve)."""
     defines = {
         "REAL": _CTYPE[np.dtype(real).name],
         "RTYPE": _CTYPE[np.dtype(rtype).name],
@@ -59,7 +68,7 @@ def _program(device, real, rtype=None, xtype=None, jtype=None, use_jac=False, x0
         defines["LM_WG_STEP"] = 1
     if use_jac:
         defines["USE_JAC"] = 1
-        if 0 < P <= STATIC_P_MAX:
+        if P:
             defines["LM_P"] = P
     return device.program("gt_lm.cl", defines)
 
