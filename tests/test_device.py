@@ -60,6 +60,42 @@ def test_taichi_allocation_paths(device, fast, monkeypatch):
     np.testing.assert_array_equal(device.asarray(x).numpy(), x)
 
 
+@pytest.mark.parametrize("shape", [(7,), (5, 3), (2, 3, 4), (3, 5, 3, 4), (16384, 6), (3, 17)])
+def test_taichi_cpu_copies_through_host_memory(device, shape, monkeypatch):
+    """On taichi:cpu an upload or download is NumPy's copy into or out of the Taichi array's host
+    memory (no kernel); with another dtype, or with direct launches off, the copy kernels run, and
+    every path gives the same values."""
+    if device.spec != "taichi:cpu":
+        pytest.skip("the host-memory copies are taichi:cpu's")
+    from gputrack.backends.taichi import arrays, runtime
+
+    x = np.random.default_rng(2).normal(size=shape).astype(np.float32)
+    a = device.empty(shape, np.float32)
+    launched = []
+    real_launch = arrays.launch
+    monkeypatch.setattr(arrays, "launch", lambda *args, **kw: (launched.append(args[0]), real_launch(*args, **kw)))
+    assert arrays.host_view(a.buffer, x) is not None
+    assert arrays.copy(x, a.buffer)
+    back = np.empty_like(x)
+    assert arrays.copy(a.buffer, back)
+    np.testing.assert_array_equal(back, x)
+    assert launched == []  # both ways without a kernel
+    # another dtype: no view; the kernel casts (float64 host into the float32 array)
+    x64 = x.astype(np.float64) + 0.25
+    assert arrays.host_view(a.buffer, x64) is None
+    assert arrays.copy(x64, a.buffer)
+    np.testing.assert_array_equal(a.numpy(), x64.astype(np.float32))
+    assert launched == [arrays.COPY[len(shape)]]
+    # direct launches off: the copy kernels both ways, the same values
+    monkeypatch.setattr(runtime, "direct_off", "test")
+    assert arrays.host_view(a.buffer, x) is None
+    assert arrays.copy(x, a.buffer)
+    back[...] = 0
+    assert arrays.copy(a.buffer, back)
+    np.testing.assert_array_equal(back, x)
+    assert launched[1:] == [arrays.COPY[len(shape)]] * 2
+
+
 def test_asarray_into_existing_array(device):
     """asarray(x, out=a) writes x into a (counted as an upload) and returns a."""
     x = np.arange(480 * 640, dtype=np.float32).reshape(480, 640)

@@ -294,7 +294,7 @@ def depth_points(device, depth, bg, pixel, fx, fy, cx, cy, threshold, max_range,
     if device.arch == "cpu":  # one thread sorts the few candidates: one launch for steps 4-5
         launch(_select, (img, info, k0, i0, k1, i1, starts, out.buffer), (mode(pixel, depth),), scalars=cam)
         host = np.empty(4, np.int32)
-        copy(info, host)  # a copy kernel writing host memory: a quarter of to_numpy's time
+        copy(info, host)  # a host-memory copy (arrays.copy), not to_numpy
         return int(host[0])
     for p in range(4):  # the kernel skips the passes the level's keys do not need
         src, dst = ((k0, i0), (k1, i1)) if p % 2 == 0 else ((k1, i1), (k0, i0))

@@ -37,7 +37,7 @@ over repeats, per problem, B = 10, M = 256, float64), P = 20 / P = 14:
 The per-solve ``_init`` launch (one
 serial task, ~15-20 us) replaces uploading ~340 KB and downloading ~330 KB per solve for B = 10,
 P = 14, M = 256 in float64; on taichi:cpu the start points go up and the result comes down
-through one direct copy launch each (~15 us; ``from_numpy`` / ``to_numpy`` took ~0.1 ms).
+through one host-memory copy each (``arrays.copy``; ``from_numpy`` / ``to_numpy`` took ~0.1 ms).
 
 On taichi:vulkan (lavapipe, a CPU; B = 10, M = 256, P = 20, float64, 2 shared cores, 2026-11-26,
 bench medians): a solver iteration ~4 ms, ``lm_solve`` ~7 ms, most of it the dispatch of each
@@ -1757,7 +1757,7 @@ class State:
 def upload_into(device, arr, host, asynchronous=False):
     """Copy ``host`` into the existing device array ``arr`` (same shape and dtype); the caller counts it."""
     if current_arch() == "cpu":
-        copy(host, arr.buffer)  # ~15 us; ``from_numpy`` takes ~0.1 ms
+        copy(host, arr.buffer)  # a host-memory copy (arrays.copy); ``from_numpy`` takes ~0.1 ms
     else:
         arr.buffer.from_numpy(host)
 
@@ -1825,7 +1825,8 @@ def solver_update(state, R, X, *, first, final, jac=None):
 
 
 def _download(arr):
-    """``arr.numpy()`` (counted in the device's transfers); on taichi:cpu one direct copy launch."""
+    """``arr.numpy()`` (counted in the device's transfers); on taichi:cpu one host-memory copy
+    (``arrays.copy``)."""
     if current_arch() != "cpu":
         return arr.numpy()
     out = np.empty(arr.shape, arr.dtype)
