@@ -367,8 +367,9 @@ def test_a_profiled_solver_records_each_part_and_takes_the_same_steps(device):
 
 def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeypatch):
     """On an OpenCL device with fine-grained shared virtual memory (PoCL on a CPU) a host-mode solve
-    hands the callables points the kernels wrote in place and copies their results on the host: no
-    OpenCL copy per iteration, the same results as the reference."""
+    hands the callables points the kernels wrote in place and the kernels read their results where
+    they are (a read-only result: copied on the host into shared memory): no OpenCL copy per
+    iteration, the same results as the reference."""
     if device.backend != "opencl":
         pytest.skip(f"{device.spec}: OpenCL's shared memory")
     import pyopencl as cl
@@ -403,6 +404,29 @@ def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeyp
         np.testing.assert_allclose(got.x, want.x, rtol=1e-10, atol=1e-12)
         np.testing.assert_array_equal(got.iterations, want.iterations)
     assert counts[2] == counts[8] <= 2, counts  # the start points up, the results down
+    # read where they are: a buffer over the callable's own array; a read-only one is copied
+    state = cl_lm.State(device, Layout(3, 2, 24, False), *(device.empty((4,), np.float64) for _ in range(2)),
+                        device.empty((4,), np.float64))  # fmt: skip
+    r = np.arange(6.0).reshape(3, 2)
+    buf = cl_lm._arg(state, r, "R")
+    assert isinstance(buf, cl.Buffer) and buf.size == r.nbytes and buf.flags & cl.mem_flags.USE_HOST_PTR
+    r.flags.writeable = False
+    svm = cl_lm._arg(state, r, "R")
+    assert isinstance(svm, cl.SVM) and isinstance(state.stage["R"].base, cl.SVMAllocation)
+    np.testing.assert_array_equal(state.stage["R"], r)
+
+    def frozen(f):
+        def g(X):
+            out = np.array(f(X))
+            out.flags.writeable = False
+            return out
+
+        return g
+
+    solver = LeastSquaresSolver(device, (3, 2), max_iter=8, early_stop=False, damping_scale="minpack")
+    got = solver.solve(frozen(_expfit), x0, host=True, jacobian=frozen(jac))
+    np.testing.assert_allclose(got.x, want.x, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(got.iterations, want.iterations)
     # points the kernel writes must be shared: a plain NumPy array would be written in a copy
     state = cl_lm.State(device, Layout(3, 2, 24, False), *(device.empty((4,), np.float64) for _ in range(2)),
                         device.empty((4,), np.float64))  # fmt: skip

@@ -170,7 +170,7 @@ class State:
         self.ls_jac = min(self.ls, (lay.P + 3) // 4)
         self.kernels = {}  # (residual, points, Jacobian dtypes) -> the update kernel
         self.x0type = None  # the start points' dtype (solver_init): the update's program has it too
-        self.stage = {}  # role -> a shared array the host callables' results are copied into
+        self.stage = {}  # role -> the buffer over a host callable's last result, or the shared array it was copied into
         self.tags = {}  # id -> (shared array, its cl.SVM kernel argument)
 
 
@@ -226,9 +226,12 @@ def shared_empty(device, shape, dtype):
 
 def _arg(state, a, role):
     """What a kernel takes for an array of the solver: a DeviceArray's buffer; a NumPy array in
-    shared memory as itself; any other NumPy array (a callable's result, read by the kernel)
-    copied into the shared array of ``role`` first. The points ("X", written by the kernel) must
-    be in shared memory."""
+    shared memory as itself; any other NumPy array (a callable's result, read by the kernel) as a
+    buffer over its own memory (``CL_MEM_USE_HOST_PTR``: on a device that shares the host's memory
+    the kernel reads it in place, ~2 us where copying the exp fit's 410 KB Jacobian into shared
+    memory took 12-31 us; held until the next call of ``role``, the update waiting for its kernel),
+    or, where such a buffer cannot be made (a read-only array), copied into the shared array of
+    ``role``. The points ("X", written by the kernel) must be in shared memory."""
     import pyopencl as cl
 
     if not isinstance(a, np.ndarray):
@@ -236,8 +239,12 @@ def _arg(state, a, role):
     if not isinstance(a.base, cl.SVMAllocation):
         if role == "X":
             raise TypeError("points: expected an array of the solver's shared memory (shared_empty), got a NumPy array")
+        if a.flags.writeable:
+            mf = cl.mem_flags
+            buf = state.stage[role] = cl.Buffer(state.device.context, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
+            return buf
         stage = state.stage.get(role)
-        if stage is None or stage.shape != a.shape or stage.dtype != a.dtype:
+        if not isinstance(stage, np.ndarray) or stage.shape != a.shape or stage.dtype != a.dtype:
             stage = state.stage[role] = shared_empty(state.device, a.shape, a.dtype)
         np.copyto(stage, a)
         a = stage
