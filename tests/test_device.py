@@ -86,6 +86,17 @@ def test_taichi_cpu_copies_through_host_memory(device, shape, monkeypatch):
     assert arrays.copy(x64, a.buffer)
     np.testing.assert_array_equal(a.numpy(), x64.astype(np.float32))
     assert launched == [arrays.COPY[len(shape)]]
+    # a Taichi that cannot give an array's address: kernels from then on
+    class NoAddress:
+        prog = None
+
+    monkeypatch.setattr(arrays, "_views", True)  # and True again when the test ends
+    with monkeypatch.context() as m:
+        m.setattr(runtime.ti.lang.impl, "get_runtime", lambda: NoAddress)
+        assert arrays.host_view(a.buffer, x) is None and arrays._views is False
+        assert arrays.host_view(a.buffer, x) is None
+    monkeypatch.setattr(arrays, "_views", True)
+    assert arrays.host_view(a.buffer, x) is not None
     # direct launches off: the copy kernels both ways, the same values
     monkeypatch.setattr(runtime, "direct_off", "test")
     assert arrays.host_view(a.buffer, x) is None

@@ -5,7 +5,8 @@ NumPy's own copy into or out of a view of that memory (:func:`host_view`; Taichi
 have returned when their launch does, so no kernel is using it). Measured on the 2-core VM
 (2026-12-05, median of 400): a 640x480 float32 upload 468 -> ~80 us, a (16384, 6) one 157 -> ~15
 us, against the copy kernels below. Where no view can be made (direct launches off in this
-process, see ``runtime.direct_off``), and between two Taichi arrays, a copy kernel runs.
+process, see ``runtime.direct_off``; a Taichi without ``get_ndarray_data_ptr_as_int``), and between
+two Taichi arrays, a copy kernel runs.
 
 On the CPU arch a NumPy array passed to a kernel is read and written in place, so one parallel
 copy kernel moves several GB/s, where ``Ndarray.from_numpy``/``to_numpy`` move about 0.7 GB/s.
@@ -18,6 +19,7 @@ and 0.77-0.82 -> 0.58-0.63 ms (float32), three rounds in turn, median of 300 (20
 """
 
 import ctypes
+import logging
 
 import numpy as np
 
@@ -29,6 +31,9 @@ from .runtime import ti
 SERIAL_COPY = 1 << 16
 #: elements of a row a 2-D or 3-D copy loads before it stores them
 COPY_LANES = 16
+
+log = logging.getLogger("gputrack")
+_views = True  # False once Taichi could not give an array's address (another Taichi version)
 
 
 @ti.kernel
@@ -93,7 +98,15 @@ def host_view(arr, like: np.ndarray) -> np.ndarray | None:
             return None  # an ndarray of vectors
     except KeyError:  # not a type of the package's arrays
         return None
-    ptr = ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
+    global _views
+    if not _views:
+        return None
+    try:
+        ptr = ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
+    except Exception as e:  # noqa: BLE001 - another Taichi: the copy kernels from now on
+        log.debug("taichi: host views of arrays unavailable (%s); copying with kernels", e)
+        _views = False
+        return None
     return np.frombuffer((ctypes.c_char * like.nbytes).from_address(ptr), like.dtype).reshape(like.shape)
 
 
