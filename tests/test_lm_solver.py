@@ -365,6 +365,43 @@ def test_a_profiled_solver_records_each_part_and_takes_the_same_steps(device):
     assert all(name in table for name in calls) and "frame (median)" in table
 
 
+def test_opencl_update_wait_polls_then_blocks(monkeypatch):
+    """The host-mode update's wait polls the kernel's event for up to SPIN_S, then blocks on the
+    queue (a kernel that takes longer is still waited for; one that is done returns at once)."""
+    pytest.importorskip("pyopencl")
+    import time
+
+    import pyopencl as cl
+
+    from gputrack.backends.opencl import lm as cl_lm
+
+    class Event:
+        def __init__(self, status):
+            self.status, self.polls = status, 0
+
+        @property
+        def command_execution_status(self):
+            self.polls += 1
+            return self.status
+
+    class Device:
+        def __init__(self):
+            self.finished = 0
+            self.queue = self
+
+        def finish(self):
+            self.finished += 1
+
+    monkeypatch.setattr(cl_lm, "SPIN_S", 0.002)
+    dev, running = Device(), Event(cl.command_execution_status.RUNNING)
+    t0 = time.perf_counter()
+    cl_lm._wait(dev, running)
+    assert time.perf_counter() - t0 >= 0.002 and running.polls > 1 and dev.finished == 1
+    dev, done = Device(), Event(cl.command_execution_status.COMPLETE)
+    cl_lm._wait(dev, done)
+    assert done.polls == 1 and dev.finished == 1
+
+
 def test_opencl_host_callables_share_memory_where_the_device_can(device, monkeypatch):
     """On an OpenCL device with fine-grained shared virtual memory (PoCL on a CPU) a host-mode solve
     hands the callables points the kernels wrote in place and the kernels read their results where

@@ -7,6 +7,8 @@ on GPUs its step shared out over the work-group: :func:`step_per_work_group`).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from ...abi import LMLayout, LMStatus
@@ -19,6 +21,8 @@ _CTYPE = {"float32": "float", "float64": "double"}
 
 #: the largest P built as a compile-time value for the solver's Jacobian-callable variant (``LM_P``)
 STATIC_P_MAX = 32
+#: seconds the host polls an update kernel it waits for before it blocks (``_wait``)
+SPIN_S = 200e-6
 
 
 #: work-items per problem on GPUs where P > STATIC_P_MAX: the work-group's step updates the
@@ -299,13 +303,28 @@ def _update_kernel(state, rtype, xtype, jtype):
     return k
 
 
+def _wait(device, event) -> None:
+    """Wait for the update kernel whose points the host reads next: its event polled for up to
+    SPIN_S seconds, then a blocking wait. The host's callables run right after it; a blocking wait
+    for a ~0.1 ms kernel put the host thread to sleep and woke it with colder caches, often on the
+    other core (perf/README.md: the exp fit's whole solve on PoCL 6.2-6.4 -> 5.5-5.9 ms with the
+    poll). A longer kernel costs the poll at most SPIN_S of one core."""
+    import pyopencl as cl
+
+    complete = cl.command_execution_status.COMPLETE
+    end = time.perf_counter() + SPIN_S
+    while event.command_execution_status > complete and time.perf_counter() < end:
+        pass
+    device.queue.finish()
+
+
 def solver_update(state, R, X, *, first, final, jac=None):
     dev, lay = state.device, state.lay
     B = lay.B
     kernel = _update_kernel(state, R.dtype, X.dtype, jac.dtype if jac is not None else None)
     ls = state.ls if jac is None or lay.P > STATIC_P_MAX else state.ls_jac
     r_arg = _arg(state, R, "R")  # also the Jacobian's argument without one (unused)
-    enqueue(
+    event = enqueue(
         dev,
         kernel,
         (B * ls,),
@@ -324,7 +343,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
         np.int32(bool(final)),
     )
     if isinstance(X, np.ndarray):  # the host reads the points next
-        dev.queue.finish()
+        _wait(dev, event)
 
 
 def solver_active(state) -> int:

@@ -108,12 +108,12 @@ def scalar_types(kernel, dtypes) -> None:
     kernel.gt_scalar_dtypes = tuple(dtypes)
 
 
-def enqueue(device, kernel, gsize, lsize, *args) -> None:
+def enqueue(device, kernel, gsize, lsize, *args):
     """Launch ``kernel`` on the device's queue, setting only the arguments that differ from its last
     launch (buffers by handle, scalars by value), one ``set_arg`` each: PyOpenCL's ``kernel(queue,
     ...)`` and ``set_args`` set every argument, 50-90 us a launch on PoCL here (83 us for the LM
     update's 13) against ~8 us for the launch itself. Scalars are typed as :func:`scalar_types`
-    says, or must be NumPy scalars."""
+    says, or must be NumPy scalars. Returns the launch's event."""
     import pyopencl as cl
 
     seen = _last_args(device)
@@ -125,7 +125,7 @@ def enqueue(device, kernel, gsize, lsize, *args) -> None:
         if changed:
             _set_changed(kernel, args, changed)
     seen[kernel] = args
-    cl.enqueue_nd_range_kernel(device.queue, kernel, gsize, lsize)
+    return cl.enqueue_nd_range_kernel(device.queue, kernel, gsize, lsize)
 
 
 def _set_changed(kernel, args, changed) -> None:
