@@ -7,6 +7,7 @@ on GPUs its step shared out over the work-group: :func:`step_per_work_group`).
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -23,6 +24,7 @@ _CTYPE = {"float32": "float", "float64": "double"}
 STATIC_P_MAX = 32
 #: seconds the host polls an update kernel it waits for before it blocks (``_wait``)
 SPIN_S = 200e-6
+_yield = getattr(os, "sched_yield", lambda: None)
 
 
 #: work-items per problem on GPUs where P > STATIC_P_MAX: the work-group's step updates the
@@ -307,14 +309,15 @@ def _wait(device, event) -> None:
     """Wait for the update kernel whose points the host reads next: its event polled for up to
     SPIN_S seconds, then a blocking wait. The host's callables run right after it; a blocking wait
     for a ~0.1 ms kernel put the host thread to sleep and woke it with colder caches, often on the
-    other core (perf/README.md: the exp fit's whole solve on PoCL 6.2-6.4 -> 5.5-5.9 ms with the
-    poll). A longer kernel costs the poll at most SPIN_S of one core."""
+    other core. The exp fit's whole solve on PoCL, polled with a yield between polls, in two
+    interleaved runs: 7.08 -> 6.39 ms and 5.55 -> 4.73 ms (perf/README.md). A longer kernel costs
+    the poll at most SPIN_S of one core."""
     import pyopencl as cl
 
     complete = cl.command_execution_status.COMPLETE
     end = time.perf_counter() + SPIN_S
     while event.command_execution_status > complete and time.perf_counter() < end:
-        pass
+        _yield()  # a worker sharing this core runs first
     device.queue.finish()
 
 
