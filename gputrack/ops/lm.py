@@ -523,8 +523,8 @@ class LeastSquaresSolver:
     into a NumPy array the solver holds and read the callables' NumPy results where they are (no
     copy, no per-iteration allocation; the bytes are counted as transfers all the same); on an
     OpenCL device with fine-grained shared virtual memory (PoCL on a CPU) the points are a NumPy
-    array in that memory and the results are copied into another on the host (one command and
-    one wait an iteration); on the other devices they are downloaded once per residual call (the
+    array in that memory and the kernels read the results through buffers over them (one command
+    and one wait an iteration); on the other devices they are downloaded once per residual call (the
     Jacobian call reuses them) into a held host array and the results are uploaded into held
     device buffers (asynchronously on OpenCL). ``early_stop=False`` downloads nothing until the end
     (stopped problems stay frozen on the device; the batch runs ``max_iter`` iterations). The
@@ -786,8 +786,8 @@ class _Run:
     kernels read and write host memory in place (``reads_host``: the NumPy reference, taichi:cpu,
     OpenCL with fine-grained shared virtual memory) the points are written by the kernels straight
     into a NumPy array the solver holds (``_Buffers.host_array(..., shared=True)``), and the results
-    are read where the callable left them (OpenCL: copied on the host into shared memory first; the
-    bytes are counted as transfers all the same); elsewhere the points are downloaded into a held
+    are read where the callable left them (OpenCL: through a buffer over the result; a read-only
+    result is copied into shared memory first; the bytes are counted as transfers all the same); elsewhere the points are downloaded into a held
     host array and the results uploaded into held device buffers, once each per call."""
 
     def __init__(self, solver, residuals, jacobian, mask, host=False):

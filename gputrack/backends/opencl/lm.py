@@ -202,10 +202,10 @@ def download_into(device, arr, host):
 def reads_host(device) -> bool:
     """Whether the solver's host callables get their points in place: on a device that shares the
     host's memory through fine-grained SVM (PoCL on a CPU), the points are NumPy arrays in shared
-    virtual memory (:func:`shared_empty`) that the kernels write, and the callables' results are
-    copied on the host into shared arrays the kernels read. An iteration is then one command and one
-    wait, against four commands (two uploads, the launch, the download of the points), each a
-    hand-off to PoCL's worker threads. Elsewhere (a discrete GPU) the arrays are copied."""
+    virtual memory (:func:`shared_empty`) that the kernels write, and the kernels read the callables'
+    results in place (:func:`_arg`). An iteration is then one command and one wait, against four
+    commands (two uploads, the launch, the download of the points), each a hand-off to PoCL's worker
+    threads. Elsewhere (a discrete GPU) the arrays are copied."""
     return _fine_svm(device)
 
 
