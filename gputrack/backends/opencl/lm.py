@@ -22,7 +22,7 @@ _CTYPE = {"float32": "float", "float64": "double"}
 
 #: the largest P built as a compile-time value for the solver's Jacobian-callable variant (``LM_P``)
 STATIC_P_MAX = 32
-#: seconds the host polls an update kernel it waits for before it blocks (``_wait``)
+#: seconds the host polls a kernel whose points it reads next before it blocks (``_wait``)
 SPIN_S = 200e-6
 _yield = getattr(os, "sched_yield", lambda: None)
 
@@ -275,7 +275,7 @@ def solver_init(state, X0, K, X):
     # the init kernel reads neither R nor J, and one program is one build (~0.4 s on PoCL)
     state.x0type = X0.dtype
     prg = _program(dev, state.S.dtype, X.dtype, X.dtype, None, x0type=X0.dtype)
-    enqueue(
+    event = enqueue(
         dev,
         _kernel(dev, prg, "gt_lm_init"),
         *ndrange(B),
@@ -290,7 +290,7 @@ def solver_init(state, X0, K, X):
         np.int32(K.shape[0] - lay.kglob),
     )
     if isinstance(X, np.ndarray):  # the host reads the points next
-        dev.queue.finish()
+        _wait(dev, event)
 
 
 def _update_kernel(state, rtype, xtype, jtype):
@@ -306,10 +306,10 @@ def _update_kernel(state, rtype, xtype, jtype):
 
 
 def _wait(device, event) -> None:
-    """Wait for the update kernel whose points the host reads next: its event polled for up to
-    SPIN_S seconds, then a blocking wait. The host's callables run right after it; a blocking wait
-    for a ~0.1 ms kernel put the host thread to sleep and woke it with colder caches, often on the
-    other core. The exp fit's whole solve on PoCL, polled with a yield between polls, in two
+    """Wait for the kernel (init or update) whose points the host reads next: its event polled for
+    up to SPIN_S seconds, then a blocking wait. The host's callables run right after it; a blocking
+    wait for a ~0.1 ms kernel put the host thread to sleep and woke it with colder caches, often on
+    the other core. The exp fit's whole solve on PoCL, polled with a yield between polls, in two
     interleaved runs: 7.08 -> 6.39 ms and 5.55 -> 4.73 ms (perf/README.md). A longer kernel costs
     the poll at most SPIN_S of one core."""
     import pyopencl as cl
