@@ -89,23 +89,10 @@ def time_call(
     min_reps: int = 5,
     max_reps: int = 10_000,
 ) -> Timing:
-    """Time ``fn`` (synchronising with ``sync`` after every call) after ``warmup`` untimed calls."""
-    sync = sync or (lambda: None)
-    for _ in range(warmup):
-        fn()
-        sync()
-    times: list[float] = []
-    while True:
-        more = repeat_count(sum(times), len(times), min_time, min_reps, max_reps)
-        if not more:
-            break
-        for _ in range(more):
-            t0 = time.perf_counter()
-            fn()
-            sync()
-            times.append(time.perf_counter() - t0)
-    arr = np.asarray(times)
-    return Timing(float(np.median(arr)), float(np.percentile(arr, 10)), float(np.percentile(arr, 90)), len(times))
+    """Time ``fn`` (synchronising with ``sync`` after every call) after ``warmup`` untimed calls:
+    :func:`time_interleaved` of ``fn`` alone, in one round."""
+    return time_interleaved({"fn": (fn, sync)}, rounds=1, warmup=warmup, min_time=min_time, min_reps=min_reps,
+                            max_reps=max_reps)["fn"]  # fmt: skip
 
 
 #: rounds of :func:`time_interleaved` (each callable timed for min_time / ROUNDS per round)

@@ -787,8 +787,9 @@ class _Run:
     OpenCL with fine-grained shared virtual memory) the points are written by the kernels straight
     into a NumPy array the solver holds (``_Buffers.host_array(..., shared=True)``), and the results
     are read where the callable left them (OpenCL: through a buffer over the result; a read-only
-    result is copied into shared memory first; the bytes are counted as transfers all the same); elsewhere the points are downloaded into a held
-    host array and the results uploaded into held device buffers, once each per call."""
+    result is copied into shared memory first; the bytes are counted as transfers all the same);
+    elsewhere the points are downloaded into a held host array and the results uploaded into held
+    device buffers, once each per call."""
 
     def __init__(self, solver, residuals, jacobian, mask, host=False):
         self.s, self.device, self.fn, self.jac, self.mask = solver, solver.device, residuals, jacobian, mask

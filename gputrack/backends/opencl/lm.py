@@ -176,7 +176,7 @@ class State:
         self.ls_jac = min(self.ls, (lay.P + 3) // 4)
         self.kernels = {}  # (residual, points, Jacobian dtypes) -> the update kernel
         self.x0type = None  # the start points' dtype (solver_init): the update's program has it too
-        self.stage = {}  # role -> the buffer over a host callable's last result, or the shared array it was copied into
+        self.stage = {}  # role -> a buffer over a host callable's last result, or its copy in shared memory
         self.tags = {}  # id -> (shared array, its cl.SVM kernel argument)
 
 

@@ -84,12 +84,13 @@ COPY = {1: _copy1, 2: _copy2, 3: _copy3, 4: _copy4}
 
 
 def host_view(arr, like: np.ndarray) -> np.ndarray | None:
-    """A NumPy array over the memory of the Taichi ndarray ``arr`` on the CPU arch, the same as ``like``
-    in shape and dtype, or None where there is none: another arch, another shape or dtype, or direct
-    launches off (arrays of a stopped Taichi program may be alive). Valid while
-    ``arr`` is, in this Taichi program; no kernel may be writing it (Taichi's CPU launches return when
-    their kernel has run)."""
-    if runtime.current_arch() != "cpu" or runtime.direct_off is not None:
+    """A NumPy array over the memory of the Taichi ndarray ``arr`` on the CPU arch, the same as
+    ``like`` in shape and dtype, or None where there is none: another arch, another shape or dtype,
+    direct launches off (arrays of a stopped Taichi program may be alive), or a Taichi that cannot
+    give the address. Valid while ``arr`` is, in this Taichi program; no kernel may be writing it
+    (Taichi's CPU launches return when their kernel has run)."""
+    global _views
+    if not _views or runtime.current_arch() != "cpu" or runtime.direct_off is not None:
         return None
     if not isinstance(arr, ti.lang._ndarray.Ndarray) or tuple(arr.shape) != like.shape or like.nbytes == 0:
         return None
@@ -97,9 +98,6 @@ def host_view(arr, like: np.ndarray) -> np.ndarray | None:
         if runtime.taichi_dtype(like.dtype) is not arr.dtype:  # another type (the copy kernel casts), or
             return None  # an ndarray of vectors
     except KeyError:  # not a type of the package's arrays
-        return None
-    global _views
-    if not _views:
         return None
     try:
         ptr = ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(arr.arr)
