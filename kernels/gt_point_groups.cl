@@ -327,9 +327,9 @@ __kernel void gt_gf_buckets(__global float *g, __global int *idx, const int N, c
 // point i moved off mm further along its viewing ray (NaN where it has none)
 inline void gt_gf_point(__global const float *pts, int i, float off, float *p)
 {
-    p[0] = pts[i * 6];
-    p[1] = pts[i * 6 + 1];
-    p[2] = pts[i * 6 + 2];
+    p[0] = pts[i * 3];
+    p[1] = pts[i * 3 + 1];
+    p[2] = pts[i * 3 + 2];
     if (off > 0.f) {
         const float r = sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
         const float s = r > 0.f ? 1.f + off / r : NAN;
@@ -339,9 +339,9 @@ inline void gt_gf_point(__global const float *pts, int i, float off, float *p)
     }
 }
 
-__kernel void gt_gf_assign(__global const float *pts, __global const float *tab, __global const float *c,
-                           __global const float *g, __global const int *idx, __global int *labels, const int N,
-                           const int n, const int T, const int K)
+__kernel void gt_gf_assign(__global const float *pts, __global const float *vel, __global const float *tab,
+                           __global const float *c, __global const float *g, __global const int *idx,
+                           __global int *labels, const int N, const int n, const int T, const int K)
 {
     const int i = get_global_id(0);
     if (i >= N)
@@ -350,7 +350,7 @@ __kernel void gt_gf_assign(__global const float *pts, __global const float *tab,
     if (i < n) {
         float p[3];
         gt_gf_point(pts, i, c[84], p);
-        const float v0 = pts[i * 6 + 3], v1 = pts[i * 6 + 4], v2 = pts[i * 6 + 5];
+        const float v0 = vel[i * 3], v1 = vel[i * 3 + 1], v2 = vel[i * 3 + 2];
         const float gamma = c[79];
         const float kf = (p[0] - g[20]) / g[21];
         if (isfinite(p[0]) && isfinite(p[1]) && isfinite(p[2]) && isfinite(v0) && isfinite(v1) && isfinite(v2) &&
@@ -502,8 +502,9 @@ inline float gt_gf_bound(__global const float *A, int i0, int i1, int i2, float 
     return fmin(tr, rows);
 }
 
-__kernel void gt_gf_update(__global const float *pts, __global float *tab, __global const float *c, __global float *g,
-                           __global const int *idx, const int N, const int T)
+__kernel void gt_gf_update(__global const float *pts, __global const float *vel, __global float *tab,
+                           __global const float *c, __global float *g, __global const int *idx, const int N,
+                           const int T)
 {
     const int j = get_global_id(0);
     if (j >= T)
@@ -520,11 +521,11 @@ __kernel void gt_gf_update(__global const float *pts, __global float *tab, __glo
         float p[3];
         gt_gf_point(pts, i, off, p);
         s1[0] += p[0] - xi[0];
-        s1[1] += pts[i * 6 + 3] - xi[1];
+        s1[1] += vel[i * 3] - xi[1];
         s1[2] += p[1] - xi[2];
-        s1[3] += pts[i * 6 + 4] - xi[3];
+        s1[3] += vel[i * 3 + 1] - xi[3];
         s1[4] += p[2] - xi[4];
-        s1[5] += pts[i * 6 + 5] - xi[5];
+        s1[5] += vel[i * 3 + 2] - xi[5];
     }
     float mu[6];
     for (int u = 0; u < 6; ++u)
@@ -536,8 +537,8 @@ __kernel void gt_gf_update(__global const float *pts, __global float *tab, __glo
         const int i = idx[k];
         float p[3];
         gt_gf_point(pts, i, off, p);
-        const float d[6] = {p[0] - mu[0], pts[i * 6 + 3] - mu[1], p[1] - mu[2],
-                            pts[i * 6 + 4] - mu[3], p[2] - mu[4], pts[i * 6 + 5] - mu[5]};
+        const float d[6] = {p[0] - mu[0], vel[i * 3] - mu[1], p[1] - mu[2],
+                            vel[i * 3 + 1] - mu[3], p[2] - mu[4], vel[i * 3 + 2] - mu[5]};
         for (int u = 0; u < 6; ++u)
             for (int w = 0; w < 6; ++w)
                 s2[u * 6 + w] += d[u] * d[w];

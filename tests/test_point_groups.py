@@ -153,10 +153,11 @@ def _table(rng, T, live):
 
 def _frame_points(rng, t, N, rows):
     y, lam = _points(rng, t[:, :6], N, scale=150.0)
-    pts = np.full((rows, 6), np.nan, np.float32)
-    pts[:N, :3], pts[:N, 3:] = y, lam
-    pts[5:N:13, 2] = np.nan  # "no point" rows
-    return pts
+    pts, vel = np.full((rows, 3), np.nan, np.float32), np.full((rows, 3), np.nan, np.float32)
+    pts[:N], vel[:N] = y, lam
+    pts[5:N:26, 2] = np.nan  # "no point" rows: a NaN position
+    vel[18:N:26, 0] = np.nan  # or a NaN velocity
+    return pts, vel
 
 
 @pytest.mark.parametrize("N,T,live", [(1, 1, 1), (13, 3, 3), (1535, 17, 12), (129, 40, 40)])
@@ -164,15 +165,15 @@ def test_group_frame_matches_reference(device, N, T, live):
     rng = np.random.default_rng(7 * N + T)
     t = _table(rng, T, live)
     rows = max(16, 1 << (N - 1).bit_length())
-    pts = _frame_points(rng, t, N, rows)
+    pts, vel = _frame_points(rng, t, N, rows)
     c = _constants(120.0 if N != 13 else 0.0)
     want_t, want_l = t.copy(), np.zeros(rows, np.int32)
-    ref.group_frame(None, want_t, pts, c, N, want_l)
+    ref.group_frame(None, want_t, pts, vel, c, N, want_l)
     td = t.copy() if device.backend == "numpy" else device.asarray(t)
-    got_t, got_l = group_frame(device, td, pts, c, n_points=N)
+    got_t, got_l = group_frame(device, td, pts, vel, c, n_points=N)
     got_t, got_l = gputrack.to_numpy(got_t), gputrack.to_numpy(got_l)
     np.testing.assert_array_equal(got_l, want_l)
-    assert (got_l[5:N:13] == -1).all() and (got_l[N:] == -1).all()
+    assert (got_l[5:N:26] == -1).all() and (got_l[18:N:26] == -1).all() and (got_l[N:] == -1).all()
     assert (got_l >= 0).any()
     for cols in ((79, 80), (86, 92)):  # counts; seen and the merge candidates
         np.testing.assert_array_equal(got_t[:, cols[0]:cols[1]], want_t[:, cols[0]:cols[1]])
@@ -185,10 +186,10 @@ def test_group_frame_matches_reference(device, N, T, live):
 
 def test_group_frame_predicts_a_group_without_points(device):
     t = _table(np.random.default_rng(3), 4, 4)
-    pts = np.full((16, 6), np.nan, np.float32)
+    pts = np.full((16, 3), np.nan, np.float32)
     c = _constants()
     td = t.copy() if device.backend == "numpy" else device.asarray(t)
-    got_t, got_l = group_frame(device, td, pts, c, n_points=0)
+    got_t, got_l = group_frame(device, td, pts, pts, c, n_points=0)
     got_t = gputrack.to_numpy(got_t)
     F = c[:36].reshape(6, 6)
     np.testing.assert_allclose(got_t[:, :6], t[:, :6] @ F.T, rtol=1e-6, atol=1e-4)
@@ -199,20 +200,24 @@ def test_group_frame_predicts_a_group_without_points(device):
 
 def test_group_frame_bad_input(device):
     t = _table(np.random.default_rng(4), 4, 4)
-    pts = np.zeros((16, 6), np.float32)
+    pts = np.zeros((16, 3), np.float32)
     c = _constants()
     with pytest.raises(ValueError, match="table"):
-        group_frame(device, t[:, :90], pts, c)
+        group_frame(device, t[:, :90], pts, pts, c)
     with pytest.raises(ValueError, match="points"):
-        group_frame(device, t, pts[:, :3], c)
+        group_frame(device, t, np.zeros((16, 6), np.float32), pts, c)
+    with pytest.raises(ValueError, match="velocities"):
+        group_frame(device, t, pts, pts[:15], c)
     bad = pts.copy()
     bad[2, 1] = np.inf
     with pytest.raises(ValueError, match="finite values or NaN rows"):
-        group_frame(device, t, bad, c)
+        group_frame(device, t, bad, pts, c)
+    with pytest.raises(ValueError, match="velocities: expected finite values or NaN rows"):
+        group_frame(device, t, pts, bad, c)
     with pytest.raises(ValueError, match="n_points"):
-        group_frame(device, t, pts, c, n_points=17)
+        group_frame(device, t, pts, pts, c, n_points=17)
     with pytest.raises(ValueError, match="constants"):
-        group_frame(device, t, pts, c[:80])
+        group_frame(device, t, pts, pts, c[:80])
     with pytest.raises(ValueError, match="finite constants"):
         group_constants(np.eye(6), np.eye(6) * np.nan, (1, 1, 1), f=1, b=1, cx=0, cy=0, gamma=1, alpha_s=0.5,
                         min_points=2, min_spread=(1, 1), surface_offset=0, merge_gamma=1)  # fmt: skip

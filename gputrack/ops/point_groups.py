@@ -133,16 +133,16 @@ def group_constants(F, Q, R, *, f, b, cx, cy, gamma, alpha_s, min_points, min_sp
     return c.astype(np.float32)
 
 
-def group_frame(device, table, points, constants, *, n_points=None, labels=None):
+def group_frame(device, table, points, velocities, constants, *, n_points=None, labels=None):
     """One frame of paper 001's group table on the device, in place (the tracking core of
     :class:`gputrack.trackers.groups.GroupTracker`; one launch on Taichi).
 
     ``table`` (T, 96) float32, one row per slot: x (6) = [x xdot y ydot z zdot] at column 0, the
     Kalman covariance P (6 x 6, row-major) at 6, the spread Sigma (6 x 6, eq. 7) at 42, active (1 =
-    a live group, 0 = a free slot) at 78; ``points`` (N, 6) float32 rows [x y z xdot ydot zdot]
-    (mm, mm per frame; a row with a NaN is no point; only the first ``n_points`` rows are points);
-    ``constants`` (88,) float32 from :func:`group_constants`; ``labels`` an (N,) int32 array to
-    write into. Per frame:
+    a live group, 0 = a free slot) at 78; ``points`` (N, 3) and ``velocities`` (N, 3) float32
+    (mm, mm per frame; a row with a NaN in either is no point; only the first ``n_points`` rows are
+    points); ``constants`` (88,) float32 from :func:`group_constants`; ``labels`` an (N,) int32
+    array to write into. Per frame:
 
     1. every slot predicted: x = F x, P = F P F^T + Q (eq. 2-3, as :func:`kf_predict`);
     2. each point moved ``surface_offset`` mm further along its viewing ray, then gated and
@@ -166,14 +166,16 @@ def group_frame(device, table, points, constants, *, n_points=None, labels=None)
     device = check_device(device)
     dims: dict = {}
     table = arg(device, table, "table", ("T", COLUMNS), dims)
-    points = arg(device, _finite_or_nan(device, points, "points"), "points", ("N", 6), dims, finite=False, cast=True)
+    points = arg(device, _finite_or_nan(device, points, "points"), "points", ("N", 3), dims, finite=False, cast=True)
+    velocities = arg(device, _finite_or_nan(device, velocities, "velocities"), "velocities", ("N", 3), dims,
+                     finite=False, cast=True)  # fmt: skip
     constants = arg(device, constants, "constants", (CONSTANTS,), dims)
     N, T = dims["N"], dims["T"]
     n = _rows_used(n_points, N)
     labels = out_arrays(device, None if labels is None else (labels,), (("labels", (N,), np.int32),))[0]
     if T == 0:
         raise ValueError("table: expected at least one slot (T >= 1), got 0")
-    backend_module(device, "point_groups").group_frame(device, table, points, constants, n, labels)
+    backend_module(device, "point_groups").group_frame(device, table, points, velocities, constants, n, labels)
     return table, labels
 
 

@@ -19,8 +19,8 @@ _ARGS = {
     "gt_pg_moments": [None] * 7 + [_I, _I],
     "gt_gf_predict": [None] * 3 + [_I],
     "gt_gf_buckets": [None, None, _I, _I, _I],
-    "gt_gf_assign": [None] * 6 + [_I, _I, _I, _I],
-    "gt_gf_update": [None] * 5 + [_I, _I],
+    "gt_gf_assign": [None] * 7 + [_I, _I, _I, _I],
+    "gt_gf_update": [None] * 6 + [_I, _I],
     "gt_gf_candidates": [None, None, _I],
 }
 G = 23
@@ -58,20 +58,21 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
 GC = 32  # scratch floats per slot (kernels/gt_point_groups.cl)
 
 
-def group_frame(device, table, points, constants, n, labels):
+def group_frame(device, table, points, velocities, constants, n, labels):
     """Six launches in order (kernels/gt_point_groups.cl, "group_frame")."""
     T = table.shape[0]
     rows = labels.shape[0]
     K = max(1, min(2 * T, 16384 // T))  # as the Taichi kernel's buckets
     g = _scratch(device, "g", T * GC, np.float32)
     idx = _scratch(device, "idx", rows + 2 * T + 2 * K + 1 + T * K, np.int32)
-    tab, pts, c, lab = table.buffer.data, points.buffer.data, constants.buffer.data, labels.buffer.data
+    tab, pts, vel = table.buffer.data, points.buffer.data, velocities.buffer.data
+    c, lab = constants.buffer.data, labels.buffer.data
     enqueue(device, _kernel(device, "gt_gf_predict"), *ndrange(T), tab, c, g, T)
     enqueue(device, _kernel(device, "gt_gf_buckets"), (1,), None, g, idx, rows, T, K)
     if rows:
-        enqueue(device, _kernel(device, "gt_gf_assign"), *ndrange(rows), pts, tab, c, g, idx, lab, rows, int(n), T, K)
+        enqueue(device, _kernel(device, "gt_gf_assign"), *ndrange(rows), pts, vel, tab, c, g, idx, lab, rows, int(n), T, K)
     enqueue(device, _kernel(device, "gt_pg_order"), (1,), None, lab, idx, rows, int(n), T)
-    enqueue(device, _kernel(device, "gt_gf_update"), *ndrange(T), pts, tab, c, g, idx, rows, T)
+    enqueue(device, _kernel(device, "gt_gf_update"), *ndrange(T), pts, vel, tab, c, g, idx, rows, T)
     enqueue(device, _kernel(device, "gt_gf_candidates"), *ndrange(T), tab, g, T)
     return table, labels
 

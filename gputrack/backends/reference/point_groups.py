@@ -74,7 +74,7 @@ def _bound(S):
     return np.minimum(tr, rows)
 
 
-def group_frame(device, table, points, constants, n, labels):
+def group_frame(device, table, points, velocities, constants, n, labels):
     """gputrack.ops.point_groups.group_frame: the readable version, through the reference's own
     kf_predict, assign_points and ekf_update_stereo."""
     from .kalman import ekf_update_stereo, kf_predict
@@ -91,8 +91,8 @@ def group_frame(device, table, points, constants, n, labels):
     x, P = kf_predict(None, x, P, F, Q)  # eq. 2-3
     floor = np.zeros((6, 6), np.float32)
     floor[POS, POS], floor[VEL, VEL] = np.float32(fp), np.float32(fv)
-    y = np.array(points[:, 0:3], np.float32)
-    lam = np.ascontiguousarray(points[:, 3:6], np.float32)
+    y = np.array(points, np.float32)
+    lam = np.ascontiguousarray(velocities, np.float32)
     if offset > 0:  # each point moved along its viewing ray, from the surface to the body's axis
         r = np.sqrt(y[:, 0] * y[:, 0] + y[:, 1] * y[:, 1] + y[:, 2] * y[:, 2])
         with np.errstate(invalid="ignore", divide="ignore"):

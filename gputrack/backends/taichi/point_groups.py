@@ -215,7 +215,7 @@ def _bound3(tab: ti.template(), j, base: ti.template(), idx: ti.template(), fl):
 
 
 @ti.kernel
-def _frame(tab: nd, pts: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti.i32, nan: ti.f32):  # fmt: skip
+def _frame(tab: nd, pts: nd, vel: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti.i32, nan: ti.f32):  # fmt: skip
     T = tab.shape[0]
     N = labels.shape[0]
     gamma, fp, fv, off = c[79], c[82], c[83], c[84]
@@ -287,7 +287,7 @@ def _frame(tab: nd, pts: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti
         best = -1
         if i < n:
             p = _point(pts, i, off, nan)
-            v0, v1, v2 = pts[i, 3], pts[i, 4], pts[i, 5]
+            v0, v1, v2 = vel[i, 0], vel[i, 1], vel[i, 2]
             fin = _finite(p[0], ti.f32) & _finite(p[1], ti.f32) & _finite(p[2], ti.f32)
             fin &= _finite(v0, ti.f32) & _finite(v1, ti.f32) & _finite(v2, ti.f32)
             kf = (p[0] - g[0, 20]) / g[0, 21]
@@ -335,8 +335,8 @@ def _frame(tab: nd, pts: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti
         for k in range(a, b):
             i = idx[k]
             p = _point(pts, i, off, nan)
-            s1 += ti.Vector([p[0] - xi[0], pts[i, 3] - xi[1], p[1] - xi[2], pts[i, 4] - xi[3], p[2] - xi[4],
-                             pts[i, 5] - xi[5]])  # fmt: skip
+            s1 += ti.Vector([p[0] - xi[0], vel[i, 0] - xi[1], p[1] - xi[2], vel[i, 1] - xi[3], p[2] - xi[4],
+                             vel[i, 2] - xi[5]])  # fmt: skip
         m = ti.Vector.zero(ti.f32, 6)
         if cnt > 0:
             m = s1 / cnt
@@ -345,8 +345,8 @@ def _frame(tab: nd, pts: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti
         for k in range(a, b):
             i = idx[k]
             p = _point(pts, i, off, nan)
-            d = ti.Vector([p[0] - mu[0], pts[i, 3] - mu[1], p[1] - mu[2], pts[i, 4] - mu[3], p[2] - mu[4],
-                           pts[i, 5] - mu[5]])  # fmt: skip
+            d = ti.Vector([p[0] - mu[0], vel[i, 0] - mu[1], p[1] - mu[2], vel[i, 1] - mu[3], p[2] - mu[4],
+                           vel[i, 2] - mu[5]])  # fmt: skip
             s2 += d.outer_product(d)
         seen = tab[j, 78] > 0.5 and cnt >= ti.cast(c[81], ti.i32) and mu[4] > 0
         S = ti.Matrix.zero(ti.f32, 6, 6)
@@ -506,7 +506,7 @@ def _buckets(T: int) -> int:
     return max(1, min(2 * T, SUM_BUCKET_LIMIT // T))
 
 
-def group_frame(device, table, points, constants, n, labels):
+def group_frame(device, table, points, velocities, constants, n, labels):
     from .runtime import loop_limit
 
     T = table.shape[0]
@@ -519,5 +519,5 @@ def group_frame(device, table, points, constants, n, labels):
                          f"and {T} slots")  # fmt: skip
     g = scratch(device, "group_frame g", (T, GC), ti.f32)
     idx = scratch(device, "group_frame idx", (N + 2 * T + 2 * K + 1 + T * K,), ti.i32)
-    launch(_frame, (table.buffer, points.buffer, constants.buffer, g, idx, labels.buffer), scalars=(int(n), int(K), math.nan))
+    launch(_frame, (table.buffer, points.buffer, velocities.buffer, constants.buffer, g, idx, labels.buffer), scalars=(int(n), int(K), math.nan))
     return table, labels

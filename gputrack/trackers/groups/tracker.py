@@ -8,7 +8,7 @@ slot: state, Kalman covariance, spread, live flag, this frame's moments and merg
 =========  ===========================================================================  ======
 stage      what                                                                         where
 =========  ===========================================================================  ======
-track      the points uploaded once, packed (N, 6) [x y z xdot ydot zdot]; then one     device
+track      the points and their velocities uploaded once, (N, 3) each; then one         device
            call (:func:`gputrack.ops.point_groups.group_frame`, one launch on Taichi):
            every group predicted with constant velocity x = [x xdot y ydot z zdot]
            (eq. 1-3); all points x all groups: gate (eq. 8), tie-break m_p m_v (eq.
@@ -22,9 +22,9 @@ groups     the table and the labels downloaded (two reads); merges (eq. 13-15: t
            back to the device only on a frame where a rule changed it
 =========  ===========================================================================  ======
 
-Per frame the host moves the points (N x 24 bytes) in and the labels (N int32) and the table
-(C x 96 float32) out; nothing else, and no Python loop over points or groups runs unless a rule
-fires.
+Per frame the host moves the points and velocities (N x 24 bytes) in and the labels (N int32)
+and the table (C x 96 float32) out; nothing else, and no Python loop over points or groups runs
+unless a rule fires.
 
 Rules beyond the paper, written down:
 
@@ -256,12 +256,13 @@ class GroupTracker:
         self.apart = np.zeros(C, np.int64)  # frames in a row a group's points stayed apart
         self._set_table(_empty_table(C))
         self.next_id = 0
-        self._host = None  # the packed points (rows, 6), reused frame after frame
+        self._host = None  # the points and velocities padded with NaN rows, reused frame after frame
         self.front = StereoFrontEnd(self.device, camera, config.front, profile=profile)
         self.scheduler = Scheduler(self.device, [
-            Stage("track", self._track, reads=("points", "table", "constants"), writes=("table", "labels")),
+            Stage("track", self._track, reads=("points", "velocities", "table", "constants"),
+                  writes=("table", "labels")),
             Stage("groups", self._groups, host_reads=("table", "labels"), writes=("table",)),
-        ], inputs=("points",), state=("table", "constants"), profile=profile)  # fmt: skip
+        ], inputs=("points", "velocities"), state=("table", "constants"), profile=profile)  # fmt: skip
         self.scheduler.set("constants", consts)
         self.scheduler.set("table", self._t.astype(np.float32))
         self._frame = None
@@ -296,14 +297,14 @@ class GroupTracker:
         y = _points(xyz, "xyz")
         lam = _points(velocity, "velocity", len(y))
         N = len(y)
-        h = self._host
-        if h is None or len(h) < N or len(h) > 4 * max(N, 16):  # a power of two rows (few shapes)
-            h = self._host = np.full((max(16, 1 << max(N - 1, 0).bit_length()), 6), np.nan, np.float32)
-        h[:N, :3], h[:N, 3:] = y, lam
-        h[N:] = np.nan
+        h = self._host  # (2, rows, 3): the points, then their velocities
+        if h is None or h.shape[1] < N or h.shape[1] > 4 * max(N, 16):  # a power of two rows (few shapes)
+            h = self._host = np.full((2, max(16, 1 << max(N - 1, 0).bit_length()), 3), np.nan, np.float32)
+        h[0, :N], h[1, :N] = y, lam
+        h[:, N:] = np.nan
         self._frame = {"y": y, "lam": lam, "n": N}
         try:
-            self.scheduler.run(points=h)
+            self.scheduler.run(points=h[0], velocities=h[1])
             return self._result
         finally:
             self._frame = None
@@ -328,7 +329,7 @@ class GroupTracker:
         lab = b.get("labels")
         if lab is not None and lab.shape[0] != pts.shape[0]:
             lab = None
-        b["table"], b["labels"] = group_frame(self.device, b["table"], pts, b["constants"],
+        b["table"], b["labels"] = group_frame(self.device, b["table"], pts, b["velocities"], b["constants"],
                                               n_points=self._frame["n"], labels=lab)  # fmt: skip
 
     def _offset(self, y: np.ndarray) -> np.ndarray:
