@@ -184,6 +184,33 @@ def test_group_frame_matches_reference(device, N, T, live):
         assert want_t[0, 87] >= 1  # slots 0 and 2 overlap (slot 1 is free)
 
 
+@pytest.mark.parametrize("serial_points", [0, 1 << 20])
+def test_taichi_cpu_group_frame_threads_agree(serial_points, monkeypatch):
+    """taichi:cpu runs the per-group loops on one thread up to SERIAL_POINTS points, on the pool
+    beyond: both forms give the reference's answer."""
+    info = {d.spec: d for d in gputrack.devices()}["taichi:cpu"]
+    if not info.available:
+        pytest.skip(f"taichi:cpu not available: {info.reason}")
+    from gputrack.backends.taichi import point_groups as tpg
+
+    monkeypatch.setattr(tpg, "SERIAL_POINTS", serial_points)
+    device = gputrack.device("taichi:cpu")
+    rng = np.random.default_rng(11)
+    N, T = 1535, 17
+    t = _table(rng, T, 12)
+    pts, vel = _frame_points(rng, t, N, 2048)
+    c = _constants()
+    want_t, want_l = t.copy(), np.zeros(2048, np.int32)
+    ref.group_frame(None, want_t, pts, vel, c, N, want_l)
+    got_t, got_l = group_frame(device, device.asarray(t), pts, vel, c, n_points=N)
+    np.testing.assert_array_equal(gputrack.to_numpy(got_l), want_l)
+    got_t = gputrack.to_numpy(got_t)
+    np.testing.assert_array_equal(got_t[:, 79:80], want_t[:, 79:80])
+    np.testing.assert_array_equal(got_t[:, 86:92], want_t[:, 86:92])
+    np.testing.assert_allclose(got_t[:, 0:6], want_t[:, 0:6], rtol=2e-4, atol=1e-2)
+    np.testing.assert_allclose(got_t[:, 42:78], want_t[:, 42:78], rtol=2e-4, atol=1.0)
+
+
 def test_group_frame_predicts_a_group_without_points(device):
     t = _table(np.random.default_rng(3), 4, 4)
     pts = np.full((16, 3), np.nan, np.float32)

@@ -20,7 +20,7 @@ import numpy as np
 
 from .launch import launch
 from .lm import _finite
-from .runtime import scratch, ti
+from .runtime import current_arch, scratch, ti
 
 nd = ti.types.ndarray()
 G = 23
@@ -177,10 +177,15 @@ def assign_points(device, points, velocities, means, spreads, active, gamma, N, 
 # (3) one thread per point: surface offset, gate and score (as _assign); (4) one thread: each
 # group's points in point order; (5) one thread per group: moments, eq. 7, the stereo EKF update
 # (eq. 4-6, Joseph form, as ekf_update_stereo); (6) one thread per group: the merge pre-test.
+# On taichi:cpu, up to SERIAL_POINTS points, (5) and (6) run on one thread too: only the gate's
+# loop wakes the thread pool.
 
 GC = 32  # scratch per slot: _assign's 23, then the merge centre (6) and radii (2)
 PD_EPS = 4.0 * float(np.finfo(np.float32).eps)  # the Kalman ops' pivot test (PD_EPS_FACTOR eps)
 SUM_BUCKET_LIMIT = 16384  # buckets x slots
+#: taichi:cpu runs loops 5 and 6 on one thread up to this many points: waking the pool's threads
+#: for a loop (~0.1 ms after the host's work between frames) costs more than those loops save
+SERIAL_POINTS = 16384
 
 
 @ti.func
@@ -215,7 +220,8 @@ def _bound3(tab: ti.template(), j, base: ti.template(), idx: ti.template(), fl):
 
 
 @ti.kernel
-def _frame(tab: nd, pts: nd, vel: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti.i32, nan: ti.f32):  # fmt: skip
+def _frame(tab: nd, pts: nd, vel: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i32, K: ti.i32, nan: ti.f32,
+           serial_groups: ti.template()):  # fmt: skip
     T = tab.shape[0]
     N = labels.shape[0]
     gamma, fp, fv, off = c[79], c[82], c[83], c[84]
@@ -327,6 +333,8 @@ def _frame(tab: nd, pts: nd, vel: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i
                 idx[idx[N + labels[i]]] = i
                 idx[N + labels[i]] += 1
     # 5. one thread per group: moments, eq. 7, the stereo EKF update
+    if ti.static(serial_groups):
+        ti.loop_config(serialize=True)
     for j in range(T):
         a, b = idx[N + T + j], idx[N + j]
         cnt = b - a
@@ -380,6 +388,8 @@ def _frame(tab: nd, pts: nd, vel: nd, c: nd, g: nd, idx: nd, labels: nd, n: ti.i
         g[j, 29] = ti.sqrt(c[85] * _bound3(tab, j, 42, ti.static((0, 2, 4)), fp))
         g[j, 30] = ti.sqrt(c[85] * _bound3(tab, j, 42, ti.static((1, 3, 5)), fv))
     # 6. one thread per group: the merge pre-test against the groups after it
+    if ti.static(serial_groups):
+        ti.loop_config(serialize=True)
     for i in range(T):
         nc = 0
         for k in ti.static(range(4)):
@@ -519,5 +529,7 @@ def group_frame(device, table, points, velocities, constants, n, labels):
                          f"and {T} slots")  # fmt: skip
     g = scratch(device, "group_frame g", (T, GC), ti.f32)
     idx = scratch(device, "group_frame idx", (N + 2 * T + 2 * K + 1 + T * K,), ti.i32)
-    launch(_frame, (table.buffer, points.buffer, velocities.buffer, constants.buffer, g, idx, labels.buffer), scalars=(int(n), int(K), math.nan))
+    serial = current_arch() == "cpu" and n <= SERIAL_POINTS
+    launch(_frame, (table.buffer, points.buffer, velocities.buffer, constants.buffer, g, idx, labels.buffer), (serial,),
+           scalars=(int(n), int(K), math.nan))
     return table, labels
