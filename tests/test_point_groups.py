@@ -3,11 +3,11 @@ eq. 7-11), hand-checked cases, and bad input."""
 
 import numpy as np
 import pytest
+from tolerances import assert_matches
 
 import gputrack
 from gputrack.backends.reference import point_groups as ref
 from gputrack.ops.point_groups import assign_points
-from tolerances import assert_matches
 
 POS, VEL = [0, 2, 4], [1, 3, 5]
 
@@ -126,8 +126,8 @@ def test_bad_input(device):
 
 # -- group_frame: a whole frame of the group table ------------------------------------------------
 
-from gputrack.ops import constant_velocity  # noqa: E402
-from gputrack.ops.point_groups import COLUMNS, group_constants, group_frame  # noqa: E402
+from gputrack.ops import constant_velocity
+from gputrack.ops.point_groups import COLUMNS, group_constants, group_frame
 
 
 def _constants(offset=120.0):

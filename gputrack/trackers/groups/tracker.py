@@ -67,6 +67,7 @@ z forward.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from typing import NamedTuple
 
@@ -75,6 +76,7 @@ import numpy as np
 from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import StereoCamera
 from ...ops import constant_velocity, radius_components
+from ...ops._args import check_device
 from ...ops.point_groups import (
     ACTIVE,
     CAND,
@@ -83,14 +85,13 @@ from ...ops.point_groups import (
     MAX_CAND,
     MEAN,
     NCAND,
-    P,
     SEEN,
     SIGMA,
+    P,
     X,
     group_constants,
     group_frame,
 )
-from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from . import rules
 from .front import FrontEndConfig, StereoFrontEnd
@@ -469,7 +470,7 @@ class GroupTracker:
             proj = ym @ axis
             order = np.argsort(proj, kind="stable")
             cut = np.concatenate([[0], np.flatnonzero(np.diff(proj[order]) > cfg.link_radius) + 1, [len(mine)]])
-            parts = [order[a:b] for a, b in zip(cut[:-1], cut[1:]) if b - a >= cfg.min_new]
+            parts = [order[a:b] for a, b in itertools.pairwise(cut) if b - a >= cfg.min_new]
             if len(parts) < 2:
                 self.apart[s] = 0
                 continue
