@@ -20,6 +20,8 @@ def test_may_exceed_is_false_exactly_where_every_eigenvalue_is_below_c():
         got = rules.may_exceed(S, c)
         assert np.array_equal(got, top >= c)
         assert 0 < got.sum() < len(S)  # both answers occur
+    S[0, 1, 1] = np.nan  # a spread that is not finite is never examined
+    assert not rules.may_exceed(S[:1], 0.0)[0]
 
 
 def _same_partition(a, b) -> bool:

@@ -81,11 +81,12 @@ def moments(points, velocities):
 
 def may_exceed(S, c: float) -> np.ndarray:
     """(k,) bool: may the largest eigenvalue of each symmetric 3x3 ``S`` (k, 3, 3) reach ``c``?
-    False only where c I - S is positive definite (Sylvester: its three leading minors are
-    positive), i.e. every eigenvalue is below c; a cheap exact filter before an eigendecomposition."""
+    False where c I - S is positive definite (Sylvester: its three leading minors are positive),
+    i.e. every eigenvalue is below c, and where S is not finite; a cheap exact filter before an
+    eigendecomposition."""
     S = np.asarray(S, np.float64)
     a, b, f = c - S[:, 0, 0], c - S[:, 1, 1], c - S[:, 2, 2]
     d, e, g = S[:, 0, 1], S[:, 0, 2], S[:, 1, 2]  # the off-diagonal entries of c I - S, negated
     m2 = a * b - d * d
     m3 = a * (b * f - g * g) - d * (d * f + g * e) - e * (d * g + b * e)
-    return ~((a > 0) & (m2 > 0) & (m3 > 0))
+    return ~((a > 0) & (m2 > 0) & (m3 > 0)) & np.isfinite(S).all((1, 2))
