@@ -70,7 +70,8 @@ def group_frame(device, table, points, velocities, constants, n, labels):
     enqueue(device, _kernel(device, "gt_gf_predict"), *ndrange(T), tab, c, g, T)
     enqueue(device, _kernel(device, "gt_gf_buckets"), (1,), None, g, idx, rows, T, K)
     if rows:
-        enqueue(device, _kernel(device, "gt_gf_assign"), *ndrange(rows), pts, vel, tab, c, g, idx, lab, rows, int(n), T, K)
+        enqueue(device, _kernel(device, "gt_gf_assign"), *ndrange(rows), pts, vel, tab, c, g, idx, lab, rows, int(n),
+                T, K)  # fmt: skip
     enqueue(device, _kernel(device, "gt_pg_order"), (1,), None, lab, idx, rows, int(n), T)
     enqueue(device, _kernel(device, "gt_gf_update"), *ndrange(T), pts, vel, tab, c, g, idx, rows, T)
     enqueue(device, _kernel(device, "gt_gf_candidates"), *ndrange(T), tab, g, T)
