@@ -110,6 +110,32 @@ def test_relocation_follows_the_appearance_and_the_prediction():
     np.testing.assert_allclose(relocate(flat, start, tpl, tpl), start)
 
 
+def test_patches_are_bilinear_with_the_border_pixel_outside():
+    """sample_patches against bilinear interpolation written out, with every sample coordinate
+    clipped into the image (the border pixel outside), for points inside, on and far past the edges."""
+    rng = np.random.default_rng(2)
+    img = rng.uniform(0, 255, (30, 40)).astype(np.float32)
+    pts = np.array([[12.3, 7.8], [0.0, 0.0], [-2.6, 14.2], [38.9, 29.4], [1e7, -1e7], [20.5, 15.5]])
+    S = 6
+    off = np.arange(S) - (S - 1) / 2.0
+    want = np.empty((len(pts), S, S))
+    for k, (u, v) in enumerate(pts):
+        for i in range(S):
+            for j in range(S):
+                x, y = np.clip(u + off[j], 0, 39), np.clip(v + off[i], 0, 29)
+                x0, y0 = min(int(x), 38), min(int(y), 28)
+                fx, fy = x - x0, y - y0
+                want[k, i, j] = ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
+                                 + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))  # fmt: skip
+    got = sample_patches(img, pts, S)
+    assert got.shape == (len(pts), S, S) and got.dtype == np.float64
+    np.testing.assert_allclose(got, want, atol=1e-3)  # float32 interpolation of values up to 255
+    np.testing.assert_allclose(sample_patches(img.astype(np.uint8), pts, S),
+                               sample_patches(img.astype(np.uint8).astype(np.float32), pts, S), atol=1e-3)  # fmt: skip
+    with pytest.raises(ValueError, match="finite"):
+        sample_patches(img, [[np.nan, 3.0]], S)
+
+
 # -- every device against the reference --------------------------------------------------------------------
 
 

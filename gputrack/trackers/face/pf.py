@@ -33,17 +33,19 @@ from .config import FaceConfig
 __all__ = ["FaceParticleFilter", "project_hypotheses"]
 
 
-def project_hypotheses(camera: Camera, states, mean, basis) -> np.ndarray:
-    """(N, K, 2) float32 pixels of the K model points of each hypothesis (N, 6 + D) (eq. 5, 11)."""
+def project_hypotheses(camera: Camera, states, mean, basis, rotations=None) -> np.ndarray:
+    """(N, K, 2) float32 pixels of the K model points of each hypothesis (N, 6 + D) (eq. 5, 11);
+    ``rotations``: their rotation matrices (N, 3, 3) where already known (default: from the states)."""
     states = np.asarray(states, np.float64)
-    N, D = len(states), basis.shape[2]
-    shapes = mean + (states[:, 6:] @ basis.reshape(-1, D).T).reshape(N, -1, 3)  # eq. 11
-    R = rodrigues(states[:, :3])
-    X = [R[:, c, 0, None] * shapes[..., 0] + R[:, c, 1, None] * shapes[..., 1] + R[:, c, 2, None] * shapes[..., 2]
-         + states[:, 3 + c, None] for c in range(3)]  # fmt: skip
-    z = np.maximum(X[2], 1.0)  # points behind the camera land far off the image and score 0
-    uv = np.stack([camera.fx * X[0] / z + camera.cx, camera.fy * X[1] / z + camera.cy], axis=-1)
-    return np.clip(uv, -1e6, 1e6).astype(np.float32)
+    N, K, D = len(states), len(mean), basis.shape[2]
+    R = rodrigues(states[:, :3]) if rotations is None else rotations
+    shapes = (states[:, 6:] @ basis.transpose(2, 1, 0).reshape(D, 3 * K)).reshape(N, 3, K) + np.asarray(mean).T
+    X = R @ shapes + states[:, 3:6, None]  # (N, 3, K): one 3 x 3 by 3 x K product per hypothesis
+    iz = 1.0 / np.maximum(X[:, 2], 1.0)  # points behind the camera land far off the image and score 0
+    uv = np.empty((N, K, 2), np.float32)
+    uv[..., 0] = np.clip(camera.fx * X[:, 0] * iz + camera.cx, -1e6, 1e6)
+    uv[..., 1] = np.clip(camera.fy * X[:, 1] * iz + camera.cy, -1e6, 1e6)
+    return uv
 
 
 class FaceParticleFilter:
@@ -65,6 +67,7 @@ class FaceParticleFilter:
         self.D = len(self.a_mean)
         self.K = 0  # feature points, set by reset
         self.proposed = None  # (N, 6 + D) the hypotheses being scored
+        self._rotations = None  # (the proposed hypotheses, their rotation matrices (N, 3, 3))
         self.best_score = 0.0
         self.states = None  # (N, 6 + D) the hypotheses of the last step
         self.weights = None  # (N,)
@@ -102,15 +105,19 @@ class FaceParticleFilter:
         drift[6:] = 0.0  # eq. 12: no velocity term for the deformation
         return self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
 
-    def log_weights(self, scores, states) -> np.ndarray:
+    def log_weights(self, scores, states, rotations=None) -> np.ndarray:
         """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2; -inf for a
         hypothesis whose face is turned more than ``config.max_turn`` degrees from the camera (its
         feature points would be hidden: no NCC can speak for it) or whose depth is outside
-        ``config.depth_range`` (a filter that loses the face must not run away in depth)."""
+        ``config.depth_range`` (a filter that loses the face must not run away in depth).
+        ``rotations``: the states' rotation matrices (N, 3, 3) where already known."""
         lw = -((self.K - scores) ** 2) / (2.0 * self.config.sigma**2)
-        into = rodrigues(states[:, :3])[:, :, 2]  # the model's z axis (into the head) in the camera frame
-        ray = states[:, 3:6] / np.maximum(np.linalg.norm(states[:, 3:6], axis=1, keepdims=True), 1e-9)
-        lw[np.einsum("nc,nc->n", into, ray) < np.cos(np.radians(self.config.max_turn))] = -np.inf
+        R = rodrigues(states[:, :3]) if rotations is None else rotations
+        t = states[:, 3:6]
+        # the model's z axis (into the head) against the ray to the head, both in the camera frame
+        cos = (R[:, 0, 2] * t[:, 0] + R[:, 1, 2] * t[:, 1] + R[:, 2, 2] * t[:, 2]) / np.maximum(
+            np.sqrt(t[:, 0] ** 2 + t[:, 1] ** 2 + t[:, 2] ** 2), 1e-9)
+        lw[cos < np.cos(np.radians(self.config.max_turn))] = -np.inf
         lo, hi = self.config.depth_range
         lw[(states[:, 5] < lo) | (states[:, 5] > hi)] = -np.inf  # a head nearer or farther than a camera sees one
         if self.config.prior:
@@ -122,14 +129,17 @@ class FaceParticleFilter:
         """Sample the frame's hypotheses (eq. 12) and return their K points (N, K, 2) float32 to score
         (eq. 11 with the shape ``mean`` (K, 3) and ``basis`` (K, 3, D) of the current identity)."""
         self.proposed = self.sample()
-        return project_hypotheses(self.camera, self.proposed, mean, basis)
+        R = rodrigues(self.proposed[:, :3])
+        self._rotations = (self.proposed, R)
+        return project_hypotheses(self.camera, self.proposed, mean, basis, R)
 
     def update(self, scores) -> np.ndarray:
         """Weigh the proposed hypotheses by their NCC sums ``scores`` (N,) (eq. 13) and return the
         state estimate (6 + D,): the weighted mean of the hypotheses near the best one."""
         states = self.proposed
         scores = np.asarray(scores, np.float64)
-        lw = self.log_weights(scores, states)
+        known = self._rotations is not None and self._rotations[0] is states
+        lw = self.log_weights(scores, states, self._rotations[1] if known else None)
         if not np.isfinite(lw).any():  # every hypothesis turned away: keep them all, equally weighted
             lw = np.zeros_like(lw)
         w = np.exp(lw - lw.max())

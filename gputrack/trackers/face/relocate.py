@@ -13,25 +13,52 @@ linearised patch I_t(m + d + x) ~ I_t(m + x) + G d (G the patch's image gradient
     ((rho + 1) G^T G + eps I) d = -( G^T (rho (I_t - I_{t-1}) + (I_t - I_1)) + eps (m - m'_k) ),
 
 a 2 x 2 solve, a few iterations, each step at most ``max_step`` pixels. The K points are
-independent, so they are solved together in NumPy (K 2 x 2 systems of 16 x 16 patches).
+independent, so they are solved together: one matrix product per iteration gives every point's
+G^T G and G^T e (the K products of the rows gx, gy with the rows gx, gy, e).
 
 Patches sample the image bilinearly with the convention of :func:`gputrack.ops.ncc.patch_ncc`:
-patch pixel (i, j) of a point (u, v) is the image at (u + j - (S-1)/2, v + i - (S-1)/2).
+patch pixel (i, j) of a point (u, v) is the image at (u + j - (S-1)/2, v + i - (S-1)/2), samples
+outside the image taking the nearest border pixel. Patches inside the image come from OpenCV's
+``getRectSubPix``, which follows the same convention (float32 arithmetic; ~3x faster here than
+the same gathers in NumPy); patches that reach the image's edge are gathered in NumPy.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 __all__ = ["relocate", "sample_patches"]
 
 
 def sample_patches(image, points, size: int) -> np.ndarray:
-    """(K, S, S) float64 bilinear patches of ``image`` (H, W) centred on ``points`` (K, 2); samples
-    outside the image take the nearest border pixel."""
+    """(K, S, S) float64 bilinear patches of ``image`` (H, W) centred on the finite ``points`` (K, 2);
+    samples outside the image take the nearest border pixel."""
     img = np.asarray(image)
+    if img.ndim != 2 or min(img.shape) < 2:
+        raise ValueError(f"image: expected a 2-D image of at least 2 x 2 pixels, got shape {img.shape}")
+    if img.dtype != np.uint8:
+        img = np.ascontiguousarray(img, np.float32)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if not np.isfinite(pts).all():
+        raise ValueError(f"points: expected finite pixel coordinates, got {pts[~np.isfinite(pts).all(axis=1)][:3]}")
     H, W = img.shape
-    pts = np.asarray(points, dtype=np.float64)
+    out = np.empty((len(pts), size, size), np.float64)
+    # OpenCV replicates another pixel than the border one past the right and bottom edges: it takes
+    # only the patches whose samples and their right and lower neighbours all lie in the image
+    half = (size - 1) / 2.0
+    inside = (pts >= half).all(axis=1) & (pts[:, 0] + half <= W - 2) & (pts[:, 1] + half <= H - 2)
+    for k in np.flatnonzero(inside).tolist():
+        out[k] = cv2.getRectSubPix(img, (size, size), (pts[k, 0], pts[k, 1]), patchType=cv2.CV_32F)
+    if not inside.all():
+        out[~inside] = _border_patches(img, pts[~inside], size)
+    return out
+
+
+def _border_patches(img, pts, size: int) -> np.ndarray:
+    """sample_patches for points whose patches reach the image's edge: each sample coordinate
+    clipped into the image, then bilinear."""
+    H, W = img.shape
     off = np.arange(size) - (size - 1) / 2.0
     x = np.clip(pts[:, 0, None] + off, 0.0, W - 1.0)[:, None, :]  # (K, 1, S)
     y = np.clip(pts[:, 1, None] + off, 0.0, H - 1.0)[:, :, None]  # (K, S, 1)
@@ -55,26 +82,27 @@ def relocate(image, predicted, previous, first, *, start=None, rho: float = 4.0,
     singular or whose step is not finite stay where they are.
     """
     prev = np.asarray(previous, np.float64)
-    first = np.asarray(first, np.float64)
-    S = prev.shape[-1]
+    K, S = prev.shape[0], prev.shape[-1]
+    target = (rho * prev + np.asarray(first, np.float64)).reshape(K, -1)  # e = (rho + 1) I - target
     pred = np.asarray(predicted, np.float64)
     m = pred.copy() if start is None else np.asarray(start, np.float64).copy()
+    rows = np.empty((K, 3, S * S))  # gx, gy, e per point
+    gx, gy, e = (rows[:, i].reshape(K, S, S) for i in range(3))
     for _ in range(iterations):
         big = sample_patches(image, m, S + 2)  # the patch and a one-pixel ring: gradients by central differences
-        I = big[:, 1:-1, 1:-1]
-        gx = (big[:, 1:-1, 2:] - big[:, 1:-1, :-2]) / 2.0
-        gy = (big[:, 2:, 1:-1] - big[:, :-2, 1:-1]) / 2.0
-        G = np.stack([gx.reshape(len(m), -1), gy.reshape(len(m), -1)], axis=-1)  # (K, S^2, 2)
-        e = (rho * (I - prev) + (I - first)).reshape(len(m), -1)  # eq. 14's appearance terms
-        A = (rho + 1.0) * np.einsum("kpi,kpj->kij", G, G) + eps * np.eye(2)
-        g = np.einsum("kpi,kp->ki", G, e) + eps * (m - pred)
-        det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+        np.subtract(big[:, 1:-1, 2:], big[:, 1:-1, :-2], out=gx)
+        np.subtract(big[:, 2:, 1:-1], big[:, :-2, 1:-1], out=gy)
+        rows[:, :2] *= 0.5
+        np.multiply(big[:, 1:-1, 1:-1], rho + 1.0, out=e)
+        rows[:, 2] -= target  # eq. 14's appearance terms
+        Q = rows[:, :2] @ rows.transpose(0, 2, 1)  # (K, 2, 3): G^T G | G^T e
+        a00, a01, a11 = (rho + 1.0) * Q[:, 0, 0] + eps, (rho + 1.0) * Q[:, 0, 1], (rho + 1.0) * Q[:, 1, 1] + eps
+        g = Q[:, :, 2] + eps * (m - pred)
+        det = a00 * a11 - a01 * a01
         ok = np.abs(det) > 1e-12
-        safe = np.where(ok, det, 1.0)
-        d = -np.stack([A[:, 1, 1] * g[:, 0] - A[:, 0, 1] * g[:, 1], -A[:, 1, 0] * g[:, 0] + A[:, 0, 0] * g[:, 1]],
-                      axis=-1) / safe[:, None]  # fmt: skip
-        d = np.where(ok[:, None] & np.isfinite(d), d, 0.0)
-        n = np.linalg.norm(d, axis=1, keepdims=True)
+        d = np.stack([a01 * g[:, 1] - a11 * g[:, 0], a01 * g[:, 0] - a00 * g[:, 1]], axis=-1) / np.where(ok, det, 1.0)[:, None]
+        d[~(ok[:, None] & np.isfinite(d))] = 0.0
+        n = np.hypot(d[:, 0], d[:, 1])[:, None]
         d *= np.minimum(1.0, max_step / np.maximum(n, 1e-12))
         m += d
         if np.abs(d).max(initial=0.0) < 0.01:
