@@ -392,12 +392,13 @@ class BundleProblem:
         # Jacobi scaling (as MINPACK's diag): the solver works in y = x / d with d_j = 1 / |column j of J|
         # at the start, so that its damping C I (C relative to the unit diagonal) treats radians,
         # millimetres and model coordinates alike; fixed parameters (lower == upper) keep d = 1.
-        J0 = self.jacobian(self.x0[None])[0]
-        norm = np.sqrt(np.einsum("mp,mp->p", J0, J0))
+        r0, J0 = self.evaluate(self.x0[None])
+        norm = np.sqrt(np.einsum("mp,mp->p", J0[0], J0[0]))
         d = np.where((self.upper > self.lower) & (norm > 1e-12 * max(norm.max(), 1e-300)), 1.0 / np.maximum(norm, 1e-300),
                      1.0)  # fmt: skip
-        fns = _Callables(self, d)
-        res = solver.solve(fns.residuals, (self.x0 / d)[None], jacobian=fns.jacobian, lower=self.lower / d,
+        y0 = (self.x0 / d)[None]
+        fns = _Callables(self, d, start=(y0, r0, J0))
+        res = solver.solve(fns.residuals, y0, jacobian=fns.jacobian, lower=self.lower / d,
                            upper=self.upper / d, damping=DAMPING, host=True)  # fmt: skip
         x = np.clip(res.x[0].astype(np.float64) * d, self.lower, self.upper)
         cost = self.cost(x)
@@ -411,15 +412,20 @@ class _Callables:
     """The residual and Jacobian callables handed to the solver in its host mode (NumPy points in,
     NumPy results out). Both are evaluated at the same point each iteration: the residual call
     computes the Jacobian too and keeps it for the Jacobian call that the solver makes next at the
-    same points (its protocol)."""
+    same points (its protocol). ``start``: (Y0, r, J) the residuals and Jacobian already evaluated at
+    the scaled start points Y0, returned for the solver's first call there."""
 
-    def __init__(self, problem: BundleProblem, scale):
-        self.problem, self.scale = problem, scale
+    def __init__(self, problem: BundleProblem, scale, start=None):
+        self.problem, self.scale, self._start = problem, scale, start
         self._J, self._dtype = None, np.dtype(np.float64)
 
     def residuals(self, X):
-        x = X.astype(np.float64) * self.scale
-        r, self._J = self.problem.evaluate(x, jacobian=x.shape[0] == 1)
+        start, self._start = self._start, None
+        if start is not None and X.shape == start[0].shape and np.array_equal(X, start[0]):
+            r, self._J = start[1], start[2]
+        else:
+            x = X.astype(np.float64) * self.scale
+            r, self._J = self.problem.evaluate(x, jacobian=x.shape[0] == 1)
         self._dtype = X.dtype
         return r.astype(X.dtype, copy=False)
 
