@@ -14,12 +14,13 @@ J^T, a 2 x 4 block of J^T J, a problem's acceptance, damped factorisation or nex
 loop passes per invocation are bounded: lavapipe stops all loops of a shader invocation after
 65535 passes in total and goes on with wrong numbers (section "the parallel archs" below).
 
-``lm_solve`` and ``normal_equations`` on taichi:cpu with P <= STATIC_P_MAX read J (B, M, P) as
-stored: P is a compile-time value and each row of J adds its outer product with itself to J^T J
-as SIMD vectors of columns (``_gram_static``; the kernels are compiled with scalarisation off).
-Otherwise the normal equations are dot products over contiguous rows of J^T, two rows by four
-columns per pass over M (``_gram_pair``); strided dot products were 3-4x slower, so J is first
-transposed. Taichi reloads an ndarray's address and shape after every store (it
+``lm_solve``, ``normal_equations`` and the solver with a Jacobian on taichi:cpu read J (B, M, P)
+as stored, in SIMD lane vectors of columns (the kernels are compiled with scalarisation off): for
+P <= STATIC_P_MAX, P is a compile-time value and each row of J adds its outer product with itself
+to J^T J (``_gram_static``); above it, J^T J is summed in 8 x 8 tiles (``_gram_tiles``). Elsewhere (the parallel archs, and the solver's central
+differences from the stacked residuals) the normal equations are dot products over contiguous rows
+of J^T, two rows by four columns per pass over M (``_gram_pair``); strided dot products were 3-4x
+slower, so J is first transposed. Taichi reloads an ndarray's address and shape after every store (it
 cannot rule out aliasing), so a loop that stores per element is not vectorised and costs
 ~1-1.5 ns per element: the transpose groups its loads, and the solver, with central differences
 and no mask, computes J^T J and J^T r straight from the stacked residuals (``fused``) instead of
@@ -72,6 +73,7 @@ G_SCALE = LAY.G_SCALE
 SCALE_IDENTITY, SCALE_MARQUARDT, SCALE_MINPACK = (int(m) for m in LMScale)  # gputrack.abi
 GRAM_SEG = 8  # columns per SIMD vector of _gram_static (8 float64: one AVX-512 register)
 STATIC_P_MAX = 32  # _gram_static unrolls P (P (P / 8 + 1) / 2 vector products per row of J)
+TILES = -1  # the SP template value of _gram_tiles (P at run time, above STATIC_P_MAX)
 
 
 def _per_problem() -> bool:
@@ -298,6 +300,74 @@ def _gram_static(J: ti.template(), r: ti.template(), b, M, W: ti.template(), a, 
 
 
 @ti.func
+def _lane_row(J: ti.template(), b, m, c0, P, dt: ti.template(), edge: ti.template()):
+    """J[b, m, c0 .. c0 + GRAM_SEG - 1] as one lane vector; with ``edge`` the columns >= P read 0."""
+    T = ti.static(GRAM_SEG)
+    v = ti.Vector([0.0] * T, dt=dt)
+    if ti.static(edge):
+        v = ti.Vector([ti.select(c0 + e < P, ti.cast(J[b, m, ti.min(c0 + e, P - 1)], dt), ti.cast(0, dt))
+                       for e in ti.static(range(T))], dt=dt)  # fmt: skip
+    else:
+        v = ti.Vector([ti.cast(J[b, m, c0 + e], dt) for e in ti.static(range(T))], dt=dt)
+    return v
+
+
+@ti.func
+def _gram_tile(J: ti.template(), b, M, P, W: ti.template(), a, i0, j0, dt: ti.template(), edge: ti.template()):
+    """Rows i0.. and columns j0.. (GRAM_SEG each, j0 <= i0) of J^T J into W[a + i*P + j] and its
+    mirror: the sum over the rows m of J of row m's entries i times its lane vector of columns j."""
+    T = ti.static(GRAM_SEG)
+    acc = [ti.Vector([0.0] * T, dt=dt) for _ in ti.static(range(T))]
+    for m in range(M):
+        col = _lane_row(J, b, m, j0, P, dt, edge)
+        for q in ti.static(range(T)):
+            x = ti.cast(0, dt)
+            if ti.static(edge):
+                x = ti.select(i0 + q < P, ti.cast(J[b, m, ti.min(i0 + q, P - 1)], dt), ti.cast(0, dt))
+            else:
+                x = ti.cast(J[b, m, i0 + q], dt)
+            acc[q] += x * col
+    for q in ti.static(range(T)):
+        for e in ti.static(range(T)):
+            i, j = i0 + q, j0 + e
+            if i < P and j <= i:
+                W[a + i * P + j] = acc[q][e]
+                W[a + j * P + i] = acc[q][e]
+
+
+@ti.func
+def _gram_tiles(J: ti.template(), r: ti.template(), b, M, P, W: ti.template(), a, go, dt: ti.template()):
+    """J^T J (both triangles) into W[a + i*P + j] and J^T r into W[go + i] (eq. 22) from J[b] (M, P)
+    as stored, P at run time (taichi:cpu, P > STATIC_P_MAX): the lower triangle in GRAM_SEG x
+    GRAM_SEG tiles, each a pass over the rows of J with GRAM_SEG lane-vector sums (no spills, each
+    row of J read once per tile; only the tiles of the last row band test the columns against P).
+    For P = 92, M = 155, float64 (the face bundle's update) 84-102 us against 96-114 us copying J
+    into rows of J^T and summing row pairs (``_phase_jacobian`` + ``_gram_pair``; minimum of 300
+    launches each, two runs, 2026-12-06); the tiled sums also serve ``lm_solve`` and
+    ``normal_equations``, where J was transposed first."""
+    T = ti.static(GRAM_SEG)
+    NB = (P + T - 1) // T
+    full = P // T  # row bands without columns past P
+    for bi in range(NB):
+        for bj in range(bi + 1):
+            if bi < full:
+                _gram_tile(J, b, M, P, W, a, bi * T, bj * T, dt, False)
+            else:
+                _gram_tile(J, b, M, P, W, a, bi * T, bj * T, dt, True)
+    for bi in range(NB):
+        acc = ti.Vector([0.0] * T, dt=dt)
+        if bi < full:
+            for m in range(M):
+                acc += ti.cast(r[b, m], dt) * _lane_row(J, b, m, bi * T, P, dt, False)
+        else:
+            for m in range(M):
+                acc += ti.cast(r[b, m], dt) * _lane_row(J, b, m, bi * T, P, dt, True)
+        for e in ti.static(range(T)):
+            if bi * T + e < P:
+                W[go + bi * T + e] = acc[e]
+
+
+@ti.func
 def _ops_block(P, M):
     """Per-problem block of the ops' 1-D workspace: A[P*P] (J^T J, then its factor), J^T [P*M], g[P]."""
     return P * P + P * M + P
@@ -305,21 +375,16 @@ def _ops_block(P, M):
 
 @ti.kernel
 def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template(), SP: ti.template()):
-    """SP: P as a compile-time value for ``_gram_static`` (taichi:cpu), else 0."""
+    """taichi:cpu (the parallel archs run ``_normal_equations_tasks``). SP: P as a compile-time value
+    for ``_gram_static``, or TILES (``_gram_tiles``)."""
     B, M, P = J.shape[0], J.shape[1], J.shape[2]
     WB = _ops_block(P, M)
-    if ti.static(SP > 0):
-        ti.loop_config(serialize=True)  # B small problems: one task (see _per_problem)
-        for b in range(B):
+    ti.loop_config(serialize=True)  # B small problems: one task (see _per_problem)
+    for b in range(B):
+        if ti.static(SP > 0):
             _gram_static(J, r, b, M, W, b * WB, b * WB + SP * SP + SP * M, SP, dt)  # eq. 22
-    else:
-        for t in range(B * P):
-            b = t // P
-            _transpose(J, W, b, t % P, b * WB + P * P, M)
-        for t in range(B * ((P + 1) // 2)):
-            b, i = t // ((P + 1) // 2), 2 * (t % ((P + 1) // 2))
-            a = b * WB
-            _gram_pair(W, a + P * P, M, W, a, r, b, W, a + P * P + P * M, i, M, P, dt, 0, W, 0)  # eq. 22
+        else:
+            _gram_tiles(J, r, b, M, P, W, b * WB, b * WB + P * P + P * M, dt)  # eq. 22
     for t in range(B * P * P):
         b, k = t // (P * P), t % (P * P)
         JtJ[b, k // P, k % P] = W[b * WB + k]
@@ -382,7 +447,8 @@ def _lm_step(JtJ: nd, Jtr: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.tem
 def _lm_solve(J: nd, r: nd, damping: nd, delta: nd, ok: nd, W: nd, dt: ti.template(), SP: ti.template()):
     """W: (B * _ops_block(P, M),) work. taichi:cpu: one problem after the other (``_per_problem``;
     the problem's data stays in cache between the products and the factorisation); the parallel
-    archs run ``_lm_solve_tasks``. SP: P as a compile-time value for ``_gram_static``, else 0."""
+    archs run ``_lm_solve_tasks``. SP: P as a compile-time value for ``_gram_static``, or TILES
+    (``_gram_tiles``)."""
     B = J.shape[0]
     ti.loop_config(serialize=True)
     for b in range(B):
@@ -407,10 +473,7 @@ def _solve_one(
     if ti.static(SP > 0):
         _gram_static(J, r, b, M, W, a, jt + SP * M, SP, dt)  # eq. 22: J^T J, J^T r
     else:
-        for i in range(P):
-            _transpose(J, W, b, i, jt, M)
-        for i2 in range((P + 1) // 2):
-            _gram_pair(W, jt, M, W, a, r, b, W, jt + P * M, 2 * i2, M, P, dt, 0, W, 0)  # eq. 22: J^T J, J^T r
+        _gram_tiles(J, r, b, M, P, W, a, jt + P * M, dt)  # eq. 22: J^T J, J^T r
     for i in range(P):
         delta[b, i] = W[jt + P * M + i]
     ok[b] = _chol_solve(W, a, delta, b, P, damping[b], dt)  # eq. 22: (J^T J + C I) delta = J^T r
@@ -422,8 +485,11 @@ def _work(device, shape, dtype):
 
 
 def _static_p(P: int) -> int:
-    """P as a compile-time value for ``_gram_static`` on taichi:cpu (P <= STATIC_P_MAX), else 0."""
-    return P if current_arch() == "cpu" and P <= STATIC_P_MAX else 0
+    """How taichi:cpu sums J^T J from a stored J: P as a compile-time value for ``_gram_static``
+    (P <= STATIC_P_MAX), else TILES (``_gram_tiles``); 0 on the other archs."""
+    if current_arch() != "cpu":
+        return 0
+    return P if P <= STATIC_P_MAX else TILES
 
 
 def normal_equations(device, J, r, out):
@@ -960,10 +1026,11 @@ def _update(
     """One solver iteration on taichi:cpu (the parallel archs run ``_update_tasks``); ``Jg`` is the
     user's Jacobian when ``use_jac``, else unused (pass R). ``fused`` (central differences without a
     mask): J^T J and J^T r straight from the stacked residuals, J^T never stored (on taichi:cpu
-    storing it cost as much as the products). ``SP`` (with ``use_jac``, P <= STATIC_P_MAX): P as a
-    compile-time value: J^T J and J^T r at the trial straight from Jg as stored (``_gram_static``)
-    into the factor's block L and the first P values of J^T, J^T never stored, moved to A and g if
-    the trial is accepted (J is finite iff the diagonal of J^T J is)."""
+    storing it cost as much as the products). With ``use_jac``, J^T J and J^T r at the trial come
+    straight from Jg as stored into the factor's block L and the first P values of J^T (J^T never
+    stored) and move to A and g if the trial is accepted (J is finite iff the diagonal of J^T J
+    is): ``SP`` is P as a compile-time value (``_gram_static``) or TILES (``_gram_tiles``)."""
+    ti.static_assert(not use_jac or SP != 0, "the solver's Jacobian path on taichi:cpu needs SP (_static_p)")
     B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
     NPR = (P + 1) // 2  # row pairs
     ti.loop_config(serialize=True)
@@ -972,27 +1039,30 @@ def _update(
             if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
                 if ti.static(fused):
                     _phase_finite(S, I, R, b, dt)
-                elif ti.static(use_jac and SP > 0):
-                    A = b * _wb(SP, M) + LAY.W_A * SP * SP
-                    L = A + (LAY.W_L - LAY.W_A) * SP * SP
-                    jt = b * _wb(SP, M) + LAY.W_NSQ * SP * SP
-                    _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
-                    for n in ti.static(range(SP)):
-                        I[_ib(b, SP) + LAY.I_FIN + n] = _finite(W[L + n * SP + n], dt)
+                elif ti.static(use_jac):
+                    A = b * _wb(P, M) + LAY.W_A * P * P
+                    L = A + (LAY.W_L - LAY.W_A) * P * P
+                    jt = b * _wb(P, M) + LAY.W_NSQ * P * P
+                    if ti.static(SP > 0):
+                        _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
+                    else:
+                        _gram_tiles(Jg, R, b, M, P, W, L, jt, dt)  # eq. 22 at the trial
+                    for n in range(P):
+                        I[_ib(b, P) + LAY.I_FIN + n] = _finite(W[L + n * P + n], dt)
                 else:
                     for n in range(P):
                         _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
         _phase_accept(S, I, W, R, b, dt, first, final)
         if ti.static(not final):
-            if ti.static(use_jac and SP > 0):
-                if I[_ib(b, SP) + LAY.I_ACCEPTED]:
-                    A = b * _wb(SP, M) + LAY.W_A * SP * SP
-                    L = A + (LAY.W_L - LAY.W_A) * SP * SP
-                    jt = b * _wb(SP, M) + LAY.W_NSQ * SP * SP
-                    for k in range(SP * SP):
+            if ti.static(use_jac):
+                if I[_ib(b, P) + LAY.I_ACCEPTED]:
+                    A = b * _wb(P, M) + LAY.W_A * P * P
+                    L = A + (LAY.W_L - LAY.W_A) * P * P
+                    jt = b * _wb(P, M) + LAY.W_NSQ * P * P
+                    for k in range(P * P):
                         W[A + k] = W[L + k]
-                    for n in range(SP):
-                        S[b * _sb(SP) + LAY.S_G * SP + n] = W[jt + n]
+                    for n in range(P):
+                        S[b * _sb(P) + LAY.S_G * P + n] = W[jt + n]
             else:
                 for i2 in range(NPR):
                     _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
@@ -1809,7 +1879,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
         if jac is None and not state.lay.has_mask and not final:
             fused = 1 if R.shape[0] == state.lay.B * (2 * state.lay.P + 1) else 2
         SP = _static_p(state.lay.P) if jac is not None else 0
-        launch(_update, args, (state.dt, bool(first), bool(final), jac is not None, fused, SP), scalarize=SP == 0)
+        launch(_update, args, (state.dt, bool(first), bool(final), jac is not None, fused, SP), scalarize=jac is None)
     else:
         B, P = state.lay.B, state.lay.P
         NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))
