@@ -26,7 +26,8 @@ a NaN coordinate is unknown (occluded): its weight is 0. ``weights`` (n, K) >= 0
   columns are constant; "0" means below ``ZERO_STD_RTOL`` x the largest std) is fixed at the model's mean;
 - ``fixed_first=True`` fixes the first frame's pose at its start value.
 
-**Jacobian**: analytic, vectorised NumPy (:meth:`BundleProblem.jacobian`). Through the camera,
+**Jacobian**: analytic (:mod:`gputrack.ops.face_bundle`: a device kernel, and vectorised NumPy on the
+host, :meth:`BundleProblem.jacobian`). Through the camera,
 dm/dY = [[fx/Z, 0, -fx X/Z^2], [0, fy/Z, -fy Y/Z^2]]; dY/dtvec = I; dY/da = R (dX/da); dY/ds = R (dX/ds);
 and for the rotation the exact derivative of the Rodrigues map: R(r + dr) = exp([J_l(r) dr]x) R(r) to
 first order, J_l the left Jacobian of SO(3), so d(R X)/dr = -[R X]x J_l(r).
@@ -36,10 +37,11 @@ multilinear model: linear; the generic PCA model: constant, with S' = 0), so
 X = mean + (L0 + sum_p s_p G_p) a with L0 = basis(0), G_p = basis(e_p) - L0 (:func:`model_terms`).
 
 **Solve** (:func:`bundle_adjust`): a :class:`gputrack.LeastSquaresSolver` with B = 1, the analytic Jacobian
-and the box, on any device (:class:`IncrementalBundle` holds its solvers from frame to frame). Residuals
-and Jacobian are computed on the host in float64 and handed to the solver as NumPy arrays (its ``host``
-mode): taichi:cpu's kernels read them in place, other devices copy them into buffers the solver keeps
-from solve to solve, without waiting.
+and the box, on any device (:class:`IncrementalBundle` holds its solvers and residual kernels from
+frame to frame). The residuals and Jacobian come from a device kernel
+(:class:`gputrack.ops.face_bundle.LandmarkResiduals`: one launch per iteration, nothing through the
+host; the model and each solve's landmarks uploaded once) where :func:`device_model` says so, else
+from the host model in float64, handed to the solver as NumPy arrays (its ``host`` mode).
 
 **Key frames** (:class:`IncrementalBundle`, sec. 3.1, eq. 10): see its docstring.
 """
@@ -52,7 +54,8 @@ import logging
 import numpy as np
 
 from ...models.camera import Camera
-from ...models.pose import rodrigues, rotation_coefficients, skew
+from ...models.pose import rodrigues
+from ...ops.face_bundle import LandmarkFrames, LandmarkModel, LandmarkResiduals, evaluate, geometry
 from ...ops.lm import LeastSquaresSolver, LMStatus
 
 log = logging.getLogger("gputrack")
@@ -88,19 +91,7 @@ SPREAD_RTOL = 1e-9
 
 
 # ------------------------------------------------------------------------------------------------
-# rotations
-
-
-def _rotations(r: np.ndarray):
-    """(..., 3) Rodrigues vectors -> R (..., 3, 3) (as ``rodrigues``) and the left Jacobian of SO(3)
-    J_l (..., 3, 3): R(r + dr) = exp([J_l dr]x) R(r) + O(dr^2); both from the same coefficients and
-    [r]x."""
-    a, b, c = rotation_coefficients(r)
-    K = skew(r)
-    K2 = K @ K
-    a, b, c = (v[..., None, None] for v in (a, b, c))
-    eye = np.eye(3)
-    return eye + a * K + b * K2, eye + b * K + c * K2
+# key frames
 
 
 def keyframe_spread(rvecs) -> np.ndarray:
@@ -249,7 +240,6 @@ class BundleProblem:
         if self.points < 1:
             raise ValueError("landmarks: expected at least 1 usable landmark (finite, weight > 0), got 0")
         self.n, self.K, self.A, self.S = n, K, A, S
-        self._G2 = tm.G.transpose(2, 0, 1, 3).reshape(S, K * 3 * A)  # eq. 4's sum over s as one product
         self.F = 6 + A  # parameters per frame
         self.P = n * self.F + S
         self.M = 2 * K * n
@@ -263,9 +253,13 @@ class BundleProblem:
         self.weights = w
         self._sw = np.sqrt(w)
         self._target = np.where(w[..., None] > 0, np.nan_to_num(lm), 0.0)
+        self._model = LandmarkModel(tm.mean, tm.L0, tm.G, camera, MIN_DEPTH)
+        self._frames = LandmarkFrames(self._target, self._sw, prior=self._prior,
+                                      prior_mean=None if self._prior is None else tm.identity_mean)  # fmt: skip
+        self._frames.check(self._model)
         self.x0 = self.pack(rv, tv, ex, s)
         self.lower, self.upper = self._box(_pose_range(pose_range), expression_range, identity_sigmas, fixed_first)
-        depth = self._geometry(*self.unpack(self.x0[None]))[3][..., 2]
+        depth = geometry(self._model, self.x0[None])[..., 2]
         if (depth <= MIN_DEPTH).any():
             i, k = (int(j) for j in np.argwhere(depth[0] <= MIN_DEPTH)[0])
             raise ValueError(f"tvecs: expected every model point in front of the camera (depth > {MIN_DEPTH} mm), "
@@ -305,19 +299,6 @@ class BundleProblem:
         return lower, upper
 
     # -- evaluation ------------------------------------------------------------------------------
-    def _geometry(self, rv, tv, ex, s, R=None):
-        """For the :meth:`unpack` parts of points (B, P): R (B, n, 3, 3), the expression basis Bs
-        (B, K, 3, A'), RX (B, n, K, 3), Y = RX + t (B, n, K, 3) camera-frame points (eq. 4-5); R given
-        or from rv."""
-        tm, n, K, A = self.terms, self.n, self.K, self.A
-        B = rv.shape[0]
-        if R is None:
-            R = rodrigues(rv)
-        Bs = tm.L0 + (s @ self._G2).reshape(B, K, 3, A)  # eq. 4: basis of a for identity s
-        X = tm.mean + (ex @ Bs.reshape(B, K * 3, A).transpose(0, 2, 1)).reshape(B, n, K, 3)  # eq. 4: M_i(a_i, s)
-        RX = X @ R.transpose(0, 1, 3, 2)
-        return R, Bs, RX, RX + tv[:, :, None, :]
-
     def residuals(self, x) -> np.ndarray:
         """(B, P) -> (B, M) float64: sqrt(w_ik) (P(p_i, M_i(a_i, s))_k - m-hat_ik) (eq. 5-6)."""
         return self.evaluate(x, jacobian=False)[0]
@@ -327,44 +308,9 @@ class BundleProblem:
         return self.evaluate(x, jacobian=True)[1]
 
     def evaluate(self, x, jacobian: bool = True):
-        """(B, P) -> (residuals (B, M), Jacobian (B, M, P) or None), sharing the geometry: matrix
-        products on small stacks (``einsum`` and ``np.cross`` cost 2.6x as much a call here)."""
-        x = np.atleast_2d(np.asarray(x, np.float64))
-        B, n, K, F, S = x.shape[0], self.n, self.K, self.F, self.S
-        tm, cam, sw = self.terms, self.camera, self._sw
-        rv, tv, ex, s = self.unpack(x)
-        R, Jl = _rotations(rv) if jacobian else (rodrigues(rv), None)
-        R, Bs, RX, Y = self._geometry(rv, tv, ex, s, R)
-        iz = 1.0 / np.maximum(Y[..., 2], MIN_DEPTH)  # eq. 5: the projection
-        uv = np.empty((*Y.shape[:-1], 2))
-        uv[..., 0] = cam.fx * Y[..., 0] * iz + cam.cx
-        uv[..., 1] = cam.fy * Y[..., 1] * iz + cam.cy
-        r = ((uv - self._target) * sw[..., None]).reshape(B, self.M)  # eq. 6 (weighted)
-        if self._prior is not None:
-            r = np.concatenate([r, (x[:, n * F :] - tm.identity_mean) * self._prior], axis=1)
-        if not jacobian:
-            return r, None
-        a = sw * iz
-        Dp = np.zeros((*Y.shape[:-1], 2, 3))  # (B, n, K, 2, 3) dm/dY, weighted
-        Dp[..., 0, 0] = cam.fx * a
-        Dp[..., 0, 2] = -cam.fx * Y[..., 0] * iz * a
-        Dp[..., 1, 1] = cam.fy * a
-        Dp[..., 1, 2] = -cam.fy * Y[..., 1] * iz * a
-        DpR = Dp @ R[:, :, None]  # dm/dX
-        frame = np.empty((B, n, K, 2, F))  # frame i's rows depend on frame i's parameters only
-        frame[..., :3] = Dp @ (skew(-RX) @ Jl[:, :, None])  # d(RX)/dr = -[RX]x J_l(r)
-        frame[..., 3:6] = Dp  # dY/dt = I
-        frame[..., 6:] = DpR @ Bs[:, None]  # dY/da = R Bs
-        J = np.zeros((B, self.rows, self.P))
-        idx = np.arange(n)
-        J[:, : self.M, : n * F].reshape(B, n, 2 * K, n, F)[:, idx, :, idx, :] = \
-            frame.reshape(B, n, 2 * K, F).transpose(1, 0, 2, 3)  # fmt: skip
-        if S:  # dY/ds = R G a: (G a) (B, n, K, 3, S')
-            Ga = (tm.G.reshape(K * 3 * S, self.A) @ ex.transpose(0, 2, 1)).reshape(B, K, 3, S, n)
-            J[:, : self.M, n * F :] = (DpR @ Ga.transpose(0, 4, 1, 2, 3)).reshape(B, self.M, S)
-        if self._prior is not None:
-            J[:, self.M + np.arange(S), n * F + np.arange(S)] = self._prior
-        return r, J
+        """(B, P) -> (residuals (B, M), Jacobian (B, M, P) or None), on the host in float64
+        (:func:`gputrack.ops.face_bundle.evaluate`, the device kernels' oracle)."""
+        return evaluate(self._model, self._frames, np.atleast_2d(np.asarray(x, np.float64)), jacobian)
 
     def cost(self, x) -> float:
         """F of eq. 6 at x (P,), float64."""
@@ -380,15 +326,30 @@ class BundleProblem:
             raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
         return LeastSquaresSolver(device, (1, self.P), max_iter=int(max_iter), early_stop=False, profile=profile)
 
-    def solve(self, device, max_iter: int = 10, solver: LeastSquaresSolver | None = None) -> BundleResult:
+    def landmarks(self, device) -> LandmarkResiduals | None:
+        """The residuals and Jacobian of problems of this one's size as a device kernel on ``device``
+        (:class:`gputrack.ops.face_bundle.LandmarkResiduals`; hold it and pass it to :meth:`solve`
+        with the solver, for problems of the same model and camera), or None where the solve calls the
+        host model (see :func:`device_model`)."""
+        return LandmarkResiduals(device, self._model, self._frames) if device_model(device) else None
+
+    def solve(self, device, max_iter: int = 10, solver: LeastSquaresSolver | None = None,
+              landmarks: LandmarkResiduals | None = None) -> BundleResult:  # fmt: skip
         """Minimise eq. 6 in the box by Levenberg-Marquardt on ``device`` (B = 1): with ``solver`` (from
-        :meth:`solver`, for this ``device``, P and ``max_iter``), else with a solver used once."""
+        :meth:`solver`, for this ``device``, P and ``max_iter``), else with a solver used once; the
+        residuals from ``landmarks`` (from :meth:`landmarks`), else from a kernel made for this solve
+        where :func:`device_model` says so, else from the host model."""
         if solver is None:
             with self.solver(device, max_iter) as once:
-                return self.solve(device, max_iter, once)
+                return self.solve(device, max_iter, once, landmarks)
         if solver.device is not device or solver.shape != (1, self.P) or solver.max_iter != max_iter:
             raise ValueError(f"solver: expected one for {device.spec}, shape (1, {self.P}), max_iter={max_iter}, "
                              f"got {solver!r}")  # fmt: skip
+        if landmarks is None:
+            landmarks = self.landmarks(device)
+        elif not isinstance(landmarks, LandmarkResiduals) or landmarks.device is not device or landmarks.P != self.P:
+            raise ValueError(f"landmarks: expected residuals of this problem's size (P={self.P}) on {device.spec}, "
+                             f"got {landmarks!r}")  # fmt: skip
         # Jacobi scaling (as MINPACK's diag): the solver works in y = x / d with d_j = 1 / |column j of J|
         # at the start, so that its damping C I (C relative to the unit diagonal) treats radians,
         # millimetres and model coordinates alike; fixed parameters (lower == upper) keep d = 1.
@@ -397,15 +358,29 @@ class BundleProblem:
         d = np.where((self.upper > self.lower) & (norm > 1e-12 * max(norm.max(), 1e-300)), 1.0 / np.maximum(norm, 1e-300),
                      1.0)  # fmt: skip
         y0 = (self.x0 / d)[None]
-        fns = _Callables(self, d, start=(y0, r0, J0))
+        if landmarks is not None:  # on the device: one kernel per iteration, nothing through the host
+            landmarks.update(dataclasses.replace(self._frames, scale=d))
+            fns, host = landmarks, False
+        else:
+            fns, host = _Callables(self, d, start=(y0, r0, J0)), True
         res = solver.solve(fns.residuals, y0, jacobian=fns.jacobian, lower=self.lower / d,
-                           upper=self.upper / d, damping=DAMPING, host=True)  # fmt: skip
+                           upper=self.upper / d, damping=DAMPING, host=host)  # fmt: skip
         x = np.clip(res.x[0].astype(np.float64) * d, self.lower, self.upper)
         cost = self.cost(x)
         rv, tv, ex, s = self.unpack(x)
         return BundleResult(rvecs=rv, tvecs=tv, expressions=ex, identity=s, cost=cost,
                             rms=float(np.sqrt(cost / self.weights.sum())), status=LMStatus(int(res.status[0])),
                             iterations=int(res.iterations[0]))  # fmt: skip
+
+
+def device_model(device) -> bool:
+    """Whether a bundle solve on ``device`` evaluates its residuals and Jacobian with the device
+    kernel (:class:`gputrack.ops.face_bundle.LandmarkResiduals`) rather than the host model: on every
+    device but the numpy one and taichi:vulkan on a CPU (lavapipe), where the kernel took ~35 ms a
+    launch against ~0.2 ms for the host model (2026-12-06)."""
+    if device.backend == "numpy":
+        return False
+    return not (device.spec == "taichi:vulkan" and device.info.kind != "gpu")
 
 
 class _Callables:
@@ -545,6 +520,7 @@ class IncrementalBundle:
         self._frames = 0  # frame numbers handed out
         self._keys: dict | None = None
         self._solvers: dict = {}  # (P, max_iter) -> LeastSquaresSolver, holding its device buffers
+        self._landmarks: dict = {}  # P -> LandmarkResiduals (None: the host model), holding theirs
         self.profile = bool(profile)
 
     def profile_tables(self) -> str:
@@ -581,7 +557,9 @@ class IncrementalBundle:
         key = (problem.P, int(max_iter))  # the start's and the per-frame solves: a solver each, kept
         if key not in self._solvers:
             self._solvers[key] = problem.solver(self.device, max_iter, profile=self.profile)
-        res = problem.solve(self.device, max_iter, self._solvers[key])
+        if problem.P not in self._landmarks:  # the device residuals of problems of this size, kept
+            self._landmarks[problem.P] = problem.landmarks(self.device)
+        res = problem.solve(self.device, max_iter, self._solvers[key], self._landmarks[problem.P])
         keys.update(rvecs=res.rvecs, tvecs=res.tvecs, expressions=res.expressions)
         self._keys, self.last = keys, res
         return res
