@@ -600,13 +600,14 @@ class IncrementalBundle:
         if self._keys is None:
             raise RuntimeError("IncrementalBundle: call start() before choose() or add()")
         r = _real_array(rvec, "rvec", (3,))
-        keys = self._keys["rvecs"]
-        cands = np.repeat(keys[None], self.n, axis=0)
-        cands[np.arange(self.n), np.arange(self.n)] = r  # candidate j: the new frame in slot j
-        spreads = keyframe_spread(cands)
+        d = rodrigues(np.vstack([self._keys["rvecs"], r]))[:, :, 2]  # the key frames' face directions, the new one's
+        total = d[:-1].sum(axis=0)
+        means = (total - d[:-1] + d[-1]) / self.n  # candidate j: the new frame in slot j
+        spreads = np.maximum(1.0 - np.einsum("jc,jc->j", means, means), 0.0)  # keyframe_spread of each candidate
         best = float(spreads.max())
         if self.keep_previous:
-            previous = float(keyframe_spread(keys))
+            mean = total / self.n
+            previous = max(1.0 - float(mean @ mean), 0.0)
             if previous >= best * (1 - SPREAD_RTOL):
                 return -1  # no replacement widens the spread
         equal = np.flatnonzero(spreads >= best * (1 - SPREAD_RTOL))
