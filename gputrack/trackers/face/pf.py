@@ -4,7 +4,7 @@ State u = (r (3) Rodrigues vector model -> camera, t (3) mm, a (D) deformation),
 multilinear model (or the generic model's coefficients). With the identity s fixed from the last
 bundle adjustment the shape is linear in a (eq. 11): M_t = mean + basis a.
 
-Per frame (:meth:`FaceParticleFilter.step`):
+Per frame (:meth:`FaceParticleFilter.propose_states`, the projection, the scores, :meth:`FaceParticleFilter.update`):
 
 1. **Sample** (eq. 12): N hypotheses u_i = u'_i + tau v + omega, u'_i drawn from the previous
    hypotheses by their weights (systematic resampling), v the estimate's velocity over the last
@@ -18,8 +18,10 @@ Per frame (:meth:`FaceParticleFilter.step`):
 3. **Estimate**: the weighted mean of the hypotheses near the best one (within ``near`` standard
    deviations of the sampling noise, per component).
 
-The projection of the N x K points runs on the host (N K 3 values, a few hundred microseconds)
-and is uploaded with the frame; the device scores the N K S^2 patch samples.
+The hypotheses are sampled on the host (N (6 + D) values go up); the tracker projects their N K
+points on the device (:func:`gputrack.ops.face_points.project_faces`, which also gives each
+hypothesis's facing for the turn test of eq. 13) and scores the N K S^2 patch samples there;
+:meth:`FaceParticleFilter.propose` is the same on the host.
 """
 
 from __future__ import annotations
@@ -28,24 +30,25 @@ import numpy as np
 
 from ...models.camera import Camera
 from ...models.pose import rodrigues
+from ...ops.face_points import project_faces
+from ...registry import device as get_device
 from .config import FaceConfig
 
-__all__ = ["FaceParticleFilter", "project_hypotheses"]
+__all__ = ["FaceParticleFilter", "project_hypotheses", "shape_model"]
 
 
-def project_hypotheses(camera: Camera, states, mean, basis, rotations=None) -> np.ndarray:
-    """(N, K, 2) float32 pixels of the K model points of each hypothesis (N, 6 + D) (eq. 5, 11);
-    ``rotations``: their rotation matrices (N, 3, 3) where already known (default: from the states)."""
+def shape_model(mean, basis) -> np.ndarray:
+    """The (K, 3, 1 + D) float32 shape model of :func:`gputrack.ops.face_points.project_faces`:
+    the mean shape (K, 3) in column 0, the deformation basis (K, 3, D) after it."""
+    return np.concatenate([np.asarray(mean, np.float32)[:, :, None], np.asarray(basis, np.float32)], axis=2)
+
+
+def project_hypotheses(camera: Camera, states, mean, basis) -> np.ndarray:
+    """(N, K, 2) float32 pixels of the K model points of each hypothesis (N, 6 + D) (eq. 5, 11), on
+    the host in float64 (:func:`gputrack.ops.face_points.project_faces` on the numpy device)."""
     states = np.asarray(states, np.float64)
-    N, K, D = len(states), len(mean), basis.shape[2]
-    R = rodrigues(states[:, :3]) if rotations is None else rotations
-    shapes = (states[:, 6:] @ basis.transpose(2, 1, 0).reshape(D, 3 * K)).reshape(N, 3, K) + np.asarray(mean).T
-    X = R @ shapes + states[:, 3:6, None]  # (N, 3, K): one 3 x 3 by 3 x K product per hypothesis
-    iz = 1.0 / np.maximum(X[:, 2], 1.0)  # points behind the camera land far off the image and score 0
-    uv = np.empty((N, K, 2), np.float32)
-    uv[..., 0] = np.clip(camera.fx * X[:, 0] * iz + camera.cx, -1e6, 1e6)
-    uv[..., 1] = np.clip(camera.fy * X[:, 1] * iz + camera.cy, -1e6, 1e6)
-    return uv
+    model = np.concatenate([np.asarray(mean, np.float64)[:, :, None], np.asarray(basis, np.float64)], axis=2)
+    return project_faces(get_device("numpy"), states, model, camera)[0]
 
 
 class FaceParticleFilter:
@@ -67,7 +70,6 @@ class FaceParticleFilter:
         self.D = len(self.a_mean)
         self.K = 0  # feature points, set by reset
         self.proposed = None  # (N, 6 + D) the hypotheses being scored
-        self._rotations = None  # (the proposed hypotheses, their rotation matrices (N, 3, 3))
         self.best_score = 0.0
         self.states = None  # (N, 6 + D) the hypotheses of the last step
         self.weights = None  # (N,)
@@ -105,19 +107,19 @@ class FaceParticleFilter:
         drift[6:] = 0.0  # eq. 12: no velocity term for the deformation
         return self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
 
-    def log_weights(self, scores, states, rotations=None) -> np.ndarray:
+    def log_weights(self, scores, states, facing=None) -> np.ndarray:
         """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2; -inf for a
         hypothesis whose face is turned more than ``config.max_turn`` degrees from the camera (its
         feature points would be hidden: no NCC can speak for it) or whose depth is outside
         ``config.depth_range`` (a filter that loses the face must not run away in depth).
-        ``rotations``: the states' rotation matrices (N, 3, 3) where already known."""
+        ``facing``: the states' cosines between the model's z axis and the ray to the head
+        (:func:`gputrack.ops.face_points.project_faces`), where already known."""
         lw = -((self.K - scores) ** 2) / (2.0 * self.config.sigma**2)
-        R = rodrigues(states[:, :3]) if rotations is None else rotations
-        t = states[:, 3:6]
-        # the model's z axis (into the head) against the ray to the head, both in the camera frame
-        cos = (R[:, 0, 2] * t[:, 0] + R[:, 1, 2] * t[:, 1] + R[:, 2, 2] * t[:, 2]) / np.maximum(
-            np.sqrt(t[:, 0] ** 2 + t[:, 1] ** 2 + t[:, 2] ** 2), 1e-9)
-        lw[cos < np.cos(np.radians(self.config.max_turn))] = -np.inf
+        if facing is None:
+            t = states[:, 3:6]
+            into = rodrigues(states[:, :3])[:, :, 2]  # the model's z axis (into the head) in the camera frame
+            facing = np.einsum("nc,nc->n", into, t) / np.maximum(np.linalg.norm(t, axis=1), 1e-9)
+        lw[np.asarray(facing) < np.cos(np.radians(self.config.max_turn))] = -np.inf
         lo, hi = self.config.depth_range
         lw[(states[:, 5] < lo) | (states[:, 5] > hi)] = -np.inf  # a head nearer or farther than a camera sees one
         if self.config.prior:
@@ -126,20 +128,23 @@ class FaceParticleFilter:
         return lw
 
     def propose(self, mean, basis) -> np.ndarray:
-        """Sample the frame's hypotheses (eq. 12) and return their K points (N, K, 2) float32 to score
-        (eq. 11 with the shape ``mean`` (K, 3) and ``basis`` (K, 3, D) of the current identity)."""
-        self.proposed = self.sample()
-        R = rodrigues(self.proposed[:, :3])
-        self._rotations = (self.proposed, R)
-        return project_hypotheses(self.camera, self.proposed, mean, basis, R)
+        """Sample the frame's hypotheses (eq. 12) and return their K points (N, K, 2) float32 to score,
+        projected on the host (eq. 11 with the shape ``mean`` (K, 3) and ``basis`` (K, 3, D) of the
+        current identity); :meth:`propose_states` leaves the projection to the caller's device."""
+        return project_hypotheses(self.camera, self.propose_states(), mean, basis)
 
-    def update(self, scores) -> np.ndarray:
+    def propose_states(self) -> np.ndarray:
+        """Sample the frame's hypotheses (eq. 12): (N, 6 + D) float64, also kept as ``proposed``."""
+        self.proposed = self.sample()
+        return self.proposed
+
+    def update(self, scores, facing=None) -> np.ndarray:
         """Weigh the proposed hypotheses by their NCC sums ``scores`` (N,) (eq. 13) and return the
-        state estimate (6 + D,): the weighted mean of the hypotheses near the best one."""
+        state estimate (6 + D,): the weighted mean of the hypotheses near the best one. ``facing``:
+        as in :meth:`log_weights`, where the projection computed it."""
         states = self.proposed
         scores = np.asarray(scores, np.float64)
-        known = self._rotations is not None and self._rotations[0] is states
-        lw = self.log_weights(scores, states, self._rotations[1] if known else None)
+        lw = self.log_weights(scores, states, facing)
         if not np.isfinite(lw).any():  # every hypothesis turned away: keep them all, equally weighted
             lw = np.zeros_like(lw)
         w = np.exp(lw - lw.max())

@@ -34,11 +34,12 @@ import numpy as np
 from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
 from ...models.pose import project, rodrigues
+from ...ops.face_points import project_faces
 from ...ops.ncc import patch_ncc
 from ...scheduler import Scheduler, Stage
 from .bundle import IncrementalBundle
 from .config import FaceConfig
-from .pf import FaceParticleFilter
+from .pf import FaceParticleFilter, shape_model
 from .relocate import relocate, sample_patches
 
 log = logging.getLogger("gputrack")
@@ -134,9 +135,9 @@ class FaceTracker:
         self.frame = 0
         self._host = {}  # this frame's host-side values between stages
         self.scheduler = Scheduler(device, [
-            Stage("sample", self._sample, writes=("points",)),
+            Stage("sample", self._sample, writes=("states", "shape", "points", "facing")),
             Stage("score", self._score, reads=("image", "points", "templates"), writes=("scores",)),
-            Stage("estimate", self._estimate, host_reads=("scores",)),
+            Stage("estimate", self._estimate, host_reads=("scores", "facing")),
             Stage("relocate", self._relocate),
             Stage("bundle", self._bundle),
         ], inputs=("image",), state=("templates",))  # fmt: skip
@@ -286,14 +287,17 @@ class FaceTracker:
                             confidence=float(confidence), lost=bool(lost))  # fmt: skip
 
     def _sample(self, b):
-        pts = self.pf.propose(*self._basis)
-        b["points"] = self.device.asarray(pts, out=b.get("points"))
+        states = self.pf.propose_states().astype(np.float32)  # eq. 12 on the host, eq. 5 and 11 on the device
+        b["states"] = self.device.asarray(states, out=b.get("states"))
+        b["shape"] = self.device.asarray(shape_model(*self._basis), out=b.get("shape"))
+        out = (b["points"], b["facing"]) if "points" in b else None
+        b["points"], b["facing"] = project_faces(self.device, b["states"], b["shape"], self.camera, out=out)
 
     def _score(self, b):
         b["scores"] = patch_ncc(self.device, b["points"], b["templates"], b["image"])  # eq. 13 N(u), one launch
 
     def _estimate(self, b):
-        est = self.pf.update(b["scores"])
+        est = self.pf.update(b["scores"], b["facing"])
         conf = max(0.0, self.pf.best_score / self.model.K)
         self._host.update(state=est, confidence=conf, lost=conf < self.config.lost_score)
 
