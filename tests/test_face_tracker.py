@@ -330,8 +330,9 @@ def test_benchmark_cases_run_and_match_the_reference(device, data):
     the reference's, the bundle step and its scipy peer reach about the same cost."""
     import argparse
 
-    from gputrack.benchmarks import face as bench
     from tolerances import assert_matches
+
+    from gputrack.benchmarks import face as bench
 
     if device.spec != "taichi:cpu":
         pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")

@@ -152,7 +152,7 @@ def model_terms(model) -> ModelTerms:
     mean, L0 = (np.asarray(v, np.float64) for v in model.expression_basis(np.zeros(S)))
     G = np.stack([np.asarray(model.expression_basis(e)[1], np.float64) - L0 for e in np.eye(S)], axis=2) \
         if S else np.zeros((*L0.shape[:2], 0, L0.shape[2]))  # fmt: skip
-    f = lambda v: np.asarray(v, np.float64).reshape(-1)  # noqa: E731
+    f = lambda v: np.asarray(v, np.float64).reshape(-1)
     return ModelTerms(mean, L0, G, f(model.identity_mean), f(model.identity_std), f(model.expression_mean),
                       f(model.expression_std))  # fmt: skip
 
