@@ -45,9 +45,9 @@ def _dt(device):
     return np.float64 if device.fp64 else np.float32
 
 
-@pytest.mark.parametrize("prior", [True, False])
-def test_devices_match_the_host_model(device, prior):
-    model, frames, x = scene(prior=prior)
+@pytest.mark.parametrize("prior,S", [(True, S), (False, S), (False, 0)])  # S = 0: the generic PCA model's
+def test_devices_match_the_host_model(device, prior, S):
+    model, frames, x = scene(prior=prior, S=S)
     plan = LandmarkResiduals(device, model, frames)
     frames = plan.frames  # checked
     y = x / frames.scale
@@ -57,7 +57,7 @@ def test_devices_match_the_host_model(device, prior):
     J = gputrack.to_numpy(plan.jacobian(Y)).copy()
     r_want, J_want = evaluate(model, frames, x)
     J_want = J_want * frames.scale  # the Jacobian with respect to y = x / scale
-    assert R.shape == (2, frames.rows) and J.shape == (2, frames.rows, P) and R.dtype == dt
+    assert R.shape == (2, frames.rows) and J.shape == (2, frames.rows, N * F + S) and R.dtype == dt
     # the residuals are px (up to ~1e3), the Jacobian's entries up to ~1e4 (scaled): relative tolerances
     assert_matches(device, R, r_want, dt, scale=np.abs(r_want).max())
     assert_matches(device, J, J_want, dt, scale=np.abs(J_want).max())
