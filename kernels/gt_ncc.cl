@@ -37,36 +37,32 @@ inline float gt_ncc_finish(const float n, const float p0, const float t0, const 
 #define GT_NCC_ROWS(W)                                                                                    \
     inline float gt_ncc_rows##W(__global const float *img, const int w, const int xb, const int yb,     \
                                 const float a, const float bw, __global const float *t, const int s,    \
-                                const float t0, const float n)                                          \
+                                const float t0, const float st, const float stt, const float n)         \
     {                                                                                                   \
         const float m = (float)GT_INTENSITY_MAX;                                                        \
-        float p0 = 0.0f, sp = 0.0f, st = 0.0f, spp = 0.0f, stt = 0.0f, spt = 0.0f;                      \
+        float p0 = 0.0f, sp = 0.0f, spp = 0.0f, spt = 0.0f;                                             \
         for (int i = 0; i < s; ++i) {                                                                   \
             __global const float *top = img + (size_t)(yb + i) * (size_t)w + xb;                        \
             __global const float *bot = top + w;                                                        \
             __global const float *tr = t + i * s;                                                       \
-            float##W rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;                          \
+            float##W rp = 0.0f, rpp = 0.0f, rpt = 0.0f;                                                 \
             for (int jj = 0; jj < s; jj += W) {                                                         \
                 const float##W lt = vload##W(0, top + jj), nt = vload##W(0, top + jj + 1);              \
                 const float##W lb = vload##W(0, bot + jj), nb = vload##W(0, bot + jj + 1);              \
                 const float##W clt = GT_NCC_CLAMPV(W, lt), cnt = GT_NCC_CLAMPV(W, nt);                  \
                 const float##W clb = GT_NCC_CLAMPV(W, lb), cnb = GT_NCC_CLAMPV(W, nb);                  \
-                const float##W tv = vload##W(0, tr + jj);                                               \
+                const float##W T = vload##W(0, tr + jj); /* the shifted template (gt_ncc_templates) */  \
                 const float##W tp = clt + a * (cnt - clt), bt = clb + a * (cnb - clb);                  \
                 const float##W P0 = tp + bw * (bt - tp); /* patch pixels (i, jj .. jj + W - 1) */       \
                 if (i == 0 && jj == 0)                                                                  \
                     p0 = P0.s0;                                                                         \
-                const float##W P = P0 - p0, T = GT_NCC_CLAMPV(W, tv) - t0;                              \
+                const float##W P = P0 - p0;                                                             \
                 rp += P;                                                                                \
-                rt += T;                                                                                \
                 rpp += P * P;                                                                           \
-                rtt += T * T;                                                                           \
                 rpt += P * T;                                                                           \
             }                                                                                           \
             sp += GT_NCC_HSUM##W(rp);                                                                   \
-            st += GT_NCC_HSUM##W(rt);                                                                   \
             spp += GT_NCC_HSUM##W(rpp);                                                                 \
-            stt += GT_NCC_HSUM##W(rtt);                                                                 \
             spt += GT_NCC_HSUM##W(rpt);                                                                 \
         }                                                                                               \
         return gt_ncc_finish(n, p0, t0, sp, st, spp, stt, spt);                                         \
@@ -74,8 +70,40 @@ inline float gt_ncc_finish(const float n, const float p0, const float t0, const 
 GT_NCC_ROWS(4)
 GT_NCC_ROWS(8)
 
-inline float gt_ncc_one(const float u, const float v, __global const float *t, const int s,
-                        __global const float *img, const int h, const int w)
+// Template k's values shifted by its first one, each clamped as the patch pixels are, into ts (K, s, s),
+// and t0 and their sums st, stt into tstat (K, 4) (rows summed in order, then the rows): the same
+// for every hypothesis, so computed once per call. One work-item per template.
+__kernel void gt_ncc_templates(__global const float *tpl, const int nk, const int s, __global float *ts,
+                               __global float *tstat)
+{
+    const int k = get_global_id(0);
+    if (k >= nk)
+        return;
+    __global const float *t = tpl + (size_t)k * (size_t)(s * s);
+    __global float *o = ts + (size_t)k * (size_t)(s * s);
+    const float t0 = gt_ncc_clamp(t[0]);
+    float st = 0.0f, stt = 0.0f;
+    for (int i = 0; i < s; ++i) {
+        float rt = 0.0f, rtt = 0.0f;
+        for (int jj = 0; jj < s; ++jj) {
+            const float T = gt_ncc_clamp(t[i * s + jj]) - t0;
+            o[i * s + jj] = T;
+            rt += T;
+            rtt += T * T;
+        }
+        st += rt;
+        stt += rtt;
+    }
+    tstat[4 * k] = t0;
+    tstat[4 * k + 1] = st;
+    tstat[4 * k + 2] = stt;
+    tstat[4 * k + 3] = 0.0f;
+}
+
+// The NCC of the patch at (u, v) with template t (shifted, from gt_ncc_templates) whose first value
+// and sums are t0, st, stt.
+inline float gt_ncc_one(const float u, const float v, __global const float *t, const float t0, const float st,
+                        const float stt, const int s, __global const float *img, const int h, const int w)
 {
     const float ctr = 0.5f * (float)(s - 1);
     const float u0 = u - ctr, v0 = v - ctr, u1 = u + ctr, v1 = v + ctr;
@@ -86,8 +114,7 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
     // one pass over the patch; sums of values shifted by the first patch and template values
     // (so the centred sums below do not cancel), accumulated per row then over the rows
     float p0 = 0.0f;
-    const float t0 = gt_ncc_clamp(t[0]);
-    float sp = 0.0f, st = 0.0f, spp = 0.0f, stt = 0.0f, spt = 0.0f;
+    float sp = 0.0f, spp = 0.0f, spt = 0.0f;
     if (s < w && s < h) {
         // inside the image every patch pixel has the same bilinear weights: one base pixel (the
         // last column and row start one pixel in with weight 1 where the patch touches the border,
@@ -96,14 +123,14 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
         const float a = u0 - (float)xb, bw = v0 - (float)yb;
         // s % 8 == 0 (the face tracker's s = 16): eight pixels a step, else four (fastest on PoCL)
         if ((s & 7) == 0)
-            return gt_ncc_rows8(img, w, xb, yb, a, bw, t, s, t0, n);
+            return gt_ncc_rows8(img, w, xb, yb, a, bw, t, s, t0, st, stt, n);
         if ((s & 3) == 0)
-            return gt_ncc_rows4(img, w, xb, yb, a, bw, t, s, t0, n);
+            return gt_ncc_rows4(img, w, xb, yb, a, bw, t, s, t0, st, stt, n);
         for (int i = 0; i < s; ++i) {
             __global const float *top = img + (size_t)(yb + i) * (size_t)w + xb;
             __global const float *bot = top + w;
             float lt = gt_ncc_clamp(top[0]), lb = gt_ncc_clamp(bot[0]);
-            float rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
+            float rp = 0.0f, rpp = 0.0f, rpt = 0.0f;
             for (int jj = 0; jj < s; ++jj) {
                 const float nt = gt_ncc_clamp(top[jj + 1]), nb = gt_ncc_clamp(bot[jj + 1]);
                 const float tp = lt + a * (nt - lt), bt = lb + a * (nb - lb);
@@ -112,17 +139,13 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
                 lb = nb;
                 if (i == 0 && jj == 0)
                     p0 = P0;
-                const float P = P0 - p0, T = gt_ncc_clamp(t[i * s + jj]) - t0;
+                const float P = P0 - p0, T = t[i * s + jj];
                 rp += P;
-                rt += T;
                 rpp += P * P;
-                rtt += T * T;
                 rpt += P * T;
             }
             sp += rp;
-            st += rt;
             spp += rpp;
-            stt += rtt;
             spt += rpt;
         }
         return gt_ncc_finish(n, p0, t0, sp, st, spp, stt, spt);
@@ -131,7 +154,7 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
         const float vv = v + ((float)i - ctr);
         const int y0 = min((int)vv, h - 2);
         const float bw = vv - (float)y0;
-        float rp = 0.0f, rt = 0.0f, rpp = 0.0f, rtt = 0.0f, rpt = 0.0f;
+        float rp = 0.0f, rpp = 0.0f, rpt = 0.0f;
         for (int jj = 0; jj < s; ++jj) {
             const float uu = u + ((float)jj - ctr);
             const int x0 = min((int)uu, w - 2);
@@ -143,37 +166,36 @@ inline float gt_ncc_one(const float u, const float v, __global const float *t, c
             const float P0 = top + bw * (bot - top);  // patch pixel (i, jj), bilinear
             if (i == 0 && jj == 0)
                 p0 = P0;
-            const float P = P0 - p0, T = gt_ncc_clamp(t[i * s + jj]) - t0;
+            const float P = P0 - p0, T = t[i * s + jj];
             rp += P;
-            rt += T;
             rpp += P * P;
-            rtt += T * T;
             rpt += P * T;
         }
         sp += rp;
-        st += rt;
         spp += rpp;
-        stt += rtt;
         spt += rpt;
     }
     return gt_ncc_finish(n, p0, t0, sp, st, spp, stt, spt);
 }
 
 // One work-item per (hypothesis, point): ncc (B, K).
-__kernel void gt_patch_ncc_points(__global const float *pts, const int nb, const int nk, __global const float *tpl,
-                                  const int s, __global const float *img, const int h, const int w,
-                                  __global float *ncc)
+// ts, tstat: from gt_ncc_templates.
+__kernel void gt_patch_ncc_points(__global const float *pts, const int nb, const int nk, __global const float *ts,
+                                  __global const float *tstat, const int s, __global const float *img, const int h,
+                                  const int w, __global float *ncc)
 {
     const int gid = get_global_id(0);
     if (gid >= nb * nk)
         return;
     const int kk = gid % nk;
-    ncc[gid] = gt_ncc_one(pts[2 * gid], pts[2 * gid + 1], tpl + (size_t)kk * (size_t)(s * s), s, img, h, w);
+    ncc[gid] = gt_ncc_one(pts[2 * gid], pts[2 * gid + 1], ts + (size_t)kk * (size_t)(s * s), tstat[4 * kk],
+                          tstat[4 * kk + 1], tstat[4 * kk + 2], s, img, h, w);
 }
 
 // One work-item per hypothesis: N(u) = sum over the K points (eq. 13), (B,).
-__kernel void gt_patch_ncc(__global const float *pts, const int nb, const int nk, __global const float *tpl, const int s,
-                           __global const float *img, const int h, const int w, __global float *out)
+__kernel void gt_patch_ncc(__global const float *pts, const int nb, const int nk, __global const float *ts,
+                           __global const float *tstat, const int s, __global const float *img, const int h,
+                           const int w, __global float *out)
 {
     const int b = get_global_id(0);
     if (b >= nb)
@@ -181,7 +203,8 @@ __kernel void gt_patch_ncc(__global const float *pts, const int nb, const int nk
     float acc = 0.0f;
     for (int kk = 0; kk < nk; ++kk) {
         const int p = b * nk + kk;
-        acc += gt_ncc_one(pts[2 * p], pts[2 * p + 1], tpl + (size_t)kk * (size_t)(s * s), s, img, h, w);
+        acc += gt_ncc_one(pts[2 * p], pts[2 * p + 1], ts + (size_t)kk * (size_t)(s * s), tstat[4 * kk],
+                          tstat[4 * kk + 1], tstat[4 * kk + 2], s, img, h, w);
     }
     out[b] = acc;
 }

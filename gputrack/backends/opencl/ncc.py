@@ -1,7 +1,8 @@
 """OpenCL launchers for kernels/gt_ncc.cl: zero-mean NCC of templates with image patches (paper 003 eq. 13).
 
-One launch per op call: one work-item per (hypothesis, point), or per hypothesis for the sum.
-Conventions: gputrack/ops/ncc.py.
+Two launches per op call, in one queue without a wait: the templates' shifted values and sums
+(``gt_ncc_templates``, one work-item per template: they are the same for every hypothesis), then one
+work-item per (hypothesis, point), or per hypothesis for the sum. Conventions: gputrack/ops/ncc.py.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from .program import enqueue, ndrange, scalar_types
 # scalar argument types per kernel (None = a buffer): pyopencl then packs the arguments directly
 _I = np.int32
 ARG_TYPES = {
-    "gt_patch_ncc_points": [None, _I, _I, None, _I, None, _I, _I, None],
-    "gt_patch_ncc": [None, _I, _I, None, _I, None, _I, _I, None],
+    "gt_ncc_templates": [None, _I, _I, None, None],
+    "gt_patch_ncc_points": [None, _I, _I, None, None, _I, None, _I, _I, None],
+    "gt_patch_ncc": [None, _I, _I, None, None, _I, None, _I, _I, None],
 }
 
 
@@ -29,11 +31,20 @@ def _kernel(device, name):
     return found
 
 
+@per_device(maxsize=8)
+def _template_buffers(device, nk, s):
+    """The shifted templates (nk, s, s) and their sums (nk, 4) of gt_ncc_templates, kept per size."""
+    return device.empty((nk, s, s), np.float32), device.empty((nk, 4), np.float32)
+
+
 def patch_ncc(device, pts, tpl, img, *, per_point):
     nb, nk = pts.shape[:2]
     s = tpl.shape[1]
     h, w = img.shape
-    args = (pts.buffer.data, nb, nk, tpl.buffer.data, s, img.buffer.data, h, w)
+    ts, tstat = _template_buffers(device, int(tpl.shape[0]), int(s))
+    enqueue(device, _kernel(device, "gt_ncc_templates"), *ndrange(int(tpl.shape[0])), tpl.buffer.data,
+            int(tpl.shape[0]), s, ts.buffer.data, tstat.buffer.data)  # fmt: skip
+    args = (pts.buffer.data, nb, nk, ts.buffer.data, tstat.buffer.data, s, img.buffer.data, h, w)
     if per_point:
         out = device.empty((nb, nk), np.float32)
         enqueue(device, _kernel(device, "gt_patch_ncc_points"), *ndrange(nb * nk), *args, out.buffer.data)
