@@ -339,6 +339,49 @@ def check_pose_residuals(device: Device) -> None:
     assert err <= 1e-4, f"pose_residuals (central differences) differs from the reference by {err:.3g}"
 
 
+def check_face_bundle(device: Device) -> None:
+    """landmark_residuals of a small random face model and two parameter vectors: residuals and
+    Jacobian against the reference (float64 where the device has it)."""
+    from .models.camera import Camera
+    from .ops.face_bundle import LandmarkFrames, LandmarkModel, landmark_residuals
+
+    rng = np.random.default_rng(11)
+    K, A, S, n = 4, 2, 3, 2
+    model = LandmarkModel(rng.normal(0, 40, (K, 3)), rng.normal(0, 3, (K, 3, A)), rng.normal(0, 1, (K, 3, S, A)),
+                          Camera(500.0, 500.0, 160.0, 120.0))  # fmt: skip
+    frames = LandmarkFrames(rng.uniform(50, 250, (n, K, 2)), rng.uniform(0.5, 1.5, (n, K)),
+                            scale=rng.uniform(0.5, 2.0, n * (6 + A) + S), prior=np.ones(S), prior_mean=np.zeros(S))
+    x = np.concatenate([np.concatenate([rng.normal(0, 0.3, 3), [0.0, 0.0, 500.0], rng.normal(0, 1, A)])
+                        for _ in range(n)] + [rng.normal(0, 1, S)])  # fmt: skip
+    y = np.stack([x, x * 1.01]) / frames.scale
+    dt = np.float64 if device.fp64 else np.float32
+    want = landmark_residuals(get_device("numpy"), y, model, frames)
+    got = landmark_residuals(device, device.asarray(y.astype(dt)) if device.backend != "numpy" else y, model, frames)
+    for name, g, w in zip(("residuals", "Jacobian"), got, want):
+        err = float(np.max(np.abs(to_numpy(g) - w)) / max(np.max(np.abs(w)), 1.0))
+        assert err <= (1e-10 if dt == np.float64 else 1e-5), f"landmark_residuals ({name}) differs by {err:.3g} (relative)"
+
+
+def check_face_points(device: Device) -> None:
+    """project_faces of a few face hypotheses: points and facing against the reference to float32
+    rounding."""
+    from .models.camera import Camera
+    from .ops.face_points import project_faces
+
+    rng = np.random.default_rng(12)
+    N, K, D = 16, 5, 2
+    states = np.concatenate([rng.normal(0, 0.3, (N, 3)), rng.normal([0, 0, 600], [20, 20, 50], (N, 3)),
+                             rng.normal(0, 1, (N, D))], axis=1).astype(np.float32)  # fmt: skip
+    model = np.concatenate([rng.normal(0, 40, (K, 3, 1)), rng.normal(0, 3, (K, 3, D))], axis=2).astype(np.float32)
+    cam = Camera(500.0, 500.0, 160.0, 120.0)
+    want_p, want_f = project_faces(get_device("numpy"), states, model, cam)
+    got_p, got_f = project_faces(device, states, model, cam)
+    err = float(np.max(np.abs(to_numpy(got_p) - want_p)))
+    assert err <= 1e-2, f"project_faces (points) differs from the reference by {err:.3g} px"
+    err = float(np.max(np.abs(to_numpy(got_f) - want_f)))
+    assert err <= 1e-5, f"project_faces (facing) differs from the reference by {err:.3g}"
+
+
 CHECKS = [
     ("arrays", check_arrays),
     ("kinematics", check_kinematics),
@@ -353,6 +396,8 @@ CHECKS = [
     ("stereo", check_stereo),
     ("background", check_background),
     ("clusters", check_clusters),
+    ("face_bundle", check_face_bundle),
+    ("face_points", check_face_points),
 ]
 
 

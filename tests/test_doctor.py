@@ -34,6 +34,8 @@ OPS_OF_CHECK = {
     "background": [("background", "background_median"), ("background", "foreground_mask"),
                    ("background", "update_background"), ("depth_points", "depth_points")],  # fmt: skip
     "clusters": [("clusters", "dbscan")],
+    "face_bundle": [("face_bundle", "landmark_residuals")],
+    "face_points": [("face_points", "project_faces")],
 }
 
 

@@ -33,7 +33,7 @@ from ..uploads import constant
 from . import backend_module
 from ._args import check_device
 
-__all__ = ["LandmarkFrames", "LandmarkModel", "LandmarkResiduals", "evaluate"]
+__all__ = ["LandmarkFrames", "LandmarkModel", "LandmarkResiduals", "evaluate", "landmark_residuals"]
 
 
 def _real(x, name: str, shape: tuple) -> np.ndarray:
@@ -169,8 +169,8 @@ class LandmarkResiduals:
 
     ``residuals(Y)`` (Y (B, P) on the device, or NumPy) returns the residuals (B, rows) and keeps the
     Jacobian computed with them; ``jacobian(Y)`` returns it (B, rows, P) when Y is the last residual
-    call's points, else computes it. The returned arrays are the held ones: read them before the
-    next call."""
+    call's points, else computes it; ``plan(Y)`` returns both. The returned arrays are the held
+    ones: read them before the next call."""
 
     def __init__(self, device, model: LandmarkModel, frames: LandmarkFrames):
         check_device(device)
@@ -229,16 +229,26 @@ class LandmarkResiduals:
             Y = self.device.asarray(Y.astype(self.dtype))
         return Y
 
-    def residuals(self, Y):
+    def __call__(self, Y):
+        """(residuals (B, rows), Jacobian (B, rows, P)) at the points Y (B, P): the held arrays."""
         Y = self._points(Y)
         R, J = self._outputs(Y.shape[0])
         self._be.landmark_residuals(self.device, Y, self.model, self.frames, self._consts, self._values, True,
                                     (R, J))  # fmt: skip
         self._last = Y
-        return R
+        return R, J
+
+    def residuals(self, Y):
+        return self(Y)[0]
 
     def jacobian(self, Y):
         if Y is not self._last:
             self.residuals(Y)
         self._last = None
         return self._outputs(Y.shape[0])[1]
+
+
+def landmark_residuals(device, points, model: LandmarkModel, frames: LandmarkFrames):
+    """The one-shot form of :class:`LandmarkResiduals`: (residuals (B, rows), Jacobian (B, rows, P))
+    of the scaled parameter vectors ``points`` (B, P) on ``device``, in new arrays."""
+    return LandmarkResiduals(device, model, frames)(points)
