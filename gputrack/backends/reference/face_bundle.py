@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...models.pose import rotation_coefficients, skew
+from ...models.pose import rodrigues, rotation_coefficients, skew
 
 
 def _rotations(r: np.ndarray):
@@ -28,7 +28,7 @@ def geometry(model, x, R=None):
     fr = x[:, : n * (6 + A)].reshape(B, n, 6 + A)
     rv, tv, ex, s = fr[..., :3], fr[..., 3:6], fr[..., 6:], x[:, n * (6 + A) :]
     if R is None:
-        R = _rotations(rv)[0]
+        R = rodrigues(rv)
     Bs = model.L0 + (s @ model.G.transpose(2, 0, 1, 3).reshape(S, K * 3 * A)).reshape(B, K, 3, A)  # eq. 4
     X = model.mean + (ex @ Bs.reshape(B, K * 3, A).transpose(0, 2, 1)).reshape(B, n, K, 3)  # eq. 4: M_i(a_i, s)
     RX = X @ R.transpose(0, 1, 3, 2)
@@ -44,7 +44,7 @@ def evaluate(model, frames, x: np.ndarray, jacobian: bool = True):
     n = frames.n
     cam = model.camera
     fr = x[:, : n * F].reshape(B, n, F)
-    R, Jl = _rotations(fr[..., :3]) if jacobian else (_rotations(fr[..., :3])[0], None)
+    R, Jl = _rotations(fr[..., :3]) if jacobian else (None, None)  # R from the same coefficients as J_l
     R, Bs, RX, Y = geometry(model, x, R)
     iz = 1.0 / np.maximum(Y[..., 2], model.min_depth)  # eq. 5: the projection
     uv = np.empty((*Y.shape[:-1], 2))

@@ -23,9 +23,11 @@ def _rotation(r, dt: ti.template()):
     t = ti.sqrt(t2)
     small = t < 1e-3
     ts = ti.select(small, ti.cast(1, dt), t)
-    sn, cs = ti.sin(ts), ti.cos(ts)
+    sn, cs = ts * 0, ts * 0
     if ti.static(dt == ti.f64):
         sn, cs = sincos64(ts)  # SPIR-V has no 64-bit sin and cos
+    else:
+        sn, cs = ti.sin(ts), ti.cos(ts)
     a = ti.select(small, 1 - t2 / 6 + t2 * t2 / 120, sn / ts)
     b = ti.select(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - cs) / (ts * ts))
     c = ti.select(small, 1.0 / 6.0 - t2 / 120 + t2 * t2 / 5040, (ts - sn) / (ts * ts * ts))

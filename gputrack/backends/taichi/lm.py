@@ -17,10 +17,11 @@ loop passes per invocation are bounded: lavapipe stops all loops of a shader inv
 ``lm_solve``, ``normal_equations`` and the solver with a Jacobian on taichi:cpu read J (B, M, P)
 as stored, in SIMD lane vectors of columns (the kernels are compiled with scalarisation off): for
 P <= STATIC_P_MAX, P is a compile-time value and each row of J adds its outer product with itself
-to J^T J (``_gram_static``); above it, J^T J is summed in 8 x 8 tiles (``_gram_tiles``). Elsewhere (the parallel archs, and the solver's central
-differences from the stacked residuals) the normal equations are dot products over contiguous rows
-of J^T, two rows by four columns per pass over M (``_gram_pair``); strided dot products were 3-4x
-slower, so J is first transposed. Taichi reloads an ndarray's address and shape after every store (it
+to J^T J (``_gram_static``); above it, J^T J is summed in 8 x 8 tiles (``_gram_tiles``).
+Elsewhere (the parallel archs, and the solver's central differences from the stacked residuals)
+the normal equations are dot products over contiguous rows of J^T, two rows by four columns per
+pass over M (``_gram_pair``); strided dot products were 3-4x slower, so J is first transposed.
+Taichi reloads an ndarray's address and shape after every store (it
 cannot rule out aliasing), so a loop that stores per element is not vectorised and costs
 ~1-1.5 ns per element: the transpose groups its loads, and the solver, with central differences
 and no mask, computes J^T J and J^T r straight from the stacked residuals (``fused``) instead of
@@ -485,10 +486,8 @@ def _work(device, shape, dtype):
 
 
 def _static_p(P: int) -> int:
-    """How taichi:cpu sums J^T J from a stored J: P as a compile-time value for ``_gram_static``
-    (P <= STATIC_P_MAX), else TILES (``_gram_tiles``); 0 on the other archs."""
-    if current_arch() != "cpu":
-        return 0
+    """How the taichi:cpu kernels (``_per_problem``) sum J^T J from a stored J: P as a compile-time
+    value for ``_gram_static`` (P <= STATIC_P_MAX), else TILES (``_gram_tiles``)."""
     return P if P <= STATIC_P_MAX else TILES
 
 

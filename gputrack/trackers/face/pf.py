@@ -37,18 +37,17 @@ from .config import FaceConfig
 __all__ = ["FaceParticleFilter", "project_hypotheses", "shape_model"]
 
 
-def shape_model(mean, basis) -> np.ndarray:
-    """The (K, 3, 1 + D) float32 shape model of :func:`gputrack.ops.face_points.project_faces`:
-    the mean shape (K, 3) in column 0, the deformation basis (K, 3, D) after it."""
-    return np.concatenate([np.asarray(mean, np.float32)[:, :, None], np.asarray(basis, np.float32)], axis=2)
+def shape_model(mean, basis, dtype=np.float32) -> np.ndarray:
+    """The (K, 3, 1 + D) shape model of :func:`gputrack.ops.face_points.project_faces`: the mean
+    shape (K, 3) in column 0, the deformation basis (K, 3, D) after it."""
+    return np.concatenate([np.asarray(mean, dtype)[:, :, None], np.asarray(basis, dtype)], axis=2)
 
 
 def project_hypotheses(camera: Camera, states, mean, basis) -> np.ndarray:
     """(N, K, 2) float32 pixels of the K model points of each hypothesis (N, 6 + D) (eq. 5, 11), on
     the host in float64 (:func:`gputrack.ops.face_points.project_faces` on the numpy device)."""
     states = np.asarray(states, np.float64)
-    model = np.concatenate([np.asarray(mean, np.float64)[:, :, None], np.asarray(basis, np.float64)], axis=2)
-    return project_faces(get_device("numpy"), states, model, camera)[0]
+    return project_faces(get_device("numpy"), states, shape_model(mean, basis, np.float64), camera)[0]
 
 
 class FaceParticleFilter:
