@@ -114,6 +114,28 @@ def test_an_id_switch_lowers_identification_by_the_right_amount():
     assert ident.precision == 1.0 and ident.recall == pytest.approx(0.7)
 
 
+def test_recall_over_the_detected_frames():
+    """Person 1 is segmented in frames 0-7 (tracked as 5 in 0-5, as 6 in 6-7) and missed in 8-9
+    (no track); person 2 is never segmented, tracked by nobody. Over every frame in view: recall
+    (6/10 + 0) / 2; over the detected frames person 1 has 6/8 and person 2 is left out."""
+    ids, pos = scene({1: (0, A), 2: (0, B)}, 10)
+    segs = [boxes(p[:1]) if f < 8 else np.zeros((0, 4)) for f, p in enumerate(pos)]
+    hyp = [np.array([5 if f < 6 else 6]) if f < 8 else np.zeros(0, np.int64) for f in range(10)]
+    hp = [p[:1] if f < 8 else np.zeros((0, 3)) for f, p in enumerate(pos)]
+    ident = identification_metrics(ids, pos, hyp, hp, segments=segs)
+    assert ident.recall == pytest.approx((0.6 + 0.0) / 2)
+    assert ident.per_detected == {1: (8, 5, 6, 2)} and ident.recall_detected == pytest.approx(0.75)
+    assert ident.recall_detected_rows == {2: (1, pytest.approx(0.75))}
+    assert ident.per_person == identification_metrics(ids, pos, hyp, hp).per_person  # unchanged by segments
+    table = format_tables(None, ident).splitlines()
+    t4 = table[table.index(next(s for s in table if s.startswith("Table 4"))):]
+    assert "detected frames" in t4[0] and t4[-1].split() == ["total", "2", "30.0", "1", "75.0"]
+    with pytest.raises(ValueError, match="segments="):
+        identification_metrics(ids, pos, hyp, hp).recall_detected
+    with pytest.raises(ValueError, match="one entry per frame"):
+        identification_metrics(ids, pos, hyp, hp, segments=segs[:3])
+
+
 def test_breakdown_by_people_in_view():
     # person 1 alone (frames 0-9); then people 2, 3 (frames 10-19) joined by 4 (frames 15-19)
     ids, pos = scene({1: (0, A), 2: (10, walk(-1000, 2000, 10)), 3: (10, walk(-1000, 3000, 10)),

@@ -264,6 +264,60 @@ def test_switches_turn_the_rules_off(device):
     assert out["off"][0] == 2 and len(out["off"][1]) == 2
 
 
+def _boards(people):
+    """A SMALL-camera frame of boards [(x, z, height, width)] mm."""
+    d = crowd_depth(SMALL, (120, 160), np.zeros((0, 2)))
+    for x, z, h, w in people:
+        d = np.minimum(d, crowd_depth(SMALL, (120, 160), [[x, z]], height=h, width=w))
+    return d
+
+
+def test_a_split_needs_an_occluder(device):
+    """A short person appears 200 mm beside a tall one (inside its extent, under half its volume):
+    with the background seen through the gap it is a pedestrian of its own (``split_occluder``);
+    without the rule, or with a nearer person standing in the gap, it is a split part of the tall
+    one. When that occluder walks off, the part seen apart becomes a pedestrian with a new id.
+    A host rule: numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    tall, short, post = (-250, 3000, 1700, 450), (250, 3000, 1350, 300), (0, 1500, 1700, 150)
+
+    def run(frames, **kw):
+        trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig(**kw))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            trk.learn_background(np.stack([_boards([])] * 3))
+        return [trk.track(_boards(people)) for people in frames]
+
+    alone, beside = [[tall]] * 3, [[tall, short]] * 2
+    for rule, want in ((True, [(0, "tracked"), (1, "tracked")]), (False, [(0, "split")])):
+        fr = run(alone + beside, split_occluder=rule)[-1]
+        assert len(fr.segments) == 2 and [(p.id, p.status) for p in fr.pedestrians] == want
+    frames = run(alone + [[tall, short, post]] * 3 + beside)
+    assert [(p.id, p.status) for p in frames[5].pedestrians] == [(0, "split"), (1, "tracked")]  # 1: the post
+    assert frames[6].started == [2]  # the occluder gone: the part seen apart is someone else
+    assert [(p.id, p.status) for p in frames[-1].pedestrians] == [(0, "tracked"), (2, "tracked")]
+
+
+def test_seen_apart_reads_the_gap():
+    """rules.seen_apart: the background between two segments (True); a nearer reading or missing
+    readings there, or a gap under min_gap (False)."""
+    from gputrack.trackers.pedestrians.front import Segment
+
+    def seg(x0, x1, z):
+        lo, hi = np.array([x0, -600.0, z - 100]), np.array([x1, -50.0, z + 100])
+        return Segment((lo + hi) / 2, 0.05, 50, lo, hi)
+
+    a, b = seg(-475.0, -25.0, 3000.0), seg(100.0, 400.0, 3000.0)
+    bg = _boards([])
+    kw = {"min_gap": 50.0, "beyond": 100.0}
+    assert rules.seen_apart(bg, SMALL, a, b, **kw) and rules.seen_apart(bg, SMALL, b, a, **kw)
+    assert not rules.seen_apart(_boards([(40, 1500, 1700, 150)]), SMALL, a, b, **kw)  # an occluder
+    assert not rules.seen_apart(np.zeros_like(bg), SMALL, a, b, **kw)  # no readings (sunlight)
+    assert not rules.seen_apart(bg, SMALL, a, b, min_gap=200.0, beyond=100.0)  # 125 mm apart
+    assert not rules.seen_apart(bg, SMALL, a, seg(-300.0, 100.0, 3500.0), **kw)  # one behind the other
+
+
 def test_config_replace_keeps_validation():
     with pytest.raises(ValueError):
         dataclasses.replace(PedestrianConfig(), containment_margin=-1.0)

@@ -1,15 +1,19 @@
 """Host-side rules of the pedestrian tracker (paper 002 sec. 4.3): the assignment cost (eq. 1-3),
-the assignment with rejection, containment tests and the occlusion-adaptive gain (eq. 4-6).
+the assignment with rejection, containment and occlusion tests and the occlusion-adaptive gain
+(eq. 4-6).
 
 They work on the few tracks and segments of a frame (tens), in NumPy and SciPy.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-__all__ = ["assign", "behind", "cost_matrix", "inside", "occlusion_gain"]
+__all__ = ["assign", "bearings", "behind", "cost_matrix", "gap_bearings", "inside", "nearest_in_bearing",
+           "occlusion_gain", "seen_apart"]
 
 #: cost of a rejected pair in the assignment: above any feasible pair's cost
 _REJECTED = 1e6
@@ -55,10 +59,62 @@ def behind(point, lo, hi, margin: float) -> bool:
     z = point[2]
     if not z > lo[2] or lo[2] <= 0:
         return False
-    b = point[0] / z
-    bearings = (lo[0] / lo[2], hi[0] / lo[2], lo[0] / hi[2], hi[0] / hi[2])
+    b0, b1 = bearings(lo, hi)
     w = margin / z
-    return bool(min(bearings) - w <= b <= max(bearings) + w)
+    return bool(b0 - w <= point[0] / z <= b1 + w)
+
+
+def bearings(lo, hi) -> tuple[float, float]:
+    """The bearings x / z (smallest, largest) under which the camera sees the ground-plane box
+    [lo, hi] (z > 0)."""
+    b = (lo[0] / lo[2], hi[0] / lo[2], lo[0] / hi[2], hi[0] / hi[2])
+    return min(b), max(b)
+
+
+def gap_bearings(a, b) -> tuple[float, float]:
+    """(g0, g1): the bearings between segments a and b (``lo``/``hi`` boxes); g1 <= g0 where their
+    bearings overlap (one in front of the other)."""
+    (a0, a1), (b0, b1) = bearings(a.lo, a.hi), bearings(b.lo, b.hi)
+    return (a1, b0) if a0 <= b0 else (b1, a0)
+
+
+def seen_apart(depth, camera, a, b, *, min_gap: float, beyond: float) -> bool:
+    """Does the camera see past segments a and b through the gap between them, i.e. are they two
+    bodies, not one split by occlusion? ``depth`` (H, W) the frame (0 or NaN: no reading), in the
+    unit of the segments (``camera.depth_scale`` applied when it has one).
+
+    True when the gap between their bearings is wider than ``min_gap`` at the nearer one's depth
+    and more than half of its pixels in the rows of the two (their heights projected at the
+    nearer depth) read farther than the farther segment's back by ``beyond``: nothing stands
+    between them. A nearer reading there (an occluder, moving or static) or a missing one (sunlight,
+    no return) keeps them possibly one body."""
+    g0, g1 = gap_bearings(a, b)
+    near = min(a.lo[2], b.lo[2])
+    if not (g1 - g0) * near > min_gap:
+        return False
+    H, W = depth.shape
+    c0 = max(int(math.ceil(camera.cx + camera.fx * g0)), 0)
+    c1 = min(int(math.floor(camera.cx + camera.fx * g1)) + 1, W)
+    top, bottom = min(a.lo[1], b.lo[1]), max(a.hi[1], b.hi[1])
+    r0 = max(int(math.floor(camera.cy + camera.fy * top / near)), 0)
+    r1 = min(int(math.ceil(camera.cy + camera.fy * bottom / near)) + 1, H)
+    if c1 <= c0 or r1 <= r0:
+        return False
+    d = depth[r0:r1, c0:c1].astype(np.float64) * getattr(camera, "depth_scale", 1.0)
+    far = max(a.hi[2], b.hi[2]) + beyond
+    with np.errstate(invalid="ignore"):
+        past = np.count_nonzero(d > far)  # NaN and 0 (no reading) are not past
+    return bool(past > 0.5 * d.size)
+
+
+def nearest_in_bearing(seg, parts):
+    """The segment of ``parts`` (non-empty) with the smallest gap in bearing to ``seg``."""
+
+    def gap(p):
+        g0, g1 = gap_bearings(seg, p)
+        return g1 - g0
+
+    return min(parts, key=gap)
 
 
 def occlusion_gain(v_det: float, v_max: float, *, v_thr: float, beta: float) -> float:

@@ -47,9 +47,13 @@ Rules (sec. 4.3), written down:
   enters at that side.
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, half extents at least ``person_radius`` across and
-  ``person_depth`` along the view, grown by ``containment_margin``) and is no larger than
-  ``split_volume`` times its largest volume of the last frames (else someone beside it entered),
-  that pedestrian has *split* (occlusion): each part gets a child track with that parent.
+  ``person_depth`` along the view, grown by ``containment_margin``), is no larger than
+  ``split_volume`` times its largest volume of the last frames (else someone beside it entered)
+  and, beyond the paper (``split_occluder``), is not seen apart from the pedestrian's other parts
+  (a gap wider than ``split_gap`` between their bearings holds a nearer segment, the occluder:
+  :func:`rules.split_by_occlusion`; where the camera sees past both through the gap they are two
+  people), that pedestrian has *split* (occlusion): each part gets a child track with that parent.
+  A split part later seen apart from the others so becomes a pedestrian of its own (a new id).
   Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
   Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
   with a split part (for a pedestrian born this frame the extent is its own segment's box, grown
@@ -119,7 +123,9 @@ class PedestrianConfig:
     0: off, the paper's plain rule), ``report_hidden`` (output hidden pedestrians at their
     prediction, status "hidden"), ``leave_view`` and ``view_margin`` (mm: a missed pedestrian
     predicted beyond the image's side by more than this has left at once), ``split_volume`` (a
-    split part is at most this times the pedestrian's largest recent volume). ``capacity``:
+    split part is at most this times the pedestrian's largest recent volume), ``split_occluder``
+    (a split needs an occluder: a gap wider than ``split_gap`` mm between the parts' bearings must
+    hold a nearer segment). ``capacity``:
     initial table slots (it grows).
     """
 
@@ -157,6 +163,8 @@ class PedestrianConfig:
     leave_view: bool = True
     view_margin: float = 0.0
     split_volume: float = 0.5
+    split_occluder: bool = True
+    split_gap: float = 50.0
     capacity: int = 16
 
     def __post_init__(self):
@@ -168,7 +176,8 @@ class PedestrianConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
             raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
         for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
-                     "v_thr", "min_extent", "person_radius", "split_volume", "max_height", "person_depth"):  # fmt: skip
+                     "v_thr", "min_extent", "person_radius", "split_volume", "max_height", "person_depth",
+                     "split_gap"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
@@ -520,6 +529,8 @@ class PedestrianTracker:
                 vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
                 if sg.volume > cfg.split_volume * vmax:
                     continue  # too big to be a part of it: someone else (e.g. entering beside it)
+                if cfg.split_occluder and not self._occlusion_split(j, self._parts(i, seg_of), segs):
+                    continue  # seen past it through the gap: someone beside it
                 parent = i
                 break
             taken[j] = True
@@ -555,10 +566,42 @@ class PedestrianTracker:
             for c in self._children(i):  # a split child that walked off is no part of it any more
                 if c in seg_of and len(self.parents[c]) == 1 and c not in near:
                     self.parents[c].discard(int(i))
+            if cfg.split_occluder:  # a part seen apart from the others (no occluder between): a pedestrian
+                for c in list(near):
+                    rest = [p for p in self._parts(i, seg_of) if p != seg_of[c]]
+                    if not self._occlusion_split(seg_of[c], rest, segs):
+                        near.remove(c)
+                        started.append(self._promote(c))
             parts = sorted({seg_of[c] for c in near} | ({seg_of[i]} if i in seg_of else set()))
             if len(parts) >= 2:
                 union[int(i)] = parts
         return started
+
+    def _parts(self, i, seg_of) -> list:
+        """Segment indices of pedestrian i's own segment and its children's this frame."""
+        parts = [seg_of[i]] if i in seg_of else []
+        return parts + [seg_of[c] for c in self._children(i) if c in seg_of and seg_of[c] not in parts]
+
+    def _occlusion_split(self, j, parts, segs) -> bool:
+        """Could segment j be a part split by occlusion from the segments ``parts`` (indices; none:
+        yes)? Not when the frame shows the background between it and the nearest part
+        (:func:`rules.seen_apart`)."""
+        if not parts:
+            return True
+        near = rules.nearest_in_bearing(segs[j], [segs[p] for p in parts])
+        cfg = self.config
+        return not rules.seen_apart(self._frame["depth"], self.camera, segs[j], near, min_gap=cfg.split_gap,
+                                    beyond=cfg.foreground_threshold)  # fmt: skip
+
+    def _promote(self, c) -> int:
+        """A child track becomes a pedestrian of its own (a new id, its state kept); returns the id."""
+        self.parents.pop(int(c), None)
+        self.kind[c] = PEDESTRIAN
+        self.ids[c] = self.next_id
+        self.next_id += 1
+        self.again[c] = self.hidden[c] = self.missed[c] = 0
+        self.status[c] = "new"
+        return int(self.ids[c])
 
     def _parent_updates(self, peds, seg_of, union, merged_now, segs, z, obs_vol) -> set:
         """Unassigned parents follow their one observed child's displacement (predicted only in the
