@@ -131,7 +131,7 @@ def test_recall_over_the_detected_frames():
     t4 = table[table.index(next(s for s in table if s.startswith("Table 4"))):]
     assert "detected frames" in t4[0] and t4[-1].split() == ["total", "2", "30.0", "1", "75.0"]
     with pytest.raises(ValueError, match="segments="):
-        identification_metrics(ids, pos, hyp, hp).recall_detected
+        _ = identification_metrics(ids, pos, hyp, hp).recall_detected
     with pytest.raises(ValueError, match="one entry per frame"):
         identification_metrics(ids, pos, hyp, hp, segments=segs[:3])
 

@@ -93,11 +93,11 @@ def seen_apart(depth, camera, a, b, *, min_gap: float, beyond: float) -> bool:
     if not (g1 - g0) * near > min_gap:
         return False
     H, W = depth.shape
-    c0 = max(int(math.ceil(camera.cx + camera.fx * g0)), 0)
-    c1 = min(int(math.floor(camera.cx + camera.fx * g1)) + 1, W)
+    c0 = max(math.ceil(camera.cx + camera.fx * g0), 0)
+    c1 = min(math.floor(camera.cx + camera.fx * g1) + 1, W)
     top, bottom = min(a.lo[1], b.lo[1]), max(a.hi[1], b.hi[1])
-    r0 = max(int(math.floor(camera.cy + camera.fy * top / near)), 0)
-    r1 = min(int(math.ceil(camera.cy + camera.fy * bottom / near)) + 1, H)
+    r0 = max(math.floor(camera.cy + camera.fy * top / near), 0)
+    r1 = min(math.ceil(camera.cy + camera.fy * bottom / near) + 1, H)
     if c1 <= c0 or r1 <= r0:
         return False
     d = depth[r0:r1, c0:c1].astype(np.float64) * getattr(camera, "depth_scale", 1.0)
