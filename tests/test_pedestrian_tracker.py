@@ -47,7 +47,8 @@ def test_plane_background_is_the_level_floor():
 
 @pytest.mark.parametrize("bad", [{"alpha": 1.5}, {"beta": -0.1}, {"n_points": 0}, {"eps": 0.0},
                                  {"max_missed": 0}, {"ground_plane": (0, 0, 0, -1)}, {"p0": (1.0,)},
-                                 {"min_width": -1.0}, {"view_margin": float("nan")}])  # fmt: skip
+                                 {"min_width": -1.0}, {"view_margin": float("nan")}, {"faint_points": -1},
+                                 {"faint_radius": 0.0}, {"split_gap": float("inf")}])  # fmt: skip
 def test_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="expected"):
         PedestrianConfig(**bad)
@@ -297,6 +298,28 @@ def test_a_split_needs_an_occluder(device):
     assert [(p.id, p.status) for p in frames[5].pedestrians] == [(0, "split"), (1, "tracked")]  # 1: the post
     assert frames[6].started == [2]  # the occluder gone: the part seen apart is someone else
     assert [(p.id, p.status) for p in frames[-1].pedestrians] == [(0, "tracked"), (2, "tracked")]
+
+
+def test_a_faint_pedestrian_keeps_its_id(device):
+    """A pedestrian walking 100 mm a frame at 3 m turns into a 40 mm sliver (its points make a
+    cluster narrower than min_width: no segment): observed from those points ("faint") it keeps
+    its id and follows them; with faint_points=0 it is missed, then deleted. A host rule: numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    near = (900, 2000, 1700, 450)  # enough foreground for the 1024 points
+    frames = [[(-600 + 100 * k, 3000, 1700, 450 if k < 3 else 40), near] for k in range(6)]
+    out = {}
+    for fp in (3, 0):
+        trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig(faint_points=fp))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            trk.learn_background(np.stack([_boards([])] * 3))
+        out[fp] = [trk.track(_boards(people)) for people in frames]
+    assert all(len(fr.segments) == 1 for fr in out[3][3:])  # the sliver is no segment
+    assert [[(p.id, p.status) for p in fr.pedestrians] for fr in out[3][3:]] == [[(0, "tracked"), (1, "faint")]] * 3
+    np.testing.assert_allclose(out[3][-1].pedestrians[1].position[[0, 2]], [-100, 3000], atol=120)
+    assert [[(p.id, p.status) for p in fr.pedestrians] for fr in out[0][3:]] == [
+        [(0, "tracked"), (1, "missed")], [(0, "tracked")], [(0, "tracked")]]  # fmt: skip
 
 
 def test_seen_apart_reads_the_gap():

@@ -54,6 +54,10 @@ Rules (sec. 4.3), written down:
   :func:`rules.split_by_occlusion`; where the camera sees past both through the gap they are two
   people), that pedestrian has *split* (occlusion): each part gets a child track with that parent.
   A split part later seen apart from the others so becomes a pedestrian of its own (a new id).
+- **Faint pedestrian** (beyond the paper): a pedestrian left without an observation that has at
+  least ``faint_points`` of the points no segment kept within ``faint_radius`` of its prediction is
+  observed from them (status "faint"): a far person gets few of the 1024 points, often too few for
+  a segment, and would otherwise be deleted after 2 frames and come back with a new id.
   Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
   Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
   with a split part (for a pedestrian born this frame the extent is its own segment's box, grown
@@ -90,7 +94,7 @@ from ...ops import backend_module, constant_velocity, kf_predict, kf_update, sha
 from ...ops._args import check_device
 from ...scheduler import Scheduler, Stage
 from . import rules
-from .front import DepthFrontEnd, Segment
+from .front import DepthFrontEnd, Segment, segments_of
 
 __all__ = ["Pedestrian", "PedestrianConfig", "PedestrianFrame", "PedestrianTracker"]
 
@@ -125,7 +129,9 @@ class PedestrianConfig:
     predicted beyond the image's side by more than this has left at once), ``split_volume`` (a
     split part is at most this times the pedestrian's largest recent volume), ``split_occluder``
     (a split needs an occluder: a gap wider than ``split_gap`` mm between the parts' bearings must
-    hold a nearer segment). ``capacity``:
+    hold a nearer segment), ``faint_points`` and ``faint_radius`` (mm: a pedestrian without a
+    segment is observed from at least this many of the points no segment kept within this radius
+    of its prediction; 0: off). ``capacity``:
     initial table slots (it grows).
     """
 
@@ -165,6 +171,8 @@ class PedestrianConfig:
     split_volume: float = 0.5
     split_occluder: bool = True
     split_gap: float = 50.0
+    faint_points: int = 3
+    faint_radius: float = 300.0
     capacity: int = 16
 
     def __post_init__(self):
@@ -177,7 +185,7 @@ class PedestrianConfig:
             raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
         for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
                      "v_thr", "min_extent", "person_radius", "split_volume", "max_height", "person_depth",
-                     "split_gap"):  # fmt: skip
+                     "split_gap", "faint_radius"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
@@ -186,6 +194,9 @@ class PedestrianConfig:
         if not (isinstance(self.containment_margin, (int, float)) and 0 <= self.containment_margin < 1e4):
             raise ValueError(f"PedestrianConfig.containment_margin: expected mm in [0, 1e4), got "
                              f"{self.containment_margin!r}")  # fmt: skip
+        v = self.faint_points
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ValueError(f"PedestrianConfig.faint_points: expected an integer >= 0 (0: off), got {v!r}")
         v = self.view_margin
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)):
             raise ValueError(f"PedestrianConfig.view_margin: expected a finite number of mm, got {v!r}")
@@ -210,7 +221,8 @@ class Pedestrian:
     """One tracked pedestrian: ``position`` (3,) mm and ``velocity`` (3,) mm/frame (camera
     coordinates), ``volume`` (m^3, of its last observation), ``status``: "new" (entered this
     frame), "tracked" (assigned a segment), "split" (updated from its split parts), "merged"
-    (inside a segment shared with another pedestrian), "missed" (no observation this frame),
+    (inside a segment shared with another pedestrian), "faint" (observed from a few points that
+    make no segment), "missed" (no observation this frame),
     "hidden" (behind a nearer segment, see the module; not output with ``report_hidden=False``)."""
 
     id: int
@@ -282,7 +294,7 @@ class PedestrianTracker:
             Stage("predict", self._predict, reads=("x", "P"), writes=("x", "P")),
             Stage("points", self._points, writes=("points",)),
             Stage("segments", self._segments, reads=("points", "x", "P"), writes=("segments",)),
-            Stage("associate", self._associate, reads=("segments", "x", "P"),
+            Stage("associate", self._associate, reads=("points", "segments", "x", "P"),
                   writes=("x", "P", "z", "mask", "gain")),
             Stage("update", self._update, reads=("x", "P", "z", "mask", "gain"), writes=("x", "P")),
         ], state=("x", "P"), outputs=("x",), profile=profile)  # fmt: skip
@@ -422,6 +434,8 @@ class PedestrianTracker:
             self.half[s] = (segs[big].hi - segs[big].lo) / 2
             self.status[s] = "split"
         displaced = self._parent_updates(peds, seg_of, union, merged_now, segs, z, obs_vol)
+        if cfg.faint_points:
+            self._faint(peds, seg_of, union, new, b["points"], z, obs_vol)
         explained = merged_now | self._waiting
         # occlusion gain (eq. 4-6) and the volume history
         for s in np.flatnonzero(np.isfinite(obs_vol)):
@@ -576,6 +590,28 @@ class PedestrianTracker:
             if len(parts) >= 2:
                 union[int(i)] = parts
         return started
+
+    def _faint(self, peds, seg_of, union, new, points, z, obs_vol) -> None:
+        """A pedestrian with no observation yet that has at least ``faint_points`` of the points
+        no segment kept (DBSCAN's noise, clusters too small or too narrow) within ``faint_radius``
+        of its prediction in the ground plane is observed from them: a far or mostly hidden person
+        whom the 1024 points sample too thinly for a segment (status "faint"; the occlusion gain
+        weighs the small volume)."""
+        labels = self._frame["labels"]
+        loose = points[labels < 0] if len(points) else points
+        if len(loose) < self.config.faint_points:
+            return
+        for i in peds:
+            if self.ids[i] < 0 or i in seg_of or i in union or new[i] or np.isfinite(z[i]).all():
+                continue
+            if self.status[i] == "merged":
+                continue
+            near = np.hypot(loose[:, 0] - self._x[i, 0], loose[:, 2] - self._x[i, 4]) <= self.config.faint_radius
+            if near.sum() < self.config.faint_points:
+                continue
+            seg = segments_of(loose[near], np.zeros(int(near.sum()), np.int64), 1, self.config.min_extent)[0][0]
+            z[i], obs_vol[i] = seg.position, seg.volume
+            self.status[i] = "faint"
 
     def _parts(self, i, seg_of) -> list:
         """Segment indices of pedestrian i's own segment and its children's this frame."""
