@@ -31,6 +31,18 @@ def test_cost_is_eq_3_and_rejects_far_or_different_pairs():
     assert rules.assign(cost, ok) == [(0, 0)]
 
 
+def test_gated_assignment_leaves_far_pairs_unmade():
+    """Track 0 is near segment 0 (0.05), track 1 only reaches segment 0 (0.48), track 0 reaches
+    segment 1 (0.62). As many pairs as possible: the two far pairs (1.10); with leaving one
+    unassigned at 0.375: the near pair and two left over (0.80)."""
+    cost = np.array([[0.05, 0.62], [0.48, rules._REJECTED]])
+    ok = cost < 1.0
+    assert sorted(rules.assign(cost, ok)) == [(0, 1), (1, 0)]
+    assert rules.assign(cost, ok, 0.375) == [(0, 0)]
+    assert sorted(rules.assign(cost, ok, 0.6)) == [(0, 1), (1, 0)]  # leaving is dear: 1.25 > 1.10
+    assert rules.assign(np.zeros((0, 3)), np.zeros((0, 3), bool), 0.375) == []
+
+
 def test_occlusion_gain_eq_4_to_6():
     # V_abs = 0.02 / 0.05 = 0.4, V_rel = 0.02 / 0.08 = 0.25: O = 0.2 * 0.4 + 0.8 * 0.25 = 0.28
     assert rules.occlusion_gain(0.02, 0.08, v_thr=0.05, beta=0.2) == pytest.approx(0.28)

@@ -38,12 +38,29 @@ def cost_matrix(track_pos, track_vol, seg_pos, seg_vol, *, alpha: float, max_dis
     return np.where(ok, c, _REJECTED), ok
 
 
-def assign(cost, feasible) -> list[tuple[int, int]]:
-    """The assignment of least total cost (scipy's ``linear_sum_assignment``; with unequal counts
-    the smaller side is assigned in full), infeasible pairs dropped: [(i, j)]."""
+def assign(cost, feasible, unassigned: float | None = None) -> list[tuple[int, int]]:
+    """The assignment of least total cost, infeasible pairs dropped: [(i, j)] (scipy's
+    ``linear_sum_assignment``).
+
+    ``unassigned`` None: as many feasible pairs as possible, then the least cost (with unequal
+    counts the smaller side is assigned in full). A cost u: leaving a track or a segment without a
+    partner costs u each, so a pair is made only where it lowers the total: two far pairs that take
+    each other's near partners (c = 0.48 + 0.62) lose to one near pair and two left over (c + 2u).
+    """
     if cost.size == 0:
         return []
-    r, c = linear_sum_assignment(cost)
+    if unassigned is None:
+        r, c = linear_sum_assignment(cost)
+    else:
+        T, M = cost.shape
+        big = np.full((T + M, M + T), _REJECTED)
+        big[:T, :M] = np.where(feasible, cost, _REJECTED)
+        big[np.arange(T), M + np.arange(T)] = unassigned
+        big[T + np.arange(M), np.arange(M)] = unassigned
+        big[T:, M:] = 0.0
+        r, c = linear_sum_assignment(big)
+        keep = (r < T) & (c < M)
+        r, c = r[keep], c[keep]
     return [(int(i), int(j)) for i, j in zip(r, c) if feasible[i, j]]
 
 

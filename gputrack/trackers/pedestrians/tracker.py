@@ -30,6 +30,9 @@ Rules (sec. 4.3), written down:
   left, or their parent's), each by :func:`rules.assign` on c = alpha d + (1 - alpha)|V_j - V_i|
   (eq. 1-3, d in m, V in m^3), pairs farther than ``max_distance`` or differing in volume by more
   than ``max_volume_change`` rejected. A track's V_i is the volume of its last observation.
+  Beyond the paper (``gated``), leaving a track or a segment unassigned costs half the largest
+  feasible cost, so the assignment does not make two far pairs where one near pair and two left
+  over cost less (a missed track taking a neighbour's segment, the neighbour then taking the next).
 - **Unassigned pedestrian** (Fig. 6): if it has split/merge children, it is updated from them
   (below); else if its predicted position lies inside a segment (ground-plane box grown by
   ``containment_margin``) that another pedestrian k took, the two have *merged*: a child track
@@ -116,7 +119,9 @@ class PedestrianConfig:
     the sliver of someone at the image's side or behind a nearer person's edge; 0:
     off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
     ``min_extent`` (mm, the least extent per axis in a volume).
-    Assignment (eq. 1-3): ``alpha`` (0.8), ``max_distance`` (mm), ``max_volume_change`` (m^3).
+    Assignment (eq. 1-3): ``alpha`` (0.8), ``max_distance`` (mm), ``max_volume_change`` (m^3),
+    ``gated`` (a pair only where it lowers the total cost against leaving both unassigned at half
+    the largest feasible cost each; False: as many feasible pairs as possible).
     Kalman: ``q`` acceleration variance (mm/frame^2)^2, ``r`` observation standard deviation
     (mm), ``p0`` initial standard deviations (position mm, velocity mm/frame).
     Gain (eq. 4-6): ``beta`` (0.2), ``v_thr`` (m^3), ``volume_frames`` (5), ``occlusion_gain``.
@@ -151,6 +156,7 @@ class PedestrianConfig:
     alpha: float = 0.8
     max_distance: float = 900.0
     max_volume_change: float = 0.15
+    gated: bool = True
     q: float = 1600.0
     r: float = 60.0
     p0: tuple = (150.0, 100.0)
@@ -380,7 +386,9 @@ class PedestrianTracker:
         seg_of = {}  # slot -> segment index (direct observation)
         limits = {"alpha": cfg.alpha, "max_distance": cfg.max_distance, "max_volume_change": cfg.max_volume_change}
         cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, **limits)
-        for i, j in rules.assign(cost, ok):  # stage 1
+        # leaving a track or a segment without a partner costs half the largest feasible cost
+        U = (cfg.alpha * cfg.max_distance / 1000 + (1 - cfg.alpha) * cfg.max_volume_change) / 2 if cfg.gated else None
+        for i, j in rules.assign(cost, ok, U):  # stage 1
             owner[j] = peds[i]
             seg_of[int(peds[i])] = j
         if len(kids):  # stage 2: children, on the segments left or their parent's
@@ -393,7 +401,7 @@ class PedestrianTracker:
                     elif not any(self._near(p, segs[j].position) for p in ps):
                         ok[a, j] = False  # a child stays within its parents' extent
             cost = np.where(ok, cost, rules._REJECTED)
-            for a, j in rules.assign(cost, ok):
+            for a, j in rules.assign(cost, ok, U):
                 seg_of[int(kids[a])] = j
         taken = np.zeros(M, bool)
         for j in seg_of.values():
