@@ -52,19 +52,20 @@ Rules (sec. 4.3), written down:
   segment's box centred on the prediction, half extents at least ``person_radius`` across and
   ``person_depth`` along the view, grown by ``containment_margin``), is no larger than
   ``split_volume`` times its largest volume of the last frames (else someone beside it entered)
-  and, beyond the paper (``split_occluder``), is not seen apart from the pedestrian's other parts
-  (a gap wider than ``split_gap`` between their bearings holds a nearer segment, the occluder:
-  :func:`rules.split_by_occlusion`; where the camera sees past both through the gap they are two
-  people), that pedestrian has *split* (occlusion): each part gets a child track with that parent.
+  and, beyond the paper (``split_occluder``), is not seen apart from the pedestrian's nearest
+  part (where the frame reads the background through a gap wider than ``split_gap`` between their
+  bearings they are two people, :func:`rules.seen_apart`; a nearer reading there, an occluder
+  moving or static, or missing readings keep the split), that pedestrian has *split*
+  (occlusion): each part gets a child track with that parent.
   A split part later seen apart from the others so becomes a pedestrian of its own (a new id).
+  Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
+  Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
+  with a split part (the same extent as any pedestrian's: two people who enter side by side are
+  told apart by the gap seen between them).
 - **Faint pedestrian** (beyond the paper): a pedestrian left without an observation that has at
   least ``faint_points`` of the points no segment kept within ``faint_radius`` of its prediction is
   observed from them (status "faint"): a far person gets few of the 1024 points, often too few for
   a segment, and would otherwise be deleted after 2 frames and come back with a new id.
-  Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
-  Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
-  with a split part (for a pedestrian born this frame the extent is its own segment's box, grown
-  by the margin, without ``person_radius``).
 - **Parents**: a parent with two or more observed parts (its own segment and its split
   children's) is updated from their combined points (the midpoint of the union of their boxes,
   volume the sum); with one observed child only, from the child's displacement since its last
@@ -133,8 +134,8 @@ class PedestrianConfig:
     prediction, status "hidden"), ``leave_view`` and ``view_margin`` (mm: a missed pedestrian
     predicted beyond the image's side by more than this has left at once), ``split_volume`` (a
     split part is at most this times the pedestrian's largest recent volume), ``split_occluder``
-    (a split needs an occluder: a gap wider than ``split_gap`` mm between the parts' bearings must
-    hold a nearer segment), ``faint_points`` and ``faint_radius`` (mm: a pedestrian without a
+    (a split needs an occluder: where the frame reads the background through a gap wider than
+    ``split_gap`` mm between the parts' bearings, they are two people), ``faint_points`` and ``faint_radius`` (mm: a pedestrian without a
     segment is observed from at least this many of the points no segment kept within this radius
     of its prediction; 0: off). ``capacity``:
     initial table slots (it grows).
@@ -544,8 +545,7 @@ class PedestrianTracker:
             for i in cands:
                 if self.ids[i] < 0 or self.status[i] == "merged":
                     continue
-                # a pedestrian born this frame has no prediction yet: its own box, not person_radius
-                half = self.half[i] if i in self._born else np.maximum(self.half[i], self._least_half)
+                half = np.maximum(self.half[i], self._least_half)
                 if not rules.inside(sg.position, self._x[i, POS] - half, self._x[i, POS] + half, m):
                     continue
                 vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
