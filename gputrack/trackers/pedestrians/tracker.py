@@ -412,7 +412,7 @@ class PedestrianTracker:
             self._merges(peds, seg_of, owner, taken, segs, pred, merged_now)
         union: dict = {}  # parent slot -> segment indices of its split parts
         if cfg.split_merge:
-            started = self._splits(peds, seg_of, taken, segs, pred, union)
+            started = self._splits(peds, seg_of, taken, segs, union)
         else:
             started = []
             for j in np.flatnonzero(~taken):  # entered the view (Fig. 7)
@@ -530,13 +530,12 @@ class PedestrianTracker:
                     merged_now.add(int(i))
                     self.status[i] = "hidden"
 
-    def _splits(self, peds, seg_of, taken, segs, pred, union) -> list:
+    def _splits(self, peds, seg_of, taken, segs, union) -> list:
         """Fig. 7: an unassigned segment inside a pedestrian's predicted extent, no larger than
         ``split_volume`` times its largest recent volume, is a part of it (split); any other starts
         a pedestrian (entered). Largest segments first, so that a person entering in two pieces is
         one new pedestrian and a split part. Returns the ids started."""
         cfg = self.config
-        m = cfg.containment_margin
         started = []
         cands = [int(i) for i in peds]
         for j in sorted(np.flatnonzero(~taken), key=lambda j: -segs[j].volume):
@@ -545,8 +544,7 @@ class PedestrianTracker:
             for i in cands:
                 if self.ids[i] < 0 or self.status[i] == "merged":
                     continue
-                half = np.maximum(self.half[i], self._least_half)
-                if not rules.inside(sg.position, self._x[i, POS] - half, self._x[i, POS] + half, m):
+                if not self._near(i, sg.position):
                     continue
                 vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
                 if sg.volume > cfg.split_volume * vmax:
@@ -578,13 +576,11 @@ class PedestrianTracker:
                     c = self._add(CHILD, segs[p], velocity=self._x[i, VEL])
                     seg_of[c] = p
                     self.parents[c] = {i}
-        pred = self._x[:, POS]
         for i in peds:  # ongoing splits: the parent and its children on two or more segments
             if int(i) in union or self.ids[i] < 0:
                 continue
-            half = np.maximum(self.half[i], self._least_half)
             near = [c for c in self._children(i) if c in seg_of and len(self.parents[c]) == 1
-                    and rules.inside(segs[seg_of[c]].position, pred[i] - half, pred[i] + half, m)]  # fmt: skip
+                    and self._near(i, segs[seg_of[c]].position)]  # fmt: skip
             for c in self._children(i):  # a split child that walked off is no part of it any more
                 if c in seg_of and len(self.parents[c]) == 1 and c not in near:
                     self.parents[c].discard(int(i))
