@@ -135,9 +135,9 @@ class PedestrianConfig:
     predicted beyond the image's side by more than this has left at once), ``split_volume`` (a
     split part is at most this times the pedestrian's largest recent volume), ``split_occluder``
     (a split needs an occluder: where the frame reads the background through a gap wider than
-    ``split_gap`` mm between the parts' bearings, they are two people), ``faint_points`` and ``faint_radius`` (mm: a pedestrian without a
-    segment is observed from at least this many of the points no segment kept within this radius
-    of its prediction; 0: off). ``capacity``:
+    ``split_gap`` mm between the parts' bearings, they are two people), ``faint_points`` and
+    ``faint_radius`` (mm: a pedestrian without a segment is observed from at least this many of
+    the points no segment kept within this radius of its prediction; 0: off). ``capacity``:
     initial table slots (it grows).
     """
 
