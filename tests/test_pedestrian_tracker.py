@@ -60,7 +60,7 @@ def test_plane_background_is_the_level_floor():
 @pytest.mark.parametrize("bad", [{"alpha": 1.5}, {"beta": -0.1}, {"n_points": 0}, {"eps": 0.0},
                                  {"max_missed": 0}, {"ground_plane": (0, 0, 0, -1)}, {"p0": (1.0,)},
                                  {"min_width": -1.0}, {"view_margin": float("nan")}, {"faint_points": -1},
-                                 {"faint_radius": 0.0}, {"split_gap": float("inf")}])  # fmt: skip
+                                 {"faint_radius": 0.0}, {"split_gap": float("inf")}, {"merge_volume": 0.0}])  # fmt: skip
 def test_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="expected"):
         PedestrianConfig(**bad)
@@ -332,6 +332,24 @@ def test_a_faint_pedestrian_keeps_its_id(device):
     np.testing.assert_allclose(out[3][-1].pedestrians[1].position[[0, 2]], [-100, 3000], atol=120)
     assert [[(p.id, p.status) for p in fr.pedestrians] for fr in out[0][3:]] == [
         [(0, "tracked"), (1, "missed")], [(0, "tracked")], [(0, "tracked")]]  # fmt: skip
+
+
+def test_a_merge_ends_when_one_is_seen_again_alone(device):
+    """B walks in beside A (one segment: merged), then is gone while A stays. Once A is seen whole
+    again the merge ends; A's segment holds one person's volume, so B does not merge again: it is
+    hidden behind A for a few frames, then ends, and A is "tracked" throughout. A host rule: numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    a = (0, 2500, 1700, 450)
+    frames = [[a, (x, 2600, 1700, 450)] for x in (900, 700, 500, 350, 250, 250, 250)] + [[a]] * 12
+    trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trk.learn_background(np.stack([_boards([])] * 3))
+    out = [trk.track(_boards(people)) for people in frames]
+    assert [p.status for p in out[2].pedestrians] == ["merged", "merged"]  # one segment, two people
+    assert all(fr.pedestrians[0].id == 0 and fr.pedestrians[0].status == "tracked" for fr in out[9:])
+    assert 1 in sum((fr.ended for fr in out[7:]), []) and [p.id for p in out[-1].pedestrians] == [0]
 
 
 def test_seen_apart_reads_the_gap():

@@ -35,7 +35,9 @@ Rules (sec. 4.3), written down:
   over cost less (a missed track taking a neighbour's segment, the neighbour then taking the next).
 - **Unassigned pedestrian** (Fig. 6): if it has split/merge children, it is updated from them
   (below); else if its predicted position lies inside a segment (ground-plane box grown by
-  ``containment_margin``) that another pedestrian k took, the two have *merged*: a child track
+  ``containment_margin``) that another pedestrian k took and, beyond the paper, that segment is
+  at least ``merge_volume`` times k's largest recent volume (else it holds k alone: the other is
+  hidden behind k or gone), the two have *merged*: a child track
   starts at that segment with parents {i, k}, k's assignment is undone, and both parents are
   predicted only in this first frame; inside a segment nobody took, it is that pedestrian's own
   segment whose volume changed too much (a merge of one): assigned. Beyond the paper: a
@@ -72,8 +74,9 @@ Rules (sec. 4.3), written down:
   frame applied to the parent's position (predicted only in the child's first frame). A merged
   parent is never updated from the merged segment itself. A parent *seen again* (assigned in
   stage 1, no split child on another segment) for ``end_children_after`` (2) frames in a row ends
-  the children it is a parent of; children also end after ``max_missed`` unmatched frames or when
-  they have no parent left. Children are internal: only pedestrians are output.
+  the children it is a parent of (a merge ends when either of its two is seen again whole: the
+  other is then judged afresh, merged again, hidden or missed); children also end after
+  ``max_missed`` unmatched frames or when they have no parent left. Children are internal: only pedestrians are output.
 - **Occlusion gain** (eq. 4-6, :func:`rules.occlusion_gain`): each observed track's Kalman gain is
   scaled by O_ocl = beta V_abs + (1 - beta) V_rel (clipped to [0, 1]) with V_max the largest volume
   it was observed with in the last ``volume_frames`` (5) frames.
@@ -133,7 +136,8 @@ class PedestrianConfig:
     0: off, the paper's plain rule), ``report_hidden`` (output hidden pedestrians at their
     prediction, status "hidden"), ``leave_view`` and ``view_margin`` (mm: a missed pedestrian
     predicted beyond the image's side by more than this has left at once), ``split_volume`` (a
-    split part is at most this times the pedestrian's largest recent volume), ``split_occluder``
+    split part is at most this times the pedestrian's largest recent volume), ``merge_volume`` (a
+    merged segment is at least this times its owner's largest recent volume), ``split_occluder``
     (a split needs an occluder: where the frame reads the background through a gap wider than
     ``split_gap`` mm between the parts' bearings, they are two people), ``faint_points`` and
     ``faint_radius`` (mm: a pedestrian without a segment is observed from at least this many of
@@ -176,6 +180,7 @@ class PedestrianConfig:
     leave_view: bool = True
     view_margin: float = 0.0
     split_volume: float = 0.5
+    merge_volume: float = 1.2
     split_occluder: bool = True
     split_gap: float = 50.0
     faint_points: int = 3
@@ -192,7 +197,7 @@ class PedestrianConfig:
             raise ValueError(f"PedestrianConfig.seed: expected an integer in [0, 2**32), got {self.seed!r}")
         for name in ("foreground_threshold", "camera_height", "eps", "max_distance", "max_volume_change", "q", "r",
                      "v_thr", "min_extent", "person_radius", "split_volume", "max_height", "person_depth",
-                     "split_gap", "faint_radius"):  # fmt: skip
+                     "split_gap", "faint_radius", "merge_volume"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PedestrianConfig.{name}: expected a positive finite number, got {v!r}")
@@ -488,7 +493,7 @@ class PedestrianTracker:
         for c in list(self.parents):
             ps = self.parents[c]
             ps &= {p for p in ps if self.ids[p] >= 0 and self.kind[p] == PEDESTRIAN}
-            if not ps or all(self.again[p] >= cfg.end_children_after for p in ps):
+            if not ps or any(self.again[p] >= cfg.end_children_after for p in ps):
                 self._free(c)
         mask = np.isfinite(z).all(axis=1) & (self.ids >= 0)
         z[~mask] = np.nan
@@ -506,6 +511,8 @@ class PedestrianTracker:
                 if not rules.inside(pred[i], sg.lo, sg.hi, m):
                     continue
                 k = int(owner[j])
+                if k >= 0 and sg.volume < self.config.merge_volume * self._vmax(k):
+                    continue  # one person's volume: the other pedestrian is not in it
                 if k >= 0:
                     kid = next((c for c, ps in self.parents.items() if k in ps and seg_of.get(c) == j), None)
                     if kid is None:
@@ -546,8 +553,7 @@ class PedestrianTracker:
                     continue
                 if not self._near(i, sg.position):
                     continue
-                vmax = np.nanmax(self.vols[i]) if np.isfinite(self.vols[i]).any() else self.volume[i]
-                if sg.volume > cfg.split_volume * vmax:
+                if sg.volume > cfg.split_volume * self._vmax(i):
                     continue  # too big to be a part of it: someone else (e.g. entering beside it)
                 if cfg.split_occluder and not self._occlusion_split(j, self._parts(i, seg_of), segs):
                     continue  # seen past it through the gap: someone beside it
@@ -666,6 +672,10 @@ class PedestrianTracker:
             if self.status[i] != "merged":
                 self.status[i] = "split"
         return out
+
+    def _vmax(self, i) -> float:
+        """Pedestrian i's largest volume of the last ``volume_frames`` observations (m^3)."""
+        return float(np.nanmax(self.vols[i])) if np.isfinite(self.vols[i]).any() else float(self.volume[i])
 
     def _near(self, i, position) -> bool:
         """Is ``position`` inside pedestrian i's predicted extent (its last segment's half extents,
