@@ -352,6 +352,23 @@ def test_a_merge_ends_when_one_is_seen_again_alone(device):
     assert 1 in sum((fr.ended for fr in out[7:]), []) and [p.id for p in out[-1].pedestrians] == [0]
 
 
+def test_a_split_part_is_weighed_against_the_size_now(device):
+    """A person first seen as a 100 mm sliver, then whole with a small piece behind its edge (a
+    bag): the piece is under half of the whole person's volume, so it is a split part of that
+    pedestrian, not a new one (the sliver's volume alone would make it "too big"). Numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    near = (-1200, 2000, 1700, 450)  # enough foreground for the 1024 points
+    whole = [near, (0, 3000, 1700, 450), (350, 3250, 1400, 250)]
+    trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trk.learn_background(np.stack([_boards([])] * 3))
+    out = [trk.track(_boards(people)) for people in [[near], [near, (0, 3000, 1700, 100)], whole, whole]]
+    assert len(out[-1].segments) == 3
+    assert [(p.id, p.status) for p in out[-1].pedestrians] == [(0, "tracked"), (1, "split")]
+
+
 def test_seen_apart_reads_the_gap():
     """rules.seen_apart: the background between two segments (True); a nearer reading or missing
     readings there, or a gap under min_gap (False)."""

@@ -53,7 +53,8 @@ Rules (sec. 4.3), written down:
 - **Unassigned segment** (Fig. 7): if it lies inside a pedestrian's predicted extent (its last
   segment's box centred on the prediction, half extents at least ``person_radius`` across and
   ``person_depth`` along the view, grown by ``containment_margin``), is no larger than
-  ``split_volume`` times its largest volume of the last frames (else someone beside it entered)
+  ``split_volume`` times its largest volume of the last frames and of this frame's own segment
+  (else someone beside it entered)
   and, beyond the paper (``split_occluder``), is not seen apart from the pedestrian's nearest
   part (where the frame reads the background through a gap wider than ``split_gap`` between their
   bearings they are two people, :func:`rules.seen_apart`; a nearer reading there, an occluder
@@ -553,7 +554,8 @@ class PedestrianTracker:
                     continue
                 if not self._near(i, sg.position):
                     continue
-                if sg.volume > cfg.split_volume * self._vmax(i):
+                vmax = max(self._vmax(i), segs[seg_of[i]].volume if i in seg_of else 0.0)  # its size now too
+                if sg.volume > cfg.split_volume * vmax:
                     continue  # too big to be a part of it: someone else (e.g. entering beside it)
                 if cfg.split_occluder and not self._occlusion_split(j, self._parts(i, seg_of), segs):
                     continue  # seen past it through the gap: someone beside it
