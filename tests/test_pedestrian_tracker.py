@@ -90,7 +90,7 @@ def _run(device, seq, frames, configs):
 def test_accuracy_protocol_on_the_simulator(device):
     """Paper 002 sec. 5 on a 200-frame, 640 x 480 simulated sequence (seed 0, 8 people, up to 5 in
     view): detection and identification near the paper's figures (measured: detection P 99.4 %,
-    R 94.4 %; identification P 98.7 %, R 94.2 %), and the split/merge reasoning with the occlusion
+    R 94.4 %; identification P 100 %, R 93.9 %), and the split/merge reasoning with the occlusion
     gain far above plain Kalman + Hungarian on identification precision (50.8 %)."""
     if device.spec != PROTOCOL_DEVICE:
         pytest.skip(f"the protocol runs on {PROTOCOL_DEVICE}; every device is pinned to numpy below")

@@ -42,8 +42,9 @@ Rules (sec. 4.3), written down:
   predicted only in this first frame; inside a segment nobody took, it is that pedestrian's own
   segment whose volume changed too much (a merge of one): assigned. Beyond the paper: a
   pedestrian whose prediction lies in the shadow of a nearer segment (behind it, within its
-  bearings) is hidden there, predicted only and output with status "hidden" (``report_hidden``;
-  False: kept but not output), for up to ``max_hidden`` frames (a depth camera's full occlusion:
+  bearings) is hidden there, predicted only and kept but not output (``report_hidden=True``:
+  output at its prediction with status "hidden"), for up to ``max_hidden`` frames (a depth
+  camera's full occlusion:
   in the ground plane the two are apart, so DBSCAN never merges them; when it reappears the
   assignment finds it again, with its id). Otherwise it *left*: after ``max_missed`` (2)
   unmatched frames in a row it is deleted; beyond the paper (``leave_view``), at once when its
@@ -177,7 +178,7 @@ class PedestrianConfig:
     person_radius: float = 400.0
     person_depth: float = 250.0
     max_hidden: int = 5
-    report_hidden: bool = True
+    report_hidden: bool = False
     leave_view: bool = True
     view_margin: float = 0.0
     split_volume: float = 0.5
@@ -236,7 +237,7 @@ class Pedestrian:
     frame), "tracked" (assigned a segment), "split" (updated from its split parts), "merged"
     (inside a segment shared with another pedestrian), "faint" (observed from a few points that
     make no segment), "missed" (no observation this frame),
-    "hidden" (behind a nearer segment, see the module; not output with ``report_hidden=False``)."""
+    "hidden" (behind a nearer segment, see the module; output only with ``report_hidden=True``)."""
 
     id: int
     position: np.ndarray
