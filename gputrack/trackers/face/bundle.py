@@ -56,6 +56,7 @@ import numpy as np
 from ...models.camera import Camera
 from ...models.pose import rodrigues
 from ...ops.face_bundle import LandmarkFrames, LandmarkModel, LandmarkResiduals, evaluate, geometry
+from ...ops.face_points import MIN_DEPTH  # the near plane of the projection (keeps residuals finite)
 from ...ops.lm import LeastSquaresSolver, LMStatus
 
 log = logging.getLogger("gputrack")
@@ -79,9 +80,6 @@ DAMPING = 1e-3
 START_POSE_RANGE = (0.5, 300.0)
 #: default expression box half-width in units of ``model.expression_std`` (eq. 8)
 EXPRESSION_SIGMAS = 2.0
-#: a point nearer than this (mm) along the optical axis is projected as if it were at this depth
-#: (keeps the residuals finite; a start point behind it is refused)
-MIN_DEPTH = 1.0
 #: a new frame with fewer usable landmarks than this never enters the key-frame set
 MIN_KEYFRAME_POINTS = 4
 #: a prior std below this fraction of the largest of its vector counts as 0 (the component is fixed)
