@@ -7,7 +7,7 @@ import pytest
 
 import gputrack
 from gputrack.models import Camera
-from gputrack.models.pose import project, rodrigues
+from gputrack.models.pose import facing, project, rodrigues
 from gputrack.ops.face_points import project_faces
 from gputrack.trackers.face import FaceConfig
 from gputrack.trackers.face.pf import FaceParticleFilter, shape_model
@@ -96,3 +96,13 @@ def test_device_inputs_are_float32(device):
     states, model = hypotheses()
     with pytest.raises(TypeError, match="states: expected dtype float32"):
         project_faces(device, states.astype(np.float64), model, CAM)
+
+
+def test_facing_is_the_cosine_to_the_ray():
+    """models.pose.facing: 1 for a model looking along the ray, cos 40 deg turned by 40 deg about y,
+    0 edge-on, and per row for stacks."""
+    t = np.array([0.0, 0.0, 600.0])
+    turns = np.radians([0.0, 40.0, 90.0])
+    R = rodrigues(np.stack([np.zeros(3), turns, np.zeros(3)], axis=1))
+    np.testing.assert_allclose(facing(R, np.tile(t, (3, 1))), np.cos(turns), atol=1e-12)
+    assert facing(np.eye(3), t) == pytest.approx(1.0)

@@ -13,7 +13,7 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["euler_from_rotation", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
+__all__ = ["euler_from_rotation", "facing", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
            "rotation_vector", "skew"]
 
 
@@ -92,3 +92,11 @@ def project(camera: Camera, R, t, points) -> np.ndarray:
     X = X + np.asarray(t, np.float64)[..., None, :]
     z = X[..., 2]
     return np.stack([camera.fx * X[..., 0] / z + camera.cx, camera.fy * X[..., 1] / z + camera.cy], axis=-1)
+
+
+def facing(R, t) -> np.ndarray:
+    """(...,) the cosine between a model's z axis (the third column of R (..., 3, 3): into a head,
+    for the face model) and the ray from the camera to the model's origin t (..., 3): 1 when the
+    model faces the camera squarely, 0 when seen edge-on."""
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    return np.einsum("...c,...c->...", R[..., :, 2], t) / np.maximum(np.linalg.norm(t, axis=-1), 1e-9)

@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from ...models.pose import facing as facing_of
 from ...models.pose import rodrigues
 
 
@@ -18,5 +19,4 @@ def project_faces(device, states, model, cam, points, facing):
     iz = 1.0 / np.maximum(X[:, 2], near)  # eq. 5
     points[..., 0] = np.clip(fx * X[:, 0] * iz + cx, -clip, clip)
     points[..., 1] = np.clip(fy * X[:, 1] * iz + cy, -clip, clip)
-    t = st[:, 3:6]
-    facing[...] = np.einsum("nc,nc->n", R[:, :, 2], t) / np.maximum(np.linalg.norm(t, axis=1), 1e-9)
+    facing[...] = facing_of(R, st[:, 3:6])

@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...models.camera import Camera
+from ...models.pose import facing as pose_facing
 from ...models.pose import rodrigues
 from ...ops.face_points import project_faces
 from ...registry import device as get_device
@@ -115,9 +116,7 @@ class FaceParticleFilter:
         (:func:`gputrack.ops.face_points.project_faces`), where already known."""
         lw = -((self.K - scores) ** 2) / (2.0 * self.config.sigma**2)
         if facing is None:
-            t = states[:, 3:6]
-            into = rodrigues(states[:, :3])[:, :, 2]  # the model's z axis (into the head) in the camera frame
-            facing = np.einsum("nc,nc->n", into, t) / np.maximum(np.linalg.norm(t, axis=1), 1e-9)
+            facing = pose_facing(rodrigues(states[:, :3]), states[:, 3:6])
         lw[np.asarray(facing) < np.cos(np.radians(self.config.max_turn))] = -np.inf
         lo, hi = self.config.depth_range
         lw[(states[:, 5] < lo) | (states[:, 5] > hi)] = -np.inf  # a head nearer or farther than a camera sees one
