@@ -451,7 +451,7 @@ class PedestrianTracker:
             self.status[s] = "split"
         displaced = self._parent_updates(peds, seg_of, union, merged_now, segs, z, obs_vol)
         if cfg.faint_points:
-            self._faint(peds, seg_of, union, new, b["points"], z, obs_vol)
+            self._faint(peds, new, b["points"], z, obs_vol)
         explained = merged_now | self._waiting
         # occlusion gain (eq. 4-6) and the volume history
         for s in np.flatnonzero(np.isfinite(obs_vol)):
@@ -604,7 +604,7 @@ class PedestrianTracker:
                 union[int(i)] = parts
         return started
 
-    def _faint(self, peds, seg_of, union, new, points, z, obs_vol) -> None:
+    def _faint(self, peds, new, points, z, obs_vol) -> None:
         """A pedestrian with no observation yet that has at least ``faint_points`` of the points
         no segment kept (DBSCAN's noise, clusters too small or too narrow) within ``faint_radius``
         of its prediction in the ground plane is observed from them: a far or mostly hidden person
@@ -614,15 +614,15 @@ class PedestrianTracker:
         loose = points[labels < 0] if len(points) else points
         if len(loose) < self.config.faint_points:
             return
-        for i in peds:
-            if self.ids[i] < 0 or i in seg_of or i in union or new[i] or np.isfinite(z[i]).all():
+        for i in peds:  # unobserved: no segment of its own, no split parts (their z is set), not born now
+            if self.ids[i] < 0 or new[i] or np.isfinite(z[i]).all() or self.status[i] == "merged":
                 continue
-            if self.status[i] == "merged":
+            x, _, zz = self._x[i, POS]
+            near = np.hypot(loose[:, 0] - x, loose[:, 2] - zz) <= self.config.faint_radius
+            n = int(near.sum())
+            if n < self.config.faint_points:
                 continue
-            near = np.hypot(loose[:, 0] - self._x[i, 0], loose[:, 2] - self._x[i, 4]) <= self.config.faint_radius
-            if near.sum() < self.config.faint_points:
-                continue
-            seg = segments_of(loose[near], np.zeros(int(near.sum()), np.int64), 1, self.config.min_extent)[0][0]
+            seg = segments_of(loose[near], np.zeros(n, np.int64), 1, self.config.min_extent)[0][0]
             z[i], obs_vol[i] = seg.position, seg.volume
             self.status[i] = "faint"
 
