@@ -60,7 +60,8 @@ def test_plane_background_is_the_level_floor():
 @pytest.mark.parametrize("bad", [{"alpha": 1.5}, {"beta": -0.1}, {"n_points": 0}, {"eps": 0.0},
                                  {"max_missed": 0}, {"ground_plane": (0, 0, 0, -1)}, {"p0": (1.0,)},
                                  {"min_width": -1.0}, {"view_margin": float("nan")}, {"faint_points": -1},
-                                 {"faint_radius": 0.0}, {"split_gap": float("inf")}, {"merge_volume": 0.0}])  # fmt: skip
+                                 {"faint_radius": 0.0}, {"split_gap": float("inf")}, {"merge_volume": 0.0},
+                                 {"weak_points": -1}, {"weak_points": 2.5}])  # fmt: skip
 def test_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="expected"):
         PedestrianConfig(**bad)
@@ -332,6 +333,51 @@ def test_a_faint_pedestrian_keeps_its_id(device):
     np.testing.assert_allclose(out[3][-1].pedestrians[1].position[[0, 2]], [-100, 3000], atol=120)
     assert [[(p.id, p.status) for p in fr.pedestrians] for fr in out[0][3:]] == [
         [(0, "tracked"), (1, "missed")], [(0, "tracked")], [(0, "tracked")]]  # fmt: skip
+
+
+def test_weak_segments_observe_but_start_nothing(device):
+    """With min_segment_points 40 and weak_points 10, a far board 1100 mm high gives a weak segment
+    (16-17 of the points are above the sensor), 1700 mm high a segment (80-95). A pedestrian seen
+    first on the tall board, then on the short one, is observed from its weak segment ("tracked",
+    the segment reported); the same short board appearing on its own starts nothing and is not
+    reported (its points are loose). With weak_points=0 the short board is no segment: the
+    pedestrian is faint. A host rule: numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    near = (900, 2000, 1700, 450)  # enough foreground for the 1024 points
+    shrinks = [[(-600, 3500, 1700, 300), near]] * 3 + [[(-600, 3500, 1100, 300), near]] * 3
+    appears = [[near]] * 3 + [[(-600, 3500, 1100, 300), near]] * 3
+
+    def run(frames, weak):
+        trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig(min_segment_points=40,
+                                                                              weak_points=weak))  # fmt: skip
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            trk.learn_background(np.stack([_boards([])] * 3))
+        return [trk.track(_boards(people)) for people in frames]
+
+    out = run(shrinks, 10)
+    assert [[(p.id, p.status) for p in fr.pedestrians] for fr in out[3:]] == [[(0, "tracked"), (1, "tracked")]] * 3
+    for fr in out[3:]:
+        assert len(fr.segments) == 2 and 10 <= min(s.n_points for s in fr.segments) < 40
+        assert sorted(np.unique(fr.labels[fr.labels >= 0])) == [0, 1]
+    np.testing.assert_allclose(out[-1].pedestrians[1].position[[0, 2]], [-600, 3500], atol=150)
+    out = run(appears, 10)
+    for fr in out[3:]:
+        assert [(p.id, p.status) for p in fr.pedestrians] == [(0, "tracked")] and fr.started == []
+        assert len(fr.segments) == 1 and fr.segments[0].n_points >= 40
+        far = fr.points[:, 0] < 0  # the short board's points: loose
+        assert far.sum() >= 10 and (fr.labels[far] == -1).all() and (fr.labels[~far] == 0).all()
+    out = run(shrinks, 0)
+    assert all(len(fr.segments) == 1 for fr in out[3:])
+    assert [[(p.id, p.status) for p in fr.pedestrians] for fr in out[3:]] == [[(0, "tracked"), (1, "faint")]] * 3
+
+
+def test_drop_labels_renumbers_the_rest():
+    lab = np.array([0, 1, -1, 2, 1, 3])
+    np.testing.assert_array_equal(rules.drop_labels(lab, [False, True, False, False]), [0, -1, -1, 1, -1, 2])
+    np.testing.assert_array_equal(rules.drop_labels(lab, [False] * 4), lab)
+    np.testing.assert_array_equal(rules.drop_labels(np.zeros(0, np.int64), [True]), np.zeros(0))
 
 
 def test_a_merge_ends_when_one_is_seen_again_alone(device):

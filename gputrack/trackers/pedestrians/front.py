@@ -11,7 +11,8 @@ Per frame (:meth:`DepthFrontEnd.points`, :meth:`DepthFrontEnd.segments`):
    (sec. 4.2: upper bodies touch less than hands and feet); the vertical axis is dropped: each
    point becomes (e_x . p, e_z . p), its coordinates in the ground plane.
 3. **Segments** on the device (:func:`gputrack.ops.dbscan` of the 2D points, ``eps`` and
-   ``min_samples``); a cluster of at least ``min_segment_points`` points and at least ``min_width``
+   ``min_samples``); a cluster of at least ``min_segment_points`` points (``weak_points``: a weak
+   segment, which the tracker keeps only where it observes a pedestrian) and at least ``min_width``
    wide in the ground plane, with no point higher than ``max_height`` above the floor (2.3 m, the
    tallest person of PCL's people detector: a structure reaching higher, e.g. a door frame when the
    background is the floor plane, is no person) is a segment. Its
@@ -310,7 +311,8 @@ class DepthFrontEnd:
             lab = self.copies.download(res, self._labels_host)
             self.copies.wait()
         lab = np.asarray(lab[:k]).astype(np.int64)
-        segs, keep = segments_of(points, lab, c.min_segment_points, c.min_extent, c.min_width, self.axes,
+        least = min(c.weak_points, c.min_segment_points) if c.weak_points else c.min_segment_points
+        segs, keep = segments_of(points, lab, least, c.min_extent, c.min_width, self.axes,
                                  self.plane, c.max_height)  # fmt: skip
         idx = np.full(len(lab), -1, np.int64)
         for i, k in enumerate(keep):

@@ -12,8 +12,8 @@ import math
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-__all__ = ["assign", "bearings", "behind", "cost_matrix", "gap_bearings", "inside", "nearest_in_bearing",
-           "occlusion_gain", "seen_apart"]
+__all__ = ["assign", "bearings", "behind", "cost_matrix", "drop_labels", "gap_bearings", "inside",
+           "nearest_in_bearing", "occlusion_gain", "seen_apart"]
 
 #: cost of a rejected pair in the assignment: above any feasible pair's cost
 _REJECTED = 1e6
@@ -49,12 +49,13 @@ def assign(cost, feasible, unassigned: float | None = None) -> list[tuple[int, i
     """
     if cost.size == 0:
         return []
+    cost = np.where(feasible, cost, _REJECTED)
     if unassigned is None:
         r, c = linear_sum_assignment(cost)
     else:
         T, M = cost.shape
         big = np.full((T + M, M + T), _REJECTED)
-        big[:T, :M] = np.where(feasible, cost, _REJECTED)
+        big[:T, :M] = cost
         big[np.arange(T), M + np.arange(T)] = unassigned
         big[T + np.arange(M), np.arange(M)] = unassigned
         big[T:, M:] = 0.0
@@ -62,6 +63,15 @@ def assign(cost, feasible, unassigned: float | None = None) -> list[tuple[int, i
         keep = (r < T) & (c < M)
         r, c = r[keep], c[keep]
     return [(int(i), int(j)) for i, j in zip(r, c) if feasible[i, j]]
+
+
+def drop_labels(labels, dropped) -> np.ndarray:
+    """Points' segment indices (N,) (-1: none) after the segments marked in ``dropped`` (M,) bool
+    are removed: theirs become -1, the others are renumbered in order."""
+    keep = ~np.asarray(dropped, bool)
+    new = np.where(keep, np.cumsum(keep) - 1, -1)
+    lab = np.asarray(labels, np.int64)
+    return np.where(lab >= 0, new[np.maximum(lab, 0)], -1)
 
 
 def inside(point, lo, hi, margin: float) -> bool:

@@ -13,7 +13,7 @@ segments   the points above the sensor, ground-plane DBSCAN (:func:`gputrack.ops
            segment positions and volumes (sec. 4.2; :mod:`.front`)                      host
 associate  Hungarian assignment on eq. 1-3, the causes of unassigned pedestrians and      host,
            segments (Fig. 6-7), new and deleted tracks, each track's observation and      small
-           occlusion gain (eq. 4-6)
+           occlusion gain (eq. 4-6); the weak segments nobody took are dropped
 update     every observed track, one :func:`gputrack.ops.kf_update` with ``gain_scale``    device
 =========  ===========================================================================  ======
 
@@ -30,6 +30,12 @@ Rules (sec. 4.3), written down:
   left, or their parent's), each by :func:`rules.assign` on c = alpha d + (1 - alpha)|V_j - V_i|
   (eq. 1-3, d in m, V in m^3), pairs farther than ``max_distance`` or differing in volume by more
   than ``max_volume_change`` rejected. A track's V_i is the volume of its last observation.
+  Beyond the paper (``weak_points``), a cluster of at least ``weak_points`` but fewer than
+  ``min_segment_points`` points is a *weak* segment, as ByteTrack keeps its low-score detections:
+  stage 1 assigns the (strong) segments, then the pedestrians left over take weak ones (stage 1b);
+  a weak segment nobody took starts nothing and is dropped (its points are loose, for the faint
+  rule below). A far child shows only its head and shoulders above the sensor, often in 8-11 of
+  the 1024 points: too few to start a pedestrian on, enough to be seen again.
   Beyond the paper (``gated``), leaving a track or a segment unassigned costs half the largest
   feasible cost, so the assignment does not make two far pairs where one near pair and two left
   over cost less (a missed track taking a neighbour's segment, the neighbour then taking the next).
@@ -121,7 +127,9 @@ class PedestrianConfig:
     ``max_range`` (5000 mm), ``n_points`` (1024), ``seed`` (of the random subsets),
     ``camera_height`` (1000 mm, level camera) or ``ground_plane`` (a, b, c, d) mm for another
     mounting, DBSCAN ``eps`` (mm) and ``min_samples``, ``min_segment_points`` (smaller clusters
-    are no segment), ``min_width`` (mm: narrower clusters in the ground plane are no segment, e.g.
+    start no pedestrian), ``weak_points`` (clusters of this many points up to
+    ``min_segment_points`` are weak segments: they observe a pedestrian no other segment took and
+    are otherwise dropped; 0: off), ``min_width`` (mm: narrower clusters in the ground plane are no segment, e.g.
     the sliver of someone at the image's side or behind a nearer person's edge; 0:
     off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
     ``min_extent`` (mm, the least extent per axis in a volume).
@@ -157,6 +165,7 @@ class PedestrianConfig:
     eps: float = 120.0
     min_samples: int = 6
     min_segment_points: int = 12
+    weak_points: int = 8
     min_extent: float = 50.0
     min_width: float = 50.0
     max_height: float = 2300.0
@@ -208,9 +217,10 @@ class PedestrianConfig:
         if not (isinstance(self.containment_margin, (int, float)) and 0 <= self.containment_margin < 1e4):
             raise ValueError(f"PedestrianConfig.containment_margin: expected mm in [0, 1e4), got "
                              f"{self.containment_margin!r}")  # fmt: skip
-        v = self.faint_points
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ValueError(f"PedestrianConfig.faint_points: expected an integer >= 0 (0: off), got {v!r}")
+        for name in ("faint_points", "weak_points"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"PedestrianConfig.{name}: expected an integer >= 0 (0: off), got {v!r}")
         v = self.view_margin
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)):
             raise ValueError(f"PedestrianConfig.view_margin: expected a finite number of mm, got {v!r}")
@@ -309,7 +319,7 @@ class PedestrianTracker:
             Stage("points", self._points, writes=("points",)),
             Stage("segments", self._segments, reads=("points", "x", "P"), writes=("segments",)),
             Stage("associate", self._associate, reads=("points", "segments", "x", "P"),
-                  writes=("x", "P", "z", "mask", "gain")),
+                  writes=("x", "P", "z", "mask", "gain", "segments")),
             Stage("update", self._update, reads=("x", "P", "z", "mask", "gain"), writes=("x", "P")),
         ], state=("x", "P"), outputs=("x",), profile=profile)  # fmt: skip
         self.scheduler.set("x", self._x.astype(np.float32))
@@ -393,14 +403,21 @@ class PedestrianTracker:
         owner = np.full(M, -1, np.int64)  # the pedestrian that took segment j in stage 1
         seg_of = {}  # slot -> segment index (direct observation)
         limits = {"alpha": cfg.alpha, "max_distance": cfg.max_distance, "max_volume_change": cfg.max_volume_change}
+        weak = np.array([sg.n_points < cfg.min_segment_points for sg in segs], bool)
         cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, **limits)
         # leaving a track or a segment without a partner costs half the largest feasible cost
         U = (cfg.alpha * cfg.max_distance / 1000 + (1 - cfg.alpha) * cfg.max_volume_change) / 2 if cfg.gated else None
-        for i, j in rules.assign(cost, ok, U):  # stage 1
+        for i, j in rules.assign(cost, ok & ~weak, U):  # stage 1: the segments
             owner[j] = peds[i]
             seg_of[int(peds[i])] = j
+        if weak.any():  # stage 1b: the pedestrians left, on the weak segments
+            left = np.array([int(i) not in seg_of for i in peds], bool)
+            for i, j in rules.assign(cost, ok & weak & left[:, None], U):
+                owner[j] = peds[i]
+                seg_of[int(peds[i])] = j
         if len(kids):  # stage 2: children, on the segments left or their parent's
             cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, **limits)
+            ok &= ~weak
             for a, c in enumerate(kids):
                 ps = self.parents.get(int(c), ())
                 for j in range(M):
@@ -408,7 +425,6 @@ class PedestrianTracker:
                         ok[a, j] = False  # another pedestrian's segment
                     elif not any(self._near(p, segs[j].position) for p in ps):
                         ok[a, j] = False  # a child stays within its parents' extent
-            cost = np.where(ok, cost, rules._REJECTED)
             for a, j in rules.assign(cost, ok, U):
                 seg_of[int(kids[a])] = j
         taken = np.zeros(M, bool)
@@ -418,6 +434,8 @@ class PedestrianTracker:
         if cfg.split_merge:
             self._merges(peds, seg_of, owner, taken, segs, pred, merged_now)
         union: dict = {}  # parent slot -> segment indices of its split parts
+        dropped = weak & ~taken  # weak segments nobody took (not even as its own, in the merge test)
+        taken |= weak  # no split part, no new pedestrian
         if cfg.split_merge:
             started = self._splits(peds, seg_of, taken, segs, union)
         else:
@@ -450,6 +468,9 @@ class PedestrianTracker:
             self.half[s] = (segs[big].hi - segs[big].lo) / 2
             self.status[s] = "split"
         displaced = self._parent_updates(peds, seg_of, union, merged_now, segs, z, obs_vol)
+        if dropped.any():  # out of the frame's segments: their points are loose
+            self._frame["labels"] = rules.drop_labels(self._frame["labels"], dropped)
+            b["segments"] = [sg for sg, d in zip(segs, dropped) if not d]
         if cfg.faint_points:
             self._faint(peds, new, b["points"], z, obs_vol)
         explained = merged_now | self._waiting
