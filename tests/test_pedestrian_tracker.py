@@ -313,6 +313,48 @@ def test_a_split_needs_an_occluder(device):
     assert [(p.id, p.status) for p in frames[-1].pedestrians] == [(0, "tracked"), (2, "tracked")]
 
 
+def test_a_pedestrian_seen_whole_after_a_merge_can_split(device):
+    """Two boards side by side (ids 0, 1) merge into one segment, then part again; in that frame a
+    post in front of the tall one (1) hides the gap to a short board at its side. The short board is
+    a split part of 1, as it would be of any tracked pedestrian: the merge of the frame before does
+    not count (the status read is this frame's). A host rule: numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    tall, post = (-250, 3000, 1700, 450), (-256, 1500, 1700, 150)
+    frames = [[tall, (400, 3000, 1700, 450)]] * 3 + [[tall, (150, 3000, 1700, 450)]]
+    frames += [[tall, (650, 3000, 1700, 450), (-700, 3000, 1350, 300), post]] * 2
+    trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trk.learn_background(np.stack([_boards([])] * 3))
+    out = [trk.track(_boards(people)) for people in frames]
+    assert [(p.id, p.status) for p in out[3].pedestrians] == [(0, "merged"), (1, "merged")]
+    for fr in out[4:]:
+        assert len(fr.segments) == 4
+        assert [p.id for p in fr.pedestrians] == [0, 1, 2] and fr.pedestrians[1].status == "split"
+    assert out[4].started == [2] and out[5].started == []  # 2: the post
+
+
+def test_a_part_seen_apart_becomes_one_new_pedestrian(device):
+    """A tall board split by a post into its own part and a short board beside it (two child
+    tracks: one on the pedestrian's own segment, one on the short board). When the post leaves, the
+    short part seen apart becomes pedestrian 2; the child on the pedestrian's own segment is the
+    pedestrian itself and starts nothing: id 0 stays on the tall board. A host rule: numpy only."""
+    if device.spec != "numpy":
+        pytest.skip("a host rule of the tracker; the devices are pinned to numpy by the test above")
+    tall, short, post = (-300, 3000, 1800, 450), (200, 3000, 1300, 250), (-50, 1500, 1700, 150)
+    frames = [[tall]] * 3 + [[tall, short, post]] * 3 + [[tall, short]] * 2
+    trk = PedestrianTracker(device, camera=SMALL, config=PedestrianConfig())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trk.learn_background(np.stack([_boards([])] * 3))
+    out = [trk.track(_boards(people)) for people in frames]
+    assert [p.status for p in out[5].pedestrians] == ["split", "tracked"]  # 1: the post
+    assert out[6].started == [2] and out[7].started == []
+    (a, b) = out[7].pedestrians
+    assert (a.id, b.id) == (0, 2) and abs(a.position[0] - -300) < 100 and abs(b.position[0] - 200) < 100
+
+
 def test_a_faint_pedestrian_keeps_its_id(device):
     """A pedestrian walking 100 mm a frame at 3 m turns into a 40 mm sliver (its points make a
     cluster narrower than min_width: no segment): observed from those points ("faint") it keeps

@@ -67,7 +67,9 @@ Rules (sec. 4.3), written down:
   bearings they are two people, :func:`rules.seen_apart`; a nearer reading there, an occluder
   moving or static, or missing readings keep the split), that pedestrian has *split*
   (occlusion): each part gets a child track with that parent.
-  A split part later seen apart from the others so becomes a pedestrian of its own (a new id).
+  A split part later seen apart from the others so becomes a pedestrian of its own (a new id;
+  a child on the pedestrian's own segment is the pedestrian itself). A pedestrian merged in the
+  frame before and seen whole now can split like any other.
   Otherwise a pedestrian *entered*: a new one at the segment's position with zero velocity.
   Segments are taken largest first, so a person who enters in two pieces is one new pedestrian
   with a split part (the same extent as any pedestrian's: two people who enter side by side are
@@ -437,7 +439,7 @@ class PedestrianTracker:
         dropped = weak & ~taken  # weak segments nobody took (not even as its own, in the merge test)
         taken |= weak  # no split part, no new pedestrian
         if cfg.split_merge:
-            started = self._splits(peds, seg_of, taken, segs, union)
+            started = self._splits(peds, seg_of, taken, segs, union, merged_now)
         else:
             started = []
             for j in np.flatnonzero(~taken):  # entered the view (Fig. 7)
@@ -472,7 +474,7 @@ class PedestrianTracker:
             self._frame["labels"] = rules.drop_labels(self._frame["labels"], dropped)
             b["segments"] = [sg for sg, d in zip(segs, dropped) if not d]
         if cfg.faint_points:
-            self._faint(peds, new, b["points"], z, obs_vol)
+            self._faint(peds, new, b["points"], z, obs_vol, merged_now)
         explained = merged_now | self._waiting
         # occlusion gain (eq. 4-6) and the volume history
         for s in np.flatnonzero(np.isfinite(obs_vol)):
@@ -560,7 +562,7 @@ class PedestrianTracker:
                     merged_now.add(int(i))
                     self.status[i] = "hidden"
 
-    def _splits(self, peds, seg_of, taken, segs, union) -> list:
+    def _splits(self, peds, seg_of, taken, segs, union, merged_now) -> list:
         """Fig. 7: an unassigned segment inside a pedestrian's predicted extent, no larger than
         ``split_volume`` times its largest recent volume, is a part of it (split); any other starts
         a pedestrian (entered). Largest segments first, so that a person entering in two pieces is
@@ -572,7 +574,7 @@ class PedestrianTracker:
             sg = segs[j]
             parent = None
             for i in cands:
-                if self.ids[i] < 0 or self.status[i] == "merged":
+                if self.ids[i] < 0 or (i in merged_now and self.status[i] == "merged"):  # merged now
                     continue
                 if not self._near(i, sg.position):
                     continue
@@ -616,6 +618,8 @@ class PedestrianTracker:
                     self.parents[c].discard(int(i))
             if cfg.split_occluder:  # a part seen apart from the others (no occluder between): a pedestrian
                 for c in list(near):
+                    if seg_of[c] == seg_of.get(int(i)):
+                        continue  # on its parent's own segment: no part apart from it
                     rest = [p for p in self._parts(i, seg_of) if p != seg_of[c]]
                     if not self._occlusion_split(seg_of[c], rest, segs):
                         near.remove(c)
@@ -625,7 +629,7 @@ class PedestrianTracker:
                 union[int(i)] = parts
         return started
 
-    def _faint(self, peds, new, points, z, obs_vol) -> None:
+    def _faint(self, peds, new, points, z, obs_vol, merged_now) -> None:
         """A pedestrian with no observation yet that has at least ``faint_points`` of the points
         no segment kept (DBSCAN's noise, clusters too small or too narrow) within ``faint_radius``
         of its prediction in the ground plane is observed from them: a far or mostly hidden person
@@ -636,7 +640,7 @@ class PedestrianTracker:
         if len(loose) < self.config.faint_points:
             return
         for i in peds:  # unobserved: no segment of its own, no split parts (their z is set), not born now
-            if self.ids[i] < 0 or new[i] or np.isfinite(z[i]).all() or self.status[i] == "merged":
+            if self.ids[i] < 0 or new[i] or np.isfinite(z[i]).all() or (i in merged_now and self.status[i] == "merged"):
                 continue
             x, _, zz = self._x[i, POS]
             near = np.hypot(loose[:, 0] - x, loose[:, 2] - zz) <= self.config.faint_radius
