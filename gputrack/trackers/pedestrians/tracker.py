@@ -131,9 +131,9 @@ class PedestrianConfig:
     mounting, DBSCAN ``eps`` (mm) and ``min_samples``, ``min_segment_points`` (smaller clusters
     start no pedestrian), ``weak_points`` (clusters of this many points up to
     ``min_segment_points`` are weak segments: they observe a pedestrian no other segment took and
-    are otherwise dropped; 0: off), ``min_width`` (mm: narrower clusters in the ground plane are no segment, e.g.
-    the sliver of someone at the image's side or behind a nearer person's edge; 0:
-    off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
+    are otherwise dropped; 0: off), ``min_width`` (mm: narrower clusters in the ground plane are
+    no segment, e.g. the sliver of someone at the image's side or behind a nearer person's edge;
+    0: off), ``max_height`` (mm above the floor: a cluster reaching higher is no person),
     ``min_extent`` (mm, the least extent per axis in a volume).
     Assignment (eq. 1-3): ``alpha`` (0.8), ``max_distance`` (mm), ``max_volume_change`` (m^3),
     ``gated`` (a pair only where it lowers the total cost against leaving both unassigned at half
