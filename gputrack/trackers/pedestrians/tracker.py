@@ -395,40 +395,11 @@ class PedestrianTracker:
         C0 = self.capacity
         self._born, self._waiting = set(), set()
         M = len(segs)
-        sp = np.array([s.position for s in segs]).reshape(-1, 3)
-        sv = np.array([s.volume for s in segs])
         pred = self._x[:, POS]
-        live = self.ids >= 0
-        self.age[live] += 1
+        self.age[self.ids >= 0] += 1
         peds = np.flatnonzero(self.kind == PEDESTRIAN)
-        kids = np.flatnonzero(self.kind == CHILD)
-        owner = np.full(M, -1, np.int64)  # the pedestrian that took segment j in stage 1
-        seg_of = {}  # slot -> segment index (direct observation)
-        limits = {"alpha": cfg.alpha, "max_distance": cfg.max_distance, "max_volume_change": cfg.max_volume_change}
         weak = np.array([sg.n_points < cfg.min_segment_points for sg in segs], bool)
-        cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, **limits)
-        # leaving a track or a segment without a partner costs half the largest feasible cost
-        U = (cfg.alpha * cfg.max_distance / 1000 + (1 - cfg.alpha) * cfg.max_volume_change) / 2 if cfg.gated else None
-        for i, j in rules.assign(cost, ok & ~weak, U):  # stage 1: the segments
-            owner[j] = peds[i]
-            seg_of[int(peds[i])] = j
-        if weak.any():  # stage 1b: the pedestrians left, on the weak segments
-            left = np.array([int(i) not in seg_of for i in peds], bool)
-            for i, j in rules.assign(cost, ok & weak & left[:, None], U):
-                owner[j] = peds[i]
-                seg_of[int(peds[i])] = j
-        if len(kids):  # stage 2: children, on the segments left or their parent's
-            cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, **limits)
-            ok &= ~weak
-            for a, c in enumerate(kids):
-                ps = self.parents.get(int(c), ())
-                for j in range(M):
-                    if owner[j] >= 0 and owner[j] not in ps:
-                        ok[a, j] = False  # another pedestrian's segment
-                    elif not any(self._near(p, segs[j].position) for p in ps):
-                        ok[a, j] = False  # a child stays within its parents' extent
-            for a, j in rules.assign(cost, ok, U):
-                seg_of[int(kids[a])] = j
+        owner, seg_of = self._assignment(peds, segs, weak)
         taken = np.zeros(M, bool)
         for j in seg_of.values():
             taken[j] = True
@@ -446,29 +417,9 @@ class PedestrianTracker:
                 s = self._add(PEDESTRIAN, segs[j], velocity=None)
                 seg_of[s] = int(j)
                 started.append(int(self.ids[s]))
-        # observations
         C = self.capacity
-        z = np.full((C, 3), np.nan, np.float32)
+        z, obs_vol, new = self._observations(seg_of, union, segs)
         gain = np.ones(C, np.float32)
-        obs_vol = np.full(C, np.nan)
-        new = np.zeros(C, bool)
-        new[list(self._born)] = True  # started at their detection: no update this frame
-        for s, j in seg_of.items():
-            if self.kind[s] == CHILD or s not in union:
-                if new[s]:
-                    continue
-                z[s], obs_vol[s] = segs[j].position, segs[j].volume
-                self.half[s] = (segs[j].hi - segs[j].lo) / 2
-        for s, parts in union.items():
-            if new[s]:
-                continue
-            lo = np.min([segs[j].lo for j in parts], axis=0)
-            hi = np.max([segs[j].hi for j in parts], axis=0)
-            z[s], obs_vol[s] = (lo + hi) / 2, float(sum(segs[j].volume for j in parts))
-            # the extent stays one person's: the largest part's (a union's box would grow)
-            big = max(parts, key=lambda j: segs[j].volume)
-            self.half[s] = (segs[big].hi - segs[big].lo) / 2
-            self.status[s] = "split"
         displaced = self._parent_updates(peds, seg_of, union, merged_now, segs, z, obs_vol)
         if dropped.any():  # out of the frame's segments: their points are loose
             self._frame["labels"] = rules.drop_labels(self._frame["labels"], dropped)
@@ -525,6 +476,71 @@ class PedestrianTracker:
         self._put_table(b, C != C0 or bool(self._born))  # new tracks (pedestrians and children) start on the host
         self._put_inputs(b, z, mask.astype(np.uint8), gain if cfg.occlusion_gain else None)
         self._frame["started"], self._frame["ended"] = started, ended
+
+    def _assignment(self, peds, segs, weak) -> tuple:
+        """Stages 1, 1b and 2 (eq. 1-3): the pedestrians on the segments, those left on the weak
+        segments, then the split/merge children on the (strong) segments left or their parents'.
+        Returns (owner (M,): the pedestrian slot that took segment j in stage 1 or 1b, else -1;
+        seg_of: {slot: segment index})."""
+        cfg = self.config
+        M = len(segs)
+        sp = np.array([sg.position for sg in segs]).reshape(-1, 3)
+        sv = np.array([sg.volume for sg in segs])
+        pred = self._x[:, POS]
+        owner = np.full(M, -1, np.int64)
+        seg_of = {}
+        limits = {"alpha": cfg.alpha, "max_distance": cfg.max_distance, "max_volume_change": cfg.max_volume_change}
+        # leaving a track or a segment without a partner costs half the largest feasible cost
+        U = (cfg.alpha * cfg.max_distance / 1000 + (1 - cfg.alpha) * cfg.max_volume_change) / 2 if cfg.gated else None
+        cost, ok = rules.cost_matrix(pred[peds], self.volume[peds], sp, sv, **limits)
+        for i, j in rules.assign(cost, ok & ~weak, U):  # stage 1: the segments
+            owner[j] = peds[i]
+            seg_of[int(peds[i])] = j
+        if weak.any():  # stage 1b: the pedestrians left, on the weak segments
+            left = np.array([int(i) not in seg_of for i in peds], bool)
+            for i, j in rules.assign(cost, ok & weak & left[:, None], U):
+                owner[j] = peds[i]
+                seg_of[int(peds[i])] = j
+        kids = np.flatnonzero(self.kind == CHILD)
+        if len(kids):  # stage 2: children, on the segments left or their parent's
+            cost, ok = rules.cost_matrix(pred[kids], self.volume[kids], sp, sv, **limits)
+            ok &= ~weak
+            for a, c in enumerate(kids):
+                ps = self.parents.get(int(c), ())
+                for j in range(M):
+                    if owner[j] >= 0 and owner[j] not in ps:
+                        ok[a, j] = False  # another pedestrian's segment
+                    elif not any(self._near(p, segs[j].position) for p in ps):
+                        ok[a, j] = False  # a child stays within its parents' extent
+            for a, j in rules.assign(cost, ok, U):
+                seg_of[int(kids[a])] = j
+        return owner, seg_of
+
+    def _observations(self, seg_of, union, segs) -> tuple:
+        """Each track's observation this frame: (z (C, 3) float32, NaN where none; its volume (C,);
+        new (C,) bool, the tracks started now at their detection, which get no update). A track
+        on one segment observes it; a split parent the midpoint of the union of its parts' boxes,
+        with their summed volume (status "split"). Sets each observed track's half extents."""
+        C = self.capacity
+        z = np.full((C, 3), np.nan, np.float32)
+        obs_vol = np.full(C, np.nan)
+        new = np.zeros(C, bool)
+        new[list(self._born)] = True
+        for s, j in seg_of.items():
+            if (self.kind[s] == CHILD or s not in union) and not new[s]:
+                z[s], obs_vol[s] = segs[j].position, segs[j].volume
+                self.half[s] = (segs[j].hi - segs[j].lo) / 2
+        for s, parts in union.items():
+            if new[s]:
+                continue
+            lo = np.min([segs[j].lo for j in parts], axis=0)
+            hi = np.max([segs[j].hi for j in parts], axis=0)
+            z[s], obs_vol[s] = (lo + hi) / 2, float(sum(segs[j].volume for j in parts))
+            # the extent stays one person's: the largest part's (a union's box would grow)
+            big = max(parts, key=lambda j: segs[j].volume)
+            self.half[s] = (segs[big].hi - segs[big].lo) / 2
+            self.status[s] = "split"
+        return z, obs_vol, new
 
     def _merges(self, peds, seg_of, owner, taken, segs, pred, merged_now) -> None:
         """Fig. 6: an unassigned pedestrian inside a segment another pedestrian took has merged."""
