@@ -192,6 +192,33 @@ def test_table1_on_a_simulated_sequence(device, data):
     assert t["z"][0] < table1(generic["errors"])["z"][0]
 
 
+def test_landmark_floor_is_the_size_the_landmarks_cannot_show(data):
+    """The bundle adjustment on perfect feature points of the model's mean face, turning by up to
+    30 deg: at its own size the depth comes out right; the same face 10 % larger, whose points are
+    those of the mean face 10 % nearer, comes out at the mean size, z 1/1.1 of the truth (the scale
+    no landmark shows). The key frames are those of the widest spread of face directions."""
+    from types import SimpleNamespace
+
+    from gputrack.demos.face import landmark_floor
+
+    _, model, _, seq = data
+    base = model.shape(model.identity_mean, model.expression_mean)
+    yaws = np.radians(np.linspace(-30.0, 30.0, 13))
+    out = {}
+    for scale in (1.0, 1.1):
+        frames = []
+        for k, yaw in enumerate(yaws):
+            rvec = np.array([0.0, yaw, 0.0])
+            t = np.array([5.0 * k, -10.0, 600.0 + 10.0 * k])
+            frames.append(SimpleNamespace(rvec=rvec, translation=t, visible=np.ones(model.K, bool),
+                                          landmarks2d=project(seq.camera, rodrigues(rvec), t, scale * base)))
+        out[scale] = landmark_floor(model, frames, seq.camera, FaceConfig())
+    assert abs(out[1.0]["relative"]) < 1e-6 and out[1.0]["rms"] < 1e-6
+    assert abs(out[1.1]["relative"] - (1 / 1.1 - 1)) < 1e-4 and out[1.1]["rms"] < 1e-3
+    np.testing.assert_allclose(out[1.1]["z_mm"], 660 * (1 - 1 / 1.1), rtol=1e-3)  # the frames' mean depth 660 mm
+    assert sorted(out[1.0]["keyframes"]) == [0, 1, 2, 9, 10, 11, 12]  # the turns' two ends
+
+
 def test_a_lost_face_is_reported_and_found_again(device, data):
     if device.spec != "taichi:cpu":
         pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")

@@ -8,8 +8,10 @@ deformations, :class:`gputrack.models.face.FaceModel`) and the generic PCA model
 (the simulator's, with ``landmark_noise`` px of detector noise) or, with ``init="haar"``, from a
 Haar face box. Reported: per-frame progress, Table 1 (errors of x, y, z in mm and roll, pitch, yaw
 in deg, mean and std) for both models beside the paper's, the shape error as the identity
-converges (Fig. 7), the depth floor (the multilinear tracker with the true identity given and
-fixed: how far the z error can fall from landmarks alone) and the per-stage timing. ``save``: a
+converges (Fig. 7), two depth floors (the multilinear tracker with the true identity given and
+fixed: how far the z error can fall with the person's size known; and :func:`landmark_floor`, the
+bundle adjustment on perfect feature points: the error the size the landmarks give leaves) and
+the per-stage timing. ``save``: a
 directory for pictures (frames with the feature points and the head's axes; the errors over the
 frames).
 """
@@ -25,11 +27,12 @@ import time
 import numpy as np
 
 from ..models.face import FaceModel, PcaFaceModel, load_ict
+from ..registry import device as get_device
 from ..sim.face import face_sequence
 from ..trackers.face import FaceConfig, FaceTracker
 from ..trackers.face.metrics import PAPER_TABLE1, format_table1, pose_errors, shape_error, table1
 
-__all__ = ["run", "track_sequence", "write_json"]
+__all__ = ["landmark_floor", "run", "track_sequence", "write_json"]
 
 
 def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
@@ -162,6 +165,16 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
     tables = {k: table1(r["errors"]) for k, r in records.items()}
     print(f"\nTable 1: errors against the truth (sequence {name}, device {device.spec})", file=out)
     print(format_table1(tables, PAPER_TABLE1), file=out)
+    lf = None
+    if floor:
+        n_seq = len(records["multilinear"]["errors"])
+        step = 5 if n_seq >= 5 * config.keyframes else 1
+        lf = landmark_floor(model, [seq[k] for k in range(0, n_seq, step)], seq.camera, config)
+        among = "every frame" if step == 1 else f"every {step}th frame"
+        print(f"\ndepth from perfect feature points (the bundle adjustment of the {config.keyframes} frames of "
+              f"{among} with the widest spread of face directions): the size they give this person puts it "
+              f"{100 * lf['relative']:+.1f} % off in depth, a z error of {lf['z_mm']:.1f} mm (the floor without "
+              f"the true identity; with it, the \"true identity\" rows of Table 1)", file=out)  # fmt: skip
     rec = records["multilinear"]
     se = rec["shape_error"]
     marks = [k for k in (0, 6, 30, 100, 200, len(se) - 1) if k < len(se)]
@@ -179,9 +192,52 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
     report = {"device": {"spec": device.spec, "name": device.name},
               "sequence": {"name": name, "frames": len(seq), "seed": seed, "init": init},
               "table1": tables, "shape_error": {int(k): float(se[k]) for k in marks},
+              "landmark_floor": None if lf is None else {"relative": lf["relative"], "z_mm": lf["z_mm"]},
               "lost": {k: int(r["lost"].sum()) for k, r in records.items()},
               "stages": trk.scheduler.report(), "median_frame_ms": med, "start_ms": rec["start_ms"]}  # fmt: skip
     return report
+
+
+def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, max_iter: int = 50) -> dict:
+    """The depth error left from perfect feature points: the scale a face's landmarks cannot show.
+
+    A larger head farther away shows the same feature points; only the model's priors (the identity
+    box of eq. 9 and ``config.identity_prior``) and the face's proportions fix its size. This runs
+    the tracker's bundle adjustment (:func:`~gputrack.trackers.face.bundle.bundle_adjust`, n =
+    ``config.keyframes``) on the true feature points (no noise, hidden ones left out) of the n
+    ``frames`` with the widest spread of face directions (greedily over the frames in order: a frame
+    replaces a key frame where that widens the spread), from the true poses within the start's box,
+    the model's mean identity and mean deformation. ``frames``: objects with ``rvec``,
+    ``translation``, ``landmarks2d`` and ``visible`` (the simulator's
+    :class:`~gputrack.sim.face.FaceFrame`).
+
+    Returns {"relative": the median over the key frames of z_estimated / z_true - 1, "z_mm": |that|
+    times the frames' mean true depth (the z error of Table 1 such a size error gives), "keyframes":
+    their indices into ``frames``, "rms": the adjustment's reprojection RMS (px)}."""
+    from ..trackers.face.bundle import START_POSE_RANGE, bundle_adjust, keyframe_spread
+
+    n = config.keyframes
+    frames = list(frames)
+    if len(frames) < n:
+        raise ValueError(f"frames: expected at least n={n}, got {len(frames)}")
+    rv = np.array([f.rvec for f in frames], np.float64)
+    keys = list(range(n))
+    for i in range(n, len(frames)):
+        cands = [keys[:j] + keys[j + 1:] + [i] for j in range(n)]
+        spreads = keyframe_spread(rv[cands])
+        if spreads.max() > keyframe_spread(rv[keys]) * (1 + 1e-9):
+            keys = cands[int(np.argmax(spreads))]
+    fk = [frames[k] for k in keys]
+    lm = np.array([np.where(np.asarray(f.visible)[:, None], f.landmarks2d, np.nan) for f in fk])
+    device = get_device("numpy") if device is None else device
+    res = bundle_adjust(device, model, camera, lm, rv[keys], np.array([f.translation for f in fk]),
+                        np.tile(model.expression_mean, (n, 1)), model.identity_mean, pose_range=START_POSE_RANGE,
+                        identity_sigmas=config.identity_sigmas, identity_prior=config.identity_prior,
+                        max_iter=max_iter)  # fmt: skip
+    z = np.array([f.translation[2] for f in fk], np.float64)
+    rel = float(np.median(res.tvecs[:, 2] / z - 1.0))
+    depth = float(np.mean([f.translation[2] for f in frames]))
+    return {"relative": rel, "z_mm": abs(rel) * depth, "keyframes": keys, "rms": res.rms}
 
 
 def _true_samples(ict, identity, model) -> np.ndarray:
