@@ -350,6 +350,24 @@ def test_running_mean_eq10(model, ict):
     assert np.linalg.norm(s - sc["identity"]) < np.linalg.norm(model.identity_mean - sc["identity"])
 
 
+def test_a_start_that_holds_the_identity(model, ict):
+    """hold_identity: the start adjusts the poses and deformations only (s(1) is the identity it
+    starts from, exactly, and the fit still reaches the landmarks); the frames after learn it."""
+    sc = face_scene(model, ict, seed=21, n=10, noise=0.0)
+    st = sc["start"]
+    ib = IncrementalBundle(REF, model, CAMERA, n=7)
+    s1 = ib.start(sc["landmarks"][:7], st["rvecs"][:7], st["tvecs"][:7], st["expressions"][:7], hold_identity=True)
+    np.testing.assert_array_equal(s1, model.identity_mean)
+    np.testing.assert_array_equal(ib.last.identity, model.identity_mean)
+    assert ib.last.rms < 1.5  # the mean face in the poses that fit best, ~1 px off a new person's points
+    free = IncrementalBundle(REF, model, CAMERA, n=7)
+    free.start(sc["landmarks"][:7], st["rvecs"][:7], st["tvecs"][:7], st["expressions"][:7])
+    assert free.last.rms < 1e-6  # noise-free: the identity learnt exactly
+    for i in range(7, 10):
+        s = ib.add(sc["landmarks"][i], st["rvecs"][i], st["tvecs"][i], st["expressions"][i])
+    assert np.linalg.norm(s - sc["identity"]) < np.linalg.norm(model.identity_mean - sc["identity"])
+
+
 def test_unknown_landmarks_are_ignored(model, ict):
     sc = face_scene(model, ict, seed=4)
     st = sc["start"]

@@ -546,11 +546,12 @@ class IncrementalBundle:
         """:func:`keyframe_spread` of the current key frames (0 before :meth:`start`)."""
         return 0.0 if self._keys is None else float(keyframe_spread(self._keys["rvecs"]))
 
-    def _solve(self, keys, identity, max_iter, pose_range=None) -> BundleResult:
+    def _solve(self, keys, identity, max_iter, pose_range=None, identity_sigmas=None) -> BundleResult:
         problem = BundleProblem(self.terms, self.camera, keys["landmarks"], keys["rvecs"], keys["tvecs"],
                                 keys["expressions"], identity,
                                 pose_range=self.pose_range if pose_range is None else pose_range,
-                                expression_range=self.expression_range, identity_sigmas=self.identity_sigmas,
+                                expression_range=self.expression_range,
+                                identity_sigmas=self.identity_sigmas if identity_sigmas is None else identity_sigmas,
                                 weights=keys["weights"], identity_prior=self.identity_prior)  # fmt: skip
         key = (problem.P, int(max_iter))  # the start's and the per-frame solves: a solver each, kept
         if key not in self._solvers:
@@ -563,14 +564,16 @@ class IncrementalBundle:
         return res
 
     def start(self, landmarks, rvecs, tvecs, expressions, identity=None, weights=None,
-              pose_range=START_POSE_RANGE) -> np.ndarray:  # fmt: skip
+              pose_range=START_POSE_RANGE, hold_identity: bool = False) -> np.ndarray:  # fmt: skip
         """The initial adjustment over the first n frames (sec. 4.1): landmarks (n, K, 2) (NaN: unknown),
         rvecs, tvecs (n, 3), expressions (n, A'), identity (S',) or None (``identity_mean``), weights
         (n, K) or None. Returns s(1). Restarts the running mean.
 
         ``pose_range`` boxes the start poses (default :data:`START_POSE_RANGE`, wider than the
         tracking box: start poses found with the mean shape are off in depth by as much as the
-        person's size differs from the mean, and the adjustment must be free to move them)."""
+        person's size differs from the mean, and the adjustment must be free to move them).
+        ``hold_identity`` (beyond the paper): adjust the poses and deformations only, the identity
+        held where it starts (s(1) = ``identity``), for the frames after to learn."""
         K, A = self.terms.K, self.terms.A
         lm = np.asarray(landmarks)
         if lm.ndim != 3 or lm.shape[1:] != (K, 2) or lm.shape[0] != self.n:
@@ -587,7 +590,7 @@ class IncrementalBundle:
             "frame": list(range(n)),
         }
         s = self.terms.identity_mean if identity is None else _real_array(identity, "identity", (self.terms.S,))
-        res = self._solve(keys, s, self.init_iterations, _pose_range(pose_range))
+        res = self._solve(keys, s, self.init_iterations, _pose_range(pose_range), 0.0 if hold_identity else None)
         self._frames, self.count = n, 1
         self.identity = res.identity.copy()  # s(1)
         return self.identity.copy()

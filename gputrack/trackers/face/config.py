@@ -42,7 +42,11 @@ class FaceConfig:
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``
     (rad, mm) = lambda_p of eq. 8; ``identity_sigmas`` = 2 of eq. 9; ``identity_prior`` (beyond the
     paper; 0 = the paper's box only): the weight of a Gaussian prior on the identity in the bundle
-    adjustment (:func:`~gputrack.trackers.face.bundle.bundle_adjust`); ``learn_identity``: run the
+    adjustment (:func:`~gputrack.trackers.face.bundle.bundle_adjust`); ``hold_identity_at_start``
+    (beyond the paper): the start's adjustment of the first n frames moves the poses and
+    deformations only and keeps the model's mean identity, which the incremental adjustment then
+    learns (the start's frames, seen from one direction, show little of the face's proportions:
+    learning them there traded them against pitch and depth); ``learn_identity``: run the
     incremental bundle adjustment while tracking (False keeps the identity of the start).
 
     Loss (beyond the paper): a frame whose best hypothesis has a mean NCC below ``lost_score`` is
@@ -71,6 +75,7 @@ class FaceConfig:
     pose_range: tuple = (0.15, 30.0)
     identity_sigmas: float = 2.0
     identity_prior: float = 1.0
+    hold_identity_at_start: bool = True
     learn_identity: bool = True
     lost_score: float = 0.3
     redetect_after: int = 5

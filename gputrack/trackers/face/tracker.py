@@ -232,7 +232,7 @@ class FaceTracker:
             poses.append(self._pose_from_points(lm[i], poses[-1]))
         rv, tv = np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
         A = np.tile(self.model.expression_mean, (n, 1))
-        self.identity = self.bundle.start(lm, rv, tv, A)
+        self.identity = self.bundle.start(lm, rv, tv, A, hold_identity=self.config.hold_identity_at_start)
         self._basis = self.model.expression_basis(self.identity)
         res = self.bundle.last
         S = self.config.template
