@@ -110,6 +110,32 @@ def test_relocation_follows_the_appearance_and_the_prediction():
     np.testing.assert_allclose(relocate(flat, start, tpl, tpl), start)
 
 
+def test_relocation_with_contrast_ignores_a_change_of_light():
+    """The frame's light changed since the templates: gain 1.6 and offset -40. With ``contrast``
+    (patches normalised to zero mean and that standard deviation) the points go back onto the true
+    ones as on the unchanged image; with the paper's raw intensities they are pulled far off. A ramp
+    across the image on top (6 gray levels across a patch: no gain and offset of a patch) leaves
+    a small error. eps = 0: the appearance alone."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
+    lit = (1.6 * img - 40.0).astype(np.float32)
+    ramp = (lit + np.linspace(0.0, 60.0, 160, dtype=np.float32)[None, :]).astype(np.float32)
+    true = rng.uniform(30, 90, (10, 2))
+    tpl = sample_patches(img, true, 16)
+    start = true + rng.normal(0, 1.5, true.shape)
+
+    def err(image, contrast):
+        return np.abs(relocate(image, start, tpl, tpl, eps=0.0, iterations=10, contrast=contrast) - true).max()
+
+    assert err(img, 30.0) < 0.05 and err(lit, 30.0) < 0.01
+    assert err(lit, 0.0) > 3.0  # raw intensities: pulled off
+    assert err(ramp, 30.0) < 0.2 < 3.0 < err(ramp, 0.0)
+    with pytest.raises(ValueError, match="contrast"):
+        relocate(img, start, tpl, tpl, contrast=-1.0)
+
+
 def test_patches_are_bilinear_with_the_border_pixel_outside():
     """sample_patches against bilinear interpolation written out, with every sample coordinate
     clipped into the image (the border pixel outside), for points inside, on and far past the edges."""

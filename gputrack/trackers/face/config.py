@@ -36,7 +36,10 @@ class FaceConfig:
     get weight 0 (a filter that loses the face must not run away in depth).
 
     Templates and re-localisation (sec. 4.2, eq. 14): ``template`` = 16 px patches; ``rho`` = 4,
-    ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps.
+    ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps; ``relocate_contrast`` (gray levels,
+    beyond the paper; 0 = the paper's raw intensities): eq. 14 compares the patches brought to zero
+    mean and this standard deviation, so a change of the light does not pull the points
+    (:func:`~gputrack.trackers.face.relocate.relocate`).
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``
@@ -69,6 +72,7 @@ class FaceConfig:
     rho: float = 4.0
     eps: float = 4000.0
     relocate_iterations: int = 5
+    relocate_contrast: float = 30.0
     keyframes: int = 7
     init_iterations: int = 10
     iterations: int = 5
@@ -91,7 +95,7 @@ class FaceConfig:
             raise ValueError(f"{o}.max_turn: expected degrees in (0, 180], got {self.max_turn!r}")
         for name in ("sigma", "near", "identity_sigmas"):
             _positive(o, name, getattr(self, name))
-        for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior"):
+        for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior", "relocate_contrast"):
             _positive(o, name, getattr(self, name), zero=True)
         tn = np.asarray(self.translation_noise, dtype=np.float64)
         if tn.shape != (3,) or not np.isfinite(tn).all() or (tn < 0).any():

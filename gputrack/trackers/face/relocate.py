@@ -16,6 +16,13 @@ a 2 x 2 solve, a few iterations, each step at most ``max_step`` pixels. The K po
 independent, so they are solved together: one matrix product per iteration gives every point's
 G^T G and G^T e (the K products of the rows gx, gy with the rows gx, gy, e).
 
+Beyond the paper, ``contrast`` c > 0 compares the patches photometrically normalised: each (I_t's at
+the current point, I_{t-1}'s, I_1's) brought to zero mean and a standard deviation of c gray levels
+(its gradient G scaled alike), so that a change of the light between the frames (a gain and an
+offset of a patch's intensities) does not pull the points; eps keeps its meaning against patches of
+contrast c. A patch of less than ``MIN_STD`` gray levels of standard deviation is scaled as one of
+``MIN_STD``.
+
 Patches sample the image bilinearly with the convention of :func:`gputrack.ops.ncc.patch_ncc`:
 patch pixel (i, j) of a point (u, v) is the image at (u + j - (S-1)/2, v + i - (S-1)/2), samples
 outside the image taking the nearest border pixel. Patches inside the image come from OpenCV's
@@ -28,7 +35,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["relocate", "sample_patches"]
+__all__ = ["MIN_STD", "relocate", "sample_patches"]
+
+#: the least standard deviation (gray levels) a patch is normalised by (``relocate(contrast=...)``):
+#: a flat patch's noise is not blown up
+MIN_STD = 1.0
 
 
 def sample_patches(image, points, size: int) -> np.ndarray:
@@ -72,24 +83,42 @@ def _border_patches(img, pts, size: int) -> np.ndarray:
     return (1 - fy) * ((1 - fx) * a + fx * b) + fy * ((1 - fx) * c + fx * d)
 
 
+def _normalised(patches, contrast: float) -> np.ndarray:
+    """Patches (K, S, S) at zero mean and a standard deviation of ``contrast``."""
+    p = patches - patches.mean(axis=(1, 2), keepdims=True)
+    return p * (contrast / np.maximum(np.sqrt((p * p).mean(axis=(1, 2), keepdims=True)), MIN_STD))
+
+
 def relocate(image, predicted, previous, first, *, start=None, rho: float = 4.0, eps: float = 4000.0,
-             iterations: int = 5, max_step: float = 3.0) -> np.ndarray:  # fmt: skip
+             iterations: int = 5, max_step: float = 3.0, contrast: float = 0.0) -> np.ndarray:  # fmt: skip
     """(K, 2) feature points minimising eq. 14 in ``image`` (H, W).
 
     predicted: (K, 2) m'_t, the projection of the particle filter's estimate; previous, first:
     (K, S, S) the patches I_{t-1} (at the previous frame's points) and I_1 (at the first frame's);
-    start: where the iteration starts (default ``predicted``). Points whose 2 x 2 system is
-    singular or whose step is not finite stay where they are.
+    start: where the iteration starts (default ``predicted``); contrast: 0 compares raw intensities
+    (the paper), c > 0 patches normalised to zero mean and standard deviation c (module
+    docstring). Points whose 2 x 2 system is singular or whose step is not finite stay where they
+    are.
     """
     prev = np.asarray(previous, np.float64)
     K, S = prev.shape[0], prev.shape[-1]
-    target = (rho * prev + np.asarray(first, np.float64)).reshape(K, -1)  # e = (rho + 1) I - target
+    first = np.asarray(first, np.float64)
+    if contrast < 0 or not np.isfinite(contrast):
+        raise ValueError(f"contrast: expected gray levels >= 0 (0: raw intensities), got {contrast!r}")
+    if contrast > 0:
+        prev, first = _normalised(prev, contrast), _normalised(first, contrast)
+    target = (rho * prev + first).reshape(K, -1)  # e = (rho + 1) I - target
     pred = np.asarray(predicted, np.float64)
     m = pred.copy() if start is None else np.asarray(start, np.float64).copy()
     rows = np.empty((K, 3, S * S))  # gx, gy, e per point
     gx, gy, e = (rows[:, i].reshape(K, S, S) for i in range(3))
     for _ in range(iterations):
         big = sample_patches(image, m, S + 2)  # the patch and a one-pixel ring: gradients by central differences
+        if contrast > 0:  # the patch's mean off, its gain to the contrast (the ring's samples alike)
+            inner = big[:, 1:-1, 1:-1]
+            mu = inner.mean(axis=(1, 2), keepdims=True)
+            sd = np.sqrt(((inner - mu) ** 2).mean(axis=(1, 2), keepdims=True))
+            big = (big - mu) * (contrast / np.maximum(sd, MIN_STD))
         np.subtract(big[:, 1:-1, 2:], big[:, 1:-1, :-2], out=gx)
         np.subtract(big[:, 2:, 1:-1], big[:, :-2, 1:-1], out=gy)
         rows[:, :2] *= 0.5

@@ -310,7 +310,7 @@ class FaceTracker:
             return
         c = self.config
         m = relocate(h["gray"], h["landmarks"], self._previous, self._first, rho=c.rho, eps=c.eps,
-                     iterations=c.relocate_iterations)  # eq. 14
+                     iterations=c.relocate_iterations, contrast=c.relocate_contrast)  # eq. 14
         self._previous = sample_patches(h["gray"], m, c.template)
         self._features = m
         h["features"] = m
