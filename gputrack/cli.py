@@ -456,7 +456,9 @@ def main(argv=None) -> int:
     p.add_argument("--init", choices=["landmarks", "haar"], default="landmarks",
                    help="start from the first 7 frames' feature points (+1 px noise) or from a Haar face box")
     p.add_argument("--no-generic", action="store_true", help="skip the generic PCA model's run")
-    p.add_argument("--no-floor", action="store_true", help="skip the run with the true identity (the depth floor)")
+    p.add_argument("--no-floor", action="store_true",
+                   help="skip the depth floors (the run with the true identity; the bundle adjustment on perfect "
+                        "feature points)")  # fmt: skip
     p.add_argument("--particles", type=_int_in(1, 1_000_000), default=1000,
                    help="hypotheses N of the particle filter (default 1000, the paper's)")
     p.add_argument("--seed", type=_int_at_least(0), default=0)
