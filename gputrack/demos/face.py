@@ -11,9 +11,8 @@ in deg, mean and std) for both models beside the paper's, the shape error as the
 converges (Fig. 7), two depth floors (the multilinear tracker with the true identity given and
 fixed: how far the z error can fall with the person's size known; and :func:`landmark_floor`, the
 bundle adjustment on perfect feature points: the error the size the landmarks give leaves) and
-the per-stage timing. ``save``: a
-directory for pictures (frames with the feature points and the head's axes; the errors over the
-frames).
+the per-stage timing. ``save``: a directory for pictures (frames with the feature points and the
+head's axes; the errors over the frames).
 """
 
 from __future__ import annotations
