@@ -243,6 +243,8 @@ def test_landmark_floor_is_the_size_the_landmarks_cannot_show(data):
     assert abs(out[1.1]["relative"] - (1 / 1.1 - 1)) < 1e-4 and out[1.1]["rms"] < 1e-3
     np.testing.assert_allclose(out[1.1]["z_mm"], 660 * (1 - 1 / 1.1), rtol=1e-3)  # the frames' mean depth 660 mm
     assert sorted(out[1.0]["keyframes"]) == [0, 1, 2, 9, 10, 11, 12]  # the turns' two ends
+    with pytest.raises(ValueError, match="at least n=7"):
+        landmark_floor(model, frames[:6], seq.camera, FaceConfig())
 
 
 def test_a_lost_face_is_reported_and_found_again(device, data):
