@@ -311,6 +311,8 @@ def test_bad_input(data):
         FaceConfig(particles=0)
     with pytest.raises(ValueError, match=r"FaceConfig.pose_range: expected \(radians, mm\) > 0"):
         dataclasses.replace(FaceConfig(), pose_range=(0.1,))
+    with pytest.raises(ValueError, match="FaceConfig.relocate_contrast: expected a finite number >= 0, got -1"):
+        FaceConfig(relocate_contrast=-1.0)
     # a flat (occluded) frame: reported lost, the pose stays finite
     est = trk.track(np.full((480, 640), 128, np.uint8))
     assert est.lost and est.confidence == 0.0 and np.isfinite(est.translation).all()
