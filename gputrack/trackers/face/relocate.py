@@ -83,10 +83,18 @@ def _border_patches(img, pts, size: int) -> np.ndarray:
     return (1 - fy) * ((1 - fx) * a + fx * b) + fy * ((1 - fx) * c + fx * d)
 
 
+def _mean_gain(patches, contrast: float) -> tuple:
+    """(mean, gain), each (K, 1, 1), that bring patches (K, S, S) to zero mean and a standard
+    deviation of ``contrast``: (patches - mean) * gain."""
+    mean = patches.mean(axis=(1, 2), keepdims=True)
+    d = patches - mean
+    return mean, contrast / np.maximum(np.sqrt((d * d).mean(axis=(1, 2), keepdims=True)), MIN_STD)
+
+
 def _normalised(patches, contrast: float) -> np.ndarray:
     """Patches (K, S, S) at zero mean and a standard deviation of ``contrast``."""
-    p = patches - patches.mean(axis=(1, 2), keepdims=True)
-    return p * (contrast / np.maximum(np.sqrt((p * p).mean(axis=(1, 2), keepdims=True)), MIN_STD))
+    mean, gain = _mean_gain(patches, contrast)
+    return (patches - mean) * gain
 
 
 def relocate(image, predicted, previous, first, *, start=None, rho: float = 4.0, eps: float = 4000.0,
@@ -115,10 +123,8 @@ def relocate(image, predicted, previous, first, *, start=None, rho: float = 4.0,
     for _ in range(iterations):
         big = sample_patches(image, m, S + 2)  # the patch and a one-pixel ring: gradients by central differences
         if contrast > 0:  # the patch's mean off, its gain to the contrast (the ring's samples alike)
-            inner = big[:, 1:-1, 1:-1]
-            mu = inner.mean(axis=(1, 2), keepdims=True)
-            sd = np.sqrt(((inner - mu) ** 2).mean(axis=(1, 2), keepdims=True))
-            big = (big - mu) * (contrast / np.maximum(sd, MIN_STD))
+            mean, gain = _mean_gain(big[:, 1:-1, 1:-1], contrast)
+            big = (big - mean) * gain
         np.subtract(big[:, 1:-1, 2:], big[:, 1:-1, :-2], out=gx)
         np.subtract(big[:, 2:, 1:-1], big[:, :-2, 1:-1], out=gy)
         rows[:, :2] *= 0.5
