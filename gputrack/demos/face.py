@@ -204,8 +204,9 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
     box of eq. 9 and ``config.identity_prior``) and the face's proportions fix its size. This runs
     the tracker's bundle adjustment (:func:`~gputrack.trackers.face.bundle.bundle_adjust`, n =
     ``config.keyframes``) on the true feature points (no noise, hidden ones left out) of the n
-    ``frames`` with the widest spread of face directions (greedily over the frames in order: a frame
-    replaces a key frame where that widens the spread), from the true poses within the start's box,
+    ``frames`` with the widest spread of face directions (over the frames in order, the incremental
+    adjustment's rule with ``keep_previous``: :func:`~gputrack.trackers.face.bundle.keyframe_slot`),
+    from the true poses within the start's box,
     the model's mean identity and mean deformation. ``frames``: objects with ``rvec``,
     ``translation``, ``landmarks2d`` and ``visible`` (the simulator's
     :class:`~gputrack.sim.face.FaceFrame`).
@@ -213,7 +214,7 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
     Returns {"relative": the median over the key frames of z_estimated / z_true - 1, "z_mm": |that|
     times the frames' mean true depth (the z error of Table 1 such a size error gives), "keyframes":
     their indices into ``frames``, "rms": the adjustment's reprojection RMS (px)}."""
-    from ..trackers.face.bundle import START_POSE_RANGE, bundle_adjust, keyframe_spread
+    from ..trackers.face.bundle import START_POSE_RANGE, bundle_adjust, keyframe_slot
 
     n = config.keyframes
     frames = list(frames)
@@ -222,10 +223,9 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
     rv = np.array([f.rvec for f in frames], np.float64)
     keys = list(range(n))
     for i in range(n, len(frames)):
-        cands = [keys[:j] + keys[j + 1:] + [i] for j in range(n)]
-        spreads = keyframe_spread(rv[cands])
-        if spreads.max() > keyframe_spread(rv[keys]) * (1 + 1e-9):
-            keys = cands[int(np.argmax(spreads))]
+        slot = keyframe_slot(rv[keys], keys, rv[i], keep_previous=True)
+        if slot >= 0:
+            keys[slot] = i
     fk = [frames[k] for k in keys]
     lm = np.array([np.where(np.asarray(f.visible)[:, None], f.landmarks2d, np.nan) for f in fk])
     device = get_device("numpy") if device is None else device

@@ -67,6 +67,7 @@ __all__ = [
     "BundleResult",
     "IncrementalBundle",
     "bundle_adjust",
+    "keyframe_slot",
     "keyframe_spread",
     "model_terms",
 ]
@@ -107,6 +108,26 @@ def keyframe_spread(rvecs) -> np.ndarray:
     d = rodrigues(r)[..., :, 2]  # (..., n, 3) face directions
     mean = d.mean(axis=-2)
     return np.maximum(1.0 - np.einsum("...c,...c->...", mean, mean), 0.0)
+
+
+def keyframe_slot(rvecs, frames, rvec, keep_previous: bool = False) -> int:
+    """The key-frame rule of :class:`IncrementalBundle` (sec. 3.1): the slot of the key frames
+    (rvecs (n, 3), their frame numbers ``frames`` (n,)) that a new frame with ``rvec`` (3,) replaces,
+    the one whose set has the largest :func:`keyframe_spread` (within ``SPREAD_RTOL``: the oldest
+    frame's), or -1 where ``keep_previous`` and no replacement widens the spread."""
+    n = len(frames)
+    d = rodrigues(np.vstack([rvecs, rvec]))[:, :, 2]  # the key frames' face directions, the new one's
+    total = d[:-1].sum(axis=0)
+    means = (total - d[:-1] + d[-1]) / n  # candidate j: the new frame in slot j
+    spreads = np.maximum(1.0 - np.einsum("jc,jc->j", means, means), 0.0)  # keyframe_spread of each candidate
+    best = float(spreads.max())
+    if keep_previous:
+        mean = total / n
+        previous = max(1.0 - float(mean @ mean), 0.0)
+        if previous >= best * (1 - SPREAD_RTOL):
+            return -1  # no replacement widens the spread
+    equal = np.flatnonzero(spreads >= best * (1 - SPREAD_RTOL))
+    return int(equal[np.argmin(np.asarray(frames)[equal])])  # among equals, the oldest key frame
 
 
 # ------------------------------------------------------------------------------------------------
@@ -600,20 +621,8 @@ class IncrementalBundle:
         or -1 for the unchanged set."""
         if self._keys is None:
             raise RuntimeError("IncrementalBundle: call start() before choose() or add()")
-        r = _real_array(rvec, "rvec", (3,))
-        d = rodrigues(np.vstack([self._keys["rvecs"], r]))[:, :, 2]  # the key frames' face directions, the new one's
-        total = d[:-1].sum(axis=0)
-        means = (total - d[:-1] + d[-1]) / self.n  # candidate j: the new frame in slot j
-        spreads = np.maximum(1.0 - np.einsum("jc,jc->j", means, means), 0.0)  # keyframe_spread of each candidate
-        best = float(spreads.max())
-        if self.keep_previous:
-            mean = total / self.n
-            previous = max(1.0 - float(mean @ mean), 0.0)
-            if previous >= best * (1 - SPREAD_RTOL):
-                return -1  # no replacement widens the spread
-        equal = np.flatnonzero(spreads >= best * (1 - SPREAD_RTOL))
-        frames = np.asarray(self._keys["frame"])
-        return int(equal[np.argmin(frames[equal])])  # among equals, the oldest key frame
+        return keyframe_slot(self._keys["rvecs"], self._keys["frame"], _real_array(rvec, "rvec", (3,)),
+                             self.keep_previous)  # fmt: skip
 
     def add(self, landmarks, rvec, tvec, expression, weights=None) -> np.ndarray:
         """Frame t: landmarks (K, 2) (NaN: unknown), the tracker's rvec, tvec (3,) and expression (A',)
