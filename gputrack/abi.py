@@ -94,7 +94,7 @@ class LMLayout:
     of D, the damping's scale of the last step (1 for C I), at ``W_NSQ * P * P + P * M``. With a
     Jacobian callable the kernels may form J^T J and J^T r at the trial straight from the given J
     into the W_L block and the first P values of J^T (moved to W_A and S_G if it is accepted)
-    instead of storing J^T.
+    instead of storing J^T, and use the rest of the J^T block as scratch.
 
     I (int32): NIGLOB globals (IG_B batch size, IG_HAS_MASK, IG_P), then per problem ``I_NFIX + P``
     values: I_STATUS (LMStatus), I_ITER, I_ACCEPTED, I_REASON (LMReason), then P finite flags at I_FIN.

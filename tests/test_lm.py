@@ -636,6 +636,63 @@ def test_jacobian_callable_matches_reference_for_each_built_p(device, P):
             np.testing.assert_array_equal(got.iterations, ref.iterations)
 
 
+def _block_mask(M, P):
+    """(M, P) bool: rows in groups of 10, group g touching its own 5 parameters (cycling through the
+    first P - 8) and the last 8 (shared, as the face bundle's frames and identity)."""
+    mask = np.zeros((M, P), bool)
+    for m in range(M):
+        g = m // 10
+        mask[m, [(5 * g + k) % (P - 8) for k in range(5)]] = True
+    mask[:, P - 8 :] = True
+    return mask
+
+
+# P = 40, 92: above STATIC_P_MAX, where taichi:cpu skips the rows of a tile that are 0 in its blocks
+@pytest.mark.parametrize("P,M", [(40, 49), (92, 155), (40, 1)])
+def test_block_sparse_jacobian_matches_reference(device, P, M):
+    """A Jacobian callable whose J is 0 outside blocks of rows and columns (a bundle adjustment's)
+    gives the reference's solve; a NaN in such a J (in a row that is 0 in the other column blocks)
+    fails the problem as the reference does. M = 1: no room for taichi:cpu's row marks (the plain
+    sums)."""
+    B = 2
+    rng = np.random.default_rng(300 + P + M)
+    mask = _block_mask(M, P)
+    A = rng.normal(size=(B, M, P)) * mask
+    y = rng.normal(size=(B, M))
+
+    def res(X):
+        x = gputrack.to_numpy(X).astype(np.float64)
+        b = np.arange(len(x)) // (len(x) // B)
+        return np.einsum("bmp,bp->bm", A[b], x) - y[b] + 0.1 * np.sin(3 * x[:, P - 1 :])
+
+    def jac(X):
+        J = A.copy()
+        J[:, :, P - 1] += 0.3 * np.cos(3 * gputrack.to_numpy(X)[:, P - 1 :].astype(np.float64))
+        return J
+
+    x0 = np.full((B, P), 0.05)
+    tols = {"ftol": 0.0, "xtol": 0.0, "gtol": 0.0}
+    got = least_squares(res, x0, device=device, jacobian=jac, lower=-0.3, upper=0.3, max_iter=5, **tols)
+    ref = least_squares(res, x0, device=REF, jacobian=jac, lower=-0.3, upper=0.3, max_iter=5, dtype=got.dtype, **tols)
+    f32 = got.dtype == np.float32
+    assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} M={M}")
+    assert_matches(device, got.cost, ref.cost, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} M={M}")
+    if M > 1:  # one residual reaches a zero cost, where rounding decides between GTOL and MAX_ITER
+        np.testing.assert_array_equal(got.status, ref.status)
+        assert not mask.all()  # the case is block-sparse
+
+    def nan_jac(X):
+        J = jac(X)
+        J[1, M - 1, 8] = np.nan  # problem 1: the one entry of row M - 1 in columns 8-15 (a block of 8)
+        return J
+
+    got = least_squares(res, x0, device=device, jacobian=nan_jac, max_iter=3, **tols)
+    ref = least_squares(res, x0, device=REF, jacobian=nan_jac, max_iter=3, dtype=got.dtype, **tols)
+    np.testing.assert_array_equal(got.status, ref.status)
+    assert got.status[1] == Status.FAILED and np.isfinite(got.x).all()
+    assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} M={M} NaN")
+
+
 # P = 40, 92: the runtime-P update (the face bundle's P = 92); P = 20: built in, 5 work-items
 @pytest.mark.parametrize("P", [3, 20, 40, 92])
 def test_step_shared_out_matches_reference(device, P, monkeypatch):

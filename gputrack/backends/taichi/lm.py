@@ -106,6 +106,17 @@ def _finite(v, dt: ti.template()) -> ti.i32:
     return ok
 
 
+@ti.func
+def _nonzero(v, dt: ti.template()) -> ti.i32:
+    """v is not +-0 (NaN and inf count), tested on the bit pattern as ``_finite``."""
+    nz = 1
+    if ti.static(dt == ti.f64):
+        nz = ti.i32((ti.bit_cast(ti.cast(v, ti.f64), ti.u64) << ti.u64(1)) != ti.u64(0))
+    else:
+        nz = ti.i32((ti.bit_cast(ti.cast(v, ti.f32), ti.u32) << ti.u32(1)) != ti.u32(0))
+    return nz
+
+
 # ------------------------------------------------------------------------------------------------
 # ops
 
@@ -314,20 +325,28 @@ def _lane_row(J: ti.template(), b, m, c0, P, dt: ti.template(), edge: ti.templat
 
 
 @ti.func
-def _gram_tile(J: ti.template(), b, M, P, W: ti.template(), a, i0, j0, dt: ti.template(), edge: ti.template()):
+def _gram_tile(J: ti.template(), b, M, P, W: ti.template(), a, i0, j0, z, NB, dt: ti.template(), edge: ti.template(),
+               sparse: ti.template()):  # fmt: skip
     """Rows i0.. and columns j0.. (GRAM_SEG each, j0 <= i0) of J^T J into W[a + i*P + j] and its
-    mirror: the sum over the rows m of J of row m's entries i times its lane vector of columns j."""
+    mirror: the sum over the rows m of J of row m's entries i times its lane vector of columns j.
+    With ``sparse``, W[z + m NB + k] is 0 where row m of J is 0 in column block k (``_row_blocks``):
+    the rows that are 0 in either block are skipped."""
     T = ti.static(GRAM_SEG)
     acc = [ti.Vector([0.0] * T, dt=dt) for _ in ti.static(range(T))]
+    bi, bj = i0 // T, j0 // T
     for m in range(M):
-        col = _lane_row(J, b, m, j0, P, dt, edge)
-        for q in ti.static(range(T)):
-            x = ti.cast(0, dt)
-            if ti.static(edge):
-                x = ti.select(i0 + q < P, ti.cast(J[b, m, ti.min(i0 + q, P - 1)], dt), ti.cast(0, dt))
-            else:
-                x = ti.cast(J[b, m, i0 + q], dt)
-            acc[q] += x * col
+        take = 1
+        if ti.static(sparse):
+            take = W[z + m * NB + bi] * W[z + m * NB + bj] != 0  # marks 0 or 1
+        if take:
+            col = _lane_row(J, b, m, j0, P, dt, edge)
+            for q in ti.static(range(T)):
+                x = ti.cast(0, dt)
+                if ti.static(edge):
+                    x = ti.select(i0 + q < P, ti.cast(J[b, m, ti.min(i0 + q, P - 1)], dt), ti.cast(0, dt))
+                else:
+                    x = ti.cast(J[b, m, i0 + q], dt)
+                acc[q] += x * col
     for q in ti.static(range(T)):
         for e in ti.static(range(T)):
             i, j = i0 + q, j0 + e
@@ -337,7 +356,26 @@ def _gram_tile(J: ti.template(), b, M, P, W: ti.template(), a, i0, j0, dt: ti.te
 
 
 @ti.func
-def _gram_tiles(J: ti.template(), r: ti.template(), b, M, P, W: ti.template(), a, go, dt: ti.template()):
+def _row_blocks(J: ti.template(), b, M, P, W: ti.template(), z, NB, dt: ti.template()):
+    """W[z + m NB + k] = 1 where row m of J[b] has an entry other than 0 (NaN counts) in columns
+    GRAM_SEG k .. GRAM_SEG (k + 1) - 1, else 0: the row blocks ``_gram_tile`` skips."""
+    T = ti.static(GRAM_SEG)
+    full = P // T
+    for m in range(M):
+        for k in range(NB):
+            v = ti.Vector([0.0] * T, dt=dt)
+            if k < full:
+                v = _lane_row(J, b, m, k * T, P, dt, False)
+            else:
+                v = _lane_row(J, b, m, k * T, P, dt, True)
+            nz = 0  # lane by lane: a vector comparison's any() came out 0 for some rows (no scalarisation)
+            for e in ti.static(range(T)):
+                nz |= _nonzero(v[e], dt)
+            W[z + m * NB + k] = ti.select(nz != 0, ti.cast(1, dt), ti.cast(0, dt))
+
+
+@ti.func
+def _gram_tiles(J: ti.template(), r: ti.template(), b, M, P, W: ti.template(), a, go, dt: ti.template(), z=-1):
     """J^T J (both triangles) into W[a + i*P + j] and J^T r into W[go + i] (eq. 22) from J[b] (M, P)
     as stored, P at run time (taichi:cpu, P > STATIC_P_MAX): the lower triangle in GRAM_SEG x
     GRAM_SEG tiles, each a pass over the rows of J with GRAM_SEG lane-vector sums (no spills, each
@@ -345,16 +383,31 @@ def _gram_tiles(J: ti.template(), r: ti.template(), b, M, P, W: ti.template(), a
     For P = 92, M = 155, float64 (the face bundle's update) 84-102 us against 96-114 us copying J
     into rows of J^T and summing row pairs (``_phase_jacobian`` + ``_gram_pair``; minimum of 300
     launches each, two runs, 2026-12-06); the tiled sums also serve ``lm_solve`` and
-    ``normal_equations``, where J was transposed first."""
+    ``normal_equations``, where J was transposed first.
+
+    ``z`` >= 0 (the solver's given Jacobian): M NB values of scratch at W[z], where the rows of J that
+    are 0 in a column block are marked first (``_row_blocks``) and each tile skips the rows that are 0
+    in either of its blocks: the same sums (products of 0 left out), for a block-sparse J (the face
+    bundle's: a frame's rows are 0 outside its pose, deformation and the identity) in fewer passes.
+    The face bundle's J (P = 92, M = 155, 7 frames): 100-108 us against 161-232 us a launch with
+    Python's call overhead; a dense J: 6-10 % slower (taichi:cpu, 2026-12-06, scratch benchmark,
+    medians of 300 launches, interleaved runs)."""
     T = ti.static(GRAM_SEG)
     NB = (P + T - 1) // T
     full = P // T  # row bands without columns past P
+    if z >= 0:
+        _row_blocks(J, b, M, P, W, z, NB, dt)
     for bi in range(NB):
         for bj in range(bi + 1):
-            if bi < full:
-                _gram_tile(J, b, M, P, W, a, bi * T, bj * T, dt, False)
+            if z >= 0:
+                if bi < full:
+                    _gram_tile(J, b, M, P, W, a, bi * T, bj * T, z, NB, dt, False, True)
+                else:
+                    _gram_tile(J, b, M, P, W, a, bi * T, bj * T, z, NB, dt, True, True)
+            elif bi < full:
+                _gram_tile(J, b, M, P, W, a, bi * T, bj * T, z, NB, dt, False, False)
             else:
-                _gram_tile(J, b, M, P, W, a, bi * T, bj * T, dt, True)
+                _gram_tile(J, b, M, P, W, a, bi * T, bj * T, z, NB, dt, True, False)
     for bi in range(NB):
         acc = ti.Vector([0.0] * T, dt=dt)
         if bi < full:
@@ -1045,7 +1098,9 @@ def _update(
                     if ti.static(SP > 0):
                         _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
                     else:
-                        _gram_tiles(Jg, R, b, M, P, W, L, jt, dt)  # eq. 22 at the trial
+                        # the rest of the J^T block holds the row blocks that _gram_tile skips
+                        z = ti.select(P * M - P >= M * ((P + GRAM_SEG - 1) // GRAM_SEG), jt + P, -1)
+                        _gram_tiles(Jg, R, b, M, P, W, L, jt, dt, z)  # eq. 22 at the trial
                     for n in range(P):
                         I[_ib(b, P) + LAY.I_FIN + n] = _finite(W[L + n * P + n], dt)
                 else:
