@@ -382,6 +382,24 @@ def check_face_points(device: Device) -> None:
     assert err <= 1e-5, f"project_faces (facing) differs from the reference by {err:.3g}"
 
 
+def check_face_relocate(device: Device) -> None:
+    """relocate_points of a few feature points on a smooth texture: points and patches against the
+    reference to float32 rounding."""
+    from .ops.face_relocate import relocate_points, sample_patches
+
+    rng = np.random.default_rng(13)
+    y, x = np.mgrid[0:60, 0:80]
+    img = (120 + 60 * np.sin(x / 4.0) * np.cos(y / 5.0) + 20 * np.sin((x + y) / 7.0)).astype(np.float32)
+    true = rng.uniform(15, 45, (4, 2))
+    tpl = sample_patches(img, true, 8).astype(np.float32)
+    start = (true + rng.normal(0, 1.0, true.shape)).astype(np.float32)
+    want = relocate_points(get_device("numpy"), img, start, tpl, tpl, iterations=3, contrast=30.0)
+    got = relocate_points(device, img, start, tpl, tpl, iterations=3, contrast=30.0)
+    for name, g, w in zip(("points", "patches"), got, want):
+        err = float(np.max(np.abs(to_numpy(g) - w)))
+        assert err <= 2e-3, f"relocate_points ({name}) differs from the reference by {err:.3g}"
+
+
 CHECKS = [
     ("arrays", check_arrays),
     ("kinematics", check_kinematics),
@@ -398,6 +416,7 @@ CHECKS = [
     ("clusters", check_clusters),
     ("face_bundle", check_face_bundle),
     ("face_points", check_face_points),
+    ("face_relocate", check_face_relocate),
 ]
 
 

@@ -36,6 +36,7 @@ OPS_OF_CHECK = {
     "clusters": [("clusters", "dbscan")],
     "face_bundle": [("face_bundle", "landmark_residuals")],
     "face_points": [("face_points", "project_faces")],
+    "face_relocate": [("face_relocate", "relocate_points")],
 }
 
 

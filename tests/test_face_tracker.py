@@ -15,7 +15,6 @@ from gputrack.models.pose import project, rodrigues
 from gputrack.trackers.face import FaceConfig, FaceTracker
 from gputrack.trackers.face.metrics import pose_errors, shape_error, table1
 from gputrack.trackers.face.pf import FaceParticleFilter, project_hypotheses
-from gputrack.trackers.face.relocate import relocate, sample_patches
 
 REF = gputrack.device("numpy")
 
@@ -92,74 +91,6 @@ def test_particle_filter_weights_and_estimate():
     odd[1, 5], odd[2, 5] = 100.0, 5000.0  # nearer / farther than depth_range
     assert np.all(pf.log_weights(np.full(3, 10.0), odd) == -np.inf)
     assert np.isfinite(pf.log_weights(np.full(1, 10.0), state[None])).all()
-
-
-def test_relocation_follows_the_appearance_and_the_prediction():
-    rng = np.random.default_rng(1)
-    import cv2
-
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
-    true = rng.uniform(30, 90, (10, 2))
-    tpl = sample_patches(img, true, 16)
-    start = true + rng.normal(0, 1.5, true.shape)
-    m = relocate(img, start, tpl, tpl, eps=0.0, iterations=10)  # appearance only: back onto the true points
-    np.testing.assert_allclose(m, true, atol=0.05)
-    m = relocate(img, start, tpl, tpl, eps=1e9, iterations=10)  # eq. 14's prior term dominates: stays put
-    np.testing.assert_allclose(m, start, atol=1e-3)
-    flat = np.full((120, 160), 7.0, np.float32)  # no gradient: the 2 x 2 systems are eps I, the points stay
-    np.testing.assert_allclose(relocate(flat, start, tpl, tpl), start)
-
-
-def test_relocation_with_contrast_ignores_a_change_of_light():
-    """The frame's light changed since the templates: gain 1.6 and offset -40. With ``contrast``
-    (patches normalised to zero mean and that standard deviation) the points go back onto the true
-    ones as on the unchanged image; with the paper's raw intensities they are pulled far off. A ramp
-    across the image on top (6 gray levels across a patch: no gain and offset of a patch) leaves
-    a small error. eps = 0: the appearance alone."""
-    import cv2
-
-    rng = np.random.default_rng(1)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
-    lit = (1.6 * img - 40.0).astype(np.float32)
-    ramp = (lit + np.linspace(0.0, 60.0, 160, dtype=np.float32)[None, :]).astype(np.float32)
-    true = rng.uniform(30, 90, (10, 2))
-    tpl = sample_patches(img, true, 16)
-    start = true + rng.normal(0, 1.5, true.shape)
-
-    def err(image, contrast):
-        return np.abs(relocate(image, start, tpl, tpl, eps=0.0, iterations=10, contrast=contrast) - true).max()
-
-    assert err(img, 30.0) < 0.05 and err(lit, 30.0) < 0.01
-    assert err(lit, 0.0) > 3.0  # raw intensities: pulled off
-    assert err(ramp, 30.0) < 0.2 and err(ramp, 0.0) > 3.0
-    with pytest.raises(ValueError, match="contrast"):
-        relocate(img, start, tpl, tpl, contrast=-1.0)
-
-
-def test_patches_are_bilinear_with_the_border_pixel_outside():
-    """sample_patches against bilinear interpolation written out, with every sample coordinate
-    clipped into the image (the border pixel outside), for points inside, on and far past the edges."""
-    rng = np.random.default_rng(2)
-    img = rng.uniform(0, 255, (30, 40)).astype(np.float32)
-    pts = np.array([[12.3, 7.8], [0.0, 0.0], [-2.6, 14.2], [38.9, 29.4], [1e7, -1e7], [20.5, 15.5]])
-    S = 6
-    off = np.arange(S) - (S - 1) / 2.0
-    want = np.empty((len(pts), S, S))
-    for k, (u, v) in enumerate(pts):
-        for i in range(S):
-            for j in range(S):
-                x, y = np.clip(u + off[j], 0, 39), np.clip(v + off[i], 0, 29)
-                x0, y0 = min(int(x), 38), min(int(y), 28)
-                fx, fy = x - x0, y - y0
-                want[k, i, j] = ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
-                                 + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))  # fmt: skip
-    got = sample_patches(img, pts, S)
-    assert got.shape == (len(pts), S, S) and got.dtype == np.float64
-    np.testing.assert_allclose(got, want, atol=1e-3)  # float32 interpolation of values up to 255
-    np.testing.assert_allclose(sample_patches(img.astype(np.uint8), pts, S),
-                               sample_patches(img.astype(np.uint8).astype(np.float32), pts, S), atol=1e-3)  # fmt: skip
-    with pytest.raises(ValueError, match="finite"):
-        sample_patches(img, [[np.nan, 3.0]], S)
 
 
 # -- every device against the reference --------------------------------------------------------------------

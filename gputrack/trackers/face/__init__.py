@@ -4,7 +4,8 @@
   feature-point re-localisation and the incremental bundle adjustment as scheduler stages;
 - :mod:`.config` — :class:`FaceConfig`, every constant with the paper's value as default;
 - :mod:`.pf` — the particle filter over pose + deformation scored by NCC (sec. 4.1, eq. 11-13);
-- :mod:`.relocate` — feature-point re-localisation (sec. 4.2, eq. 14) and the patch sampler;
+- the feature-point re-localisation (sec. 4.2, eq. 14) is a device op:
+  :func:`gputrack.ops.face_relocate.relocate_points` (with the host's patch sampler, ``sample_patches``);
 - :mod:`.bundle` — the incremental bundle adjustment (sec. 3, eq. 5-10): :func:`bundle_adjust` of n
   frames, :class:`IncrementalBundle` (key-frame choice and the running mean of the identity),
   :func:`keyframe_spread`;

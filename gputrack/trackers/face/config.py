@@ -36,10 +36,10 @@ class FaceConfig:
     get weight 0 (a filter that loses the face must not run away in depth).
 
     Templates and re-localisation (sec. 4.2, eq. 14): ``template`` = 16 px patches; ``rho`` = 4,
-    ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps; ``relocate_contrast`` (gray levels,
-    beyond the paper; 0 = the paper's raw intensities): eq. 14 compares the patches brought to zero
-    mean and this standard deviation, so a change of the light does not pull the points
-    (:func:`~gputrack.trackers.face.relocate.relocate`).
+    ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps at most (a point stops when its step
+    is under 0.01 px); ``relocate_contrast`` (gray levels, beyond the paper; 0 = the paper's raw
+    intensities): eq. 14 compares the patches brought to zero mean and this standard deviation, so a
+    change of the light does not pull the points (:func:`gputrack.ops.face_relocate.relocate_points`).
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``

@@ -11,7 +11,9 @@
 - **Per frame** (:meth:`FaceTracker.track`), as :class:`gputrack.Scheduler` stages:
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
-  scores), ``relocate`` (eq. 14, host, K 16 x 16 patches) and ``bundle`` (the incremental bundle
+  scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
+  the K points and the frame's patches at them, which stay on the device for the next frame) and
+  ``bundle`` (the K points come down; the incremental bundle
   adjustment on the key frames, eq. 6-10, ``iterations`` LM iterations through
   :func:`gputrack.least_squares` on the device; the identity's running mean, eq. 10).
 - **Loss** (beyond the paper): a frame whose best hypothesis has a mean NCC below
@@ -21,7 +23,8 @@
   about its last size (the identity is kept). A face that
   leaves the image scores 0 and is lost the same way.
 
-The image is uploaded once per frame as float32; the templates stay on the device.
+The image is uploaded once per frame as float32; the templates and the previous frame's patches stay on
+the device.
 """
 
 from __future__ import annotations
@@ -35,12 +38,12 @@ from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
 from ...models.pose import project, rodrigues
 from ...ops.face_points import project_faces
+from ...ops.face_relocate import relocate_points, sample_patches
 from ...ops.ncc import patch_ncc
 from ...scheduler import Scheduler, Stage
 from .bundle import IncrementalBundle
 from .config import FaceConfig
 from .pf import FaceParticleFilter, shape_model
-from .relocate import relocate, sample_patches
 
 log = logging.getLogger("gputrack")
 
@@ -138,9 +141,10 @@ class FaceTracker:
             Stage("sample", self._sample, writes=("states", "shape", "points", "facing")),
             Stage("score", self._score, reads=("image", "points", "templates"), writes=("scores",)),
             Stage("estimate", self._estimate, host_reads=("scores", "facing")),
-            Stage("relocate", self._relocate),
-            Stage("bundle", self._bundle),
-        ], inputs=("image",), state=("templates",))  # fmt: skip
+            Stage("relocate", self._relocate, reads=("image", "templates", "previous"),
+                  writes=("features", "previous", "spare")),
+            Stage("bundle", self._bundle, host_reads=("features",)),
+        ], inputs=("image",), state=("templates", "previous", "features"))  # fmt: skip
 
     # -- start ---------------------------------------------------------------------------------------
 
@@ -236,14 +240,13 @@ class FaceTracker:
         self._basis = self.model.expression_basis(self.identity)
         res = self.bundle.last
         S = self.config.template
-        first = [sample_patches(frames[0].astype(np.float32), lm[0], S)]
-        self._first = first[0]
-        self.scheduler.set("templates", self._first.astype(np.float32))
+        self.scheduler.set("templates", sample_patches(frames[0].astype(np.float32), lm[0], S).astype(np.float32))
         last = n - 1
-        self._features = lm[last].copy()
-        self._features[~np.isfinite(self._features)] = self._predicted(res.rvecs[last], res.tvecs[last],
-                                                                        res.expressions[last])[~np.isfinite(lm[last])]
-        self._previous = sample_patches(frames[last].astype(np.float32), self._features, S)
+        features = lm[last].copy()
+        features[~np.isfinite(features)] = self._predicted(res.rvecs[last], res.tvecs[last],
+                                                           res.expressions[last])[~np.isfinite(lm[last])]
+        self.scheduler.set("features", features.astype(np.float32))
+        self.scheduler.set("previous", sample_patches(frames[last].astype(np.float32), features, S).astype(np.float32))
         self.pf.reset(np.concatenate([res.rvecs[last], res.tvecs[last], res.expressions[last]]), K)
         self.lost_frames, self.frame = 0, n
         out = []
@@ -302,22 +305,26 @@ class FaceTracker:
         self._host.update(state=est, confidence=conf, lost=conf < self.config.lost_score)
 
     def _relocate(self, b):
+        """Eq. 14 on the device from the estimate's points: the feature points, and the frame's patches
+        at them (the next frame's I_{t-1}; two arrays in turn)."""
         h = self._host
         est = h["state"]
         h["landmarks"] = self._predicted(est[:3], est[3:6], est[6:])
         if h["lost"]:
-            h["features"] = np.full_like(h["landmarks"], np.nan)
             return
         c = self.config
-        m = relocate(h["gray"], h["landmarks"], self._previous, self._first, rho=c.rho, eps=c.eps,
-                     iterations=c.relocate_iterations, contrast=c.relocate_contrast)  # eq. 14
-        self._previous = sample_patches(h["gray"], m, c.template)
-        self._features = m
-        h["features"] = m
+        spare = b.get("spare")
+        out = None if spare is None else (b["features"], spare)
+        m, patches = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32), b["previous"],
+                                     b["templates"], rho=c.rho, eps=c.eps, iterations=c.relocate_iterations,
+                                     contrast=c.relocate_contrast, out=out)  # fmt: skip
+        b["spare"], b["previous"], b["features"] = b["previous"], patches, m
 
     def _bundle(self, b):
         h = self._host
-        if h["lost"] or not self.config.learn_identity or self.model.identity_dims == 0:
+        lost = h["lost"]
+        h["features"] = np.full((self.model.K, 2), np.nan) if lost else b["features"].astype(np.float64)
+        if lost or not self.config.learn_identity or self.model.identity_dims == 0:
             return  # the generic model has no identity to learn
         est = h["state"]
         self.identity = self.bundle.add(h["features"], est[:3], est[3:6], est[6:])  # eq. 6-10

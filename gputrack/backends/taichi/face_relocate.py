@@ -1,0 +1,127 @@
+"""Taichi: feature-point re-localisation (gputrack/ops/face_relocate.py, paper 003 eq. 14) in float32,
+one launch: a thread per feature point runs its Gauss-Newton iterations and samples its patch at
+the point found (on a CPU one serial loop: K ~ 10 points are too few for the thread pool). The
+patch's samples are not stored between the passes over it: each pass samples the image again
+(bilinear samples of a 640 x 480 float32 image stay in the cache)."""
+
+from ...uploads import constant
+from .launch import launch
+from .pixels import is_finite
+from .runtime import current_arch, ti
+
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+F3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
+
+
+@ti.func
+def _bilinear(img: ti.template(), x, y):
+    """The image at (x, y), the coordinates clipped into it first (gputrack/ops/face_relocate.py)."""
+    H, W = img.shape[0], img.shape[1]
+    xc = ti.min(ti.max(x, 0.0), ti.cast(W - 1, ti.f32))
+    yc = ti.min(ti.max(y, 0.0), ti.cast(H - 1, ti.f32))
+    x0 = ti.min(ti.cast(xc, ti.i32), W - 2)  # floor: xc >= 0
+    y0 = ti.min(ti.cast(yc, ti.i32), H - 2)
+    fx = xc - ti.cast(x0, ti.f32)
+    fy = yc - ti.cast(y0, ti.f32)
+    top = img[y0, x0] + fx * (img[y0, x0 + 1] - img[y0, x0])
+    bot = img[y0 + 1, x0] + fx * (img[y0 + 1, x0 + 1] - img[y0 + 1, x0])
+    return top + fy * (bot - top)
+
+
+@ti.func
+def _gain(s, ss, n, contrast, min_std):
+    """contrast / max(std, min_std) of n values whose shifted sum and sum of squares are s, ss."""
+    var = ti.max(ss / n - (s / n) * (s / n), 0.0)
+    return contrast / ti.max(ti.sqrt(var), min_std)
+
+
+@ti.func
+def _stored_mean_gain(p: ti.template(), k, contrast, min_std):
+    """(mean, gain) of the stored patch p[k] (S x S) that bring it to zero mean and standard deviation
+    ``contrast`` (sums shifted by its first value: no cancellation in float32)."""
+    S = p.shape[1]
+    n = ti.cast(S * S, ti.f32)
+    p0 = p[k, 0, 0]
+    s = 0.0
+    ss = 0.0
+    for i, j in ti.ndrange(S, S):
+        v = p[k, i, j] - p0
+        s += v
+        ss += v * v
+    return p0 + s / n, _gain(s, ss, n, contrast, min_std)
+
+
+@ti.kernel
+def _relocate(img: F2, pred: F2, prev: F3, first: F3, consts: F1, points: F2, patches: F3, iterations: ti.i32,
+              serial: ti.template()):  # fmt: skip
+    rho, eps, max_step, contrast = consts[0], consts[1], consts[2], consts[3]
+    tol, min_std, singular = consts[4], consts[5], consts[6]
+    S = prev.shape[1]
+    n = ti.cast(S * S, ti.f32)
+    half = 0.5 * ti.cast(S - 1, ti.f32)
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    for k in range(prev.shape[0]):
+        mp, gp, mf, gf = 0.0, 1.0, 0.0, 1.0
+        if contrast > 0:
+            mp, gp = _stored_mean_gain(prev, k, contrast, min_std)
+            mf, gf = _stored_mean_gain(first, k, contrast, min_std)
+        px, py = pred[k, 0], pred[k, 1]
+        mx, my = px, py
+        it = 0
+        while it < iterations:
+            x0, y0 = mx - half, my - half  # patch pixel (0, 0)
+            mi, gi = 0.0, 1.0
+            if contrast > 0:  # the current patch's mean and gain (its ring scaled alike)
+                c0 = _bilinear(img, x0, y0)
+                s = 0.0
+                ss = 0.0
+                for i, j in ti.ndrange(S, S):
+                    v = _bilinear(img, x0 + j, y0 + i) - c0
+                    s += v
+                    ss += v * v
+                mi, gi = c0 + s / n, _gain(s, ss, n, contrast, min_std)
+            a00, a01, a11, g0, g1 = 0.0, 0.0, 0.0, 0.0, 0.0
+            for i, j in ti.ndrange(S, S):
+                x, y = x0 + j, y0 + i
+                gx = 0.5 * gi * (_bilinear(img, x + 1, y) - _bilinear(img, x - 1, y))  # central differences
+                gy = 0.5 * gi * (_bilinear(img, x, y + 1) - _bilinear(img, x, y - 1))
+                e = (rho + 1.0) * gi * (_bilinear(img, x, y) - mi) - rho * gp * (prev[k, i, j] - mp) - \
+                    gf * (first[k, i, j] - mf)  # eq. 14's appearance terms  # fmt: skip
+                a00 += gx * gx
+                a01 += gx * gy
+                a11 += gy * gy
+                g0 += gx * e
+                g1 += gy * e
+            a00 = (rho + 1.0) * a00 + eps
+            a01 = (rho + 1.0) * a01
+            a11 = (rho + 1.0) * a11 + eps
+            g0 += eps * (mx - px)
+            g1 += eps * (my - py)
+            det = a00 * a11 - a01 * a01
+            dx, dy = 0.0, 0.0
+            if ti.abs(det) > singular:
+                dx = (a01 * g1 - a11 * g0) / det
+                dy = (a01 * g0 - a00 * g1) / det
+            if not (is_finite(dx) and is_finite(dy)):  # no step
+                dx, dy = 0.0, 0.0
+            norm = ti.sqrt(dx * dx + dy * dy)
+            f = ti.min(1.0, max_step / ti.max(norm, 1e-12))
+            dx *= f
+            dy *= f
+            mx += dx
+            my += dy
+            it += 1
+            if ti.abs(dx) < tol and ti.abs(dy) < tol:
+                it = iterations  # this point has converged
+        points[k, 0] = mx
+        points[k, 1] = my
+        for i, j in ti.ndrange(S, S):
+            patches[k, i, j] = _bilinear(img, mx - half + j, my - half + i)
+
+
+def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches):
+    c = constant(device, consts.astype("float32"))
+    launch(_relocate, (image.buffer, predicted.buffer, previous.buffer, first.buffer, c.buffer, points.buffer,
+                       patches.buffer), (current_arch() == "cpu",), scalars=(iterations,))  # fmt: skip

@@ -1,0 +1,134 @@
+"""Feature-point re-localisation on the device (gputrack.ops.face_relocate, paper 003 eq. 14): every
+device against the float64 reference, the behaviour of eq. 14 (the appearance, the prediction, a flat
+image, a change of light), the patches it returns, bad input."""
+
+import cv2
+import numpy as np
+import pytest
+
+import gputrack
+from gputrack.ops.face_relocate import relocate_points, sample_patches
+
+REF = gputrack.device("numpy")
+
+
+def scene(seed=1, shape=(120, 160)):
+    """A smooth random texture, 10 true points (one 3 px from the left edge: its patches are clipped),
+    their 16 x 16 patches and start points 1.5 px (std) off."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, shape).astype(np.float32), (0, 0), 2.0)
+    true = rng.uniform(30, min(shape) - 30, (10, 2))
+    true[0] = [3.2, 60.4]
+    tpl = sample_patches(img, true, 16).astype(np.float32)
+    start = (true + rng.normal(0, 1.5, true.shape)).astype(np.float32)
+    return img, true, tpl, start
+
+
+def _on(device, *arrays):
+    return [a if device.backend == "numpy" else device.asarray(np.ascontiguousarray(a, np.float32)) for a in arrays]
+
+
+@pytest.mark.parametrize("contrast", [0.0, 30.0])
+@pytest.mark.parametrize("iterations", [2, 5])
+def test_devices_match_the_reference(device, contrast, iterations):
+    """Points and patches against the float64 reference: before convergence (2 iterations, where every
+    point still moves) and at the tracker's 5, the previous patches of another light than the first."""
+    img, _, tpl, start = scene()
+    prev = (1.3 * tpl + 5.0).astype(np.float32)
+    want_m, want_p = relocate_points(REF, img, start, prev, tpl, iterations=iterations, contrast=contrast)
+    got_m, got_p = relocate_points(device, *_on(device, img, start, prev, tpl), iterations=iterations,
+                                   contrast=contrast)  # fmt: skip
+    got_m, got_p = gputrack.to_numpy(got_m), gputrack.to_numpy(got_p)
+    assert got_m.shape == (10, 2) and got_m.dtype == np.float32 and got_p.shape == (10, 16, 16)
+    assert np.abs(want_m - start).max() > 1.0  # the points moved
+    np.testing.assert_allclose(got_m, want_m, atol=2e-3)  # float32 sums of 256 terms
+    np.testing.assert_allclose(got_p, want_p, atol=2e-3)
+    np.testing.assert_allclose(want_p, sample_patches(img, want_m, 16), atol=1e-3)  # the image's patches there
+
+
+def test_out_arrays_are_written(device):
+    img, _, tpl, start = scene()
+    args = _on(device, img, start, tpl, tpl)
+    out = relocate_points(device, *args)
+    again = relocate_points(device, *args, out=out)
+    assert again[0] is out[0] and again[1] is out[1]
+
+
+def test_relocation_follows_the_appearance_and_the_prediction(device):
+    img, true, tpl, start = scene()
+    args = _on(device, img, start, tpl, tpl)
+    m = gputrack.to_numpy(relocate_points(device, *args, eps=0.0, iterations=10)[0])  # appearance only
+    np.testing.assert_allclose(m, true, atol=0.05)
+    m = gputrack.to_numpy(relocate_points(device, *args, eps=1e9, iterations=10)[0])  # the prior dominates
+    np.testing.assert_allclose(m, start, atol=1e-3)
+    flat = np.full(img.shape, 7.0, np.float32)  # no gradient: the 2 x 2 systems are eps I, the points stay
+    m = gputrack.to_numpy(relocate_points(device, *_on(device, flat, start, tpl, tpl))[0])
+    np.testing.assert_allclose(m, start)
+    m = gputrack.to_numpy(relocate_points(device, *args, iterations=0)[0])  # no step at all
+    np.testing.assert_array_equal(m, start)
+
+
+def test_relocation_with_contrast_ignores_a_change_of_light(device):
+    """The frame's light changed since the templates: gain 1.6 and offset -40. With ``contrast``
+    (patches normalised to zero mean and that standard deviation) the points go back onto the true
+    ones as on the unchanged image; with the paper's raw intensities they are pulled far off. A ramp
+    across the image on top (6 gray levels across a patch: no gain and offset of a patch) leaves
+    a small error. eps = 0: the appearance alone."""
+    img, true, tpl, start = scene()
+    lit = (1.6 * img - 40.0).astype(np.float32)
+    ramp = (lit + np.linspace(0.0, 60.0, img.shape[1], dtype=np.float32)[None, :]).astype(np.float32)
+
+    def err(image, contrast):
+        m = relocate_points(device, *_on(device, image, start, tpl, tpl), eps=0.0, iterations=10, contrast=contrast)[0]
+        return np.abs(gputrack.to_numpy(m)[1:] - true[1:]).max()  # the inner points (the edge's patch is clipped)
+
+    assert err(img, 30.0) < 0.05 and err(lit, 30.0) < 0.05
+    assert err(lit, 0.0) > 3.0  # raw intensities: pulled off
+    assert err(ramp, 30.0) < 0.2 and err(ramp, 0.0) > 3.0
+
+
+def test_bad_input_is_a_clear_error(device):
+    img, _, tpl, start = scene()
+    with pytest.raises(ValueError, match=r"^first: expected shape \(K=10, S=16, S=16\), got \(10, 8, 8\)"):
+        relocate_points(device, img, start, tpl, tpl[:, :8, :8])
+    with pytest.raises(ValueError, match=r"^predicted: expected shape \(K=10, 2\), got \(9, 2\)"):
+        relocate_points(device, img, start[:9], tpl, tpl)
+    with pytest.raises(ValueError, match="predicted: expected finite values"):
+        relocate_points(device, img, np.full((10, 2), np.nan, np.float32), tpl, tpl)
+    with pytest.raises(ValueError, match=r"^contrast: expected a finite number >= 0, got -1.0"):
+        relocate_points(device, img, start, tpl, tpl, contrast=-1.0)
+    with pytest.raises(ValueError, match=r"^max_step: expected a finite number > 0, got 0"):
+        relocate_points(device, img, start, tpl, tpl, max_step=0)
+    with pytest.raises(ValueError, match=r"^iterations: expected an int >= 0, got 2.5"):
+        relocate_points(device, img, start, tpl, tpl, iterations=2.5)
+    with pytest.raises(ValueError, match=r"^image: expected an image of at least 2 x 2 pixels, got shape \(1, 160\)"):
+        relocate_points(device, img[:1], start, tpl, tpl)
+    if device.backend != "numpy":
+        with pytest.raises(TypeError, match="image: expected dtype float32, got float64"):
+            relocate_points(device, img.astype(np.float64), start, tpl, tpl)
+
+
+def test_patches_are_bilinear_with_the_border_pixel_outside():
+    """sample_patches against bilinear interpolation written out, with every sample coordinate
+    clipped into the image (the border pixel outside), for points inside, on and far past the edges."""
+    rng = np.random.default_rng(2)
+    img = rng.uniform(0, 255, (30, 40)).astype(np.float32)
+    pts = np.array([[12.3, 7.8], [0.0, 0.0], [-2.6, 14.2], [38.9, 29.4], [1e7, -1e7], [20.5, 15.5]])
+    S = 6
+    off = np.arange(S) - (S - 1) / 2.0
+    want = np.empty((len(pts), S, S))
+    for k, (u, v) in enumerate(pts):
+        for i in range(S):
+            for j in range(S):
+                x, y = np.clip(u + off[j], 0, 39), np.clip(v + off[i], 0, 29)
+                x0, y0 = min(int(x), 38), min(int(y), 28)
+                fx, fy = x - x0, y - y0
+                want[k, i, j] = ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
+                                 + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))  # fmt: skip
+    got = sample_patches(img, pts, S)
+    assert got.shape == (len(pts), S, S) and got.dtype == np.float64
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    np.testing.assert_allclose(sample_patches(img.astype(np.uint8), pts, S),
+                               sample_patches(img.astype(np.uint8).astype(np.float32), pts, S), atol=1e-3)  # fmt: skip
+    with pytest.raises(ValueError, match="finite"):
+        sample_patches(img, [[np.nan, 3.0]], S)
