@@ -650,10 +650,11 @@ def _block_mask(M, P):
 # P = 40, 92: above STATIC_P_MAX, where taichi:cpu skips the rows of a tile that are 0 in its blocks
 @pytest.mark.parametrize("P,M", [(40, 49), (92, 155), (40, 1)])
 def test_block_sparse_jacobian_matches_reference(device, P, M):
-    """A Jacobian callable whose J is 0 outside blocks of rows and columns (a bundle adjustment's)
-    gives the reference's solve; a NaN in such a J (in a row that is 0 in the other column blocks)
-    fails the problem as the reference does. M = 1: no room for taichi:cpu's row marks (the plain
-    sums)."""
+    """A Jacobian callable whose J is 0 outside blocks of rows and columns (a bundle adjustment's;
+    taichi:cpu skips those rows in J^T J's tiles and factors within the rows' envelope) gives the
+    reference's solve; a NaN in such a J (in a row that is 0 in the other column blocks) fails the
+    problem as the reference does; a singular J^T J started at C = 0 raises the damping as the
+    reference does (M > 1). M = 1: no room for taichi:cpu's row marks (the plain sums)."""
     B = 2
     rng = np.random.default_rng(300 + P + M)
     mask = _block_mask(M, P)
@@ -691,6 +692,18 @@ def test_block_sparse_jacobian_matches_reference(device, P, M):
     np.testing.assert_array_equal(got.status, ref.status)
     assert got.status[1] == Status.FAILED and np.isfinite(got.x).all()
     assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} M={M} NaN")
+
+    def idle_jac(X):  # parameter 3 without effect: J^T J singular, not positive definite at C = 0
+        J = jac(X)
+        J[:, :, 3] = 0.0
+        return J
+
+    if M > 1:  # (one residual: J^T J of rank 1, whose damped steps rounding decides)
+        got = least_squares(res, x0, device=device, jacobian=idle_jac, damping=0.0, max_iter=3, **tols)
+        ref = least_squares(res, x0, device=REF, jacobian=idle_jac, damping=0.0, max_iter=3, dtype=got.dtype,
+                            **tols)  # fmt: skip
+        assert_matches(device, got.x, ref.x, got.dtype, scale=1e3 if f32 else 1e2, err_msg=f"P={P} M={M} singular")
+        assert (got.damping > 0).all()  # raised from 0 until the factorisation succeeded
 
 
 # P = 40, 92: the runtime-P update (the face bundle's P = 92); P = 20: built in, 5 work-items

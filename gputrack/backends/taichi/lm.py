@@ -864,6 +864,18 @@ def _phase_finite(S: ti.template(), I: ti.template(), R: ti.template(), b, dt: t
 
 
 @ti.func
+def _envelope(W: ti.template(), A, env, P, dt: ti.template()):
+    """W[env + i] = the first column of row i of the P x P matrix at W[A] that is not 0 (NaN counts;
+    i where the row has none before the diagonal)."""
+    for i in range(P):
+        f = i
+        for k in range(i):
+            if f == i and _nonzero(W[A + i * P + k], dt):
+                f = k
+        W[env + i] = ti.cast(f, dt)
+
+
+@ti.func
 def _active(S: ti.template(), xo, loo, hio, go, i) -> ti.i32:
     """Parameter i is held at a bound by the gradient (the step is x - delta)."""
     x, gi = S[xo + i], S[go + i]
@@ -892,18 +904,23 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
         _damping_scale(I, W, b, A, wd, P, scale, dt)
         dmax = _cref(W, A, P, scale, dt)
         C = S[sc + LAY.SC_C]
+        env = b * _wb(P, M) + LAY.W_NSQ * P * P  # J^T's first P entries: free after the normal equations
+        _envelope(W, A, env, P, dt)
         ok = 0
         tries = 0
         while tries <= MAX_CHOL_TRIES:
-            # Cholesky of J^T J + C I (eq. 22) into L
+            # Cholesky of J^T J + C I (eq. 22) into L, within the rows' envelope (the factor has no
+            # entry before a row's first entry of A: a block-sparse J^T J, the face bundle's, is
+            # factored in fewer operations)
             ok = 1
             for j in range(P):
                 if ok:
                     aj = _active(S, xo, loo, hio, go, j)
+                    fj = ti.cast(W[env + j], ti.i32)
                     s = W[A + j * P + j] + C * W[wd + j]
                     if aj:
                         s = 1 + C
-                    for k in range(j):
+                    for k in range(fj, j):
                         s -= W[L + j * P + k] * W[L + j * P + k]
                     if s <= 0 or not _finite(s, dt):
                         ok = 0
@@ -911,11 +928,14 @@ def _phase_step(S: ti.template(), I: ti.template(), W: ti.template(), X: ti.temp
                         d = ti.sqrt(s)
                         W[L + j * P + j] = d
                         for i in range(j + 1, P):
-                            v = W[A + i * P + j]
-                            if aj or _active(S, xo, loo, hio, go, i):
-                                v = ti.cast(0, dt)
-                            for k in range(j):
-                                v -= W[L + i * P + k] * W[L + j * P + k]
+                            fi = ti.cast(W[env + i], ti.i32)
+                            v = ti.cast(0, dt)
+                            if fi <= j:
+                                v = W[A + i * P + j]
+                                if aj or _active(S, xo, loo, hio, go, i):
+                                    v = ti.cast(0, dt)
+                                for k in range(ti.max(fi, fj), j):
+                                    v -= W[L + i * P + k] * W[L + j * P + k]
                             W[L + i * P + j] = v / d
             if ok or C > cmax * dmax:
                 break
