@@ -61,21 +61,44 @@ static REAL gt_lm_dot(__global const REAL *a, __global const REAL *b, const int 
     return s;
 }
 
-// In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD.
-static int gt_chol_solve(__global REAL *W, __global REAL *rhs, const int P, const REAL C)
+// env[i] = the first column of row i of the lower triangle of W (P x P, row stride P) that is not 0
+// (NaN counts; i where there is none before the diagonal), as a REAL
+static void gt_envelope(__global const REAL *W, __global REAL *env, const int P)
+{
+    for (int i = 0; i < P; ++i) {
+        int f = i;
+        for (int k = 0; k < i; ++k)
+            if (W[i * P + k] != 0) {
+                f = k;
+                break;
+            }
+        env[i] = (REAL)f;
+    }
+}
+
+// In place: W (lower triangle, P x P, row stride P) + C I -> L; rhs -> solution. 0 if not PD. env:
+// 0, or each row's first entry that is not 0 (gt_envelope): the factor has no entry before it, so
+// the products start there, and a row that starts after column j keeps its 0 there.
+static int gt_chol_solve(__global REAL *W, __global REAL *rhs, const int P, const REAL C, __global const REAL *env)
 {
     for (int j = 0; j < P; ++j) {
         __global const REAL *rj = W + j * P;
-        const REAL s = W[j * P + j] + C - gt_lm_dot(rj, rj, j);
+        const int fj = env ? (int)env[j] : 0;
+        const REAL s = W[j * P + j] + C - gt_lm_dot(rj + fj, rj + fj, j - fj);
         if (!(s > 0) || !isfinite(s))
             return 0;
         const REAL d = sqrt(s);
         W[j * P + j] = d;
-        for (int i = j + 1; i < P; ++i)
-            W[i * P + j] = (W[i * P + j] - gt_lm_dot(W + i * P, rj, j)) / d;
+        for (int i = j + 1; i < P; ++i) {
+            const int f = env ? max((int)env[i], fj) : 0;
+            if (f <= j)
+                W[i * P + j] = (W[i * P + j] - gt_lm_dot(W + i * P + f, rj + f, j - f)) / d;
+        }
     }
-    for (int i = 0; i < P; ++i)
-        rhs[i] = (rhs[i] - gt_lm_dot(W + i * P, rhs, i)) / W[i * P + i];
+    for (int i = 0; i < P; ++i) {
+        const int f = env ? (int)env[i] : 0;
+        rhs[i] = (rhs[i] - gt_lm_dot(W + i * P + f, rhs + f, i - f)) / W[i * P + i];
+    }
     for (int i = P - 1; i >= 0; --i) {
         REAL v = rhs[i];
         for (int k = i + 1; k < P; ++k)
@@ -121,7 +144,7 @@ __kernel void gt_lm_step(__global const REAL *JtJ, __global const REAL *Jtr, __g
         for (int j = 0; j <= i; ++j)
             Wb[i * P + j] = JtJ[(long)b * P * P + i * P + j];
     }
-    ok[b] = gt_chol_solve(Wb, db, P, damping[b]);
+    ok[b] = gt_chol_solve(Wb, db, P, damping[b], 0);
     if (!ok[b])
         for (int i = 0; i < P; ++i)
             db[i] = 0;
@@ -163,7 +186,7 @@ __kernel void gt_lm_solve(__global const REAL *J, __global const REAL *r, __glob
     }
     barrier(CLK_GLOBAL_MEM_FENCE);
     if (lid == 0) {
-        ok[b] = gt_chol_solve(Wb, db, P, damping[b]);
+        ok[b] = gt_chol_solve(Wb, db, P, damping[b], 0);
         if (!ok[b])
             for (int i = 0; i < P; ++i)
                 db[i] = 0;
@@ -361,10 +384,12 @@ static int gt_lm_prepare(__global const REAL *x, __global const REAL *g, __globa
     return 1;
 }
 
-// 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group).
+// 4. gtol, damped Cholesky step, projection, next points (work-item 0 of the problem's group). env: P
+// values of scratch for the damped matrix's envelope (the factor's products start at each row's first
+// entry that is not 0: a block-sparse J^T J, the face bundle's, in fewer operations).
 static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __global REAL *den,
                        __global const REAL *lo, __global const REAL *hi, __global const REAL *h,
-                       __global const REAL *A, __global REAL *L, __global REAL *D, __global REAL *sc,
+                       __global const REAL *A, __global REAL *L, __global REAL *D, __global REAL *env, __global REAL *sc,
                        __global int *ib, __global XTYPE *Xb, const int SX, const int P, const REAL gtol,
                        const REAL rel, const REAL ctiny, const REAL cmax, const int scale)
 {
@@ -384,7 +409,8 @@ static void gt_lm_next(__global REAL *x, __global REAL *xt, __global REAL *g, __
                 }
                 L[i * P + i] = ai ? 1 + C : A[i * P + i] + C * D[i];
             }
-            ok = gt_chol_solve(L, xt, P, 0);  // eq. 22: delta into the xt slots
+            gt_envelope(L, env, P);
+            ok = gt_chol_solve(L, xt, P, 0, env);  // eq. 22: delta into the xt slots
             if (ok || C > cmax * dmax)
                 break;
             C = fmax(10 * C, ctiny * dmax);  // not PD: raise C tenfold and try again
@@ -902,8 +928,8 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
 #else
     if (lid == 0) {
         if (!final_)
-            gt_lm_next(x, xt, g, den, lo, hi, h, A, L, D, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny, cmax,
-                       scale);
+            gt_lm_next(x, xt, g, den, lo, hi, h, A, L, D, Jt, sc, ib, X + (long)b * SX * P, SX, P, gtol, rel, ctiny,
+                       cmax, scale);  // Jt's first P values are free after 3.: scratch for the envelope
         gt_lm_export(x, sc, ib, Out + (long)b * (P + 5), P);
     }
 #endif
