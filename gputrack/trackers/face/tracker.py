@@ -13,9 +13,9 @@
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
   the K points and the frame's patches at them, which stay on the device for the next frame) and
-  ``bundle`` (the K points come down; the incremental bundle
-  adjustment on the key frames, eq. 6-10, ``iterations`` LM iterations through
-  :func:`gputrack.least_squares` on the device; the identity's running mean, eq. 10).
+  ``bundle`` (the K points come down; the incremental bundle adjustment on the key frames, eq. 6-10,
+  ``iterations`` LM iterations through :func:`gputrack.least_squares` on the device; the identity's
+  running mean, eq. 10).
 - **Loss** (beyond the paper): a frame whose best hypothesis has a mean NCC below
   ``config.lost_score`` (an occluded or vanished face) is returned with confidence 0 and neither
   re-localises nor adjusts; after ``config.redetect_after`` such frames in a row the face is searched
@@ -314,7 +314,7 @@ class FaceTracker:
             return
         c = self.config
         spare = b.get("spare")
-        out = None if spare is None else (b["features"], spare)
+        out = None if spare is None else (b.get("features"), spare)  # last frame's arrays
         m, patches = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32), b["previous"],
                                      b["templates"], rho=c.rho, eps=c.eps, iterations=c.relocate_iterations,
                                      contrast=c.relocate_contrast, out=out)  # fmt: skip
