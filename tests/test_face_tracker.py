@@ -14,7 +14,8 @@ from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
 from gputrack.models.pose import project, rodrigues
 from gputrack.trackers.face import FaceConfig, FaceTracker
 from gputrack.trackers.face.metrics import pose_errors, shape_error, table1
-from gputrack.trackers.face.pf import FaceParticleFilter, project_hypotheses
+from gputrack.trackers.face.pf import DETECTION_SPREAD, FaceParticleFilter, project_hypotheses
+from gputrack.trackers.face.tracker import detect_faces
 
 REF = gputrack.device("numpy")
 
@@ -91,6 +92,39 @@ def test_particle_filter_weights_and_estimate():
     odd[1, 5], odd[2, 5] = 100.0, 5000.0  # nearer / farther than depth_range
     assert np.all(pf.log_weights(np.full(3, 10.0), odd) == -np.inf)
     assert np.isfinite(pf.log_weights(np.full(1, 10.0), state[None])).all()
+
+
+def test_a_detection_is_mixed_into_the_next_proposal_only():
+    cfg = FaceConfig(particles=2000, seed=1)
+    a_std = np.array([0.5, 0.2])
+    pf = FaceParticleFilter(Camera(700, 700, 320, 240), np.zeros(2), a_std, cfg, np.random.default_rng(cfg.seed))
+    state = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 600.0, 0.0, 0.0])
+    pf.reset(state, K=10)
+    det = np.array([0.1, -0.2, 0.05, 20.0, -10.0, 650.0, 0.3, 0.1])
+    pf.mix(det, 0.25)
+    got = pf.sample()
+    m = 500  # the last quarter: around the detection, with DETECTION_SPREAD (translation as a fraction of its depth)
+    spread = np.concatenate([DETECTION_SPREAD[:3], np.array(DETECTION_SPREAD[3:]) * det[5], cfg.kappa * a_std])
+    assert np.all(np.abs(got[-m:].mean(axis=0) - det) <= 0.2 * spread)  # ~4.5 standard errors
+    np.testing.assert_allclose(got[-m:].std(axis=0), spread, rtol=0.15)
+    noise = pf.noise()  # the rest from the dynamics (eq. 12), at rest here
+    np.testing.assert_allclose(got[:-m].std(axis=0), noise, rtol=0.15)
+    assert np.abs(got[:-m] - state).max(axis=0)[5] < 6 * noise[5]
+    again = pf.sample()  # the next proposal: the dynamics only
+    assert np.abs(again - state).max(axis=0)[5] < 6 * noise[5]
+    with pytest.raises(ValueError, match=r"state: expected 8 finite values, got \(7,\)"):
+        pf.mix(det[:7], 0.25)
+
+
+def test_detect_faces_of_given_sizes(data):
+    gray = _frames(1)[0].gray
+    full = detect_faces(gray)
+    assert len(full) == 1
+    w = full[0][2]
+    sized = detect_faces(gray, sizes=(w / 2, 2 * w))  # searched at a lower resolution
+    assert len(sized) == 1
+    np.testing.assert_allclose(sized[0], full[0], atol=0.1 * w)
+    assert detect_faces(gray, sizes=(3 * w, 6 * w)) == []  # no face that large
 
 
 # -- every device against the reference --------------------------------------------------------------------
@@ -196,6 +230,29 @@ def test_a_lost_face_is_reported_and_found_again(device, data):
     assert err[0, :2].max() < 10.0  # x, y within 10 mm after the re-detection
 
 
+def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
+    """The filter put on a pose turned 35 deg and moved 15 mm from the face (its NCC still above
+    ``lost_score``): with the detection's hypotheses in every proposal it is back on the face
+    within a few frames; without them it is still off (the control)."""
+    if device.spec != "taichi:cpu":
+        pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
+    _, model, _, seq = data
+    frames = _frames(15)
+    errors = {}
+    for every in (1, 0):
+        trk = FaceTracker(device, model, seq.camera, FaceConfig(particles=256, detect_every=every, redetect_after=1000))
+        trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+        wrong = trk.pf.estimate.copy()
+        wrong[1] += np.radians(35.0)
+        wrong[3] += 15.0
+        trk.pf.reset(wrong, model.K)
+        ests = [trk.track(f.gray) for f in frames[7:15]]
+        assert not any(e.lost for e in ests)
+        errors[every] = [np.abs(e.landmarks - f.landmarks2d).mean() for e, f in zip(ests, frames[7:15])]
+    assert max(errors[1][2:]) < 3.5, errors[1]  # px, from the third frame on
+    assert np.mean(errors[0][2:]) > 4.5, errors[0]
+
+
 def test_start_from_a_haar_face_box(device, data):
     if device.spec != "taichi:cpu":
         pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
@@ -244,6 +301,10 @@ def test_bad_input(data):
         dataclasses.replace(FaceConfig(), pose_range=(0.1,))
     with pytest.raises(ValueError, match="FaceConfig.relocate_contrast: expected a finite number >= 0, got -1"):
         FaceConfig(relocate_contrast=-1.0)
+    with pytest.raises(ValueError, match="FaceConfig.detect_every: expected an int >= 0, got -1"):
+        FaceConfig(detect_every=-1)
+    with pytest.raises(ValueError, match=r"FaceConfig.detect_share: expected a fraction in \[0, 1\], got 1.5"):
+        FaceConfig(detect_share=1.5)
     # a flat (occluded) frame: reported lost, the pose stays finite
     est = trk.track(np.full((480, 640), 128, np.uint8))
     assert est.lost and est.confidence == 0.0 and np.isfinite(est.translation).all()

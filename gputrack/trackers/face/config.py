@@ -55,7 +55,13 @@ class FaceConfig:
     Loss (beyond the paper): a frame whose best hypothesis has a mean NCC below ``lost_score`` is
     reported with confidence 0 and skips the re-localisation and the bundle adjustment; after
     ``redetect_after`` such frames in a row the face is searched again (Haar cascade) and the
-    filter restarts at the detection, keeping the identity. ``seed``: the filter's random numbers.
+    filter restarts at the detection, keeping the identity. Detection proposals (beyond the paper; 0
+    = off): every ``detect_every`` tracked frames the face is searched near its estimate (Haar
+    cascade, boxes of half to twice its size within half a box of it), and the fraction
+    ``detect_share`` of that frame's hypotheses is drawn around the frontal pose the box gives
+    (:meth:`~gputrack.trackers.face.pf.FaceParticleFilter.mix`): a filter that has locked on a wrong
+    pose with a fair NCC (turned too far, a mirrored turn) gets a way back, and eq. 13 decides.
+    ``seed``: the filter's random numbers.
     """
 
     particles: int = 1000
@@ -83,13 +89,15 @@ class FaceConfig:
     learn_identity: bool = True
     lost_score: float = 0.3
     redetect_after: int = 5
+    detect_every: int = 10
+    detect_share: float = 0.2
     seed: int = 0
 
     def __post_init__(self):
         o = "FaceConfig"
         for name in ("particles", "template", "keyframes"):
             _count(o, name, getattr(self, name), 2 if name == "template" else 1)
-        for name in ("relocate_iterations", "init_iterations", "iterations", "redetect_after"):
+        for name in ("relocate_iterations", "init_iterations", "iterations", "redetect_after", "detect_every"):
             _count(o, name, getattr(self, name), 0)
         if not np.isfinite(self.max_turn) or not 0 < self.max_turn <= 180:
             raise ValueError(f"{o}.max_turn: expected degrees in (0, 180], got {self.max_turn!r}")
@@ -106,5 +114,8 @@ class FaceConfig:
         pr = np.asarray(self.pose_range, dtype=np.float64)
         if pr.shape != (2,) or not np.isfinite(pr).all() or (pr <= 0).any():
             raise ValueError(f"{o}.pose_range: expected (radians, mm) > 0, got {self.pose_range!r}")
+        if isinstance(self.detect_share, bool) or not isinstance(self.detect_share, (int, float, np.integer, np.floating)) \
+                or not 0.0 <= self.detect_share <= 1.0:
+            raise ValueError(f"{o}.detect_share: expected a fraction in [0, 1], got {self.detect_share!r}")
         if not np.isfinite(self.lost_score) or not -1.0 <= self.lost_score <= 1.0:
             raise ValueError(f"{o}.lost_score: expected a number in [-1, 1], got {self.lost_score!r}")

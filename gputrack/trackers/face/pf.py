@@ -37,6 +37,12 @@ from .config import FaceConfig
 
 __all__ = ["FaceParticleFilter", "project_hypotheses", "shape_model"]
 
+#: Standard deviations of the hypotheses drawn around a detected face (:meth:`FaceParticleFilter.mix`):
+#: rotation (rad, about x, y, z: the frontal cascade fires up to ~30 deg of pitch and yaw, less of
+#: roll) and translation as fractions of the depth (x, y, z: the box's centre and size, and the
+#: mean shape's scale against the person's)
+DETECTION_SPREAD = (0.2, 0.2, 0.1, 0.01, 0.01, 0.05)
+
 
 def shape_model(mean, basis, dtype=np.float32) -> np.ndarray:
     """The (K, 3, 1 + D) shape model of :func:`gputrack.ops.face_points.project_faces`: the mean
@@ -76,6 +82,7 @@ class FaceParticleFilter:
         self.scores = None  # (N,) N(u_i) of eq. 13
         self.estimate = None  # (6 + D,) the last state estimate
         self.velocity = np.zeros(6 + self.D)
+        self._mix = None  # (state, share) of the next proposal's detection hypotheses (:meth:`mix`)
 
     def reset(self, state, K: int) -> None:
         """Start every hypothesis at ``state`` (6 + D,), at rest; ``K`` feature points are scored."""
@@ -98,14 +105,35 @@ class FaceParticleFilter:
         pose = base + c.speed_gain * np.abs(self.velocity[:6])
         return np.concatenate([pose, np.where(self.a_free, c.kappa * self.a_std, 0.0)])
 
+    def mix(self, state, share: float) -> None:
+        """Draw the fraction ``share`` of the next proposal's hypotheses around ``state`` (6 + D,)
+        (a detected face) instead of from the dynamics, with the spread DETECTION_SPREAD (a mixture
+        proposal, as the boosted particle filter of Okuma et al., ECCV 2004): eq. 13 then weighs
+        them with the others, so that a filter locked on a wrong pose can move to the face again."""
+        state = np.asarray(state, np.float64)
+        if state.shape != (6 + self.D,) or not np.isfinite(state).all():
+            raise ValueError(f"state: expected {6 + self.D} finite values, got {state.shape}")
+        self._mix = (state, float(share))
+
     def sample(self) -> np.ndarray:
-        """(N, 6 + D) new hypotheses (eq. 12) from the last ones, resampled by weight."""
+        """(N, 6 + D) new hypotheses (eq. 12) from the last ones, resampled by weight (and some around
+        a detection, :meth:`mix`)."""
         n = self.config.particles
         u = (self.rng.random() + np.arange(n)) / n  # systematic resampling
         idx = np.minimum(np.searchsorted(np.cumsum(self.weights), u), n - 1)
         drift = self.velocity.copy()
         drift[6:] = 0.0  # eq. 12: no velocity term for the deformation
-        return self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
+        out = self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
+        if self._mix is not None:
+            state, share = self._mix
+            self._mix = None
+            m = round(share * n)
+            if m:
+                z = state[5]
+                spread = np.concatenate([DETECTION_SPREAD[:3], np.asarray(DETECTION_SPREAD[3:]) * z,
+                                         np.where(self.a_free, self.config.kappa * self.a_std, 0.0)])  # fmt: skip
+                out[n - m:] = state + self.rng.standard_normal((m, 6 + self.D)) * spread
+        return out
 
     def log_weights(self, scores, states, facing=None) -> np.ndarray:
         """Eq. 13 in logs: -(K - N)^2 / (2 sigma^2) - 1/2 sum_b ((a_b - abar_b) / sigma_a_b)^2; -inf for a
