@@ -57,8 +57,10 @@ class FaceConfig:
     ``redetect_after`` such frames in a row the face is searched again (Haar cascade) and the
     filter restarts at the detection, keeping the identity. Detection proposals (beyond the paper; 0
     = off): every ``detect_every`` tracked frames the face is searched near its estimate (Haar
-    cascade, boxes of half to twice its size within half a box of it), and the fraction
-    ``detect_share`` of that frame's hypotheses is drawn around the frontal pose the box gives
+    cascade, boxes of 1/1.4 to 1.4 times its size within half a box of it); where the box
+    contradicts the estimate (the estimate turned more than 25 deg from the camera, or its points
+    off the box's by more than 15 % of their width), the fraction ``detect_share`` of that frame's
+    hypotheses is drawn around the frontal pose the box gives
     (:meth:`~gputrack.trackers.face.pf.FaceParticleFilter.mix`): a filter that has locked on a wrong
     pose with a fair NCC (turned too far, a mirrored turn) gets a way back, and eq. 13 decides.
     ``seed``: the filter's random numbers.

@@ -83,6 +83,7 @@ class FaceParticleFilter:
         self.estimate = None  # (6 + D,) the last state estimate
         self.velocity = np.zeros(6 + self.D)
         self._mix = None  # (state, share) of the next proposal's detection hypotheses (:meth:`mix`)
+        self._mixed = 0  # how many of the proposed hypotheses (the last ones) were drawn around a detection
 
     def reset(self, state, K: int) -> None:
         """Start every hypothesis at ``state`` (6 + D,), at rest; ``K`` feature points are scored."""
@@ -109,7 +110,9 @@ class FaceParticleFilter:
         """Draw the fraction ``share`` of the next proposal's hypotheses around ``state`` (6 + D,)
         (a detected face) instead of from the dynamics, with the spread DETECTION_SPREAD (a mixture
         proposal, as the boosted particle filter of Okuma et al., ECCV 2004): eq. 13 then weighs
-        them with the others, so that a filter locked on a wrong pose can move to the face again."""
+        them with the others, so that a filter locked on a wrong pose can move to the face again.
+        An estimate that moves to one of them starts at rest (the jump is not motion for eq. 12's
+        velocity)."""
         state = np.asarray(state, np.float64)
         if state.shape != (6 + self.D,) or not np.isfinite(state).all():
             raise ValueError(f"state: expected {6 + self.D} finite values, got {state.shape}")
@@ -124,10 +127,11 @@ class FaceParticleFilter:
         drift = self.velocity.copy()
         drift[6:] = 0.0  # eq. 12: no velocity term for the deformation
         out = self.states[idx] + drift + self.rng.standard_normal((n, 6 + self.D)) * self.noise()
+        self._mixed = 0
         if self._mix is not None:
             state, share = self._mix
             self._mix = None
-            m = round(share * n)
+            m = self._mixed = round(share * n)
             if m:
                 z = state[5]
                 spread = np.concatenate([DETECTION_SPREAD[:3], np.asarray(DETECTION_SPREAD[3:]) * z,
@@ -178,7 +182,8 @@ class FaceParticleFilter:
         best = int(np.argmax(lw))
         near = np.all(np.abs(states - states[best]) <= self.config.near * np.maximum(self.noise(), 1e-12), axis=1)
         est = np.average(states[near], axis=0, weights=w[near])
-        self.velocity = est - self.estimate
+        # a move to a detection's hypothesis (:meth:`mix`) is a new start, not motion
+        self.velocity = np.zeros_like(est) if best >= len(states) - self._mixed else est - self.estimate
         self.states, self.weights, self.scores, self.estimate = states, w, scores, est
         self.best_score = float(scores[best])
         return est

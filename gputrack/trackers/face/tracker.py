@@ -23,9 +23,10 @@
   about its last size (the identity is kept). A face that
   leaves the image scores 0 and is lost the same way.
 - **Detection proposals** (beyond the paper): every ``config.detect_every`` frames the Haar cascade
-  looks for the face near its estimate, and a share of that frame's hypotheses is drawn around
-  the box's frontal pose (a mixture proposal, as Okuma et al.'s boosted particle filter): a filter
-  locked on a wrong pose whose NCC stays fair (the loss test cannot see it) can come back.
+  looks for the face near its estimate; where its box contradicts the estimate (a turned estimate,
+  or points off the box), a share of that frame's hypotheses is drawn around the box's frontal pose
+  (a mixture proposal, as Okuma et al.'s boosted particle filter): a filter locked on a wrong pose
+  whose NCC stays fair (the loss test cannot see it) can come back.
 
 The image is uploaded once per frame as float32; the templates and the previous frame's patches stay on
 the device.
@@ -40,7 +41,7 @@ import numpy as np
 
 from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
-from ...models.pose import project, rodrigues
+from ...models.pose import facing, project, rodrigues
 from ...ops.face_points import project_faces
 from ...ops.face_relocate import relocate_points, sample_patches
 from ...ops.ncc import patch_ncc
@@ -74,32 +75,28 @@ class FaceEstimate:
 
 
 _CASCADE = None
+#: detection proposals (``FaceTracker._propose_detected``): an estimate turned more than this (deg)
+#: from the camera, or whose points are off the detected box's by more than this fraction of their
+#: width (place or size), gets hypotheses around the box
+DETECT_TURN, DETECT_OFF = 25.0, 0.15
 
 
-DETECT_MIN = 40  # px: the smallest face box the cascade is run for (its own window is 24 px)
-
-
-def detect_faces(gray, sizes=None) -> list[tuple[int, int, int, int]]:
-    """Face boxes (x, y, w, h) px found by OpenCV's bundled frontal Haar cascade. ``sizes`` (lo, hi)
-    px: only boxes of that width, searched in the image scaled down so that lo becomes DETECT_MIN
-    (a 640 x 480 frame with a 220 px face: ~52 ms for every size, ~2 ms for 110-440 px)."""
+def detect_faces(gray, sizes=None, scale_factor: float = 1.1) -> list[tuple[int, int, int, int]]:
+    """Face boxes (x, y, w, h) px found by OpenCV's bundled frontal Haar cascade, at least 40 px
+    wide; ``sizes`` (lo, hi) px: only boxes of that width (the cascade then scans fewer scales: on a
+    640 x 480 frame with a 150-215 px face, ~25-50 ms for every size, 5-14 ms for 1/1.4 to 1.4 times
+    the face's width; 2-5 ms with ``scale_factor`` 1.2)."""
     import cv2
 
     global _CASCADE
     if _CASCADE is None:
         _CASCADE = cv2.CascadeClassifier(cv2.data.haarcascades + "haarcascade_frontalface_default.xml")
-    img = np.asarray(gray, np.uint8)
-    if sizes is None:
-        boxes = _CASCADE.detectMultiScale(img, scaleFactor=1.1, minNeighbors=5, minSize=(DETECT_MIN, DETECT_MIN))
-        return [tuple(int(v) for v in b) for b in boxes]
-    lo, hi = sizes
-    f = max(1.0, lo / DETECT_MIN)  # the scale-down
-    if f > 1.0:
-        img = cv2.resize(img, (max(1, round(img.shape[1] / f)), max(1, round(img.shape[0] / f))),
-                         interpolation=cv2.INTER_AREA)  # fmt: skip
-    lo_s, hi_s = max(1, int(lo / f)), max(1, int(np.ceil(hi / f)))
-    boxes = _CASCADE.detectMultiScale(img, scaleFactor=1.1, minNeighbors=5, minSize=(lo_s, lo_s), maxSize=(hi_s, hi_s))
-    return [tuple(round(v * f) for v in b) for b in boxes]
+    lo, hi = (40, 0) if sizes is None else (max(40, int(sizes[0])), int(np.ceil(sizes[1])))
+    if sizes is not None and hi < lo:
+        return []
+    boxes = _CASCADE.detectMultiScale(np.asarray(gray, np.uint8), scaleFactor=scale_factor, minNeighbors=5,
+                                      minSize=(lo, lo), maxSize=(hi, hi))  # fmt: skip
+    return [tuple(int(v) for v in b) for b in boxes]
 
 
 def detect_face(gray) -> tuple[int, int, int, int] | None:
@@ -371,34 +368,57 @@ class FaceTracker:
         return self._estimate_of(est[:3], est[3:6], est[6:], h["landmarks"], h["features"],
                                  0.0 if h["lost"] else h["confidence"], h["lost"])  # fmt: skip
 
-    def _detected_pose(self, img, within=np.inf):
-        """(rvec, tvec) of a frontal face in the Haar box nearest to where the face was last seen
-        whose width is within a factor 2 of the face's last size (a box elsewhere is more likely
-        background) and whose centre is within ``within`` box widths of it, or None."""
+    def _detected_box(self, img, near=False):
+        """(box, last): the Haar box (x, y, w, h) nearest to where the face was last seen, or None,
+        and the last estimate's points (K, 2). Boxes within a factor 2 of the face's last width
+        anywhere (a box elsewhere is more likely background); with ``near``, within a factor 1.4 and
+        half a box of the face only, searched in that part of the image with coarser scale steps
+        (the detection proposals: a few ms, ``detect_faces``)."""
         est = self.pf.estimate
         last = self._predicted(est[:3], est[3:6], est[6:])
         centre, width = last.mean(axis=0), max(np.ptp(last[:, 0]) / 0.49, 1.0)  # the box a face of that size gets
-        boxes = detect_faces(np.clip(img, 0, 255), sizes=(max(DETECT_MIN, width / 2), 2 * width))
+        x0 = y0 = 0
+        if near:
+            reach = 1.3 * width  # half a box's offset and half the largest box (0.51 x 1.4 widths), with room
+            x0, y0 = (max(0, int(c - reach)) for c in centre)
+            x1, y1 = (max(0, int(c + reach) + 1) for c in centre)
+            boxes = detect_faces(np.clip(img[y0:y1, x0:x1], 0, 255), sizes=(width / 1.4, width * 1.4), scale_factor=1.2)
+        else:
+            boxes = detect_faces(np.clip(img, 0, 255), sizes=(width / 2, width * 2))
+        boxes = [(x + x0, y + y0, w, h) for x, y, w, h in boxes]
         dist = [np.hypot(b[0] + 0.49 * b[2] - centre[0], b[1] + 0.53 * b[3] - centre[1]) for b in boxes]
-        if not boxes or min(dist) > within * width:
-            return None
-        return self._pose_from_points(self._points_from_box(boxes[int(np.argmin(dist))]))
+        if not boxes or (near and min(dist) > 0.5 * width):
+            return None, last
+        return boxes[int(np.argmin(dist))], last
 
     def _redetect(self, img) -> None:
-        """Restart the filter at the face found by :meth:`_detected_pose`, if any."""
-        found = self._detected_pose(img)
-        if found is None:
+        """Restart the filter at the face found by :meth:`_detected_box`, if any."""
+        box, _ = self._detected_box(img)
+        if box is None:
             return
-        self.pf.reset(np.concatenate([*found, self.model.expression_mean]), self.model.K)
+        r, t = self._pose_from_points(self._points_from_box(box))
+        self.pf.reset(np.concatenate([r, t, self.model.expression_mean]), self.model.K)
         self.lost_frames = 0
         log.info("FaceTracker: face re-detected at frame %d", self.frame)
 
     def _propose_detected(self, img) -> None:
-        """Mix hypotheses around the face found by :meth:`_detected_pose` into this frame's
-        proposal (``config.detect_every``)."""
-        found = self._detected_pose(img, within=0.5)
-        if found is not None:
-            self.pf.mix(np.concatenate([*found, self.pf.estimate[6:]]), self.config.detect_share)
+        """Mix hypotheses around the face found near the estimate (:meth:`_detected_box`) into this
+        frame's proposal (``config.detect_every``) where the box contradicts the estimate: the
+        estimate turned more than ``DETECT_TURN`` from the camera (the cascade finds faces that look
+        at it), or its points off the box's by more than ``DETECT_OFF`` of its width in place or
+        size. Where they agree the proposal is left alone (a turn's mirror image is one of the poses
+        a frontal guess can lead to)."""
+        box, last = self._detected_box(img, near=True)
+        if box is None:
+            return
+        est = self.pf.estimate
+        turned = facing(rodrigues(est[:3]), est[3:6]) < np.cos(np.radians(DETECT_TURN))
+        pts = self._points_from_box(box)
+        w = np.ptp(pts[:, 0])
+        off = max(np.hypot(*(pts.mean(axis=0) - last.mean(axis=0))), abs(np.ptp(last[:, 0]) - w)) / w
+        if turned or off > DETECT_OFF:
+            r, t = self._pose_from_points(pts)
+            self.pf.mix(np.concatenate([r, t, est[6:]]), self.config.detect_share)
 
     def fix_identity(self, identity) -> None:
         """Use ``identity`` (S',) from now on (with ``config.learn_identity=False`` it stays: e.g. the
