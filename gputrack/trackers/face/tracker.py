@@ -9,6 +9,7 @@
   (``init_iterations`` LM iterations, eq. 6-9) gives the poses, deformations and the identity
   s(1). The K templates (16 x 16) are the first frame's patches at its points.
 - **Per frame** (:meth:`FaceTracker.track`), as :class:`gputrack.Scheduler` stages:
+  ``detect`` (the detection proposals below, host, every ``config.detect_every`` frames),
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
@@ -154,6 +155,7 @@ class FaceTracker:
         self.frame = 0
         self._host = {}  # this frame's host-side values between stages
         self.scheduler = Scheduler(device, [
+            Stage("detect", self._detect),
             Stage("sample", self._sample, writes=("states", "shape", "points", "facing")),
             Stage("score", self._score, reads=("image", "points", "templates"), writes=("scores",)),
             Stage("estimate", self._estimate, host_reads=("scores", "facing")),
@@ -305,6 +307,12 @@ class FaceTracker:
                             identity=self.identity.copy(), landmarks=landmarks, features=features,
                             confidence=float(confidence), lost=bool(lost))  # fmt: skip
 
+    def _detect(self, b):
+        """Detection proposals (host, every ``config.detect_every`` frames): :meth:`_propose_detected`."""
+        every = self.config.detect_every
+        if every and self.frame % every == 0 and not self.lost_frames:
+            self._propose_detected(self._host["gray"])
+
     def _sample(self, b):
         states = self.pf.propose_states().astype(np.float32)  # eq. 12 on the host, eq. 5 and 11 on the device
         b["states"] = self.device.asarray(states, out=b.get("states"))
@@ -352,9 +360,6 @@ class FaceTracker:
             raise RuntimeError("FaceTracker: call start() with the first frames before track()")
         img = _gray(gray, "gray", self.shape).astype(np.float32)
         self._host = {"gray": img}
-        every = self.config.detect_every
-        if every and self.frame % every == 0 and not self.lost_frames:
-            self._propose_detected(img)
         self.scheduler.run(image=img)
         h = self._host
         self.frame += 1
