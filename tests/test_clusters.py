@@ -254,10 +254,12 @@ def test_bad_input(device):
     inf[3, 1] = np.inf
     with pytest.raises(ValueError, match="points: expected finite coordinates or NaN rows"):
         dbscan(device, inf, 1.0, 2)
-    for bad in (0.0, -1.0, float("nan"), float("inf"), 1e-30, 1e30):
-        with pytest.raises(ValueError, match="eps: expected a positive finite distance"):
+    for bad, want in ((0.0, "a number > 0, got 0.0"), (-1.0, "a number > 0, got -1.0"), (float("nan"), "a finite number"),
+                      (float("inf"), "a finite number"), (1e-30, "a positive finite distance \\(float32 square"),
+                      (1e30, "a positive finite distance \\(float32 square")):  # fmt: skip
+        with pytest.raises(ValueError, match=f"eps: expected {want}"):
             dbscan(device, p, bad, 2)
-        with pytest.raises(ValueError, match="radius: expected a positive finite distance"):
+        with pytest.raises(ValueError, match=f"radius: expected {want}"):
             radius_components(device, p, bad)
     with pytest.raises(TypeError, match="radius: expected a real number, got str"):
         radius_components(device, p, "1")

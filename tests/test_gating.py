@@ -74,8 +74,10 @@ def test_gate_pairs_outputs_and_bad_input(device):
     assert all(a is b for a, b in zip(g, out))
     with pytest.raises(ValueError, match=r"z: expected rows sorted by z\[:, 0\]"):
         gate_pairs(device, x, P, H, R, z[::-1], 9.0, sorted_z=True)
-    with pytest.raises(ValueError, match="threshold: expected a positive finite number"):
+    with pytest.raises(ValueError, match="threshold: expected a number > 0, got 0.0"):
         gate_pairs(device, x, P, H, R, z, 0.0)
+    with pytest.raises(ValueError, match="threshold: expected a finite number, got inf"):
+        gate_pairs(device, x, P, H, R, z, float("inf"))
     with pytest.raises(TypeError, match="threshold: expected a real number"):
         gate_pairs(device, x, P, H, R, z, "9")
     with pytest.raises(ValueError, match="z: expected finite values"):

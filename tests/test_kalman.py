@@ -502,8 +502,12 @@ def test_bad_input(device):
         kf_predict(device, np.zeros((2, MAX_N + 1), np.float32), np.zeros((2, MAX_N + 1, MAX_N + 1), np.float32), 1, 1)
     with pytest.raises(ValueError, match=r"x: expected shape \(T=5, 6\)"):
         ekf_update_stereo(device, x[:, :4], P[:, :4, :4], z, R, f=400, b=0.1)
-    with pytest.raises(ValueError, match="f: expected a positive"):
+    with pytest.raises(ValueError, match="f: expected a number > 0, got 0"):
         ekf_update_stereo(device, x, P, z, R, f=0, b=0.1)
+    with pytest.raises(ValueError, match="cx: expected a finite number, got nan"):
+        ekf_update_stereo(device, x, P, z, R, f=400, b=0.1, cx=float("nan"))
+    with pytest.raises(TypeError, match="b: expected a real number, got str"):
+        ekf_update_stereo(device, x, P, z, R, f=400, b="0.1")
     with pytest.raises(ValueError, match="z: expected finite"):
         mahalanobis(device, x, P, H, R, np.full((2, 3), np.nan, np.float32))
     with pytest.raises(TypeError, match="expected a gputrack.Device"):

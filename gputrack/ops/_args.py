@@ -14,11 +14,34 @@ whether the device can hold the array (:meth:`gputrack.Device.check_alloc`), the
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import numpy as np
 
 from ..device import Device, DeviceArray, as_host_array, foreign_array_error
 
 FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+def real(name: str, value, *, low=None, high=None, positive: bool = False, allow_inf: bool = False) -> float:
+    """A scalar argument as a float, checked: a real number (not a bool), finite unless
+    ``allow_inf``, > 0 with ``positive``, in [low, high] where given. Messages "<name>: expected X,
+    got Y", Y the value as given."""
+    if isinstance(value, bool) or not isinstance(value, (numbers.Real, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
+    v = float(value)
+    if math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise ValueError(f"{name}: expected a finite number, got {value}")
+    if positive and not v > 0:
+        raise ValueError(f"{name}: expected a number > 0, got {value}")
+    if (low is not None and v < low) or (high is not None and v > high):
+        if low is not None and high is not None:
+            want = f"in [{low}, {high}]"
+        else:
+            want = f">= {low}" if low is not None else f"<= {high}"
+        raise ValueError(f"{name}: expected a number {want}, got {value}")
+    return v
 
 
 def _fmt_shape(spec, dims) -> str:

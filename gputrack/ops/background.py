@@ -28,14 +28,13 @@ multiply-add).
 
 from __future__ import annotations
 
-import math
 import sys
 
 import numpy as np
 
 from ..device import DeviceArray, as_host_array
 from . import backend_module
-from ._args import arg, check_device, match_shape, out_array
+from ._args import arg, check_device, match_shape, out_array, real
 
 __all__ = ["MAX_FRAMES", "background_median", "foreground_mask", "update_background"]
 
@@ -43,22 +42,6 @@ __all__ = ["MAX_FRAMES", "background_median", "foreground_mask", "update_backgro
 MAX_FRAMES = 64
 #: pixel dtypes of the images
 PIXELS = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
-
-
-def real(name: str, value, *, low=None, high=None, allow_inf: bool = False) -> float:
-    """``value`` as a float, checked: a real number (finite unless ``allow_inf``) in [low, high]."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
-    v = float(value)
-    if math.isnan(v) or (math.isinf(v) and not allow_inf):
-        raise ValueError(f"{name}: expected a finite number, got {v}")
-    if (low is not None and v < low) or (high is not None and v > high):
-        if low is not None and high is not None:
-            want = f"in [{low}, {high}]"
-        else:
-            want = f">= {low}" if low is not None else f"<= {high}"
-        raise ValueError(f"{name}: expected a number {want}, got {v}")
-    return v
 
 
 def missing_value(missing) -> float | None:

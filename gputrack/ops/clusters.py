@@ -61,13 +61,12 @@ N = 0 (or n_points = 0) returns labels of -1.
 
 from __future__ import annotations
 
-import numbers
 
 import numpy as np
 
 from ..device import DeviceArray, as_host_array
 from . import backend_module
-from ._args import arg, check_device, compact, out_array, shape_of
+from ._args import arg, check_device, compact, out_array, real, shape_of
 
 __all__ = ["compact_labels", "dbscan", "radius_components"]
 
@@ -88,9 +87,7 @@ def _points(device, points):
 
 
 def _radius(value, name):
-    if isinstance(value, bool) or not isinstance(value, (numbers.Real, np.floating, np.integer)):
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
-    r = float(value)
+    r = real(name, value, positive=True)
     r32 = np.float32(r)
     with np.errstate(over="ignore", under="ignore"):
         r2 = np.float32(r32 * r32)

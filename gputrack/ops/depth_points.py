@@ -48,8 +48,8 @@ import numpy as np
 from ..backends.reference.depth_points import streams
 from ..models.camera import Camera, DepthCamera
 from . import backend_module
-from ._args import check_device, match_shape, out_array
-from .background import PIXELS, background_arg, pixels, real
+from ._args import check_device, match_shape, out_array, real
+from .background import PIXELS, background_arg, pixels
 
 __all__ = ["depth_points", "floor_background"]
 
@@ -92,9 +92,7 @@ def depth_points(device, depth, background, camera, *, threshold=100.0, max_rang
     device = check_device(device)
     fx, fy, cx, cy = _intrinsics(camera)
     thr = real("threshold", threshold, low=0.0)
-    rng = real("max_range", max_range, allow_inf=True)
-    if rng <= 0:
-        raise ValueError(f"max_range: expected a number > 0, got {rng}")
+    rng = real("max_range", max_range, positive=True, allow_inf=True)
     if isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)):
         raise TypeError(f"n_points: expected an integer, got {type(n_points).__name__}")
     if int(n_points) < 1:

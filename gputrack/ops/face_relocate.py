@@ -41,7 +41,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import backend_module
-from ._args import arg, check_device, out_arrays
+from ._args import arg, check_device, out_arrays, real
 
 __all__ = ["MIN_STD", "relocate_points", "sample_patches"]
 
@@ -50,15 +50,6 @@ __all__ = ["MIN_STD", "relocate_points", "sample_patches"]
 MIN_STD = 1.0
 #: |det| of the 2 x 2 system at or below which a point does not move
 SINGULAR = 1e-12
-
-
-def _number(name: str, value, *, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
-    v = float(value)
-    if not np.isfinite(v) or v < 0 or (positive and v == 0):
-        raise ValueError(f"{name}: expected a finite number {'>' if positive else '>='} 0, got {value!r}")
-    return v
 
 
 def relocate_points(device, image, predicted, previous, first, *, rho: float = 4.0, eps: float = 4000.0,
@@ -86,8 +77,8 @@ def relocate_points(device, image, predicted, previous, first, *, rho: float = 4
     pred = arg(device, predicted, "predicted", ("K", 2), dims, dtype=dtype)
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
         raise ValueError(f"iterations: expected an int >= 0, got {iterations!r}")
-    consts = np.array([_number("rho", rho), _number("eps", eps), _number("max_step", max_step, positive=True),
-                       _number("contrast", contrast), _number("tol", tol), MIN_STD, SINGULAR])  # fmt: skip
+    consts = np.array([real("rho", rho, low=0.0), real("eps", eps, low=0.0), real("max_step", max_step, positive=True),
+                       real("contrast", contrast, low=0.0), real("tol", tol, low=0.0), MIN_STD, SINGULAR])  # fmt: skip
     K, S = dims["K"], dims["S"]
     points, patches = out_arrays(device, out, (("points", (K, 2), np.float32), ("patches", (K, S, S), np.float32)))
     backend_module(device, "face_relocate").relocate_points(device, img, pred, prev, fst, consts, int(iterations),

@@ -39,7 +39,6 @@ T = 0 or D = 0 returns counts of 0 (and the traces).
 
 from __future__ import annotations
 
-import numbers
 from typing import NamedTuple
 
 import numpy as np
@@ -47,7 +46,7 @@ import numpy as np
 from ..device import DeviceArray, as_host_array
 from . import backend_module
 from ..uploads import constant
-from ._args import FLOAT, arg, check_device, out_arrays
+from ._args import FLOAT, arg, check_device, out_arrays, real
 
 __all__ = ["GatedPairs", "gate_pairs"]
 
@@ -91,11 +90,7 @@ def gate_pairs(device, x, P, H, R, z, threshold, *, active=None, max_pairs=16, s
         raise ValueError(f"z: expected an observation size m between 1 and {MAX_M}, got m={dims['m']}")
     H = _shared(device, H, "H", ("m", "n"), dims, dt)
     R = _shared(device, R, "R", ("m", "m"), dims, dt)
-    if isinstance(threshold, bool) or not isinstance(threshold, (numbers.Real, np.floating, np.integer)):
-        raise TypeError(f"threshold: expected a real number, got {type(threshold).__name__}")
-    thr = float(threshold)
-    if not (np.isfinite(thr) and thr > 0):
-        raise ValueError(f"threshold: expected a positive finite number, got {threshold!r}")
+    thr = real("threshold", threshold, positive=True)
     if active is not None:
         if not isinstance(active, DeviceArray) and as_host_array(active, "active").dtype == np.bool_:
             active = as_host_array(active, "active").astype(np.uint8)

@@ -65,7 +65,7 @@ import numpy as np
 from ..abi import KalmanStatus
 from ..device import DeviceArray
 from . import backend_module
-from ._args import FLOAT, arg, check_device, check_shapes, compact, out_arrays, shape_of
+from ._args import FLOAT, arg, check_device, check_shapes, compact, out_arrays, real, shape_of
 
 __all__ = [
     "KalmanState",
@@ -309,16 +309,6 @@ def _empty_state(device, dims, dt, with_status=True, out=None):
     return KalmanState(x, P, device.empty((T,), np.uint8)) if with_status else (x, P)
 
 
-def _scalar(value, name, positive=False):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}") from None
-    if not np.isfinite(v) or (positive and v <= 0):
-        raise ValueError(f"{name}: expected a {'positive ' if positive else ''}finite number, got {value!r}")
-    return v
-
-
 # -- steady-state fast path -----------------------------------------------------------------------
 # A tracker calls the same op every frame with the same device-resident arrays. For arrays
 # already on the device the validation above depends only on their device, shape and dtype (and
@@ -451,8 +441,8 @@ def ekf_update_stereo(
         key = None
     hit = _fast(key)
     if hit is not None:
-        f, b = _scalar(f, "f", positive=True), _scalar(b, "b", positive=True)
-        cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
+        f, b = real("f", f, positive=True), real("b", b, positive=True)
+        cx, cy = real("cx", cx), real("cy", cy)
         F, Q = (None, None) if predict is None else (_raw(predict[0]), _raw(predict[1]))
         res = hit[0].ekf_update_stereo(
             device, x, P, z, _raw(R), f, b, cx, cy, mask, gain_scale, F, Q, out=out, pats=hit[1]
@@ -466,9 +456,9 @@ def ekf_update_stereo(
     dims["m"] = 3
     z = _observations(device, z, dims, dt)
     R = _matrix(device, R, "R", "m", "m", dims, dt)
-    f = _scalar(f, "f", positive=True)
-    b = _scalar(b, "b", positive=True)
-    cx, cy = _scalar(cx, "cx"), _scalar(cy, "cy")
+    f = real("f", f, positive=True)
+    b = real("b", b, positive=True)
+    cx, cy = real("cx", cx), real("cy", cy)
     pats = _patterns(predict, None, R, dims)
     mask, gain_scale, F, Q = _options(device, mask, gain_scale, predict, dims, dt)
     out = _outputs(device, out, dims, dt, True)

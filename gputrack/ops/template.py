@@ -53,7 +53,6 @@ frame once, and reuse the result buffers::
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
@@ -61,7 +60,7 @@ from ..abi import INTENSITY_MAX
 from ..device import Device, DeviceArray, per_device_cache
 from ..models.camera import Camera
 from . import backend_module
-from ._args import arg, check_device, out_array, shape_of
+from ._args import arg, check_device, out_array, real, shape_of
 
 __all__ = [
     "RgbdCost",
@@ -209,20 +208,6 @@ def _check_template(t, name):
     return t
 
 
-def _check_scalar(value, name, *, low=None, high=None, positive=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"{name}: expected a finite number, got {value}")
-    if positive and v <= 0:
-        raise ValueError(f"{name}: expected a number > 0, got {value}")
-    if low is not None and v < low or high is not None and v > high:
-        want = f"in [{low}, {high}]" if high is not None else f">= {low}"
-        raise ValueError(f"{name}: expected a number {want}, got {value}")
-    return v
-
-
 class RgbdScene:
     """What B hypotheses are scored against besides the frame's images (paper 000 eq. 17-21).
 
@@ -244,10 +229,10 @@ class RgbdScene:
             "rgb": _check_template(rgb, "rgb"),
             "depth": _check_template(depth, "depth"),
             "camera": camera,
-            "lam": _check_scalar(lam, "lam", low=0.0, high=1.0),
-            "_c_rgb": None if c_rgb is None else _check_scalar(c_rgb, "c_rgb", positive=True),
-            "c_depth": _check_scalar(c_depth, "c_depth", positive=True),
-            "depth_tol": _check_scalar(depth_tol, "depth_tol", low=0.0),
+            "lam": real("lam", lam, low=0.0, high=1.0),
+            "_c_rgb": None if c_rgb is None else real("c_rgb", c_rgb, positive=True),
+            "c_depth": real("c_depth", c_depth, positive=True),
+            "depth_tol": real("depth_tol", depth_tol, low=0.0),
             "_camera": camera.as_array(),
         }
         for name, value in checked.items():
