@@ -49,6 +49,10 @@ per problem with Taichi's block barriers, which it compiles for CUDA only): the 
 an H100 (the face bundle: its step 27.7 -> 9.8 ms, perf/README.md). The ops (``lm_step``,
 ``lm_solve``) still factor on one thread per problem there.
 
+On taichi:cpu the first and the last iteration are run-time flags of the one ``_update`` kernel a
+solve launches, not template values: a warm process loaded three variants of it for a body frame's
+first LM solve, ~1.0 s against ~0.5 s for one (``perf/first_frame.py``, 2026-12-06).
+
 Finiteness is tested on the bit pattern (Taichi compiles with fast-math, where x != x may be
 folded away).
 """
@@ -741,9 +745,13 @@ def _phase_accept(
     R: ti.template(),
     b,
     dt: ti.template(),
-    first: ti.template(),
-    final: ti.template(),
+    first,
+    final,
 ):
+    """Acceptance of problem b's trial (eq. 20-22's cost and gain ratio, the damping's update, the
+    ftol and xtol tests). ``first`` (the start point) and ``final`` (the last call) are run-time
+    flags: one compiled kernel serves every iteration (three variants had cost a warm process ~0.8 s
+    of loading, ``_update``)."""
     P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     SB = _sb(P)
     base = b * SB
@@ -754,7 +762,7 @@ def _phase_accept(
     ftol, xtol, cmax = S[G + LAY.G_FTOL], S[G + LAY.G_XTOL], S[G + LAY.G_CMAX]
     scale = ti.cast(S[G + G_SCALE], ti.i32)
     wd = _wd(b, P, M)
-    weighted = ti.i32(scale != SCALE_IDENTITY) * ti.i32(not first)
+    weighted = ti.i32(scale != SCALE_IDENTITY) * ti.i32(first == 0)
     SR = R.shape[0] // B
     I[ib + LAY.I_ACCEPTED] = 0
     if I[ib + LAY.I_STATUS] == RUNNING:
@@ -765,12 +773,12 @@ def _phase_accept(
             ok &= _finite(v, dt)
             Ft += v * v  # eq. 20-21: cost = r^T r
         ok &= _finite(Ft, dt)
-        if ti.static(not final):
+        if final == 0:
             for n in range(P):
                 ok &= I[ib + LAY.I_FIN + n]
         S[sc + LAY.SC_FT] = Ft
         acc = 0
-        if ti.static(first):
+        if first:
             if not ok:
                 I[ib + LAY.I_STATUS] = FAILED
                 I[ib + LAY.I_REASON] = R_NONFINITE
@@ -809,14 +817,14 @@ def _phase_accept(
             S[sc + LAY.SC_SNORM] = sn
             F_old = S[sc + LAY.SC_F]
             S[sc + LAY.SC_F] = Ft
-            if ti.static(not first):
+            if first == 0:
                 if F_old - Ft <= ftol * F_old:
                     I[ib + LAY.I_STATUS] = CONVERGED
                     I[ib + LAY.I_REASON] = R_FTOL
                 elif sn <= xtol * (xtol + ti.sqrt(xn)):
                     I[ib + LAY.I_STATUS] = CONVERGED
                     I[ib + LAY.I_REASON] = R_XTOL
-        if ti.static(final):  # noqa: SIM102 - a compile-time branch
+        if final:  # noqa: SIM102
             if I[ib + LAY.I_STATUS] == RUNNING:
                 I[ib + LAY.I_STATUS] = MAX_ITER
                 I[ib + LAY.I_REASON] = R_MAXIT
@@ -1089,9 +1097,9 @@ def _update(
     R: nd,
     Jg: nd,
     Out: nd,
+    first: ti.i32,
+    final: ti.i32,
     dt: ti.template(),
-    first: ti.template(),
-    final: ti.template(),
     use_jac: ti.template(),
     fused: ti.template(),
     SP: ti.template(),
@@ -1108,7 +1116,7 @@ def _update(
     NPR = (P + 1) // 2  # row pairs
     ti.loop_config(serialize=True)
     for b in range(B):  # every phase of problem b, in order
-        if ti.static(not final):  # noqa: SIM102 - a compile-time branch
+        if final == 0:  # noqa: SIM102
             if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
                 if ti.static(fused):
                     _phase_finite(S, I, R, b, dt)
@@ -1128,7 +1136,7 @@ def _update(
                     for n in range(P):
                         _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
         _phase_accept(S, I, W, R, b, dt, first, final)
-        if ti.static(not final):
+        if final == 0:
             if ti.static(use_jac):
                 if I[_ib(b, P) + LAY.I_ACCEPTED]:
                     A = b * _wb(P, M) + LAY.W_A * P * P
@@ -1897,6 +1905,7 @@ class State:
         self.W = None
         self.dt = _ti_dtype(S.dtype)
         self.plan = None  # (ncol, launches) of the parallel archs' step (``_tasks_plan``)
+        self.fused = 0  # ``_update``'s fused template value of the solve's calls (``solver_update``)
 
 
 def upload_into(device, arr, host, asynchronous=False):
@@ -1950,11 +1959,15 @@ def solver_update(state, R, X, *, first, final, jac=None):
     Jg = R if jac is None else jac  # unused without a Jacobian callable
     args = (S, I, W, _buf(X), _buf(R), _buf(Jg), Out)
     if _per_problem():
-        fused = 0  # central / forward differences without a mask: 1 / 2 (``_phase_normal``)
-        if jac is None and not state.lay.has_mask and not final:
-            fused = 1 if R.shape[0] == state.lay.B * (2 * state.lay.P + 1) else 2
+        # central / forward differences without a mask: 1 / 2 (``_phase_normal``); the final call
+        # (residuals at the last points only) takes the solve's other calls' kernel, whose J^T J it skips
+        if not final:
+            state.fused = 0
+            if jac is None and not state.lay.has_mask:
+                state.fused = 1 if R.shape[0] == state.lay.B * (2 * state.lay.P + 1) else 2
         SP = _static_p(state.lay.P) if jac is not None else 0
-        launch(_update, args, (state.dt, bool(first), bool(final), jac is not None, fused, SP), scalarize=jac is None)
+        launch(_update, args, (state.dt, jac is not None, state.fused, SP), scalars=(int(first), int(final)),
+               scalarize=jac is None)  # fmt: skip
     else:
         B, P = state.lay.B, state.lay.P
         NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))
