@@ -114,6 +114,11 @@ def test_a_detection_is_mixed_into_the_next_proposal_only():
     assert np.abs(again - state).max(axis=0)[5] < 6 * noise[5]
     with pytest.raises(ValueError, match=r"state: expected 8 finite values, got \(7,\)"):
         pf.mix(det[:7], 0.25)
+    with pytest.raises(ValueError, match=r"share: expected a fraction in \[0, 1\], got 1.5"):
+        pf.mix(det, 1.5)
+    pf.mix(det, 0.25)
+    pf.reset(state, K=10)  # a restart drops a pending detection
+    assert np.abs(pf.sample() - state).max(axis=0)[5] < 6 * noise[5]
 
 
 def test_a_move_to_a_detection_is_a_new_start_not_motion():

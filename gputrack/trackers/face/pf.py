@@ -98,6 +98,7 @@ class FaceParticleFilter:
         self.weights = np.full(n, 1.0 / n)
         self.estimate = state
         self.velocity = np.zeros(6 + self.D)
+        self._mix, self._mixed = None, 0
 
     def noise(self) -> np.ndarray:
         """(6 + D,) standard deviations of omega (eq. 12): pose noise adapted to speed, kappa sigma_a for a."""
@@ -116,6 +117,8 @@ class FaceParticleFilter:
         state = np.asarray(state, np.float64)
         if state.shape != (6 + self.D,) or not np.isfinite(state).all():
             raise ValueError(f"state: expected {6 + self.D} finite values, got {state.shape}")
+        if isinstance(share, bool) or not isinstance(share, (int, float, np.integer, np.floating)) or not 0 <= share <= 1:
+            raise ValueError(f"share: expected a fraction in [0, 1], got {share!r}")
         self._mix = (state, float(share))
 
     def sample(self) -> np.ndarray:
@@ -133,7 +136,7 @@ class FaceParticleFilter:
             self._mix = None
             m = self._mixed = round(share * n)
             if m:
-                z = state[5]
+                z = abs(state[5])
                 spread = np.concatenate([DETECTION_SPREAD[:3], np.asarray(DETECTION_SPREAD[3:]) * z,
                                          np.where(self.a_free, self.config.kappa * self.a_std, 0.0)])  # fmt: skip
                 out[n - m:] = state + self.rng.standard_normal((m, 6 + self.D)) * spread
