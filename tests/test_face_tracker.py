@@ -273,6 +273,7 @@ def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
         trk.pf.reset(wrong, model.K)
         ests = [trk.track(f.gray) for f in frames[7:15]]
         assert not any(e.lost for e in ests)
+        assert (trk.proposals >= 1 and trk.proposals_taken >= 1) if every else trk.proposals == 0
         errors[every] = [np.abs(e.landmarks - f.landmarks2d).mean() for e, f in zip(ests, frames[7:15])]
     back, control = np.mean(errors[1][2:]), np.mean(errors[0][2:])  # px, from the third frame on (3.2 / 5.8 measured)
     assert back < 4.0 and back < 0.7 * control, (errors[1], errors[0])
@@ -397,6 +398,8 @@ def test_demo_command(device, tmp_path, capsys, data):
     rep = json.loads((tmp_path / "r.json").read_text())
     assert set(rep["table1"]) == {"multilinear", "generic PCA", "true identity (floor)"}
     assert all(np.isfinite(v[0]) for t in rep["table1"].values() for v in t.values())
+    assert "detect" in [s["name"] for s in rep["stages"]] and "; detection proposals " in text  # timed and counted
+    assert set(rep["detection_proposals"]) == set(rep["table1"])
     assert (tmp_path / "errors.png").exists() and (tmp_path / "frame_0008.png").exists()
 
 

@@ -184,7 +184,8 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
     print(trk.scheduler.table("face"), file=out)
     med = float(np.median(rec["ms"][1:])) if len(rec["ms"]) > 1 else float("nan")
     print(f"start (n = {config.keyframes} frames, {config.init_iterations} LM iterations) {rec['start_ms']:.0f} ms; "
-          f"median tracked frame {med:.1f} ms; lost frames {int(rec['lost'].sum())}", file=out)  # fmt: skip
+          f"median tracked frame {med:.1f} ms; lost frames {int(rec['lost'].sum())}; detection proposals "
+          f"{trk.proposals} (taken {trk.proposals_taken})", file=out)  # fmt: skip
     if save:
         _error_plot(save, records, 30.0)
         print(f"pictures written to {save}", file=out)
@@ -193,6 +194,8 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
               "table1": tables, "shape_error": {int(k): float(se[k]) for k in marks},
               "landmark_floor": None if lf is None else {"relative": lf["relative"], "z_mm": lf["z_mm"]},
               "lost": {k: int(r["lost"].sum()) for k, r in records.items()},
+              "detection_proposals": {k: {"made": r["tracker"].proposals, "taken": r["tracker"].proposals_taken}
+                                      for k, r in records.items()},  # fmt: skip
               "stages": trk.scheduler.report(), "median_frame_ms": med, "start_ms": rec["start_ms"]}  # fmt: skip
     return report
 

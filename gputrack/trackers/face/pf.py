@@ -84,6 +84,7 @@ class FaceParticleFilter:
         self.velocity = np.zeros(6 + self.D)
         self._mix = None  # (state, share) of the next proposal's detection hypotheses (:meth:`mix`)
         self._mixed = 0  # how many of the proposed hypotheses (the last ones) were drawn around a detection
+        self.from_detection = False  # the last estimate moved to a detection's hypothesis (:meth:`mix`)
 
     def reset(self, state, K: int) -> None:
         """Start every hypothesis at ``state`` (6 + D,), at rest; ``K`` feature points are scored."""
@@ -186,7 +187,8 @@ class FaceParticleFilter:
         near = np.all(np.abs(states - states[best]) <= self.config.near * np.maximum(self.noise(), 1e-12), axis=1)
         est = np.average(states[near], axis=0, weights=w[near])
         # a move to a detection's hypothesis (:meth:`mix`) is a new start, not motion
-        self.velocity = np.zeros_like(est) if best >= len(states) - self._mixed else est - self.estimate
+        self.from_detection = best >= len(states) - self._mixed
+        self.velocity = np.zeros_like(est) if self.from_detection else est - self.estimate
         self.states, self.weights, self.scores, self.estimate = states, w, scores, est
         self.best_score = float(scores[best])
         return est

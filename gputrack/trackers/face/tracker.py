@@ -153,6 +153,8 @@ class FaceTracker:
         self.shape = None  # (H, W) of the started frames
         self.lost_frames = 0
         self.frame = 0
+        self.proposals = 0  # frames whose hypotheses were partly drawn around a detection (``_propose_detected``)
+        self.proposals_taken = 0  # of them, frames whose estimate moved to one of those hypotheses
         self._host = {}  # this frame's host-side values between stages
         self.scheduler = Scheduler(device, [
             Stage("detect", self._detect),
@@ -325,6 +327,7 @@ class FaceTracker:
 
     def _estimate(self, b):
         est = self.pf.update(b["scores"], b["facing"])
+        self.proposals_taken += int(self.pf.from_detection)
         conf = max(0.0, self.pf.best_score / self.model.K)
         self._host.update(state=est, confidence=conf, lost=conf < self.config.lost_score)
 
@@ -424,6 +427,7 @@ class FaceTracker:
         if turned or off > DETECT_OFF:
             r, t = self._pose_from_points(pts)
             self.pf.mix(np.concatenate([r, t, est[6:]]), self.config.detect_share)
+            self.proposals += 1
 
     def fix_identity(self, identity) -> None:
         """Use ``identity`` (S',) from now on (with ``config.learn_identity=False`` it stays: e.g. the
