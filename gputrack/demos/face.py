@@ -195,7 +195,7 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
               "landmark_floor": None if lf is None else {"relative": lf["relative"], "z_mm": lf["z_mm"]},
               "lost": {k: int(r["lost"].sum()) for k, r in records.items()},
               "detection_proposals": {k: {"made": r["tracker"].proposals, "taken": r["tracker"].proposals_taken}
-                                      for k, r in records.items()},  # fmt: skip
+                                      for k, r in records.items()},
               "stages": trk.scheduler.report(), "median_frame_ms": med, "start_ms": rec["start_ms"]}  # fmt: skip
     return report
 
