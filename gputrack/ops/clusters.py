@@ -61,7 +61,6 @@ N = 0 (or n_points = 0) returns labels of -1.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from ..device import DeviceArray, as_host_array
