@@ -51,7 +51,8 @@ an H100 (the face bundle: its step 27.7 -> 9.8 ms, perf/README.md). The ops (``l
 
 On taichi:cpu the first and the last iteration are run-time flags of the one ``_update`` kernel a
 solve launches, not template values: a warm process loaded three variants of it for a body frame's
-first LM solve, ~1.0 s against ~0.5 s for one (``perf/first_frame.py``, 2026-12-06).
+first LM solve, ~1.0 s against ~0.5 s for one (timed around the kernel's first calls, 2026-12-06;
+perf/README.md).
 
 Finiteness is tested on the bit pattern (Taichi compiles with fast-math, where x != x may be
 folded away).
@@ -750,8 +751,7 @@ def _phase_accept(
 ):
     """Acceptance of problem b's trial (eq. 20-22's cost and gain ratio, the damping's update, the
     ftol and xtol tests). ``first`` (the start point) and ``final`` (the last call) are run-time
-    flags: one compiled kernel serves every iteration (three variants had cost a warm process ~0.8 s
-    of loading, ``_update``)."""
+    flags: one compiled ``_update`` serves every iteration (see the module docstring)."""
     P, M, B = I[LAY.IG_P], R.shape[1], I[LAY.IG_B]
     SB = _sb(P)
     base = b * SB
@@ -824,10 +824,9 @@ def _phase_accept(
                 elif sn <= xtol * (xtol + ti.sqrt(xn)):
                     I[ib + LAY.I_STATUS] = CONVERGED
                     I[ib + LAY.I_REASON] = R_XTOL
-        if final:  # noqa: SIM102
-            if I[ib + LAY.I_STATUS] == RUNNING:
-                I[ib + LAY.I_STATUS] = MAX_ITER
-                I[ib + LAY.I_REASON] = R_MAXIT
+        if final and I[ib + LAY.I_STATUS] == RUNNING:
+            I[ib + LAY.I_STATUS] = MAX_ITER
+            I[ib + LAY.I_REASON] = R_MAXIT
 
 
 @ti.func
@@ -1116,25 +1115,24 @@ def _update(
     NPR = (P + 1) // 2  # row pairs
     ti.loop_config(serialize=True)
     for b in range(B):  # every phase of problem b, in order
-        if final == 0:  # noqa: SIM102
-            if I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
-                if ti.static(fused):
-                    _phase_finite(S, I, R, b, dt)
-                elif ti.static(use_jac):
-                    A = b * _wb(P, M) + LAY.W_A * P * P
-                    L = A + (LAY.W_L - LAY.W_A) * P * P
-                    jt = b * _wb(P, M) + LAY.W_NSQ * P * P
-                    if ti.static(SP > 0):
-                        _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
-                    else:
-                        # the rest of the J^T block holds the row blocks that _gram_tile skips
-                        z = ti.select(P * M - P >= M * ((P + GRAM_SEG - 1) // GRAM_SEG), jt + P, -1)
-                        _gram_tiles(Jg, R, b, M, P, W, L, jt, dt, z)  # eq. 22 at the trial
-                    for n in range(P):
-                        I[_ib(b, P) + LAY.I_FIN + n] = _finite(W[L + n * P + n], dt)
+        if final == 0 and I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
+            if ti.static(fused):
+                _phase_finite(S, I, R, b, dt)
+            elif ti.static(use_jac):
+                A = b * _wb(P, M) + LAY.W_A * P * P
+                L = A + (LAY.W_L - LAY.W_A) * P * P
+                jt = b * _wb(P, M) + LAY.W_NSQ * P * P
+                if ti.static(SP > 0):
+                    _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
                 else:
-                    for n in range(P):
-                        _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
+                    # the rest of the J^T block holds the row blocks that _gram_tile skips
+                    z = ti.select(P * M - P >= M * ((P + GRAM_SEG - 1) // GRAM_SEG), jt + P, -1)
+                    _gram_tiles(Jg, R, b, M, P, W, L, jt, dt, z)  # eq. 22 at the trial
+                for n in range(P):
+                    I[_ib(b, P) + LAY.I_FIN + n] = _finite(W[L + n * P + n], dt)
+            else:
+                for n in range(P):
+                    _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
         _phase_accept(S, I, W, R, b, dt, first, final)
         if final == 0:
             if ti.static(use_jac):

@@ -2,9 +2,10 @@
 
 The kernel runs its tasks in order (Taichi finishes one before the next): evaluate each candidate
 once to cache its parts (re-use mode of template.py, one serial task; the parts a stage does not
-move are then read from the cache); then one parallel loop over groups of samples, each group drawing its samples (eq. 12, the
-generator of gputrack/ops/particles.py), posing every part (eq. 1-11) and scoring them (eq.
-17-19, the kernel body of template.py); then select the best k (one serial task). A parallel
+move are then read from the cache); then one parallel loop over groups of samples, each group
+drawing its samples (eq. 12, the generator of gputrack/ops/particles.py), posing every part (eq.
+1-11) and scoring them (eq. 17-19, the kernel body of template.py); then select the best k (one
+serial task). A parallel
 loop's dispatch costs ~60 us on a CPU, so sampling has no loop of its own. Scratch arrays are
 kept per device; only the k rows, scores and indices are new.
 
