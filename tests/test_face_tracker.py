@@ -257,8 +257,8 @@ def test_a_lost_face_is_reported_and_found_again(device, data):
 
 def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
     """The filter put on a pose turned 35 deg and moved 15 mm from the face (its NCC still above
-    ``lost_score``): with the detection's hypotheses in every proposal it is back on the face
-    within a few frames; without them it is still off (the control)."""
+    ``lost_score``): with detection proposals every frame (made where the box contradicts the
+    estimate) it is back on the face within a few frames; without them it is still off (the control)."""
     if device.spec != "taichi:cpu":
         pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")
     _, model, _, seq = data
@@ -275,7 +275,7 @@ def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
         assert not any(e.lost for e in ests)
         assert (trk.proposals >= 1 and trk.proposals_taken >= 1) if every else trk.proposals == 0
         errors[every] = [np.abs(e.landmarks - f.landmarks2d).mean() for e, f in zip(ests, frames[7:15])]
-    back, control = np.mean(errors[1][2:]), np.mean(errors[0][2:])  # px, from the third frame on (3.2 / 5.8 measured)
+    back, control = np.mean(errors[1][2:]), np.mean(errors[0][2:])  # px, from the third frame on (1.4 / 5.8 measured)
     assert back < 4.0 and back < 0.7 * control, (errors[1], errors[0])
     assert control > 4.5, errors[0]
 
