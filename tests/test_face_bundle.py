@@ -225,6 +225,21 @@ def test_devices_match_reference_and_keep_the_box(device, model, reference_runs)
     np.testing.assert_array_equal(res.tvecs[0], st["tvecs"][0])
 
 
+@pytest.mark.parametrize("prior", [0.0, 2.0])
+def test_result_cost_is_eq6_at_the_result(device, model, ict, prior):
+    """BundleResult.cost (the solver's cost less the identity prior's rows) is F of eq. 6 evaluated at
+    the result on the host, with and without the prior."""
+    sc = face_scene(model, ict, seed=5)
+    res = adjust(device, model, sc, max_iter=4, identity_prior=prior)
+    problem = BundleProblem(model, CAMERA, sc["landmarks"], res.rvecs, res.tvecs, res.expressions, res.identity)
+    f64 = _fp(device) == np.float64
+    np.testing.assert_allclose(res.cost, problem.cost(problem.x0), rtol=1e-9 if f64 else 1e-3)
+    assert res.cost > 0 and np.isfinite(res.cost)
+    if prior:  # the prior's rows were not 0: the subtraction is exercised
+        free = model.identity_std > 1e-9
+        assert np.abs(res.identity - model.identity_mean)[free].max() > 1e-3 * model.identity_std[free].max()
+
+
 def test_incremental_on_device_matches_reference(device, model, ict):
     sc = face_scene(model, ict, seed=3, n=8)
     st = sc["start"]
