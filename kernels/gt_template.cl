@@ -9,12 +9,20 @@
 // Re-use (a particle filter's stage that samples only some parts' parameters, eq. 13-16): the nb
 // hypotheses are nsrc blocks of samples (hypothesis b belongs to source b nsrc / nb, as in
 // gt_sample_around), and the parts with moved[j] == 0 are posed in every sample of a block as in
-// its first sample. REUSE=1 (SOURCE) evaluates the first sample of each block (work-item s, its
-// LANES lanes all that sample) and writes cache row s: [I_i (n), valid_i (n), per RGB part j
+// its first sample. REUSE=1 (SOURCE) evaluates the first sample of each block (lane l of work-item g
+// block s = g LANES + l) and writes cache row s: [I_i (n), valid_i (n), per RGB part j
 // sum T, sum T^2, sum T I over its valid points (3 rparts), per depth part j the sum of rho_c'
 // (dparts)]. REUSE=2 evaluates every hypothesis, projecting only the moved parts: the other
 // parts' samples and sums come from the cache row of the hypothesis' source. The scores equal
 // the full evaluation's to float rounding (the cached sums are added apart from the blocked ones).
+//
+// A central-difference plan (REUSE=3, residuals only; paper 000 Fig. 2, gputrack/ops/pose_residuals.py):
+// the nb rows are nsrc blocks of stride = nb / nsrc rows (a problem's point, then its parameters'
+// moved points); REUSE=1 has cached each problem's point. Work-item g takes the ngroups plan's
+// rows order[g LANES + l], which move the same parts (moved[g nj + j]), projects only those parts
+// and writes only their residuals, the other parts' sums coming from the cache (eq. 17's alpha and
+// beta run over every valid point). A work-item whose rows pose an unmoved part differently from
+// their problem's point (another layout) evaluates every part.
 #include "gt_lanes.clh"
 
 #ifndef RESIDUALS
@@ -58,25 +66,52 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
                       const float lam, const float c_rgb, const float c_depth, const float depth_tol,
                       __global float *sample, __global char *valid,
                       __global float *total, __global float *eps_c, __global float *eps_d, __global float *res,
-                      __global const int *moved, __global float *cache, const int nsrc)
+                      __global const int *moved, __global float *cache, const int nsrc,
+                      __global const int *order, const int ngroups)
 {
     const int g = get_global_id(0);
     const int cw = 2 * n + 3 * rparts + dparts;  // a cache row (REUSE)
 #if REUSE == 1
-    if (g >= nsrc)
+    const int b0 = g * LANES;
+    if (b0 >= nsrc)
         return;
-    const int b0 = 0;
-    const intv bl = (intv)((g * nb + nsrc - 1) / nsrc);  // the first sample of block g, in every lane
-    __global float *crow = cache + (size_t)g * (size_t)cw;
+    const intv sl = min(b0 + LANE_IDS, nsrc - 1);  // the lanes' sources (past nsrc: the last one again)
+    const intv bl = (sl * nb + nsrc - 1) / nsrc;    // the first sample of each block
+    const intv crow = sl * cw;
+#elif REUSE == 3
+    if (g >= ngroups)
+        return;
+    const int b0 = g * LANES;
+    int rows[LANES];  // the lanes' rows
+    for (int l = 0; l < LANES; ++l)
+        rows[l] = order[b0 + l];
+    const intv bl = VLOADI(0, rows);
+    const int stride = nb / nsrc;
+    int every = 0;  // a row poses an unmoved part unlike its problem's point: evaluate every part
+    for (int j = 0; j < nj; ++j) {
+        if (moved[g * nj + j])
+            continue;
+        for (int l = 0; l < LANES; ++l) {
+            __global const float *a = tf + ((size_t)rows[l] * (size_t)nj + (size_t)j) * 12;
+            __global const float *b = tf + ((size_t)(rows[l] - rows[l] % stride) * (size_t)nj + (size_t)j) * 12;
+            for (int e = 0; e < 12; ++e)
+                every |= a[e] != b[e];
+        }
+    }
 #else
     const int b0 = g * LANES;
     if (b0 >= nb)
         return;
     const intv bl = min(b0 + LANE_IDS, nb - 1);  // lanes past the batch repeat the last hypothesis
 #endif
-#if REUSE == 2
+#if REUSE >= 2
     const intv crow = (bl * nsrc / nb) * cw;      // each lane's source row (nb nsrc < 2**31: the op checks)
     realv cT = 0.0f, cTT = 0.0f, cTI = 0.0f, cD = 0.0f;  // the cached parts' sums
+#endif
+#if REUSE == 3
+#define GT_MOVED(j) (every || moved[g * nj + (j)])
+#else
+#define GT_MOVED(j) (moved[j])
 #endif
     const float wm1 = (float)(w - 1), hm1 = (float)(h - 1);
     const float cc = c_rgb * c_rgb, cd = c_depth * c_depth;
@@ -91,8 +126,8 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     realv sT = 0.0f, sTT = 0.0f, sTI = 0.0f, bT = 0.0f, bTT = 0.0f, bTI = 0.0f;
     int cnt = 0;
     for (int j = 0; j < rparts; ++j) {
-#if REUSE == 2
-        if (!moved[j]) {
+#if REUSE >= 2
+        if (!GT_MOVED(j)) {
             cT += GATHER(cache, crow + (2 * n + 3 * j));
             cTT += GATHER(cache, crow + (2 * n + 3 * j + 1));
             cTI += GATHER(cache, crow + (2 * n + 3 * j + 2));
@@ -125,8 +160,8 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             bTT += Tv * T;
             bTI += Tv * I;
 #if REUSE == 1
-            crow[i] = LANE0(I);
-            crow[n + i] = LANE0(ok) ? 1.0f : 0.0f;
+            SCATTER(cache, crow + i, I);
+            SCATTER(cache, crow + (n + i), select((realv)0.0f, (realv)1.0f, ok));
 #else
             VSTORER(I, srow + i, sample);
             VSTOREC(TO_CHAR(ok), srow + i, valid);
@@ -138,12 +173,12 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             }
         }
 #if REUSE == 1
-        crow[2 * n + 3 * j] = LANE0(sT + bT);
-        crow[2 * n + 3 * j + 1] = LANE0(sTT + bTT);
-        crow[2 * n + 3 * j + 2] = LANE0(sTI + bTI);
+        SCATTER(cache, crow + (2 * n + 3 * j), sT + bT);
+        SCATTER(cache, crow + (2 * n + 3 * j + 1), sTT + bTT);
+        SCATTER(cache, crow + (2 * n + 3 * j + 2), sTI + bTI);
 #endif
     }
-#if REUSE == 2
+#if REUSE >= 2
     sT += bT + cT; sTT += bTT + cTT; sTI += bTI + cTI;
 #else
     sT += bT; sTT += bTT; sTI += bTI;
@@ -159,6 +194,11 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
         const realv I = moved[j] ? VLOADR(srow + i, sample) : GATHER(cache, crow + i);
         const intv ok = moved[j] ? TO_INT(VLOADC(srow + i, valid)) : (GATHER(cache, crow + (n + i)) != 0.0f);
+#elif REUSE == 3
+    for (int j = 0; j < rparts; ++j)
+    for (int i = (GT_MOVED(j) ? rstart[j] : rstart[j + 1]); i < rstart[j + 1]; ++i) {  // the moved parts' residuals
+        const realv I = VLOADR(srow + i, sample);
+        const intv ok = TO_INT(VLOADC(srow + i, valid));
 #else
     for (int i = 0; i < (REUSE == 1 ? 0 : n); ++i) {  // the sources (REUSE=1) write their cache rows only
         const realv I = VLOADR(srow + i, sample);
@@ -174,8 +214,13 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
         float tmp[LANES];
         VSTORER(r, 0, tmp);
         const int col = rperm[i];
+#if REUSE == 3
+        for (int l = 0; l < LANES; ++l)
+            res[(size_t)rows[l] * (size_t)(n + m) + col] = tmp[l];
+#else
         for (int l = 0; l < LANES && b0 + l < nb; ++l)
             res[(size_t)(b0 + l) * (size_t)(n + m) + col] = tmp[l];
+#endif
 #endif
         if (++cnt == CHUNK) {
             eC += blk;
@@ -190,8 +235,8 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     blk = 0.0f;
     cnt = 0;
     for (int j = 0; j < dparts; ++j) {
-#if REUSE == 2
-        if (!moved[j]) {
+#if REUSE >= 2
+        if (!GT_MOVED(j)) {
             cD += GATHER(cache, crow + (2 * n + 3 * rparts + j));
             continue;
         }
@@ -231,8 +276,13 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             float tmp[LANES];
             VSTORER(r, 0, tmp);
             const int col = n + dperm[i];
+#if REUSE == 3
+            for (int l = 0; l < LANES; ++l)
+                res[(size_t)rows[l] * (size_t)(n + m) + col] = tmp[l];
+#else
             for (int l = 0; l < LANES && b0 + l < nb; ++l)
                 res[(size_t)(b0 + l) * (size_t)(n + m) + col] = tmp[l];
+#endif
 #endif
             if (++cnt == CHUNK) {
                 eD += blk;
@@ -241,10 +291,10 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
             }
         }
 #if REUSE == 1
-        crow[2 * n + 3 * rparts + j] = LANE0(eD + blk);
+        SCATTER(cache, crow + (2 * n + 3 * rparts + j), eD + blk);
 #endif
     }
-#if REUSE == 2
+#if REUSE >= 2
     eD += blk + cD;
 #else
     eD += blk;

@@ -13,8 +13,9 @@ whose part depends on n (its own joint's and its ancestors', ``chain.jacobian_sp
 other parts look as at the problem's point. Taichi evaluates each problem's point once for their
 sums (eq. 17's alpha and beta run over every valid point), groups rows that move the same parts,
 and projects and writes only those parts: for the upper body about half of the work of the full
-stack (14 parameters: 57 %, 20: 48 % of the points). The numpy and OpenCL backends run the
-composition (every entry; an OpenCL launch costs microseconds).
+stack (14 parameters: 57 %, 20: 48 % of the points). OpenCL runs the composition with the same
+plan (kernels/gt_template.cl REUSE=3: forward kinematics, a launch caching the problems' points,
+one computing the groups' residuals); the numpy backend runs the composition (every entry).
 """
 
 from __future__ import annotations
@@ -61,12 +62,20 @@ def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=F
         raise ValueError(f"params: expected at least one parameter vector (n >= 1), got shape {tuple(params.shape)}")
     g, d = frame_args(device, scene, gray, depth_image, chain.n_parts)
     out = out_array(device, out, "out", (n, scene.n))
+    stride = 2 * P + 1
+    central = central and n % stride == 0
+    if device.backend == "opencl" and central:  # the composition, its residuals by the plan
+        tf = forward_kinematics(device, chain, params)
+        rgb, dep, cam, p = scene.kernel_args(device)
+        be = backend_module(device, "template")
+        plan = _device_plan(device, chain, n // stride, be.residual_lanes(device, tf, rgb, dep))
+        be.rgbd_residuals(device, tf, rgb, dep, g, d, cam, out, plan=plan, **p)
+        return out
     if device.backend != "taichi":
         return rgbd_residuals(device, forward_kinematics(device, chain, params), scene, g, d, out=out)
     be = backend_module(device, "pose_residuals")
-    stride = 2 * P + 1
     plan = None
-    if central and n % stride == 0:
+    if central:
         plan = _device_plan(device, chain, n // stride, be.lanes(device))
     _, offsets = chain_tables(device, chain, np.float32)
     rgb, dep, cam, p = scene.kernel_args(device)

@@ -73,7 +73,7 @@ def _scratch(device, name, nbytes):
 _I, _F = np.int32, np.float32
 ARG_TYPES = {
     "gt_rgbd": [None, _I, _I, None, None, _I, _I, None, None, _I, _I, None, None, _I, _I] + [_F] * 8 + [None] * 8
-    + [_I],
+    + [_I, None, _I],
 }
 
 
@@ -91,11 +91,13 @@ def _built_kernel(device, name, defines):
     return found
 
 
-def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, params, reuse=None):
+def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, params, reuse=None, plan=None):
     """``params``: {"lanes", "work_group"}. ``reuse``: None, or (moved (J,) int32 buffer, sources): the cost of ``sources`` blocks of
     samples that pose the parts with moved[j] == 0 as their first sample does (kernels/gt_template.cl
-    REUSE): one launch caches the sources, a second scores every sample from it. ``consts``: (lam, c_rgb,
-    c_depth, depth_tol)."""
+    REUSE): one launch caches the sources, a second scores every sample from it. ``plan``: None, or
+    (stride, order, moved) of a central-difference stack (gputrack/ops/pose_residuals.py, grouped by
+    ``params["lanes"]``): one launch caches the problems' points, a second computes the residuals
+    that the groups' rows move (REUSE=3). ``consts``: (lam, c_rgb, c_depth, depth_tol)."""
     nl = int(params["lanes"])
     wg = int(params["work_group"])
     nb, nj = tf.shape[:2]
@@ -103,9 +105,16 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, pa
     m = depth["pts"].shape[0]
     h, w = gray.shape
     groups = (nb + nl - 1) // nl
+    dummy = _buffer(device, "dummy", 4)
+    order, ngroups = dummy, 0
+    if plan is not None:
+        stride, order_d, moved_d = plan
+        ngroups = order_d.shape[0] // nl
+        groups = ngroups
+        order = order_d.buffer.data
+        reuse = (moved_d.buffer.data, nb // stride)
     sample = _buffer(device, "sample", groups * n * nl * 4)
     valid = _buffer(device, "valid", groups * n * nl)
-    dummy = _buffer(device, "dummy", 4)
     if residuals:
         res_buf = outs[0].buffer.data
         outs = (dummy, dummy, dummy)
@@ -123,12 +132,13 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, pa
         depth["pts"].buffer.data, depth["index"].buffer.data, depth["parts"], m,
         gray.buffer.data, dimg.buffer.data, h, w,
         fx, fy, cx, cy, *consts,
-        sample, valid, outs[0], outs[1], outs[2], res_buf, moved, cache, sources,
+        sample, valid, outs[0], outs[1], outs[2], res_buf, moved, cache, sources, order, ngroups,
     )  # fmt: skip
     if reuse is not None:
         source = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=0, REUSE=1)
-        enqueue(device, source, *ndrange(sources, group=(wg,)), *args)
-    kernel = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=int(residuals), REUSE=2 if reuse is not None else 0)
+        enqueue(device, source, *ndrange((sources + nl - 1) // nl, group=(wg,)), *args)  # a source per lane
+    mode = 0 if reuse is None else (3 if plan is not None else 2)
+    kernel = _kernel(device, "gt_rgbd", LANES=nl, RESIDUALS=int(residuals), REUSE=mode)
     enqueue(device, kernel, *ndrange(groups, group=(wg,)), *args)
 
 
@@ -141,7 +151,16 @@ def rgbd_cost(device, tf, rgb, depth, gray, dimg, camera, total, eps_c, eps_d, *
     _run(device, tf, rgb, depth, gray, dimg, camera, consts, (total, eps_c, eps_d), False, params, reuse)
 
 
-def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, depth_tol, params=None):
-    """``params``: {"lanes", "work_group"}; None = the tuned choice (TUNABLES["rgbd_residuals"])."""
+def rgbd_residuals(device, tf, rgb, depth, gray, dimg, camera, out, *, lam, c_rgb, c_depth, depth_tol, params=None,
+                   plan=None):  # fmt: skip
+    """``params``: {"lanes", "work_group"}; None = the tuned choice (TUNABLES["rgbd_residuals"]).
+    ``plan``: see _run (gputrack/ops/pose_residuals.py; its groups of :func:`residual_lanes` rows)."""
     params = params or _tuned(device, "rgbd_residuals", tf, rgb, depth)
-    _run(device, tf, rgb, depth, gray, dimg, camera, (lam, c_rgb, c_depth, depth_tol), (out,), True, params)
+    _run(device, tf, rgb, depth, gray, dimg, camera, (lam, c_rgb, c_depth, depth_tol), (out,), True, params,
+         plan=plan)  # fmt: skip
+
+
+def residual_lanes(device, tf, rgb, depth) -> int:
+    """The rows per work-item :func:`rgbd_residuals` takes for these sizes (the tuned choice): a
+    central-difference plan groups its rows by it."""
+    return int(_tuned(device, "rgbd_residuals", tf, rgb, depth)["lanes"])
