@@ -190,10 +190,24 @@ __kernel void gt_rgbd(__global const float *tf, const int nb, const int nj,
     realv eC = 0.0f, blk = 0.0f;
     cnt = 0;
 #if REUSE == 2
+    // the lanes of a work-item nearly always share their source (blocks of nb / nsrc samples): its
+    // cached samples are then loaded once for every lane
+    const int c0 = LANE0(crow);
+    const int same = ALL_LANES(crow == c0);
     for (int j = 0; j < rparts; ++j)
     for (int i = rstart[j]; i < rstart[j + 1]; ++i) {
-        const realv I = moved[j] ? VLOADR(srow + i, sample) : GATHER(cache, crow + i);
-        const intv ok = moved[j] ? TO_INT(VLOADC(srow + i, valid)) : (GATHER(cache, crow + (n + i)) != 0.0f);
+        realv I;
+        intv ok;
+        if (moved[j]) {
+            I = VLOADR(srow + i, sample);
+            ok = TO_INT(VLOADC(srow + i, valid));
+        } else if (same) {
+            I = (realv)cache[c0 + i];
+            ok = (intv)(-(cache[c0 + n + i] != 0.0f));  // every bit set: true in a vector select too
+        } else {
+            I = GATHER(cache, crow + i);
+            ok = GATHER(cache, crow + (n + i)) != 0.0f;
+        }
 #elif REUSE == 3
     for (int j = 0; j < rparts; ++j)
     for (int i = (GT_MOVED(j) ? rstart[j] : rstart[j + 1]); i < rstart[j + 1]; ++i) {  // the moved parts' residuals
