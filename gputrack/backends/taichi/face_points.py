@@ -1,10 +1,13 @@
 """Taichi: the projection of face hypotheses (gputrack/ops/face_points.py) in float32, one launch:
 a thread per hypothesis poses (its Rodrigues rotation by :func:`trig.sincos32`) and projects the
-model's K points."""
+model's K points. On the CPU arch the loop runs on the calling thread: ~0.1-0.2 ms for the face
+tracker's 1000 hypotheses, where waking the thread pool cost more than it saved: the tracker's
+sample stage 0.63-0.74 -> 0.51-0.57 ms and its whole frame 5.2-5.3 -> 4.1-4.7 ms (medians of 183
+frames, three runs of each in turn, 2026-12-06)."""
 
 from ...uploads import constant
 from .launch import launch
-from .runtime import ti
+from .runtime import current_arch, ti
 from .trig import sincos32
 
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -13,9 +16,11 @@ F3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
 
 
 @ti.kernel
-def _project(states: F2, model: F3, cam: F1, points: F3, facing: F1):
+def _project(states: F2, model: F3, cam: F1, points: F3, facing: F1, serial: ti.template()):
     fx, fy, cx, cy, near, clip = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5]
     K, D = model.shape[0], model.shape[2] - 1
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
     for n in range(states.shape[0]):
         r = ti.Vector([states[n, 0], states[n, 1], states[n, 2]])
         t = ti.Vector([states[n, 3], states[n, 4], states[n, 5]])
@@ -41,4 +46,6 @@ def _project(states: F2, model: F3, cam: F1, points: F3, facing: F1):
 
 
 def project_faces(device, states, model, cam, points, facing):
-    launch(_project, (states.buffer, model.buffer, constant(device, cam).buffer, points.buffer, facing.buffer))
+    serial = current_arch() == "cpu"  # see the module docstring
+    launch(_project, (states.buffer, model.buffer, constant(device, cam).buffer, points.buffer, facing.buffer),
+           (serial,))
