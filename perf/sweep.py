@@ -223,7 +223,7 @@ def tables_child(spec: str, frames: int, samples: int) -> dict:
     dev = gputrack.device(spec)
     seq = sequence(0, frames=frames + 2, seed=0)  # the start pose, a warm-up frame, ``frames`` timed
     cfg = BodyTrackerConfig(lm_iterations=10, samples=samples)
-    tracker = BodyTracker(dev, seq.params[0], config=cfg)
+    tracker = BodyTracker(dev, seq.params[0], config=cfg, profile=True)  # each stage's own time
     for i, f in enumerate(list(seq)[1:]):
         tracker.track(f.gray, f.depth)
         if i == 0:

@@ -198,9 +198,10 @@ def test_demo_body_no_predict_reaches_the_tracker(monkeypatch):
     configs = []
     real = body.BodyTracker
 
-    def tracker(device, start, config):
+    def tracker(device, start, config, profile=False):
+        assert profile, "the demo's stage table needs each stage timed between device waits"
         configs.append(config)
-        return real(device, start, config=config)
+        return real(device, start, config=config, profile=profile)
 
     monkeypatch.setattr(body, "BodyTracker", tracker)
     for argv, want in ((["--no-predict"], False), ([], True)):

@@ -56,7 +56,7 @@ def run(
     config = BodyTrackerConfig(stages=stages, lm_iterations=lm, shoulders=shoulders, seed=seed,
                            template_every=template_every, depth_tol=depth_tol, n_depth=n_depth,
                                samples=samples, predict=predict)  # fmt: skip
-    tracker = BodyTracker(device, start, config=config)
+    tracker = BodyTracker(device, start, config=config, profile=True)  # the stage table below
     print(f"gputrack demo body: sequence {seq.index} ({SEQUENCES[seq.index]}), {frames} frames, device "
           f"{device.spec} ({device.name}), PF {stages} stages x K={config.samples}, LM {lm} iterations, "
           f"N'={n_depth} depth points, depth tolerance {depth_tol:g} mm"
