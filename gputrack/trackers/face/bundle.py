@@ -53,6 +53,7 @@ import logging
 
 import numpy as np
 
+from ...device import to_numpy
 from ...models.camera import Camera
 from ...models.pose import rodrigues
 from ...ops.face_bundle import LandmarkFrames, LandmarkModel, LandmarkResiduals, evaluate, geometry
@@ -371,8 +372,13 @@ class BundleProblem:
                              f"got {landmarks!r}")  # fmt: skip
         # Jacobi scaling (as MINPACK's diag): the solver works in y = x / d with d_j = 1 / |column j of J|
         # at the start, so that its damping C I (C relative to the unit diagonal) treats radians,
-        # millimetres and model coordinates alike; fixed parameters (lower == upper) keep d = 1.
-        r0, J0 = self.evaluate(self.x0[None])
+        # millimetres and model coordinates alike; fixed parameters (lower == upper) keep d = 1. J at
+        # the start comes from the device kernel where there is one (the host model took ~0.1-0.25 ms).
+        if landmarks is not None:
+            landmarks.update(dataclasses.replace(self._frames, scale=None))
+            J0 = np.asarray(to_numpy(landmarks.jacobian(self.x0[None])), np.float64)
+        else:
+            r0, J0 = self.evaluate(self.x0[None])
         norm = np.sqrt(np.einsum("mp,mp->p", J0[0], J0[0]))
         d = np.where((self.upper > self.lower) & (norm > 1e-12 * max(norm.max(), 1e-300)), 1.0 / np.maximum(norm, 1e-300),
                      1.0)  # fmt: skip
