@@ -67,13 +67,9 @@ def sincos32(a):
 
 
 @ti.func
-def sincos64(a):
-    """(sin a, cos a) in float64: reduce to |r| <= pi/4 (a - n pi/2 with pi/2 in two doubles), then
-    fdlibm's (musl's) minimax kernels __sin / __cos (multiply-adds only; the Taylor series to r^19
-    this replaces took 18 divisions and twice the time). The reduction's error grows with n:
-    measured on taichi:cpu against np.sin / np.cos (2e6 uniform angles), max absolute error 2.2e-16
-    on |a| <= 4, 4.7e-14 on |a| <= 500, 3.1e-12 on |a| <= 2**15 (gputrack.abi ANGLE_MAX, where the
-    kinematics clamp)."""
+def _reduced64(a):
+    """(n, sin r, cos r) with a = r + n pi/2, |r| <= pi/4, in float64 (scalars or vectors of lanes):
+    the arithmetic of :func:`sincos64` and :func:`sin64_lanes`."""
     f64 = ti.f64  # typed constants: a bare Python float would be a float32 literal
     n = ti.floor(a * f64(_TWO_OVER_PI) + f64(0.5))
     r = (a - n * f64(_PIO2_HI)) - n * f64(_PIO2_LO)
@@ -87,4 +83,28 @@ def sincos64(a):
     hz = f64(0.5) * z
     c1 = f64(1.0) - hz
     c = c1 + (((f64(1.0) - c1) - hz) + z * cr)  # cos r = 1 - z/2 + z^2 C(z), the 1 - z/2 split exactly
+    return n, s, c
+
+
+@ti.func
+def sincos64(a):
+    """(sin a, cos a) in float64: reduce to |r| <= pi/4 (a - n pi/2 with pi/2 in two doubles), then
+    fdlibm's (musl's) minimax kernels __sin / __cos (multiply-adds only; the Taylor series to r^19
+    this replaces took 18 divisions and twice the time). The reduction's error grows with n:
+    measured on taichi:cpu against np.sin / np.cos (2e6 uniform angles), max absolute error 2.2e-16
+    on |a| <= 4, 4.7e-14 on |a| <= 500, 3.1e-12 on |a| <= 2**15 (gputrack.abi ANGLE_MAX, where the
+    kinematics clamp)."""
+    n, s, c = _reduced64(a)
     return _quadrant(n, s, c)
+
+
+@ti.func
+def sin64_lanes(a):
+    """The sine of :func:`trig.sincos64` (the same arithmetic) for a vector of float64 lanes, its
+    quadrant n mod 4 in float64 and two selects (``sincos64`` itself, and an int cast of a vector
+    in a loop, do not compile with scalarisation off in Taichi 1.7: LLVM assertions)."""
+    f64 = ti.f64
+    n, s, c = _reduced64(a)
+    q = n - f64(4.0) * ti.floor(n * f64(0.25))  # n mod 4, exactly (an integer-valued float64)
+    v = ti.select((q == f64(1.0)) | (q == f64(3.0)), c, s)
+    return ti.select(q >= f64(2.0), f64(0.0) - v, v)  # 0 - v: -v of a select's vector trips an assertion
