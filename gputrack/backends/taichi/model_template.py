@@ -820,8 +820,8 @@ def _emit_serial(part: nd2, values: nd3, local: nd3, plan: nd3, stats: nd2, surv
         if it % CPU_TASK != 0:
             continue
         g = it // CPU_TASK
-        k = g // J
-        j = g - k * J
+        k = 1 - g // J  # the depth template first: its fill (few depth extrema) takes longest
+        j = g % J
         offset = plan[k, j, 0]
         quota = plan[k, j, 1]
         start = plan[k, j, 2]
