@@ -83,8 +83,35 @@ def test_central_computes_the_block_sparse_entries(device, scene, problems):
                                            out=out))  # fmt: skip
     need = _needed(chain, sc, problems)
     assert_close(device, got[need], want[need], atol=5e-5)
-    if device.backend == "taichi":  # the one backend that skips: it writes nothing else
+    if device.backend != "numpy":  # the plan's backends write nothing else
         assert (got[~need] == SENTINEL).all()
+
+
+@pytest.mark.parametrize("lanes", [1, 4, 8, 16])
+def test_opencl_plan_at_every_lane_width(device, scene, lanes):
+    """OpenCL's plan (kernels/gt_template.cl REUSE=3) at each width ``gputrack tune`` may choose (1:
+    the GPUs' build): the block-sparse entries as the composition's, nothing else written, also
+    where a work-item's rows include a broken layout."""
+    if device.backend != "opencl":
+        pytest.skip("OpenCL kernel variants")
+    from gputrack.backends.opencl import template as ocl
+    from gputrack.ops.pose_residuals import _device_plan
+
+    chain, frame, sc = scene
+    X = _stack(chain, 3)
+    X[4] += np.float32(0.01)  # row 4 (parameter 1's) moves every parameter: computed in full
+    want = _composed(device, chain, X, frame, sc)
+    tf = forward_kinematics(device, chain, X)
+    rgb, dep, cam, p = sc.kernel_args(device)
+    g, d = device.asarray(frame.gray.astype(np.float32)), device.asarray(frame.depth.astype(np.float32))
+    out = device.asarray(np.full(want.shape, SENTINEL, np.float32))
+    ocl.rgbd_residuals(device, tf, rgb, dep, g, d, cam, out, plan=_device_plan(device, chain, 3, lanes),
+                       params={"lanes": lanes, "work_group": 4}, **p)  # fmt: skip
+    got = gputrack.to_numpy(out)
+    need = _needed(chain, sc, 3)
+    need[4] = True
+    assert_close(device, got[need], want[need], atol=5e-5)
+    assert (got[~need] == SENTINEL).all()
 
 
 def test_depth_tolerance_reaches_every_path(device, scene):
