@@ -9,7 +9,7 @@
 // Re-use (a particle filter's stage that samples only some parts' parameters, eq. 13-16): the nb
 // hypotheses are nsrc blocks of samples (hypothesis b belongs to source b nsrc / nb, as in
 // gt_sample_around), and the parts with moved[j] == 0 are posed in every sample of a block as in
-// its first sample. REUSE=1 (SOURCE) evaluates the first sample of each block (lane l of work-item g
+// its first sample. REUSE=1 (SOURCE) evaluates the first sample of each block (lane l of work-item g:
 // block s = g LANES + l) and writes cache row s: [I_i (n), valid_i (n), per RGB part j
 // sum T, sum T^2, sum T I over its valid points (3 rparts), per depth part j the sum of rho_c'
 // (dparts)]. REUSE=2 evaluates every hypothesis, projecting only the moved parts: the other

@@ -186,8 +186,8 @@ def _row_lanes(img: ti.template(), y, xb, a, lanes: ti.template()):
 
 
 @ti.func
-def _ncc_lanes(pts: ti.template(), ts: ti.template(), tv: ti.template(), tstat: ti.template(), img: ti.template(), b,
-               k, lanes: ti.template()):  # fmt: skip
+def _ncc_lanes(pts: ti.template(), tv: ti.template(), tstat: ti.template(), img: ti.template(), b, k,
+               lanes: ti.template()):  # fmt: skip
     """_ncc_one for S = ``lanes`` < H, W with a row of the patch as one SIMD vector: each image row of
     the patch interpolated across once (_row_lanes) and down between two of them, the sums per lane."""
     h = img.shape[0]
@@ -227,7 +227,7 @@ def _ncc_at(pts: ti.template(), ts: ti.template(), tv: ti.template(), tstat: ti.
             lanes: ti.template()):  # fmt: skip
     out = ti.f32(0.0)
     if ti.static(lanes):
-        out = _ncc_lanes(pts, ts, tv, tstat, img, b, k, lanes)
+        out = _ncc_lanes(pts, tv, tstat, img, b, k, lanes)
     else:
         out = _ncc_one(pts, ts, tstat, img, b, k)
     return out
