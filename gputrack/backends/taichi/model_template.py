@@ -107,6 +107,37 @@ def _axes(k, v):
 
 
 @ti.func
+def _side(ou, ov, du, dv, ra, rb, real: ti.template()):
+    """The side of an (elliptic) cylinder in the coordinates scaled to a unit circle (a capsule: ra =
+    rb = r): (u, v of o, u, v of d, a, the discriminant as a - (o x d)^2: no cancellation of the large
+    |o|^2 |d|^2 terms); d scalars or lanes."""
+    ia = 1.0 / ra
+    ib = 1.0 / rb
+    ua = ou * ia
+    va = ov * ib
+    ea = du * ia
+    eb = dv * ib
+    a = ea * ea + eb * eb
+    cr = ua * eb - va * ea
+    return ua, va, ea, eb, a, ti.max(a - cr * cr, ti.cast(0.0, real))
+
+
+@ti.func
+def _cap_sphere(o, d, k, end, dd, r, real: ti.template()):
+    """A capsule's cap: the sphere of radius r at ``end`` on the axis k, and the ray o + t d (d one
+    ray, or three vectors of lanes; dd = d . d): (dd r^2 - |oc x d|^2, d . oc), oc = o - end e_k (the
+    discriminant without the cancellation of (d . oc)^2 - dd (|oc|^2 - r^2), Lagrange's identity)."""
+    oc = ti.Vector([o[0], o[1], o[2]], dt=real)
+    for m in ti.static(range(3)):
+        if k == m:
+            oc[m] = o[m] - end
+    x = oc[1] * d[2] - oc[2] * d[1]
+    y = oc[2] * d[0] - oc[0] * d[2]
+    z = oc[0] * d[1] - oc[1] * d[0]
+    return dd * r * r - (x * x + y * y + z * z), d[0] * oc[0] + d[1] * oc[1] + d[2] * oc[2]
+
+
+@ti.func
 def _intersect(table: ti.template(), j, o, d, real: ti.template()):
     """First hit of the ray o + t d (part coordinates) with part j's shape: (hit, t, which) as
     gputrack.models.render.intersect (which: 0 the side or a capsule, 1/2 a cylinder's start/end
@@ -128,17 +159,7 @@ def _intersect(table: ti.template(), j, o, d, real: ti.template()):
     # (the discriminant below times ra^2 rb^2)
     x0 = ou * dv - ov * du
     if du * du * rb * rb + dv * dv * ra * ra - x0 * x0 >= 0.0:
-        ia = 1.0 / ra
-        ib = 1.0 / rb
-        # the side, in the coordinates scaled to a unit circle (a capsule: ra = rb = r); the
-        # discriminant as a - (o x d)^2 (no cancellation of the large |o|^2 |d|^2 terms)
-        ua = ou * ia
-        va = ov * ib
-        ea = du * ia
-        eb = dv * ib
-        a = ea * ea + eb * eb
-        cr = ua * eb - va * ea
-        disc = ti.max(a - cr * cr, 0.0)
+        ua, va, ea, eb, a, disc = _side(ou, ov, du, dv, ra, rb, real)
         inside = False
         if a > 0.0:
             t0 = _first_root(a, ua * ea + va * eb, disc)
@@ -152,29 +173,16 @@ def _intersect(table: ti.template(), j, o, d, real: ti.template()):
                 r = table[j, 20]
                 dd = d.dot(d)
                 for e in ti.static(range(2)):
-                    end = s0
-                    if ti.static(e == 1):
-                        end = s1
-                    oc = ti.Vector([o[0], o[1], o[2]], dt=real)
-                    for m in ti.static(range(3)):
-                        if k == m:
-                            oc[m] = o[m] - end
-                    x = oc[1] * d[2] - oc[2] * d[1]
-                    y = oc[2] * d[0] - oc[0] * d[2]
-                    z = oc[0] * d[1] - oc[1] * d[0]
-                    ds = dd * r * r - (x * x + y * y + z * z)
+                    ds, bh = _cap_sphere(o, d, k, s1 if ti.static(e == 1) else s0, dd, r, real)
                     if ds >= 0.0:
-                        ts = _first_root(dd, d.dot(oc), ds)
+                        ts = _first_root(dd, bh, ds)
                         if (not hit) | (ts < t):
                             hit = True
                             t = ts
             elif dk != 0.0:  # cylinder: the flat caps
                 idk = 1.0 / dk
                 for e in ti.static(range(2)):
-                    end = s0
-                    if ti.static(e == 1):
-                        end = s1
-                    tc = (end - ok) * idk
+                    tc = ((s1 if ti.static(e == 1) else s0) - ok) * idk
                     pu = ua + tc * ea
                     pv = va + tc * eb
                     if (pu * pu + pv * pv <= 1.0) & ((not hit) | (tc < t)):
@@ -215,12 +223,7 @@ def _render(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, local: 
     """Step 1 over the crop in ``real`` (table, waves and consts of that type; float literals that
     are not exact in float32 written real(x): Taichi's literals take the default float32 type)."""
     J = table.shape[0]
-    fx = consts[0]
-    fy = consts[1]
-    cx = consts[2]
-    cy = consts[3]
-    amp = consts[4]
-    shading = consts[5]
+    fx, fy, cx, cy, amp, shading = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
     w = c1 - c0
     for i in range((r1 - r0) * w):
         r = r0 + i // w
@@ -302,15 +305,7 @@ def _intersect_lanes(table: ti.template(), j, o, d, L: ti.template()):
     which = ti.Vector([0] * L, dt=ti.i32)
     x0 = ou * dv - ov * du
     near = du * du * rb * rb + dv * dv * ra * ra - x0 * x0 >= 0.0  # the infinite cylinder
-    ia = 1.0 / ra
-    ib = 1.0 / rb
-    ua = ou * ia
-    va = ov * ib
-    ea = du * ia
-    eb = dv * ib
-    a = ea * ea + eb * eb
-    cr = ua * eb - va * ea
-    disc = ti.max(a - cr * cr, f64(0.0))
+    ua, va, ea, eb, a, disc = _side(ou, ov, du, dv, ra, rb, f64)
     positive = a > 0.0
     # (-b - sqrt) / a as _first_root; 0 - x for -x: a unary minus of a value that came through a
     # select trips an LLVM assertion in Taichi 1.7 with scalarisation off
@@ -324,18 +319,8 @@ def _intersect_lanes(table: ti.template(), j, o, d, L: ti.template()):
         r = ra
         dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
         for e in ti.static(range(2)):
-            end = s0
-            if ti.static(e == 1):
-                end = s1
-            oc = ti.Vector([o[0], o[1], o[2]], dt=f64)
-            for m in ti.static(range(3)):
-                if k == m:
-                    oc[m] = o[m] - end
-            x = oc[1] * d[2] - oc[2] * d[1]
-            y = oc[2] * d[0] - oc[0] * d[2]
-            z = oc[0] * d[1] - oc[1] * d[0]
-            ds = dd * r * r - (x * x + y * y + z * z)
-            ts = (f64(0.0) - (d[0] * oc[0] + d[1] * oc[1] + d[2] * oc[2]) - ti.sqrt(ti.max(ds, f64(0.0)))) / dd
+            ds, bh = _cap_sphere(o, d, k, s1 if ti.static(e == 1) else s0, dd, r, f64)
+            ts = (f64(0.0) - bh - ti.sqrt(ti.max(ds, f64(0.0)))) / dd
             take = rest & (ds >= 0.0) & (~hit | (ts < t))
             hit = hit | take
             t = ti.select(take, ts, t)
@@ -343,10 +328,7 @@ def _intersect_lanes(table: ti.template(), j, o, d, L: ti.template()):
         moving = dk != 0.0
         idk = 1.0 / ti.select(moving, dk, _lanes_v(f64(1.0), L))
         for e in ti.static(range(2)):
-            end = s0
-            if ti.static(e == 1):
-                end = s1
-            tc = (end - ok) * idk
+            tc = ((s1 if ti.static(e == 1) else s0) - ok) * idk
             pu = ua + tc * ea
             pv = va + tc * eb
             take = rest & moving & (pu * pu + pv * pv <= 1.0) & (~hit | (tc < t))
@@ -364,12 +346,7 @@ def _render_lanes(table: nd2, waves: nd3, consts: nd1, part: nd2, values: nd3, l
     by lane, its branches as masks). The shading runs once per part that won a lane."""
     f64 = ti.f64
     J = table.shape[0]
-    fx = consts[0]
-    fy = consts[1]
-    cx = consts[2]
-    cy = consts[3]
-    amp = consts[4]
-    shading = consts[5]
+    fx, fy, cx, cy, amp, shading = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
     ng = (c1 - c0 + L - 1) // L
     for i in range((r1 - r0) * ng):
         r = r0 + i // ng
