@@ -114,6 +114,18 @@ def test_opencl_plan_at_every_lane_width(device, scene, lanes):
     assert (got[~need] == SENTINEL).all()
 
 
+@pytest.mark.parametrize("rows", [1, 10, 50])
+def test_central_hint_on_rows_that_are_no_stack_computes_every_entry(device, scene, rows):
+    """``central=True`` on rows that are not a central-difference stack (a solve's last step: its
+    points only) computes every entry, as the plain call does."""
+    chain, frame, sc = scene
+    X = _stack(chain, 3)[:rows]
+    want = _composed(device, chain, X, frame, sc)
+    got = gputrack.to_numpy(pose_residuals(device, chain, X, sc, frame.gray, frame.depth, central=True))
+    assert got.shape == want.shape
+    assert_close(device, got, want, atol=5e-5)
+
+
 def test_depth_tolerance_reaches_every_path(device, scene):
     """depth_tol in the plain and the block-sparse (central) evaluation equals the composition's."""
     chain, frame, sc = scene

@@ -63,7 +63,7 @@ def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=F
     g, d = frame_args(device, scene, gray, depth_image, chain.n_parts)
     out = out_array(device, out, "out", (n, scene.n))
     stride = 2 * P + 1
-    central = central and n % stride == 0
+    hint, central = central, central and n % stride == 0
     if device.backend == "opencl" and central:  # the composition, its residuals by the plan
         tf = forward_kinematics(device, chain, params)
         rgb, dep, cam, p = scene.kernel_args(device)
@@ -77,6 +77,8 @@ def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=F
     plan = None
     if central:
         plan = _device_plan(device, chain, n // stride, be.lanes(device))
+    elif hint:  # the points of a solve's last step: every part of every row, by the same kernel
+        plan = _full_plan(device, chain, n, be.lanes(device))
     _, offsets = chain_tables(device, chain, np.float32)
     rgb, dep, cam, p = scene.kernel_args(device)
     return be.pose_residuals(device, chain, params, offsets, rgb, dep, g, d, cam, out, plan, **p)
@@ -92,6 +94,21 @@ def _device_plan(device, chain: Chain, problems: int, lanes: int):
     key = (chain.key(), problems, lanes)
     if key not in per_device:
         order, moved = _plan(chain, problems, lanes)
+        per_device[key] = (2 * chain.n_params + 1, constant(device, order), constant(device, moved))
+    return per_device[key]
+
+
+def _full_plan(device, chain: Chain, n: int, lanes: int):
+    """A plan that evaluates every part of the n rows (any layout), for a ``central=True`` call
+    whose rows are not a central-difference stack (a solve's last step evaluates its points only):
+    Taichi then runs the stack's kernel instead of compiling a second one (its first call costs a
+    warm process ~0.4 s). Kept per device, chain, n and lanes."""
+    per_device = _PLANS.setdefault(device, {})
+    key = (chain.key(), "full", n, lanes)
+    if key not in per_device:
+        groups = -(-n // lanes)
+        order = np.minimum(np.arange(groups * lanes), n - 1).astype(np.int32)
+        moved = np.ones((groups, chain.n_parts), np.int32)
         per_device[key] = (2 * chain.n_params + 1, constant(device, order), constant(device, moved))
     return per_device[key]
 

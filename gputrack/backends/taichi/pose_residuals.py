@@ -43,8 +43,8 @@ def _pose_row(params: ti.template(), offsets: ti.template(), tf: ti.template(), 
 @ti.kernel
 def _pose_residuals(
     params: F2, offsets: F2, tf: F4, rpts: F2, ridx: I1, dpts: F2, didx: I1, gray: F2, dimg: F2, cam: F1, work: F2,
-    residuals: F2, moved: I2, order: I1, full: I1, cache: F2,
-    rparts: ti.template(), dparts: ti.template(), groups: ti.template(), L: ti.template(), chunks: ti.template(),
+    residuals: F2, moved: I2, order: I1, full: I1, cache: F2, groups: ti.i32,
+    rparts: ti.template(), dparts: ti.template(), L: ti.template(), chunks: ti.template(),
     chain: ti.template(), stride: ti.template(), serial: ti.template(),
 ):  # fmt: skip
     n = params.shape[0]
@@ -98,7 +98,7 @@ def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camer
         groups = order.shape[0] // nl
         order, moved = order.buffer, moved.buffer
         full = scratch(device, "pose_full", (n,), ti.i32)
-        cache = scratch(device, "rgbd_cache", (n // stride, 2 * nr + 4 * J), ti.f32)
+        cache = scratch(device, "rgbd_cache", (max(n // stride, 1), 2 * nr + 4 * J), ti.f32)
     arrays = (
         params.buffer, offsets.buffer, scratch(device, "pose_tf", (n, J, 3, 4), ti.f32), rgb["pts"].buffer,
         rgb["index"].buffer, depth["pts"].buffer, depth["index"].buffer, gray.buffer, dimg.buffer,
@@ -108,7 +108,7 @@ def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camer
     )  # fmt: skip
     chunks = cpu_chunks(device)
     serial = chunks > 0 and n <= SERIAL_ROWS
-    consts = (rgb["parts"], depth["parts"], groups, nl, chunks, chain.structure(), stride, serial)
-    launch(_pose_residuals, arrays, consts, scalarize=False)
+    consts = (rgb["parts"], depth["parts"], nl, chunks, chain.structure(), stride, serial)
+    launch(_pose_residuals, arrays, consts, scalars=(groups,), scalarize=False)
     return out
 
