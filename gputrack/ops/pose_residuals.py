@@ -50,7 +50,8 @@ def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=F
     which is what ``least_squares(..., jac_sparsity=chain.jacobian_sparsity(parts))`` reads. The
     problems' own rows are computed in full, and every computed entry equals the full evaluation
     to float rounding. A row that differs from its problem's point in more than its parameter
-    (n not a multiple of 2P + 1, or another layout) is computed in full.
+    (another layout) is computed in full, and so is every row when n is not a multiple of 2P + 1
+    (a solve's last step evaluates its points only; on Taichi the stack's kernel does it).
     """
     check_device(device)
     if not isinstance(chain, Chain):
