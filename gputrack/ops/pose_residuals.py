@@ -64,8 +64,8 @@ def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=F
     g, d = frame_args(device, scene, gray, depth_image, chain.n_parts)
     out = out_array(device, out, "out", (n, scene.n))
     stride = 2 * P + 1
-    hint, central = central, central and n % stride == 0
-    if device.backend == "opencl" and central:  # the composition, its residuals by the plan
+    stack = central and n % stride == 0  # a central-difference stack: the plan of Fig. 2
+    if device.backend == "opencl" and stack:  # the composition, its residuals by the plan
         tf = forward_kinematics(device, chain, params)
         rgb, dep, cam, p = scene.kernel_args(device)
         be = backend_module(device, "template")
@@ -76,9 +76,9 @@ def pose_residuals(device, chain, params, scene, gray, depth_image, *, central=F
         return rgbd_residuals(device, forward_kinematics(device, chain, params), scene, g, d, out=out)
     be = backend_module(device, "pose_residuals")
     plan = None
-    if central:
+    if stack:
         plan = _device_plan(device, chain, n // stride, be.lanes(device))
-    elif hint:  # the points of a solve's last step: every part of every row, by the same kernel
+    elif central:  # the points of a solve's last step: every part of every row, by the same kernel
         plan = _full_plan(device, chain, n, be.lanes(device))
     _, offsets = chain_tables(device, chain, np.float32)
     rgb, dep, cam, p = scene.kernel_args(device)
@@ -91,25 +91,29 @@ _PLANS: weakref.WeakKeyDictionary = per_device_cache()  # device -> {(chain, B, 
 def _device_plan(device, chain: Chain, problems: int, lanes: int):
     """(stride, order, moved) of :func:`_plan` on ``device``, built and uploaded once per chain,
     number of problems and lanes (a solve calls the op every iteration)."""
-    per_device = _PLANS.setdefault(device, {})
-    key = (chain.key(), problems, lanes)
-    if key not in per_device:
-        order, moved = _plan(chain, problems, lanes)
-        per_device[key] = (2 * chain.n_params + 1, constant(device, order), constant(device, moved))
-    return per_device[key]
+    return _uploaded(device, (chain.key(), problems, lanes), chain, lambda: _plan(chain, problems, lanes))
 
 
 def _full_plan(device, chain: Chain, n: int, lanes: int):
     """A plan that evaluates every part of the n rows (any layout), for a ``central=True`` call
     whose rows are not a central-difference stack (a solve's last step evaluates its points only):
     Taichi then runs the stack's kernel instead of compiling a second one (its first call costs a
-    warm process ~0.4 s). Kept per device, chain, n and lanes."""
-    per_device = _PLANS.setdefault(device, {})
-    key = (chain.key(), "full", n, lanes)
-    if key not in per_device:
+    warm process ~0.4 s). Kept as :func:`_device_plan`'s."""
+
+    def build():
         groups = -(-n // lanes)
-        order = np.minimum(np.arange(groups * lanes), n - 1).astype(np.int32)
-        moved = np.ones((groups, chain.n_parts), np.int32)
+        order = np.minimum(np.arange(groups * lanes), n - 1).astype(np.int32)  # the last row pads
+        return order, np.ones((groups, chain.n_parts), np.int32)
+
+    return _uploaded(device, (chain.key(), "full", n, lanes), chain, build)
+
+
+def _uploaded(device, key, chain: Chain, build):
+    """The plan of ``key`` on ``device``: (2P + 1, order, moved) with ``build()``'s (order, moved)
+    uploaded the first time."""
+    per_device = _PLANS.setdefault(device, {})
+    if key not in per_device:
+        order, moved = build()
         per_device[key] = (2 * chain.n_params + 1, constant(device, order), constant(device, moved))
     return per_device[key]
 
