@@ -109,8 +109,7 @@ def _run(device, tf, rgb, depth, gray, dimg, camera, consts, outs, residuals, pa
     order, ngroups = dummy, 0
     if plan is not None:
         stride, order_d, moved_d = plan
-        ngroups = order_d.shape[0] // nl
-        groups = ngroups
+        groups = ngroups = order_d.shape[0] // nl  # the plan's groups of nl rows
         order = order_d.buffer.data
         reuse = (moved_d.buffer.data, nb // stride)
     sample = _buffer(device, "sample", groups * n * nl * 4)

@@ -295,7 +295,8 @@ def _rgbd_body(
     tol = cam[7]
     wc = ti.sqrt(1.0 - lam)
     wd = ti.sqrt(lam)
-    # groups = ceil(B / L) (a compile-time value), cut into chunks on the CPU (see chunk)
+    # groups = ceil(B / L) (compile-time in the rgbd and PF kernels, run-time in pose_residuals.py),
+    # cut into chunks on the CPU (see chunk)
     for it in range(groups if ti.static(chunks == 0) else chunks * CPU_TASK):
         g0, g1 = chunk(it, groups, chunks)
         for g in range(g0, g1):
