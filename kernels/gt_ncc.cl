@@ -95,17 +95,18 @@ GT_NCC_ROWS(8)
                                  const float st, const float stt)                                        \
     {                                                                                                   \
         __global const float *row = img + (size_t)yb * (size_t)w + xb;                                  \
-        float##W above = gt_ncc_across##W(row, a);                                                      \
-        const float p0 = above.s0 + bw * (gt_ncc_across##W(row + w, a).s0 - above.s0);                  \
+        float##W above = gt_ncc_across##W(row, a), below = gt_ncc_across##W(row + w, a);                \
+        const float p0 = above.s0 + bw * (below.s0 - above.s0);                                         \
         float##W rp = 0.0f, rpp = 0.0f, rpt = 0.0f;                                                     \
         for (int i = 0; i < W; ++i) {                                                                   \
-            row += w;                                                                                   \
-            const float##W below = gt_ncc_across##W(row, a);                                            \
             const float##W P = above + bw * (below - above) - p0; /* patch row i, shifted by p0 */      \
             rp += P;                                                                                    \
             rpp += P * P;                                                                               \
             rpt += P * vload##W(i, t);                                                                  \
-            above = below;                                                                              \
+            if (i + 1 < W) { /* image rows i + 1 and i + 2 for the next patch row */                    \
+                above = below;                                                                          \
+                below = gt_ncc_across##W(row + (size_t)(i + 2) * (size_t)w, a);                         \
+            }                                                                                           \
         }                                                                                               \
         return gt_ncc_finish((float)(W * W), p0, t0, GT_NCC_HSUM##W(rp), st, GT_NCC_HSUM##W(rpp), stt,  \
                              GT_NCC_HSUM##W(rpt));                                                      \
