@@ -636,6 +636,31 @@ def test_jacobian_callable_matches_reference_for_each_built_p(device, P):
             np.testing.assert_array_equal(got.iterations, ref.iterations)
 
 
+def _unaligned(a):
+    """A C-contiguous copy of ``a`` whose data start 8 bytes past a 16-byte boundary."""
+    buf = np.empty(a.size + 2, a.dtype)
+    start = (-buf.ctypes.data % 16) // a.itemsize + 1
+    out = buf[start : start + a.size].reshape(a.shape)
+    out[...] = a
+    assert out.flags.c_contiguous and out.ctypes.data % 16 == 8
+    return out
+
+
+# taichi:cpu reads a float64 NumPy Jacobian of an even P <= 32 in pairs of columns (as vectors,
+# which assume 16-byte alignment: NumPy's) and any other as scalars
+@pytest.mark.parametrize("P", [6, 20])
+def test_jacobian_in_pairs_and_unaligned_match_reference(device, P):
+    B, M = 3, 40
+    res, jac = _linear_sine(B, M, P, seed=7 + P)
+    x0 = np.full((B, P), 0.05)
+    want = least_squares(res, x0, device=REF, jacobian=jac, max_iter=6)
+    aligned = lambda X: jac(X).astype(np.float64)  # noqa: E731
+    for name, fn in (("aligned", aligned), ("unaligned", lambda X: _unaligned(aligned(X)))):
+        got = least_squares(res, x0, device=device, jacobian=fn, max_iter=6, host=True)
+        assert_matches(device, got.x, want.x.astype(got.dtype), got.dtype, scale=1e2, err_msg=name)
+        assert_matches(device, got.cost, want.cost.astype(got.dtype), got.dtype, scale=1e2, err_msg=name)
+
+
 def _block_mask(M, P):
     """(M, P) bool: rows in groups of 10, group g touching its own 5 parameters (cycling through the
     first P - 8) and the last 8 (shared, as the face bundle's frames and identity)."""

@@ -12,7 +12,9 @@ call with a given kernel, template values, dtypes and ranks of the arrays and ty
 goes through ``kernel(...)``, which compiles and checks everything, and remembers the compiled
 kernel; later calls launch it directly. Only calls whose
 arrays are all Taichi ndarrays without gradients or C-contiguous NumPy arrays (passed by address,
-as ``kernel(...)`` passes them) are remembered; others always go through ``kernel(...)``. A launch
+as ``kernel(...)`` passes them, with the shape of the array without its element's dimensions where
+the kernel's annotation gives the elements a vector type) are remembered; others always go through
+``kernel(...)``. A launch
 context is not reused between launches (Taichi's LLVM launcher does not support that). gputrack's stop of
 Taichi (runtime.stop) empties the cache before the program goes, and a program restarted elsewhere is
 noticed at the next call (another program object empties the cache). A program started while arrays of the stopped program
@@ -42,7 +44,8 @@ def _direct(a) -> bool:
     return isinstance(a, ti.lang._ndarray.Ndarray) and a.grad is None
 
 
-_cache: dict = {}  # (kernel, templates, scalarize, kinds of the arguments) -> (kernel, compiled, program)
+# (kernel, templates, scalarize, kinds of the arguments) -> (kernel, compiled, program, element dims)
+_cache: dict = {}
 _enabled = True
 runtime.on_stop(_cache.clear)  # the program and its compiled kernels go with it, not in the next one's life
 
@@ -54,6 +57,12 @@ def disable_direct(why: str) -> None:
         log.debug("taichi: direct kernel launches off (%s)", why)
     _enabled = False
     _cache.clear()
+
+
+def _element_dims(annotation) -> int:
+    """The dimensions of an array argument's element (1 for an ndarray of vectors, 0 for scalars)."""
+    dtype = getattr(annotation, "dtype", None)
+    return 0 if dtype is None or id(dtype) in ti.types.primitive_types.type_ids else int(dtype.ndim)
 
 
 def _kind(a):
@@ -77,7 +86,7 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
         key = (kernel, templates, scalarize, *(_kind(a) for a in arrays), *(type(c) for c in scalars))
         hit = _cache.get(key)
         if hit is not None:
-            tk, ckd, prog = hit
+            tk, ckd, prog, edims = hit
             if prog is not ti.lang.impl.get_runtime().prog:  # Taichi was restarted: compile again
                 _cache.clear()
             else:
@@ -86,7 +95,8 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
                     if type(a) is np.ndarray:
                         if not a.flags.c_contiguous:
                             break
-                        ctx.set_arg_external_array_with_shape((i,), a.ctypes.data, a.nbytes, a.shape, 0)
+                        shape = a.shape[: a.ndim - edims[i]]  # Taichi takes the shape without the element's
+                        ctx.set_arg_external_array_with_shape((i,), a.ctypes.data, a.nbytes, shape, 0)
                     else:
                         ctx.set_arg_ndarray((i,), a.arr)
                 else:
@@ -106,7 +116,8 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
                 primal = kernel._primal
                 tk = primal.compiled_kernels[primal.ensure_compiled(*args)]
                 prog = ti.lang.impl.get_runtime().prog
-                _cache[key] = (tk, prog.compile_kernel(prog.config(), prog.get_device_caps(), tk), prog)
+                edims = tuple(_element_dims(primal.arguments[i].annotation) for i in range(len(arrays)))
+                _cache[key] = (tk, prog.compile_kernel(prog.config(), prog.get_device_caps(), tk), prog, edims)
             except Exception as e:  # noqa: BLE001 - another Taichi: the public call path from now on
                 log.debug("taichi: direct kernel launch unavailable (%s); using kernel(...)", e)
                 _enabled = False

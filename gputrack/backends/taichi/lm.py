@@ -17,7 +17,11 @@ loop passes per invocation are bounded: lavapipe stops all loops of a shader inv
 ``lm_solve``, ``normal_equations`` and the solver with a Jacobian on taichi:cpu read J (B, M, P)
 as stored, in SIMD lane vectors of columns (the kernels are compiled with scalarisation off): for
 P <= STATIC_P_MAX, P is a compile-time value and each row of J adds its outer product with itself
-to J^T J (``_gram_static``); above it, J^T J is summed in 8 x 8 tiles (``_gram_tiles``).
+to J^T J (``_gram_static``); above it, J^T J is summed in 8 x 8 tiles (``_gram_tiles``). The
+solver reads a Jacobian callable's float64 NumPy result of an even P in place as pairs of columns
+(``_update_pairs``: two-lane vector loads, where LLVM gathers the scalars of a row): a whole solve
+of the exponential fits of perf/bench_lm.py (B = 10, M = 256, P = 20) 4.40 / 4.21 -> 4.20 / 3.94 ms,
+two runs alternating both in one process (2026-12-06).
 Elsewhere (the parallel archs, and the solver's central differences from the stacked residuals)
 the normal equations are dot products over contiguous rows of J^T, two rows by four columns per
 pass over M (``_gram_pair``); strided dot products were 3-4x slower, so J is first transposed.
@@ -282,25 +286,41 @@ def _put4(W: ti.template(), a, P, i, j, s0, s1, s2, s3):
 
 
 @ti.func
+def _jrow(J: ti.template(), b, m, c0: ti.template(), w: ti.template(), V: ti.template(), dt: ti.template()):
+    """J[b, m, c0 .. c0 + w - 1] of the (B, M, P) Jacobian as one lane vector: w scalar loads where
+    J holds scalars (V = 1), w / V vector loads where it holds V-lane vectors (c0, w multiples of V)."""
+    out = ti.Vector([0.0] * w, dt=dt)
+    if ti.static(V == 1):
+        out = ti.Vector([ti.cast(J[b, m, c0 + e], dt) for e in ti.static(range(w))], dt=dt)
+    else:
+        parts = [J[b, m, c0 // V + k] for k in ti.static(range(w // V))]
+        out = ti.Vector([ti.cast(parts[e // V][e % V], dt) for e in ti.static(range(w))], dt=dt)
+    return out
+
+
+@ti.func
 def _gram_static(J: ti.template(), r: ti.template(), b, M, W: ti.template(), a, go, P: ti.template(),
-                 dt: ti.template()):  # fmt: skip
+                 dt: ti.template(), V: ti.template()):  # fmt: skip
     """J^T J (both triangles) into W[a + i*P + j] and J^T r into W[go + i] (eq. 22) from J[b] (M, P)
     as stored, P a compile-time value: the sum over rows m of J of the outer product of row m with
     itself, each product row i..P-1 kept as SIMD vectors of GRAM_SEG columns (lane vectors: the
     kernel is compiled with scalarisation off on the CPU). No transpose, and each row of J is read
-    once: ~5 / 3 us per problem for P = 20 / 14, M = 256, float64 (one thread, 2026-11-23),
-    against ~8.5 / 5.7 us transposing first (``_transpose`` + ``_gram_pair``)."""
+    once. ``V``: 1 where J holds scalars, 2 where it holds pairs (``JAC_PAIRS``): LLVM gathers the
+    scalars of a row (Taichi's int32 index arithmetic hides that they are adjacent) and loads the
+    pairs as vectors. Per problem, P = 20 / 14, M = 256, float64, kernel profiler, one thread, in
+    one run (2026-12-06): ~9 / 7 us from scalars, ~5.5 / 3.5 us from pairs (~5 / 3 us from scalars
+    on 2026-11-23: the machine's speed varies); ~8.5 / 5.7 us transposing first (``_transpose`` +
+    ``_gram_pair``, 2026-11-23)."""
     S = ti.static(GRAM_SEG)
     NS = ti.static((P + S - 1) // S)
     WS = ti.static([min(S, P - S * q) for q in range(NS)])  # segment widths (the last one may be narrower)
     acc = [[ti.Vector([0.0] * WS[q], dt=dt) for q in ti.static(range(i // S + 1))] for i in ti.static(range(P))]
     accg = [ti.Vector([0.0] * WS[q], dt=dt) for q in ti.static(range(NS))]
     for m in range(M):
-        seg = [ti.Vector([ti.cast(J[b, m, S * q + e], dt) for e in ti.static(range(WS[q]))], dt=dt)
-               for q in ti.static(range(NS))]  # fmt: skip
+        seg = [_jrow(J, b, m, S * q, WS[q], V, dt) for q in ti.static(range(NS))]
         rm = ti.cast(r[b, m], dt)
         for i in ti.static(range(P)):
-            x = ti.cast(J[b, m, i], dt)  # a broadcast load (an element of seg would be a shuffle)
+            x = _jrow(J, b, m, i // V * V, V, V, dt)[i % V]  # a broadcast load, or a lane of a pair
             for q in ti.static(range(i // S + 1)):
                 acc[i][q] += x * seg[q]
         for q in ti.static(range(NS)):
@@ -442,7 +462,7 @@ def _normal_equations(J: nd, r: nd, JtJ: nd, Jtr: nd, W: nd, dt: ti.template(), 
     ti.loop_config(serialize=True)  # B small problems: one task (see _per_problem)
     for b in range(B):
         if ti.static(SP > 0):
-            _gram_static(J, r, b, M, W, b * WB, b * WB + SP * SP + SP * M, SP, dt)  # eq. 22
+            _gram_static(J, r, b, M, W, b * WB, b * WB + SP * SP + SP * M, SP, dt, 1)  # eq. 22
         else:
             _gram_tiles(J, r, b, M, P, W, b * WB, b * WB + P * P + P * M, dt)  # eq. 22
     for t in range(B * P * P):
@@ -531,7 +551,7 @@ def _solve_one(
     a = b * _ops_block(P, M)
     jt = a + P * P
     if ti.static(SP > 0):
-        _gram_static(J, r, b, M, W, a, jt + SP * M, SP, dt)  # eq. 22: J^T J, J^T r
+        _gram_static(J, r, b, M, W, a, jt + SP * M, SP, dt, 1)  # eq. 22: J^T J, J^T r
     else:
         _gram_tiles(J, r, b, M, P, W, a, jt + P * M, dt)  # eq. 22: J^T J, J^T r
     for i in range(P):
@@ -542,6 +562,15 @@ def _solve_one(
 def _work(device, shape, dtype):
     """The ops' work array (runtime.scratch: kept per device and shape; Taichi allocations are slow)."""
     return scratch(device, "lm_ops", shape, _ti_dtype(dtype))
+
+
+def _in_pairs(J) -> bool:
+    """The solver's Jacobian J (B, M, P) is read as pairs of columns on taichi:cpu (``_update_pairs``):
+    a float64 NumPy array (the kernels read it in place) with P even and <= STATIC_P_MAX, C-contiguous
+    and 16-byte aligned (as NumPy allocates; a vector load assumes it)."""
+    P = J.shape[2]
+    return (type(J) is np.ndarray and J.dtype == np.float64 and P % 2 == 0 and P <= STATIC_P_MAX
+            and J.flags.c_contiguous and J.ctypes.data % 16 == 0)  # fmt: skip
 
 
 def _static_p(P: int) -> int:
@@ -1087,68 +1116,80 @@ def _init_problem(X0: ti.template(), K: ti.template(), S: ti.template(), I: ti.t
     S[base + LAY.S_NVEC * P + LAY.SC_NU] = ti.cast(2, dt)  # nu
 
 
-@ti.kernel
-def _update(
-    S: nd,
-    I: nd,
-    W: nd,
-    X: nd,
-    R: nd,
-    Jg: nd,
-    Out: nd,
-    first: ti.i32,
-    final: ti.i32,
-    dt: ti.template(),
-    use_jac: ti.template(),
-    fused: ti.template(),
-    SP: ti.template(),
-):
-    """One solver iteration on taichi:cpu (the parallel archs run ``_update_tasks``); ``Jg`` is the
-    user's Jacobian when ``use_jac``, else unused (pass R). ``fused`` (central differences without a
-    mask): J^T J and J^T r straight from the stacked residuals, J^T never stored (on taichi:cpu
-    storing it cost as much as the products). With ``use_jac``, J^T J and J^T r at the trial come
-    straight from Jg as stored into the factor's block L and the first P values of J^T (J^T never
-    stored) and move to A and g if the trial is accepted (J is finite iff the diagonal of J^T J
-    is): ``SP`` is P as a compile-time value (``_gram_static``) or TILES (``_gram_tiles``)."""
-    ti.static_assert(not use_jac or SP != 0, "the solver's Jacobian path on taichi:cpu needs SP (_static_p)")
-    B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
-    NPR = (P + 1) // 2  # row pairs
-    ti.loop_config(serialize=True)
-    for b in range(B):  # every phase of problem b, in order
-        if final == 0 and I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
-            if ti.static(fused):
-                _phase_finite(S, I, R, b, dt)
-            elif ti.static(use_jac):
-                A = b * _wb(P, M) + LAY.W_A * P * P
-                L = A + (LAY.W_L - LAY.W_A) * P * P
-                jt = b * _wb(P, M) + LAY.W_NSQ * P * P
-                if ti.static(SP > 0):
-                    _gram_static(Jg, R, b, M, W, L, jt, SP, dt)  # eq. 22 at the trial
-                else:
-                    # the rest of the J^T block holds the row blocks that _gram_tile skips
-                    z = ti.select(P * M - P >= M * ((P + GRAM_SEG - 1) // GRAM_SEG), jt + P, -1)
-                    _gram_tiles(Jg, R, b, M, P, W, L, jt, dt, z)  # eq. 22 at the trial
-                for n in range(P):
-                    I[_ib(b, P) + LAY.I_FIN + n] = _finite(W[L + n * P + n], dt)
-            else:
-                for n in range(P):
-                    _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
-        _phase_accept(S, I, W, R, b, dt, first, final)
-        if final == 0:
-            if ti.static(use_jac):
-                if I[_ib(b, P) + LAY.I_ACCEPTED]:
+def _update_kernel(jg, lanes, name):
+    """The solver's taichi:cpu iteration (a Taichi kernel named ``name``), its Jacobian argument
+    annotated as ``jg``, whose elements have ``lanes`` columns (``_gram_static``'s V)."""
+
+    def update(
+        S: nd,
+        I: nd,
+        W: nd,
+        X: nd,
+        R: nd,
+        Jg: jg,
+        Out: nd,
+        first: ti.i32,
+        final: ti.i32,
+        dt: ti.template(),
+        use_jac: ti.template(),
+        fused: ti.template(),
+        SP: ti.template(),
+    ):
+        """One solver iteration on taichi:cpu (the parallel archs run ``_update_tasks``); ``Jg`` is the
+        user's Jacobian when ``use_jac``, else unused (pass R). ``fused`` (central differences without a
+        mask): J^T J and J^T r straight from the stacked residuals, J^T never stored (on taichi:cpu
+        storing it cost as much as the products). With ``use_jac``, J^T J and J^T r at the trial come
+        straight from Jg as stored into the factor's block L and the first P values of J^T (J^T never
+        stored) and move to A and g if the trial is accepted (J is finite iff the diagonal of J^T J
+        is): ``SP`` is P as a compile-time value (``_gram_static``) or TILES (``_gram_tiles``)."""
+        ti.static_assert(not use_jac or SP != 0, "the solver's Jacobian path on taichi:cpu needs SP (_static_p)")
+        B, P, M = I[LAY.IG_B], I[LAY.IG_P], R.shape[1]
+        NPR = (P + 1) // 2  # row pairs
+        ti.loop_config(serialize=True)
+        for b in range(B):  # every phase of problem b, in order
+            if final == 0 and I[_ib(b, P) + LAY.I_STATUS] == RUNNING:
+                if ti.static(fused):
+                    _phase_finite(S, I, R, b, dt)
+                elif ti.static(use_jac):
                     A = b * _wb(P, M) + LAY.W_A * P * P
                     L = A + (LAY.W_L - LAY.W_A) * P * P
                     jt = b * _wb(P, M) + LAY.W_NSQ * P * P
-                    for k in range(P * P):
-                        W[A + k] = W[L + k]
+                    if ti.static(SP > 0):
+                        _gram_static(Jg, R, b, M, W, L, jt, SP, dt, lanes)  # eq. 22 at the trial
+                    else:
+                        # the rest of the J^T block holds the row blocks that _gram_tile skips
+                        z = ti.select(P * M - P >= M * ((P + GRAM_SEG - 1) // GRAM_SEG), jt + P, -1)
+                        _gram_tiles(Jg, R, b, M, P, W, L, jt, dt, z)  # eq. 22 at the trial
                     for n in range(P):
-                        S[b * _sb(P) + LAY.S_G * P + n] = W[jt + n]
-            else:
-                for i2 in range(NPR):
-                    _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
-            _phase_step(S, I, W, X, b, M, dt)
-        _export(S, I, Out, b, P)
+                        I[_ib(b, P) + LAY.I_FIN + n] = _finite(W[L + n * P + n], dt)
+                else:
+                    for n in range(P):
+                        _phase_jacobian(S, I, W, R, Jg, b, n, dt, use_jac)
+            _phase_accept(S, I, W, R, b, dt, first, final)
+            if final == 0:
+                if ti.static(use_jac):
+                    if I[_ib(b, P) + LAY.I_ACCEPTED]:
+                        A = b * _wb(P, M) + LAY.W_A * P * P
+                        L = A + (LAY.W_L - LAY.W_A) * P * P
+                        jt = b * _wb(P, M) + LAY.W_NSQ * P * P
+                        for k in range(P * P):
+                            W[A + k] = W[L + k]
+                        for n in range(P):
+                            S[b * _sb(P) + LAY.S_G * P + n] = W[jt + n]
+                else:
+                    for i2 in range(NPR):
+                        _phase_normal(S, I, W, R, b, 2 * i2, dt, fused)
+                _phase_step(S, I, W, X, b, M, dt)
+            _export(S, I, Out, b, P)
+
+    update.__name__ = update.__qualname__ = name
+    return ti.kernel(update)
+
+
+_update = _update_kernel(nd, 1, "_update")
+#: the user's float64 Jacobian (B, M, P) in pairs of columns (B, M, P / 2, 2), as NumPy stores it
+JAC_PAIRS = ti.types.ndarray(dtype=ti.types.vector(2, ti.f64), ndim=3)
+_update_pairs = _update_kernel(JAC_PAIRS, 2, "_update_pairs")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1957,6 +1998,10 @@ def solver_update(state, R, X, *, first, final, jac=None):
     Jg = R if jac is None else jac  # unused without a Jacobian callable
     args = (S, I, W, _buf(X), _buf(R), _buf(Jg), Out)
     if _per_problem():
+        kernel = _update
+        if jac is not None and _in_pairs(jac):
+            kernel = _update_pairs
+            args = (*args[:5], jac.reshape(*jac.shape[:2], -1, 2), Out)
         # central / forward differences without a mask: 1 / 2 (``_phase_normal``); the final call
         # (residuals at the last points only) takes the solve's other calls' kernel, whose J^T J it skips
         if not final:
@@ -1964,7 +2009,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
             if jac is None and not state.lay.has_mask:
                 state.fused = 1 if R.shape[0] == state.lay.B * (2 * state.lay.P + 1) else 2
         SP = _static_p(state.lay.P) if jac is not None else 0
-        launch(_update, args, (state.dt, jac is not None, state.fused, SP), scalars=(int(first), int(final)),
+        launch(kernel, args, (state.dt, jac is not None, state.fused, SP), scalars=(int(first), int(final)),
                scalarize=jac is None)  # fmt: skip
     else:
         B, P = state.lay.B, state.lay.P
