@@ -1,3 +1,6 @@
+import json
+import os
+
 import numpy as np
 import pytest
 
@@ -287,3 +290,24 @@ def test_a_closed_device_and_its_arrays_are_unavailable(device):
         gputrack.best_k(device, old, 1)
     with pytest.raises(gputrack.DeviceUnavailable, match="^" + want):
         device.asarray(old)
+
+
+@pytest.mark.parametrize("given", [None, "0"])
+def test_pocl_defaults_apply_only_where_the_environment_has_none(given):
+    """gputrack's PoCL settings (backends/opencl/device.py POCL_DEFAULTS) go into the environment
+    before PoCL starts, unless the process was given its own."""
+    import subprocess
+    import sys
+
+    from gputrack.backends.opencl.device import POCL_DEFAULTS
+
+    env = {k: v for k, v in os.environ.items() if k not in POCL_DEFAULTS}
+    if given is not None:
+        env.update(dict.fromkeys(POCL_DEFAULTS, given))
+    code = ("import os, json, gputrack.backends.opencl.device as d\n"
+            "try:\n    d._enumerate()\nexcept RuntimeError:\n    pass\n"
+            "print(json.dumps({k: os.environ.get(k) for k in d.POCL_DEFAULTS}))")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got == (POCL_DEFAULTS if given is None else dict.fromkeys(POCL_DEFAULTS, given))

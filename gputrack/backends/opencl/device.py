@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 
 import numpy as np
@@ -18,10 +19,23 @@ def _slug(name: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
 
 
+#: PoCL settings gputrack gives where the process has none (read when PoCL starts, at the first
+#: platform query): its CPU driver's worker threads bound to one core each. A kernel that follows
+#: host work (an LM iteration after the residual callables, a face frame's stages) then started and
+#: ran on a worker whose core kept its place: on the 2-vCPU VM (2026-12-06, one process alternating
+#: both settings, or runs in turn) the exp fit's whole solve of perf/bench_lm.py 4.63 / 4.76 -> 4.00
+#: ms (the Taichi solve in the same process 4.14 / 4.17 -> 4.34 ms), the face tracker's frame 6.74 /
+#: 6.29 -> 5.43 / 5.52 ms; the body frame within the noise (17.1-20.0 against 14.5-22.9 ms).
+#: ``POCL_AFFINITY=0`` in the environment keeps PoCL's default.
+POCL_DEFAULTS = {"POCL_AFFINITY": "1"}
+
+
 def _enumerate():
     """[(spec, platform, device)] for every OpenCL device, or raise with the reason there are none."""
     import pyopencl as cl
 
+    for name, value in POCL_DEFAULTS.items():
+        os.environ.setdefault(name, value)
     try:
         platforms = cl.get_platforms()
     except cl.Error as e:
