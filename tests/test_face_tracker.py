@@ -201,6 +201,9 @@ def test_table1_on_a_simulated_sequence(device, data):
     rec = track_sequence(device, Frames(), model, FaceConfig())
     t = table1(rec["errors"])
     assert rec["lost"].sum() == 0
+    # the feature points (eq. 14) within a few px of the true landmarks, every frame measured
+    assert rec["feature_px"].shape == (90,) and np.isfinite(rec["feature_px"]).all()
+    assert 0.1 < rec["feature_px"].mean() < 4.0
     assert t["x"][0] < 3.0 and t["y"][0] < 3.0 and t["z"][0] < 40.0
     assert t["roll"][0] < 2.0 and t["pitch"][0] < 6.0 and t["yaw"][0] < 6.0
     assert np.isfinite(rec["errors"]).all()
@@ -230,6 +233,8 @@ def test_landmark_floor_is_the_size_the_landmarks_cannot_show(data):
                                           landmarks2d=project(seq.camera, rodrigues(rvec), t, scale * base)))
         out[scale] = landmark_floor(model, frames, seq.camera, FaceConfig())
     assert abs(out[1.0]["relative"]) < 1e-6 and out[1.0]["rms"] < 1e-6
+    # the size is what the points cannot show; the rotations they show exactly, at either size
+    assert max(out[1.0]["rotation_deg"]) < 1e-4 and max(out[1.1]["rotation_deg"]) < 1e-2
     assert abs(out[1.1]["relative"] - (1 / 1.1 - 1)) < 1e-4 and out[1.1]["rms"] < 1e-3
     np.testing.assert_allclose(out[1.1]["z_mm"], 660 * (1 - 1 / 1.1), rtol=1e-3)  # the frames' mean depth 660 mm
     assert sorted(out[1.0]["keyframes"]) == [0, 1, 2, 9, 10, 11, 12]  # the turns' two ends

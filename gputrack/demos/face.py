@@ -10,8 +10,9 @@ Haar face box. Reported: per-frame progress, Table 1 (errors of x, y, z in mm an
 in deg, mean and std) for both models beside the paper's, the shape error as the identity
 converges (Fig. 7), two depth floors (the multilinear tracker with the true identity given and
 fixed: how far the z error can fall with the person's size known; and :func:`landmark_floor`, the
-bundle adjustment on perfect feature points: the error the size the landmarks give leaves) and
-the per-stage timing. ``save``: a directory for pictures (frames with the feature points and the
+bundle adjustment on perfect feature points: the error the size the landmarks give leaves, and
+the rotation they leave), how far the tracked feature points lie from the true landmarks
+(:func:`feature_error`) and the per-stage timing. ``save``: a directory for pictures (frames with the feature points and the
 head's axes; the errors over the frames).
 """
 
@@ -26,12 +27,13 @@ import time
 import numpy as np
 
 from ..models.face import FaceModel, PcaFaceModel, load_ict
+from ..models.pose import rodrigues
 from ..registry import device as get_device
 from ..sim.face import face_sequence
 from ..trackers.face import FaceConfig, FaceTracker
 from ..trackers.face.metrics import PAPER_TABLE1, format_table1, pose_errors, shape_error, table1
 
-__all__ = ["landmark_floor", "run", "track_sequence", "write_json"]
+__all__ = ["feature_error", "landmark_floor", "run", "track_sequence", "write_json"]
 
 
 def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
@@ -85,8 +87,17 @@ def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init=
     err = pose_errors(R, t, np.array([f.rotation for f in truth]), np.array([f.translation for f in truth]))
     shape = np.array([shape_error(model, e.identity, e.expression, f.shape) for e, f in zip(ests, truth)])
     return {"errors": err, "shape_error": shape, "ms": np.array(ms), "start_ms": start_ms,
+            "feature_px": np.array([feature_error(e.features, f) for e, f in zip(ests, truth)]),
             "lost": np.array([e.lost for e in ests]), "confidence": np.array([e.confidence for e in ests]),
             "tracker": trk}  # fmt: skip
+
+
+def feature_error(features, frame) -> float:
+    """Mean distance (px) of a frame's feature points (K, 2) to the true landmarks of the simulated
+    ``frame`` over the points both have (visible, and not NaN: not lost); NaN where there are none."""
+    d = np.linalg.norm(np.asarray(features, np.float64) - np.asarray(frame.landmarks2d, np.float64), axis=1)
+    d = d[np.asarray(frame.visible, bool) & np.isfinite(d)]
+    return float(d.mean()) if len(d) else float("nan")
 
 
 def _picture(save, label, k, f, est, camera) -> None:
@@ -174,6 +185,12 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
               f"{among} with the widest spread of face directions): the size they give this person puts it "
               f"{100 * lf['relative']:+.1f} % off in depth, a z error of {lf['z_mm']:.1f} mm (the floor without "
               f"the true identity; with it, the \"true identity\" rows of Table 1)", file=out)  # fmt: skip
+        roll, pitch, yaw = lf["rotation_deg"]
+        print(f"rotation from the same perfect feature points: roll {roll:.2f}, pitch {pitch:.2f}, yaw {yaw:.2f} deg "
+              "(mean over those frames)", file=out)  # fmt: skip
+    fp = {k: float(np.nanmean(r["feature_px"])) for k, r in records.items()}
+    print("feature points after eq. 14, mean distance to the true landmarks: "
+          + ", ".join(f"{k} {v:.2f} px" for k, v in fp.items()), file=out)  # fmt: skip
     rec = records["multilinear"]
     se = rec["shape_error"]
     marks = [k for k in (0, 6, 30, 100, 200, len(se) - 1) if k < len(se)]
@@ -192,7 +209,9 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
     report = {"device": {"spec": device.spec, "name": device.name},
               "sequence": {"name": name, "frames": len(seq), "seed": seed, "init": init},
               "table1": tables, "shape_error": {int(k): float(se[k]) for k in marks},
-              "landmark_floor": None if lf is None else {"relative": lf["relative"], "z_mm": lf["z_mm"]},
+              "landmark_floor": None if lf is None else {"relative": lf["relative"], "z_mm": lf["z_mm"],
+                                                         "rotation_deg": list(lf["rotation_deg"])},
+              "feature_px": fp,
               "lost": {k: int(r["lost"].sum()) for k, r in records.items()},
               "detection_proposals": {k: {"made": r["tracker"].proposals, "taken": r["tracker"].proposals_taken}
                                       for k, r in records.items()},
@@ -215,8 +234,10 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
     :class:`~gputrack.sim.face.FaceFrame`).
 
     Returns {"relative": the median over the key frames of z_estimated / z_true - 1, "z_mm": |that|
-    times the frames' mean true depth (the z error of Table 1 such a size error gives), "keyframes":
-    their indices into ``frames``, "rms": the adjustment's reprojection RMS (px)}."""
+    times the frames' mean true depth (the z error of Table 1 such a size error gives), "rotation_deg":
+    the mean absolute roll, pitch and yaw errors over the key frames (the rotation such points leave
+    with the identity they imply), "keyframes": their indices into ``frames``, "rms": the
+    adjustment's reprojection RMS (px)}."""
     from ..trackers.face.bundle import START_POSE_RANGE, bundle_adjust, keyframe_slot
 
     n = config.keyframes
@@ -239,7 +260,11 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
     z = np.array([f.translation[2] for f in fk], np.float64)
     rel = float(np.median(res.tvecs[:, 2] / z - 1.0))
     depth = float(np.mean([f.translation[2] for f in frames]))
-    return {"relative": rel, "z_mm": abs(rel) * depth, "keyframes": keys, "rms": res.rms}
+    err = pose_errors(np.array([rodrigues(r) for r in res.rvecs]), res.tvecs,
+                      np.array([rodrigues(np.asarray(f.rvec, np.float64)) for f in fk]),
+                      np.array([f.translation for f in fk]))  # fmt: skip
+    rotation = tuple(float(v) for v in err[:, 3:].mean(axis=0))
+    return {"relative": rel, "z_mm": abs(rel) * depth, "rotation_deg": rotation, "keyframes": keys, "rms": res.rms}
 
 
 def _true_samples(ict, identity, model) -> np.ndarray:
