@@ -654,7 +654,7 @@ def test_jacobian_in_pairs_and_unaligned_match_reference(device, P):
     res, jac = _linear_sine(B, M, P, seed=7 + P)
     x0 = np.full((B, P), 0.05)
     want = least_squares(res, x0, device=REF, jacobian=jac, max_iter=6)
-    aligned = lambda X: jac(X).astype(np.float64)  # noqa: E731
+    aligned = lambda X: jac(X).astype(np.float64)
     for name, fn in (("aligned", aligned), ("unaligned", lambda X: _unaligned(aligned(X)))):
         got = least_squares(res, x0, device=device, jacobian=fn, max_iter=6, host=True)
         assert_matches(device, got.x, want.x.astype(got.dtype), got.dtype, scale=1e2, err_msg=name)
