@@ -26,6 +26,7 @@ interface is not what this module expects (another Taichi version), every call g
 
 from __future__ import annotations
 
+import ctypes
 import logging
 
 import numpy as np
@@ -57,6 +58,15 @@ def disable_direct(why: str) -> None:
         log.debug("taichi: direct kernel launches off (%s)", why)
     _enabled = False
     _cache.clear()
+
+
+def address(a: np.ndarray) -> int:
+    """The address of a C-contiguous NumPy array's data: through ctypes' view of a writable buffer
+    (~0.4 us), else ``a.ctypes.data`` (~1.1-2.2 us: it builds a helper object each time)."""
+    try:
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+    except (TypeError, ValueError):  # read-only, or empty
+        return a.ctypes.data
 
 
 def _element_dims(annotation) -> int:
@@ -96,7 +106,7 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
                         if not a.flags.c_contiguous:
                             break
                         shape = a.shape[: a.ndim - edims[i]]  # Taichi takes the shape without the element's
-                        ctx.set_arg_external_array_with_shape((i,), a.ctypes.data, a.nbytes, shape, 0)
+                        ctx.set_arg_external_array_with_shape((i,), address(a), a.nbytes, shape, 0)
                     else:
                         ctx.set_arg_ndarray((i,), a.arr)
                 else:

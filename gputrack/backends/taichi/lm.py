@@ -67,7 +67,7 @@ import numpy as np
 from ...abi import LMLayout as LAY
 from ...abi import LMReason, LMScale, LMStatus
 from .arrays import copy
-from .launch import launch
+from .launch import address, launch
 from .runtime import SPIRV_GRID_ITEMS, current_arch, loop_limit, scratch, ti
 
 nd = ti.types.ndarray()
@@ -570,7 +570,7 @@ def _in_pairs(J) -> bool:
     and 16-byte aligned (as NumPy allocates; a vector load assumes it)."""
     P = J.shape[2]
     return (type(J) is np.ndarray and J.dtype == np.float64 and P % 2 == 0 and P <= STATIC_P_MAX
-            and J.flags.c_contiguous and J.ctypes.data % 16 == 0)  # fmt: skip
+            and J.flags.c_contiguous and address(J) % 16 == 0)  # fmt: skip
 
 
 def _static_p(P: int) -> int:
