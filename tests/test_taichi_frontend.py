@@ -101,3 +101,31 @@ def test_compile_errors_name_file_line_and_code(taichi):
     line = inspect.getsourcelines(test_compile_errors_name_file_line_and_code)[1] + 7
     assert __file__ in text and f"line {line}" in text
     assert "not_defined_anywhere(a[i])" in text
+
+
+def test_direct_launch_of_numpy_arrays_of_vector_elements(taichi):
+    """launch.py's direct path passes a NumPy argument annotated with vector elements as Taichi's own
+    call does (the shape without the element's dimension): the first launch compiles through
+    ``kernel(...)``, the next go direct, and every launch reads and writes the right elements."""
+    device, runtime = taichi
+    if runtime.current_arch() != "cpu":
+        pytest.skip(f"{device.spec}: NumPy arrays are passed to Taichi kernels by address on taichi:cpu only")
+    from gputrack.backends.taichi import launch as L
+
+    ti = runtime.ti
+    pairs = ti.types.ndarray(dtype=ti.types.vector(2, ti.f64), ndim=2)
+
+    @ti.kernel
+    def swap_and_scale(a: pairs, out: ti.types.ndarray(), k: ti.f64):
+        for i, j in ti.ndrange(a.shape[0], a.shape[1]):
+            out[i, 2 * j] = k * a[i, j][1]
+            out[i, 2 * j + 1] = k * a[i, j][0]
+
+    rng = np.random.default_rng(3)
+    for k in (1.0, 2.0, -0.5):  # the first compiles, the others launch directly
+        a = rng.normal(size=(3, 8))
+        out = np.zeros((3, 8))
+        L.launch(swap_and_scale, (a.reshape(3, 4, 2), out), scalars=(k,))
+        want = k * a.reshape(3, 4, 2)[..., ::-1].reshape(3, 8)
+        np.testing.assert_array_equal(out, want)
+    assert any(key[0] is swap_and_scale for key in L._cache)  # remembered for direct launches
