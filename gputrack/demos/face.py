@@ -12,8 +12,8 @@ converges (Fig. 7), two depth floors (the multilinear tracker with the true iden
 fixed: how far the z error can fall with the person's size known; and :func:`landmark_floor`, the
 bundle adjustment on perfect feature points: the error the size the landmarks give leaves, and
 the rotation they leave), how far the tracked feature points lie from the true landmarks
-(:func:`feature_error`) and the per-stage timing. ``save``: a directory for pictures (frames with the feature points and the
-head's axes; the errors over the frames).
+(:func:`feature_error`) and the per-stage timing. ``save``: a directory for pictures (frames with
+the feature points and the head's axes; the errors over the frames).
 """
 
 from __future__ import annotations
