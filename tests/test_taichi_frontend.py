@@ -103,7 +103,7 @@ def test_compile_errors_name_file_line_and_code(taichi):
     assert "not_defined_anywhere(a[i])" in text
 
 
-def test_direct_launch_of_numpy_arrays_of_vector_elements(taichi):
+def test_direct_launch_of_numpy_arrays_of_vector_elements(taichi, monkeypatch):
     """launch.py's direct path passes a NumPy argument annotated with vector elements as Taichi's own
     call does (the shape without the element's dimension): the first launch compiles through
     ``kernel(...)``, the next go direct, and every launch reads and writes the right elements."""
@@ -111,6 +111,12 @@ def test_direct_launch_of_numpy_arrays_of_vector_elements(taichi):
     if runtime.current_arch() != "cpu":
         pytest.skip(f"{device.spec}: NumPy arrays are passed to Taichi kernels by address on taichi:cpu only")
     from gputrack.backends.taichi import launch as L
+
+    # a test process that ran another arch first may have turned direct launches off for its Taichi
+    # program (runtime.direct_off: arrays of the stopped program still alive); this kernel touches
+    # NumPy arrays only, so the direct path is turned on for it alone
+    monkeypatch.setattr(runtime, "direct_off", None)
+    monkeypatch.setattr(L, "_enabled", True)
 
     ti = runtime.ti
     pairs = ti.types.ndarray(dtype=ti.types.vector(2, ti.f64), ndim=2)
