@@ -36,9 +36,10 @@ The shape model is used through its public interface only: ``expression_basis(s)
 multilinear model: linear; the generic PCA model: constant, with S' = 0), so
 X = mean + (L0 + sum_p s_p G_p) a with L0 = basis(0), G_p = basis(e_p) - L0 (:func:`model_terms`).
 
-**Solve** (:func:`bundle_adjust`): a :class:`gputrack.LeastSquaresSolver` with B = 1, the analytic Jacobian
-and the box, on any device (:class:`IncrementalBundle` holds its solvers and residual kernels from
-frame to frame). The residuals and Jacobian come from a device kernel
+**Solve** (:func:`bundle_adjust`): a :class:`gputrack.LeastSquaresSolver` with B = 1, the analytic
+Jacobian, the box and MINPACK's damping scale (each parameter damped relative to its own diag(J^T J):
+radians, millimetres and model coordinates alike), on any device (:class:`IncrementalBundle` holds
+its solvers and residual kernels from frame to frame). The residuals and Jacobian come from a device kernel
 (:class:`gputrack.ops.face_bundle.LandmarkResiduals`: one launch per iteration, nothing through the
 host; the model and each solve's landmarks uploaded once) where :func:`device_model` says so, else
 from the host model in float64, handed to the solver as NumPy arrays (its ``host`` mode).
@@ -53,7 +54,6 @@ import logging
 
 import numpy as np
 
-from ...device import to_numpy
 from ...models.camera import Camera
 from ...models.pose import rodrigues
 from ...ops.face_bundle import LandmarkFrames, LandmarkModel, LandmarkResiduals, evaluate, geometry
@@ -75,8 +75,9 @@ __all__ = [
 
 #: default box half-widths of a pose (eq. 8): rotation (rad per rvec component), translation (mm)
 POSE_RANGE = (0.15, 30.0)
-#: the LM's initial damping C in the scaled parameters (whose start Jacobian has unit columns, see
-#: BundleProblem.solve): 1e-3 of the diagonal, Nielsen's usual tau
+#: the LM's damping scale (:class:`gputrack.LeastSquaresSolver`'s ``damping_scale``) and initial
+#: damping C: 1e-3 of each parameter's diag(J^T J) (Nielsen's usual tau)
+DAMPING_SCALE = "minpack"
 DAMPING = 1e-3
 #: the box of the start poses in :meth:`IncrementalBundle.start` (rad, mm)
 START_POSE_RANGE = (0.5, 300.0)
@@ -344,7 +345,8 @@ class BundleProblem:
         (``profile``: the solver times each part of a solve, see :class:`gputrack.LeastSquaresSolver`)."""
         if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
             raise ValueError(f"max_iter: expected an int >= 0, got {max_iter!r}")
-        return LeastSquaresSolver(device, (1, self.P), max_iter=int(max_iter), early_stop=False, profile=profile)
+        return LeastSquaresSolver(device, (1, self.P), max_iter=int(max_iter), early_stop=False, damping_scale=DAMPING_SCALE,
+                                  profile=profile)  # fmt: skip
 
     def landmarks(self, device) -> LandmarkResiduals | None:
         """The residuals and Jacobian of problems of this one's size as a device kernel on ``device``
@@ -370,27 +372,18 @@ class BundleProblem:
         elif not isinstance(landmarks, LandmarkResiduals) or landmarks.device is not device or landmarks.P != self.P:
             raise ValueError(f"landmarks: expected residuals of this problem's size (P={self.P}) on {device.spec}, "
                              f"got {landmarks!r}")  # fmt: skip
-        # Jacobi scaling (as MINPACK's diag): the solver works in y = x / d with d_j = 1 / |column j of J|
-        # at the start, so that its damping C I (C relative to the unit diagonal) treats radians,
-        # millimetres and model coordinates alike; fixed parameters (lower == upper) keep d = 1. J at
-        # the start comes from the device kernel where there is one (the host model took ~0.1-0.25 ms).
-        if landmarks is not None:
-            landmarks.update(dataclasses.replace(self._frames, scale=None))
-            J0 = np.asarray(to_numpy(landmarks.jacobian(self.x0[None])), np.float64)
-        else:
-            r0, J0 = self.evaluate(self.x0[None])
-        norm = np.sqrt(np.einsum("mp,mp->p", J0[0], J0[0]))
-        d = np.where((self.upper > self.lower) & (norm > 1e-12 * max(norm.max(), 1e-300)), 1.0 / np.maximum(norm, 1e-300),
-                     1.0)  # fmt: skip
-        y0 = (self.x0 / d)[None]
+        # the damping scaled as MINPACK's (the running maximum of diag(J^T J)): C relative to each
+        # parameter's own curvature treats radians, millimetres and model coordinates alike, and the
+        # solver keeps the scale on the device (scaling the parameters by the start Jacobian's column
+        # norms instead took one more Jacobian launch, its download and a second upload a solve)
         if landmarks is not None:  # on the device: one kernel per iteration, nothing through the host
-            landmarks.update(dataclasses.replace(self._frames, scale=d))
+            landmarks.update(self._frames)
             fns, host = landmarks, False
         else:
-            fns, host = _Callables(self, d, start=(y0, r0, J0)), True
-        res = solver.solve(fns.residuals, y0, jacobian=fns.jacobian, lower=self.lower / d,
-                           upper=self.upper / d, damping=DAMPING, host=host)  # fmt: skip
-        x = np.clip(res.x[0].astype(np.float64) * d, self.lower, self.upper)
+            fns, host = _Callables(self), True
+        res = solver.solve(fns.residuals, self.x0[None], jacobian=fns.jacobian, lower=self.lower, upper=self.upper,
+                           damping=DAMPING, host=host)  # fmt: skip
+        x = np.clip(res.x[0].astype(np.float64), self.lower, self.upper)
         rv, tv, ex, s = self.unpack(x)
         # F of eq. 6 at x: the solver's cost there less the identity prior's rows (a host evaluation
         # of the landmarks took ~0.2 ms a frame)
@@ -416,28 +409,21 @@ class _Callables:
     """The residual and Jacobian callables handed to the solver in its host mode (NumPy points in,
     NumPy results out). Both are evaluated at the same point each iteration: the residual call
     computes the Jacobian too and keeps it for the Jacobian call that the solver makes next at the
-    same points (its protocol). ``start``: (Y0, r, J) the residuals and Jacobian already evaluated at
-    the scaled start points Y0, returned for the solver's first call there."""
+    same points (its protocol)."""
 
-    def __init__(self, problem: BundleProblem, scale, start=None):
-        self.problem, self.scale, self._start = problem, scale, start
+    def __init__(self, problem: BundleProblem):
+        self.problem = problem
         self._J, self._dtype = None, np.dtype(np.float64)
 
     def residuals(self, X):
-        start, self._start = self._start, None
-        if start is not None and X.shape == start[0].shape and np.array_equal(X, start[0]):
-            r, self._J = start[1], start[2]
-        else:
-            x = X.astype(np.float64) * self.scale
-            r, self._J = self.problem.evaluate(x, jacobian=x.shape[0] == 1)
+        r, self._J = self.problem.evaluate(X.astype(np.float64), jacobian=X.shape[0] == 1)
         self._dtype = X.dtype
         return r.astype(X.dtype, copy=False)
 
     def jacobian(self, X):
         if self._J is None:
             self.residuals(X)
-        J = self._J * self.scale
-        self._J = None
+        J, self._J = self._J, None
         return J.astype(self._dtype, copy=False)
 
 
