@@ -89,7 +89,7 @@ def test_tracker_templates_equal_reference(device):
 
 @pytest.mark.parametrize("pose", sorted(POSES))
 @pytest.mark.parametrize("n, n_depth, window, border, spacing", [(128, 128, 5, 2, 4.0), (200, 60, 3, 1, 2.5),
-                                                                  (64, 300, 7, 0, 6.0)])  # fmt: skip
+                                                                  (64, 300, 7, 0, 6.0), (96, 96, 3, 3, 4.0)])  # fmt: skip
 def test_selection_matches_reference_exactly(device, pose, n, n_depth, window, border, spacing):
     """The same images (the reference's rendering) give the same points on every backend."""
     _assert_selection_is_the_references(device, pose, n, n_depth, window, border, spacing)

@@ -13,18 +13,22 @@ reference: gputrack/backends/reference/model_template.py).
   :func:`gputrack.backends.taichi.trig.sincos64`, within ~2e-14 of NumPy's: the render and the
   templates equal the reference's, tested), else float32 (the sines a polynomial, :func:`_sin`,
   ~1e-7 off plus the argument's own float32 rounding); the outputs round to float32 at the store.
-* :func:`classify` (steps 2-4), one launch of four top-level loops (Taichi's barrier between
-  them): the statistics zeroed (serial); a thread per crop pixel: interior flag, q = floor(v s)
-  as an int64 (the float32 product, an integer below 2**40; 64-bit integers from here on: the
-  window's sum, the strength numerator |c q - S| < 2**47 into the int64 ``num``), the window's
-  count, sum and extremes (unrolled: ``window`` and
-  ``border`` are template values; an interior pixel with border >= window // 2 skips the same-part
-  tests), the extremum strength numerator, and on a GPU the per-part counts and ranges by atomics;
-  on the CPU arch instead a thread per crop row flushes each run of a part's pixels by atomics
-  (per-pixel atomics on the few shared statistics cost ~2 ms there; on lavapipe Vulkan this row
-  loop lost every row past the 128th, cause not found, hence the split); a thread per crop pixel:
-  the candidates (pool extrema) binned per part by an atomic counter (bin order is the atomics'
-  order: only the set matters).
+* :func:`classify` (steps 2-4), one launch of three or four top-level loops (Taichi's barrier
+  between them): the statistics zeroed (serial); the per-pixel step 3: the interior flag, q =
+  floor(v s) (the float32 product, an integer below 2**40), the window's count, sum and extremes
+  in 64-bit integers (the strength numerator |c q - S| < 2**47 into the int64 ``num``; ``window``
+  and ``border`` are template values, unrolled), the extremum strength numerator; step 4's per-part
+  counts and ranges by atomics on the runs of a part's pixels in a row; the candidates (pool
+  extrema) binned per part by an atomic counter (bin order is the atomics' order: only the set
+  matters). Elsewhere (GPUs, Vulkan), :func:`_classify`: a thread per crop pixel (an interior pixel with border >=
+  window // 2 skips the same-part tests), then a thread per start of a run (per-pixel atomics on
+  the few shared statistics cost ~2 ms on a CPU; on lavapipe Vulkan a loop over rows lost every
+  row past the 128th, cause not found). On the CPU arch, :func:`_classify_rows`: a task per chunk
+  of rows, each row walked column by column with the window's statistics from its columns' shares
+  (:func:`_column`: each column's part range, sums and extremes over the window's rows, kept in a
+  ring shifted a column a step; exact in float64 and float32), the pixels of a window that holds
+  another part one by one, and the runs flushed where they end: 1.6-1.7 -> 0.53-0.59 ms for the
+  body at rest (the per-pixel loop's neighbour reads compile to gathers there), the same outputs.
 * :func:`emit` (steps 6-7). On the CPU arch one launch of a thread per kind and part (each its own
   task of Taichi's thread pool: a loop over 2 J CPU_TASK indices, every CPU_TASK-th working, as
   Taichi 1.7 gives a CPU task at least 512 indices), as the op's docstring describes: the greedy
@@ -50,7 +54,7 @@ from ...uploads import constant
 from .launch import launch
 from .particles import _pcg
 from .runtime import scratch, ti
-from .tasks import CPU_TASK
+from .tasks import CPU_TASK, chunk, cpu_chunks
 from .trig import sin64_lanes, sincos64
 
 nd1 = ti.types.ndarray(ndim=1)
@@ -503,17 +507,11 @@ def _flush(stats: ti.template(), j, count, base, r, a, b):
         ti.atomic_max(stats[j, base + 3], b)
 
 
-@ti.kernel
-def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: nd2, stats: nd2, surv: nd2,
-              r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, half: ti.template(),
-              border: ti.template()):  # fmt: skip
-    J = stats.shape[0]
-    W = part.shape[1]
-    w = c1 - c0
-    h = r1 - r0
-    n = h * w
+@ti.func
+def _zero_stats(stats: ti.template(), surv: ti.template()):
+    """The per-part statistics and candidate counters reset (a serial loop: a few values)."""
     ti.loop_config(serialize=True)
-    for j in range(J):
+    for j in range(stats.shape[0]):
         stats[j, 0] = 0
         stats[j, 1] = 0
         for e in ti.static(range(4)):
@@ -521,6 +519,68 @@ def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: n
             stats[j, 3 + 2 * e] = -1
         surv[0, j] = 0
         surv[1, j] = 0
+
+
+@ti.func
+def _strength(count, q, S, hi, lo):
+    """Step 3's extremum strength numerator |c q - S| (int64), -1 where q is not an extremum."""
+    e = ti.cast(count, ti.i64) * q - S
+    return ti.select((hi > lo) & ((q == hi) | (q == lo)), ti.select(e < 0, -e, e), ti.i64(-1))
+
+
+@ti.func
+def _masked_window(part: ti.template(), values: ti.template(), r, c, p, r0, r1, c0, c1, s0, s1, half: ti.template()):
+    """Step 3 over the window's pixels of part p one by one (branch-free reads clamped into the
+    crop): (count, num0, num1)."""
+    q0 = _qfloor(values[0, r, c] * s0)
+    q1 = _qfloor(values[1, r, c] * s1)
+    count = 1
+    S0 = q0
+    S1 = q1
+    hi0 = q0
+    lo0 = q0
+    hi1 = q1
+    lo1 = q1
+    for dy in ti.static(range(-half, half + 1)):
+        for dx in ti.static(range(-half, half + 1)):
+            if ti.static(dy != 0 or dx != 0):
+                inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
+                same = inside & (part[y, x] == p)
+                a0 = _qfloor(values[0, y, x] * s0)
+                a1 = _qfloor(values[1, y, x] * s1)
+                count += ti.cast(same, ti.i32)
+                S0 += ti.select(same, a0, ti.i64(0))
+                S1 += ti.select(same, a1, ti.i64(0))
+                hi0 = ti.select(same, ti.max(hi0, a0), hi0)
+                lo0 = ti.select(same, ti.min(lo0, a0), lo0)
+                hi1 = ti.select(same, ti.max(hi1, a1), hi1)
+                lo1 = ti.select(same, ti.min(lo1, a1), lo1)
+    return count, _strength(count, q0, S0, hi0, lo0), _strength(count, q1, S1, hi1, lo1)
+
+
+@ti.func
+def _bin(part: ti.template(), interior: ti.template(), num: ti.template(), stats: ti.template(), surv: ti.template(),
+         bins: ti.template(), r, c):  # fmt: skip
+    """Pixel (r, c) into its part's bins of candidates if it is a pool extremum (the pool: every
+    pixel of a part without interior)."""
+    p = part[r, c]
+    if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
+        if (stats[p, 1] == 0) | (interior[r, c] != 0):
+            for k in ti.static(range(2)):
+                if num[k, r, c] >= 0:
+                    start = 0
+                    for jj in range(p):
+                        start += stats[jj, 0]
+                    bins[k, start + ti.atomic_add(surv[k, p], 1)] = r * part.shape[1] + c
+
+
+@ti.kernel
+def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: nd2, stats: nd2, surv: nd2,
+              r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, half: ti.template(),
+              border: ti.template()):  # fmt: skip
+    w = c1 - c0
+    n = (r1 - r0) * w
+    _zero_stats(stats, surv)
     for i in range(n):  # 3. per pixel: interior flag, window statistics, extremum strength (branch-free)
         r = r0 + i // w
         c = c0 + i % w
@@ -537,48 +597,31 @@ def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: n
                         inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
                         same_all = same_all & inside & (part[y, x] == p)
             inner = ti.cast(same_all, ti.i32)
-            q0 = _qfloor(values[0, r, c] * s0)
-            q1 = _qfloor(values[1, r, c] * s1)
-            count = 1
-            S0 = q0
-            S1 = q1
-            hi0 = q0
-            lo0 = q0
-            hi1 = q1
-            lo1 = q1
-            if ti.static(border >= half):  # noqa: SIM102 - a compile-time branch
-                if same_all:  # an interior pixel: its whole window is of its part
-                    count = (2 * half + 1) * (2 * half + 1)
-                    for dy in ti.static(range(-half, half + 1)):
-                        for dx in ti.static(range(-half, half + 1)):
-                            if ti.static(dy != 0 or dx != 0):
-                                a0 = _qfloor(values[0, r + dy, c + dx] * s0)
-                                a1 = _qfloor(values[1, r + dy, c + dx] * s1)
-                                S0 += a0
-                                S1 += a1
-                                hi0 = ti.max(hi0, a0)
-                                lo0 = ti.min(lo0, a0)
-                                hi1 = ti.max(hi1, a1)
-                                lo1 = ti.min(lo1, a1)
-            if (not ti.static(border >= half)) or (not same_all):
+            if ti.static(border >= half) and same_all:  # an interior pixel: its whole window is of its part
+                q0 = _qfloor(values[0, r, c] * s0)
+                q1 = _qfloor(values[1, r, c] * s1)
+                count = (2 * half + 1) * (2 * half + 1)
+                S0 = q0
+                S1 = q1
+                hi0 = q0
+                lo0 = q0
+                hi1 = q1
+                lo1 = q1
                 for dy in ti.static(range(-half, half + 1)):
                     for dx in ti.static(range(-half, half + 1)):
                         if ti.static(dy != 0 or dx != 0):
-                            inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
-                            same = inside & (part[y, x] == p)
-                            a0 = _qfloor(values[0, y, x] * s0)
-                            a1 = _qfloor(values[1, y, x] * s1)
-                            count += ti.cast(same, ti.i32)
-                            S0 += ti.select(same, a0, ti.i64(0))
-                            S1 += ti.select(same, a1, ti.i64(0))
-                            hi0 = ti.select(same, ti.max(hi0, a0), hi0)
-                            lo0 = ti.select(same, ti.min(lo0, a0), lo0)
-                            hi1 = ti.select(same, ti.max(hi1, a1), hi1)
-                            lo1 = ti.select(same, ti.min(lo1, a1), lo1)
-            e0 = ti.cast(count, ti.i64) * q0 - S0
-            e1 = ti.cast(count, ti.i64) * q1 - S1
-            num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.select(e0 < 0, -e0, e0), ti.i64(-1))
-            num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.select(e1 < 0, -e1, e1), ti.i64(-1))
+                            a0 = _qfloor(values[0, r + dy, c + dx] * s0)
+                            a1 = _qfloor(values[1, r + dy, c + dx] * s1)
+                            S0 += a0
+                            S1 += a1
+                            hi0 = ti.max(hi0, a0)
+                            lo0 = ti.min(lo0, a0)
+                            hi1 = ti.max(hi1, a1)
+                            lo1 = ti.min(lo1, a1)
+                num0 = _strength(count, q0, S0, hi0, lo0)
+                num1 = _strength(count, q1, S1, hi1, lo1)
+            else:
+                count, num0, num1 = _masked_window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half)
         interior[r, c] = inner
         num[0, r, c] = num0
         num[1, r, c] = num1
@@ -605,17 +648,147 @@ def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: n
                     e += 1
                 _flush(stats, p, 1, 2, r, c, e - 1)
     for i in range(n):  # the candidates (pool extrema) binned per part
-        r = r0 + i // w
-        c = c0 + i % w
-        p = part[r, c]
-        if p >= 0:  # noqa: SIM102 - the inner test reads stats[p]
-            if (stats[p, 1] == 0) | (interior[r, c] != 0):  # the pool: every pixel of a part without interior
-                for k in ti.static(range(2)):
-                    if num[k, r, c] >= 0:
-                        start = 0
-                        for jj in range(p):
-                            start += stats[jj, 0]
-                        bins[k, start + ti.atomic_add(surv[k, p], 1)] = r * W + c
+        _bin(part, interior, num, stats, surv, bins, r0 + i // w, c0 + i % w)
+
+
+@ti.func
+def _column(part: ti.template(), values: ti.template(), r, x, r0, r1, c0, c1, s0, s1, half: ti.template(),
+            border: ti.template()):  # fmt: skip
+    """Column x's share of the windows centred in row r: the smallest and largest part id over the
+    window's rows (r - half .. r + half) and over the border's, a pixel outside the crop counting as
+    -1 ((4,) int32); the sums of q over the window's rows ((2,) float64: integers below 2**43,
+    exact) and their extremes ((4,) float32: hi0, lo0, hi1, lo1; q = floor(v s) is an integer
+    below 2**40 that float32 holds exactly)."""
+    xin = (x >= c0) & (x < c1)
+    xc = ti.min(ti.max(x, c0), c1 - 1)
+    pmin_h = NO_ROW
+    pmax_h = -1
+    pmin_b = NO_ROW
+    pmax_b = -1
+    S0 = ti.f64(0.0)
+    S1 = ti.f64(0.0)
+    hi0 = ti.f32(-3e38)
+    lo0 = ti.f32(3e38)
+    hi1 = ti.f32(-3e38)
+    lo1 = ti.f32(3e38)
+    for dy in ti.static(range(-max(half, border), max(half, border) + 1)):
+        y = r + dy
+        yc = ti.min(ti.max(y, r0), r1 - 1)
+        p = ti.select(xin & (y >= r0) & (y < r1), part[yc, xc], -1)
+        if ti.static(-half <= dy <= half):
+            pmin_h = ti.min(pmin_h, p)
+            pmax_h = ti.max(pmax_h, p)
+            a0 = ti.floor(values[0, yc, xc] * s0)
+            a1 = ti.floor(values[1, yc, xc] * s1)
+            S0 += ti.cast(a0, ti.f64)
+            S1 += ti.cast(a1, ti.f64)
+            hi0 = ti.max(hi0, a0)
+            lo0 = ti.min(lo0, a0)
+            hi1 = ti.max(hi1, a1)
+            lo1 = ti.min(lo1, a1)
+        if ti.static(-border <= dy <= border):
+            pmin_b = ti.min(pmin_b, p)
+            pmax_b = ti.max(pmax_b, p)
+    return ti.Vector([pmin_h, pmax_h, pmin_b, pmax_b]), ti.Vector([S0, S1]), ti.Vector([hi0, lo0, hi1, lo1])
+
+
+@ti.kernel
+def _classify_rows(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: nd2, stats: nd2, surv: nd2,
+                   r0: ti.i32, r1: ti.i32, c0: ti.i32, c1: ti.i32, s0: ti.f32, s1: ti.f32, half: ti.template(),
+                   border: ti.template(), chunks: ti.template()):  # fmt: skip
+    """:func:`_classify` on the CPU arch, its rows cut into ``chunks`` (each a task of Taichi's thread
+    pool) and each row walked column by column: the window's statistics from the aggregates of its
+    2R + 1 columns (:func:`_column`, R = max(half, border); a ring shifted one column a step), the
+    window's pixels one by one only where it holds another part; the runs of step 4 flushed where
+    they end. Every pixel's outputs equal :func:`_classify`'s."""
+    h = r1 - r0
+    R = ti.static(max(half, border))
+    NC = ti.static(2 * max(half, border) + 1)
+    _zero_stats(stats, surv)
+    for it in range(chunks * CPU_TASK):
+        begin, end = chunk(it, h, chunks)
+        for rr in range(begin, end):
+            r = r0 + rr
+            Pc = ti.Matrix([[0] * 4 for _ in ti.static(range(NC))], ti.i32)  # columns c - R .. c + R
+            Sc = ti.Matrix([[0.0] * 2 for _ in ti.static(range(NC))], ti.f64)
+            Ec = ti.Matrix([[0.0] * 4 for _ in ti.static(range(NC))], ti.f32)
+            for k in ti.static(range(1, NC)):  # the columns left of c0 + R + 1
+                pv, sv, ev = _column(part, values, r, c0 - R - 1 + k, r0, r1, c0, c1, s0, s1, half, border)
+                for m in ti.static(range(4)):
+                    Pc[k, m] = pv[m]
+                    Ec[k, m] = ev[m]
+                for m in ti.static(range(2)):
+                    Sc[k, m] = sv[m]
+            run = -1  # the part of the run of pixels that ends at c - 1, and where it started
+            run_c = c0
+            irun = -1  # the same for its interior pixels
+            irun_c = c0
+            for c in range(c0, c1):
+                pv, sv, ev = _column(part, values, r, c + R, r0, r1, c0, c1, s0, s1, half, border)
+                for k in ti.static(range(NC)):
+                    for m in ti.static(range(4)):
+                        Pc[k, m] = Pc[k + 1, m] if ti.static(k + 1 < NC) else pv[m]
+                        Ec[k, m] = Ec[k + 1, m] if ti.static(k + 1 < NC) else ev[m]
+                    for m in ti.static(range(2)):
+                        Sc[k, m] = Sc[k + 1, m] if ti.static(k + 1 < NC) else sv[m]
+                p = part[r, c]
+                inner = 0
+                count = 0
+                num0 = ti.i64(-1)
+                num1 = ti.i64(-1)
+                if p >= 0:
+                    bmin, bmax, wmin, wmax = NO_ROW, -1, NO_ROW, -1
+                    for k in ti.static(range(R - border, R + border + 1)):
+                        bmin = ti.min(bmin, Pc[k, 2])
+                        bmax = ti.max(bmax, Pc[k, 3])
+                    for k in ti.static(range(R - half, R + half + 1)):
+                        wmin = ti.min(wmin, Pc[k, 0])
+                        wmax = ti.max(wmax, Pc[k, 1])
+                    inner = ti.cast((bmin == p) & (bmax == p), ti.i32)
+                    if (wmin == p) & (wmax == p):  # the window is all of part p
+                        count = (2 * half + 1) * (2 * half + 1)
+                        q0 = ti.floor(values[0, r, c] * s0)
+                        q1 = ti.floor(values[1, r, c] * s1)
+                        S0 = ti.f64(0.0)
+                        S1 = ti.f64(0.0)
+                        hi0, lo0, hi1, lo1 = q0, q0, q1, q1
+                        for k in ti.static(range(R - half, R + half + 1)):
+                            S0 += Sc[k, 0]
+                            S1 += Sc[k, 1]
+                            hi0 = ti.max(hi0, Ec[k, 0])
+                            lo0 = ti.min(lo0, Ec[k, 1])
+                            hi1 = ti.max(hi1, Ec[k, 2])
+                            lo1 = ti.min(lo1, Ec[k, 3])
+                        e0 = ti.abs(ti.cast(count, ti.f64) * ti.cast(q0, ti.f64) - S0)  # exact: below 2**53
+                        e1 = ti.abs(ti.cast(count, ti.f64) * ti.cast(q1, ti.f64) - S1)
+                        num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.cast(e0, ti.i64), ti.i64(-1))
+                        num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.cast(e1, ti.i64), ti.i64(-1))
+                    else:
+                        count, num0, num1 = _masked_window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half)
+                interior[r, c] = inner
+                num[0, r, c] = num0
+                num[1, r, c] = num1
+                cnt[r, c] = count
+                iq = ti.select(inner != 0, p, -1)  # 4. a run (of interior pixels) ends where the part changes
+                if p != run:
+                    if run >= 0:
+                        _flush(stats, run, 0, 6, r, run_c, c - 1)
+                    run = p
+                    run_c = c
+                if iq != irun:
+                    if irun >= 0:
+                        _flush(stats, irun, 1, 2, r, irun_c, c - 1)
+                    irun = iq
+                    irun_c = c
+            if run >= 0:
+                _flush(stats, run, 0, 6, r, run_c, c1 - 1)
+            if irun >= 0:
+                _flush(stats, irun, 1, 2, r, irun_c, c1 - 1)
+    for it in range(chunks * CPU_TASK):  # the candidates (pool extrema) binned per part
+        begin, end = chunk(it, h, chunks)
+        for rr in range(begin, end):
+            for c in range(c0, c1):
+                _bin(part, interior, num, stats, surv, bins, r0 + rr, c)
 
 
 def classify(device, part, values, crop, scales, window, border, interior, num, cnt, bins, stats, surv):
@@ -623,9 +796,13 @@ def classify(device, part, values, crop, scales, window, border, interior, num, 
     interior flag, num (int64: the extrema's strength numerators, -1 elsewhere), cnt."""
     r0, r1, c0, c1 = (int(x) for x in crop)
     sc = np.asarray(scales, np.float32)
-    launch(_classify, (part.buffer, values.buffer, interior.buffer, num.buffer, cnt.buffer, bins.buffer, stats.buffer,
-                       surv.buffer),
-           (int(window) // 2, int(border)), scalars=(r0, r1, c0, c1, float(sc[0]), float(sc[1])))  # fmt: skip
+    arrays = (part.buffer, values.buffer, interior.buffer, num.buffer, cnt.buffer, bins.buffer, stats.buffer,
+              surv.buffer)  # fmt: skip
+    scalars = (r0, r1, c0, c1, float(sc[0]), float(sc[1]))
+    if device.arch == "cpu":
+        launch(_classify_rows, arrays, (int(window) // 2, int(border), cpu_chunks(device)), scalars=scalars)
+    else:
+        launch(_classify, arrays, (int(window) // 2, int(border)), scalars=scalars)
 
 
 # -- steps 6-7: emit --------------------------------------------------------------------------------
