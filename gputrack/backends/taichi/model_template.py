@@ -534,9 +534,11 @@ def _strength(count, q, S, hi, lo):
 
 
 @ti.func
-def _masked_window(part: ti.template(), values: ti.template(), r, c, p, r0, r1, c0, c1, s0, s1, half: ti.template()):
-    """Step 3 over the window's pixels of part p one by one (branch-free reads clamped into the
-    crop): (count, num0, num1)."""
+def _window(part: ti.template(), values: ti.template(), r, c, p, r0, r1, c0, c1, s0, s1, half: ti.template(),
+            masked: ti.template()):  # fmt: skip
+    """Step 3 over the window of pixel (r, c) of part p: (count, num0, num1). ``masked``: only the
+    window's pixels of part p count (branch-free reads clamped into the crop); else the whole window
+    is of part p (read as it is)."""
     q0 = _qfloor(values[0, r, c] * s0)
     q1 = _qfloor(values[1, r, c] * s1)
     count = 1
@@ -549,8 +551,12 @@ def _masked_window(part: ti.template(), values: ti.template(), r, c, p, r0, r1, 
     for dy in ti.static(range(-half, half + 1)):
         for dx in ti.static(range(-half, half + 1)):
             if ti.static(dy != 0 or dx != 0):
-                inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
-                same = inside & (part[y, x] == p)
+                same = True
+                y = r + dy
+                x = c + dx
+                if ti.static(masked):
+                    inside, y, x = _at(r + dy, c + dx, r0, r1, c0, c1)
+                    same = inside & (part[y, x] == p)
                 a0 = _qfloor(values[0, y, x] * s0)
                 a1 = _qfloor(values[1, y, x] * s1)
                 count += ti.cast(same, ti.i32)
@@ -603,30 +609,9 @@ def _classify(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bins: n
                         same_all = same_all & inside & (part[y, x] == p)
             inner = ti.cast(same_all, ti.i32)
             if ti.static(border >= half) and same_all:  # an interior pixel: its whole window is of its part
-                q0 = _qfloor(values[0, r, c] * s0)
-                q1 = _qfloor(values[1, r, c] * s1)
-                count = (2 * half + 1) * (2 * half + 1)
-                S0 = q0
-                S1 = q1
-                hi0 = q0
-                lo0 = q0
-                hi1 = q1
-                lo1 = q1
-                for dy in ti.static(range(-half, half + 1)):
-                    for dx in ti.static(range(-half, half + 1)):
-                        if ti.static(dy != 0 or dx != 0):
-                            a0 = _qfloor(values[0, r + dy, c + dx] * s0)
-                            a1 = _qfloor(values[1, r + dy, c + dx] * s1)
-                            S0 += a0
-                            S1 += a1
-                            hi0 = ti.max(hi0, a0)
-                            lo0 = ti.min(lo0, a0)
-                            hi1 = ti.max(hi1, a1)
-                            lo1 = ti.min(lo1, a1)
-                num0 = _strength(count, q0, S0, hi0, lo0)
-                num1 = _strength(count, q1, S1, hi1, lo1)
+                count, num0, num1 = _window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half, False)
             else:
-                count, num0, num1 = _masked_window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half)
+                count, num0, num1 = _window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half, True)
         interior[r, c] = inner
         num[0, r, c] = num0
         num[1, r, c] = num1
@@ -769,7 +754,7 @@ def _classify_rows(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bi
                         num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.cast(e0, ti.i64), ti.i64(-1))
                         num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.cast(e1, ti.i64), ti.i64(-1))
                     else:
-                        count, num0, num1 = _masked_window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half)
+                        count, num0, num1 = _window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half, True)
                 interior[r, c] = inner
                 num[0, r, c] = num0
                 num[1, r, c] = num1
