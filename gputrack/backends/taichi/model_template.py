@@ -749,10 +749,9 @@ def _classify_rows(part: nd2, values: nd3, interior: nd2, num: nd3, cnt: nd2, bi
                             lo0 = ti.min(lo0, Ec[k, 1])
                             hi1 = ti.max(hi1, Ec[k, 2])
                             lo1 = ti.min(lo1, Ec[k, 3])
-                        e0 = ti.abs(ti.cast(count, ti.f64) * ti.cast(q0, ti.f64) - S0)  # exact: below 2**53
-                        e1 = ti.abs(ti.cast(count, ti.f64) * ti.cast(q1, ti.f64) - S1)
-                        num0 = ti.select((hi0 > lo0) & ((q0 == hi0) | (q0 == lo0)), ti.cast(e0, ti.i64), ti.i64(-1))
-                        num1 = ti.select((hi1 > lo1) & ((q1 == hi1) | (q1 == lo1)), ti.cast(e1, ti.i64), ti.i64(-1))
+                        i64 = ti.i64  # every value an integer: exact in int64 as in the per-pixel kernel
+                        num0 = _strength(count, ti.cast(q0, i64), ti.cast(S0, i64), ti.cast(hi0, i64), ti.cast(lo0, i64))
+                        num1 = _strength(count, ti.cast(q1, i64), ti.cast(S1, i64), ti.cast(hi1, i64), ti.cast(lo1, i64))
                     else:
                         count, num0, num1 = _window(part, values, r, c, p, r0, r1, c0, c1, s0, s1, half, True)
                 interior[r, c] = inner
