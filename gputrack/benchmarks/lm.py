@@ -26,7 +26,9 @@ Cases per (P, M), each timed on the device with the NumPy reference in the same 
   scipy's MINPACK (``least_squares(method="lm")``, the same callables per problem, 11 evaluations at
   trial points with the Jacobian and with forward differences, ``minpack_max_nfev``) in a loop over the
   10 problems; its residual calls per problem and the costs each reaches (the solver's over MINPACK's,
-  max and median over the problems) are in the case's params.
+  max and median over the problems) are in the case's params. A second MINPACK column runs each
+  problem to the solver's final cost (within 0.1 %): the fewest ``max_nfev`` that reaches it, searched
+  before the timing (the budgets and the residual calls are in the params).
 - ``... central, device residuals`` / ``... forward, device residuals``: the same solves with the
   residuals computed by a device kernel (gputrack/benchmarks/expfit_taichi.py,
   kernels/gt_bench_expfit.cl; DeviceArray points in and out), and ``exp residuals n=410 ... device
@@ -202,9 +204,11 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
         if not args.no_scipy:
             import scipy.optimize
 
-            calls = []  # residual calls per problem of the last MINPACK run
+            jacobian = kind == "analytic J"
+            calls = {}  # residual calls per problem of each peer's last run
 
-            def minpack(jacobian=kind == "analytic J", calls=calls):
+            def minpack(budgets, label, jacobian=jacobian, calls=calls):
+                """MINPACK on each problem with ``budgets[b]`` as ``max_nfev``: the final costs."""
                 costs, n = [], [0]
 
                 def counted(p, b):
@@ -212,17 +216,14 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
                     return one(p, b)
 
                 for b in range(B):
-                    if jacobian:
-                        o = scipy.optimize.least_squares(counted, x0[b], jac=one_j, args=(b,), method="lm",
-                                                         max_nfev=iterations + 1, **TOL)  # fmt: skip
-                    else:  # forward differences
-                        o = scipy.optimize.least_squares(counted, x0[b], args=(b,), method="lm",
-                                                         max_nfev=minpack_max_nfev(iterations, P), **TOL)  # fmt: skip
+                    o = scipy.optimize.least_squares(counted, x0[b], jac=one_j if jacobian else "2-point", args=(b,),
+                                                     method="lm", max_nfev=int(budgets[b]), **TOL)  # fmt: skip
                     costs.append(2 * o.cost)
-                calls[:] = [n[0] / B]
+                calls[label] = n[0] / B
                 return np.array(costs)
 
-            peers["scipy MINPACK lm x10"] = minpack
+            same = [iterations + 1 if jacobian else minpack_max_nfev(iterations, P)] * B
+            peers["scipy MINPACK lm x10"] = lambda same=same, minpack=minpack: minpack(same, "same")
         run = (lambda s=solvers[device], kw=kw, fn=fn, host=host: s.solve(fn, x0, host=host, **kw))
         name = f"solver exp B={B} M={M} P={P} {iterations} it {kind}"
         params = {"B": B, "M": M, "P": P, "iterations": iterations, "jacobian": kind, "damping_scale": "minpack",
@@ -231,7 +232,13 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
             mine, theirs = run().cost, peers["scipy MINPACK lm x10"]()
             params["cost / MINPACK's cost, max"] = float(np.max(mine / theirs))
             params["cost / MINPACK's cost, median"] = float(np.median(mine / theirs))
-            params["MINPACK's residual calls per problem"] = calls[0]
+            params["MINPACK's residual calls per problem"] = calls["same"]
+            reach = [_budget_to_cost(lambda nf, b=b: minpack([nf] * B, "search")[b], mine[b], 10 * same[b])
+                     for b in range(B)]  # fmt: skip
+            peers["scipy MINPACK lm x10 to the solver's cost"] = lambda reach=reach, minpack=minpack: minpack(reach, "reach")
+            peers["scipy MINPACK lm x10 to the solver's cost"]()
+            params["MINPACK's max_nfev to the solver's cost, per problem"] = [int(v) for v in reach]
+            params["MINPACK's residual calls per problem to the solver's cost"] = calls["reach"]
         out.append(Case(
             name,
             run=run,
@@ -253,6 +260,22 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
 
 
 TOL = {"ftol": 1e-10, "xtol": 1e-10, "gtol": 1e-10}
+
+
+def _budget_to_cost(cost_at, target: float, cap: int) -> int:
+    """The fewest ``max_nfev`` with which ``cost_at(max_nfev)`` (MINPACK's final cost on one problem, not
+    rising with its budget: a longer run extends the same iterations) is within 0.1 % of ``target``;
+    ``cap`` if even that budget does not reach it."""
+    lo, hi = 1, cap
+    if cost_at(hi) > target * 1.001:
+        return cap
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if cost_at(mid) <= target * 1.001:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
 
 
 def minpack_max_nfev(iterations: int, P: int) -> int:
