@@ -207,19 +207,19 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
             jacobian = kind == "analytic J"
             calls = {}  # residual calls per problem of each peer's last run
 
-            def minpack(budgets, label, jacobian=jacobian, calls=calls):
-                """MINPACK on each problem with ``budgets[b]`` as ``max_nfev``: the final costs."""
+            def minpack(budgets, label, problems=range(B), jacobian=jacobian, calls=calls):
+                """MINPACK on each of ``problems`` with ``budgets[b]`` as ``max_nfev``: the final costs."""
                 costs, n = [], [0]
 
                 def counted(p, b):
                     n[0] += 1
                     return one(p, b)
 
-                for b in range(B):
+                for b in problems:
                     o = scipy.optimize.least_squares(counted, x0[b], jac=one_j if jacobian else "2-point", args=(b,),
                                                      method="lm", max_nfev=int(budgets[b]), **TOL)  # fmt: skip
                     costs.append(2 * o.cost)
-                calls[label] = n[0] / B
+                calls[label] = n[0] / len(problems)
                 return np.array(costs)
 
             same = [iterations + 1 if jacobian else minpack_max_nfev(iterations, P)] * B
@@ -233,7 +233,7 @@ def exp_cases(device, args, B=10, P=20, M=256, iterations=10):
             params["cost / MINPACK's cost, max"] = float(np.max(mine / theirs))
             params["cost / MINPACK's cost, median"] = float(np.median(mine / theirs))
             params["MINPACK's residual calls per problem"] = calls["same"]
-            reach = [_budget_to_cost(lambda nf, b=b: minpack([nf] * B, "search")[b], mine[b], 10 * same[b])
+            reach = [_budget_to_cost(lambda nf, b=b: minpack([nf] * B, "search", [b])[0], mine[b], 10 * same[b])
                      for b in range(B)]  # fmt: skip
             peers["scipy MINPACK lm x10 to the solver's cost"] = lambda reach=reach, minpack=minpack: minpack(reach, "reach")
             peers["scipy MINPACK lm x10 to the solver's cost"]()
