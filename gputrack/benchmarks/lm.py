@@ -266,12 +266,12 @@ def _budget_to_cost(cost_at, target: float, cap: int) -> int:
     """The fewest ``max_nfev`` with which ``cost_at(max_nfev)`` (MINPACK's final cost on one problem, not
     rising with its budget: a longer run extends the same iterations) is within 0.1 % of ``target``;
     ``cap`` if even that budget does not reach it."""
-    lo, hi = 1, cap
-    if cost_at(hi) > target * 1.001:
+    lo, hi, limit = 1, cap, target * 1.001
+    if cost_at(hi) > limit:
         return cap
     while lo < hi:
         mid = (lo + hi) // 2
-        if cost_at(mid) <= target * 1.001:
+        if cost_at(mid) <= limit:
             hi = mid
         else:
             lo = mid + 1
