@@ -135,3 +135,38 @@ def test_direct_launch_of_numpy_arrays_of_vector_elements(taichi, monkeypatch):
         want = k * a.reshape(3, 4, 2)[..., ::-1].reshape(3, 8)
         np.testing.assert_array_equal(out, want)
     assert any(key[0] is swap_and_scale for key in L._cache)  # remembered for direct launches
+
+
+def test_a_kernel_compiled_without_taichis_ir_passes(taichi):
+    """``launch(..., ir_passes=False)`` compiles the kernel without Taichi's own IR optimisation on
+    the CPU archs (``advanced_optimization``, turned back on afterwards, also when the call fails)
+    and gives the results of the kernel compiled with it: the same sums, bit for bit."""
+    device, runtime = taichi
+    from gputrack.backends.taichi import launch as L
+
+    ti = runtime.ti
+    nd = ti.types.ndarray()
+
+    def body(x: nd, out: nd):
+        ti.loop_config(serialize=True)
+        for i in range(out.shape[0]):
+            s = ti.cast(0, ti.f32)
+            for k in range(x.shape[1]):
+                s += x[i, k] * x[i, k] - x[i, (k + 1) % x.shape[1]]
+            out[i] = s
+
+    plain, optimised = ti.kernel(body), ti.kernel(body)
+    cfg = ti.lang.impl.current_cfg()
+    x = device.asarray(np.random.default_rng(4).normal(size=(6, 40)).astype(np.float32))
+    got = {}
+    for name, kernel, passes in (("plain", plain, False), ("optimised", optimised, True)):
+        out = device.empty((6,), np.float32)
+        L.launch(kernel, (x.buffer, out.buffer), ir_passes=passes)
+        assert cfg.advanced_optimization, "Taichi's passes must be on again after the launch"
+        got[name] = out.numpy()
+    np.testing.assert_array_equal(got["plain"], got["optimised"])
+    want = (x.numpy() ** 2 - np.roll(x.numpy(), -1, axis=1)).sum(axis=1)
+    np.testing.assert_allclose(got["plain"], want, rtol=1e-5, atol=1e-5)
+    with pytest.raises(Exception):  # noqa: B017 - Taichi's own error for an array of the wrong rank
+        L.launch(ti.kernel(body), (np.zeros(3, np.float32), np.zeros(6, np.float32)), ir_passes=False)
+    assert cfg.advanced_optimization

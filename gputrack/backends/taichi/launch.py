@@ -80,7 +80,9 @@ def _kind(a):
     return (a.dtype, len(a.shape)) if hasattr(a, "shape") else type(a)
 
 
-def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (), scalarize: bool = True) -> None:
+def launch(
+    kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (), scalarize: bool = True, ir_passes: bool = True
+) -> None:
     """``kernel(*arrays, *scalars, *templates)``: arrays (Taichi ndarrays or NumPy arrays) first in
     the kernel's signature, then Python int/float scalars, then template values (hashable).
 
@@ -89,11 +91,19 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
     lanes, the template kernels' hypothesis lanes, forward kinematics, which must round as the
     fused kernels that pose through it); elsewhere, and for every other kernel, Taichi's default
     applies.
+
+    ``ir_passes=False`` compiles the kernel without Taichi's own optimisation of its IR
+    (``advanced_optimization``: common subexpressions, loop-invariant code, store forwarding over the
+    whole kernel) on the CPU archs; LLVM's -O3 pipeline, which does the same work, still runs. Those
+    passes grow faster than the kernel: for the body tracker's five largest kernels they took most
+    of a fresh install's first frame (perf/first_frame.py: 25.7 -> 12.6 s from empty caches on a
+    2-core AMD EPYC), and the frames with and without them took the same time (perf/README.md). A
+    warm process reads the compiled kernel from the offline cache, so it is not affected either way.
     """
     global _enabled
     key = None
     if _enabled and runtime.direct_off is None:
-        key = (kernel, templates, scalarize, *(_kind(a) for a in arrays), *(type(c) for c in scalars))
+        key = (kernel, templates, scalarize, ir_passes, *(_kind(a) for a in arrays), *(type(c) for c in scalars))
         hit = _cache.get(key)
         if hit is not None:
             tk, ckd, prog, edims = hit
@@ -116,9 +126,13 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
                     return
     args = (*arrays, *scalars, *templates)
     cfg = ti.lang.impl.current_cfg()
-    vector_lanes = not scalarize and cfg.arch in (ti.x64, ti.arm64)
+    cpu = cfg.arch in (ti.x64, ti.arm64)
+    vector_lanes = not scalarize and cpu
+    plain = not ir_passes and cpu and cfg.advanced_optimization
     if vector_lanes:
         cfg.real_matrix_scalarize = False
+    if plain:
+        cfg.advanced_optimization = False
     try:
         kernel(*args)
         if key is not None and all(_direct(a) for a in arrays) and all(type(c) in (int, float) for c in scalars):
@@ -134,3 +148,5 @@ def launch(kernel, arrays: tuple, templates: tuple = (), *, scalars: tuple = (),
     finally:
         if vector_lanes:
             cfg.real_matrix_scalarize = True
+        if plain:
+            cfg.advanced_optimization = True

@@ -2010,7 +2010,7 @@ def solver_update(state, R, X, *, first, final, jac=None):
                 state.fused = 1 if R.shape[0] == state.lay.B * (2 * state.lay.P + 1) else 2
         SP = _static_p(state.lay.P) if jac is not None else 0
         launch(kernel, args, (state.dt, jac is not None, state.fused, SP), scalars=(int(first), int(final)),
-               scalarize=jac is None)  # fmt: skip
+               scalarize=jac is None, ir_passes=False)  # fmt: skip
     else:
         B, P = state.lay.B, state.lay.P
         NI = _grid(B * ((P + 1) // 2) * ((P + 3) // 4 + 1))

@@ -789,7 +789,8 @@ def classify(device, part, values, crop, scales, window, border, interior, num, 
               surv.buffer)  # fmt: skip
     scalars = (r0, r1, c0, c1, float(sc[0]), float(sc[1]))
     if device.arch == "cpu":
-        launch(_classify_rows, arrays, (int(window) // 2, int(border), cpu_chunks(device)), scalars=scalars)
+        launch(_classify_rows, arrays, (int(window) // 2, int(border), cpu_chunks(device)), scalars=scalars,
+               ir_passes=False)
     else:
         launch(_classify, arrays, (int(window) // 2, int(border)), scalars=scalars)
 
@@ -1227,7 +1228,7 @@ def emit(device, part, values, local, crop, plan, stats, surv, bins, interior, n
               interior.buffer, num.buffer, cnt.buffer, dist.buffer, used.buffer, taken)  # fmt: skip
     if device.arch == "cpu":
         rows = scratch(device, "mt rows", (2, J, ROW_SLOTS * part.shape[0] + 1), ti.i32)
-        launch(_emit_serial, (*common, rows, o0, o1), scalars=(d2max,))
+        launch(_emit_serial, (*common, rows, o0, o1), scalars=(d2max,), ir_passes=False)
         return
     state = scratch(device, "mt state", (2, J, 6), ti.i32)
     launch(_emit_prep, (*common, state, o0, o1), scalars=(r0, r1, c0, c1, d2max))

@@ -83,5 +83,5 @@ def pf_stage(device, chain, cand, sig, n, lo, hi, rgb, depth, gray, dimg, camera
         val.buffer, scratch(device, "keys", (k,), ti.u32), sel.buffer,
     )  # fmt: skip
     consts = (rgb["parts"], depth["parts"], groups, nl, cpu_chunks(device), chain.structure())
-    launch(_pf_stage, arrays, consts, scalarize=False)
+    launch(_pf_stage, arrays, consts, scalarize=False, ir_passes=False)
     return idx, val, sel

@@ -84,7 +84,7 @@ def lanes(device) -> int:
 def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camera, out, plan, *, lam, c_rgb, c_depth,
                    depth_tol):  # fmt: skip
     """``plan``: None (every entry), or (stride, order, moved) on the device (gputrack/ops/pose_residuals.py)."""
-    n, P = params.shape
+    n = params.shape[0]
     J = chain.n_parts
     nl = lanes(device)
     nr = rgb["pts"].shape[0]
@@ -109,6 +109,6 @@ def pose_residuals(device, chain, params, offsets, rgb, depth, gray, dimg, camer
     chunks = cpu_chunks(device)
     serial = chunks > 0 and n <= SERIAL_ROWS
     consts = (rgb["parts"], depth["parts"], nl, chunks, chain.structure(), stride, serial)
-    launch(_pose_residuals, arrays, consts, scalars=(groups,), scalarize=False)
+    launch(_pose_residuals, arrays, consts, scalars=(groups,), scalarize=False, ir_passes=False)
     return out
 
