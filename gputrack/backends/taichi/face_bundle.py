@@ -122,4 +122,4 @@ def landmark_residuals(device, points, model, frames, consts, values, jacobian, 
     dt = ti.f64 if R.dtype.itemsize == 8 else ti.f32
     launch(_landmarks, (points.buffer, consts.buffer, values.buffer, R.buffer, J.buffer),
            (dt, model.A, model.S, bool(jacobian), current_arch() == "cpu"),
-           scalars=(frames.n, model.K, int(frames.prior is not None)))  # fmt: skip
+           scalars=(frames.n, model.K, int(frames.prior is not None)), ir_passes=False)  # fmt: skip
