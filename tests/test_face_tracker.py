@@ -300,6 +300,25 @@ def test_start_from_a_haar_face_box(device, data):
     assert shape_error(model, ests[-1].identity, ests[-1].expression, frames[9].shape) < 8.0
 
 
+def test_the_start_anchors_the_templates_to_all_start_frames(data):
+    """A detector's error in the first frame would stay in the templates; anchored, the start's points
+    (the templates' and every start frame's) carry only the mean error of the 7 frames."""
+    _, model, _, seq = data
+    frames = _frames(7)
+    gray = np.array([f.gray for f in frames])
+    truth = np.array([f.landmarks2d for f in frames])
+    noisy = start_points(frames, noise=1.0, seed=3)
+    noisy[3, 2] = np.nan  # unknown in one frame: stays unknown
+    ests = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64)).start(gray, noisy)
+    got = np.array([e.features for e in ests])
+    assert np.isnan(got[3, 2]).all() and np.isfinite(np.delete(got.reshape(-1, 2), 3 * 10 + 2, axis=0)).all()
+    before, after = np.hypot(*(noisy - truth).transpose(2, 0, 1)), np.hypot(*(got - truth).transpose(2, 0, 1))
+    assert np.nanmean(after[0]) < 0.6 * np.nanmean(before[0])  # the templates' points
+    assert np.nanmean(after) < 0.6 * np.nanmean(before)
+    plain = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64, anchor_templates=False)).start(gray, noisy)
+    np.testing.assert_array_equal(np.array([e.features for e in plain]), noisy)
+
+
 def test_bad_input(data):
     dev = REF
     _, model, _, seq = data

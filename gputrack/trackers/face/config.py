@@ -39,7 +39,11 @@ class FaceConfig:
     ``eps`` = 4000; ``relocate_iterations`` Gauss-Newton steps at most (a point stops when its step
     is under 0.01 px); ``relocate_contrast`` (gray levels, beyond the paper; 0 = the paper's raw
     intensities): eq. 14 compares the patches brought to zero mean and this standard deviation, so a
-    change of the light does not pull the points (:func:`gputrack.ops.face_relocate.relocate_points`).
+    change of the light does not pull the points (:func:`gputrack.ops.face_relocate.relocate_points`);
+    ``anchor_templates`` (beyond the paper; False = the first frame's patches at its given points):
+    each first-frame template's point is followed into the other start frames (Lucas-Kanade) and
+    moved by the mean offset from their given points, so a detector's error in the first frame does
+    not stay in the templates (1 px of noise per point: 1.1 -> 0.5 px from the truth on the simulator).
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``
@@ -81,6 +85,7 @@ class FaceConfig:
     eps: float = 4000.0
     relocate_iterations: int = 5
     relocate_contrast: float = 30.0
+    anchor_templates: bool = True
     keyframes: int = 7
     init_iterations: int = 10
     iterations: int = 5

@@ -7,7 +7,9 @@
   model's mean shape and followed into the next frames by pyramidal Lucas-Kanade); each frame's
   pose from its points by PnP with the mean shape; then the bundle adjustment of all n frames
   (``init_iterations`` LM iterations, eq. 6-9) gives the poses, deformations and the identity
-  s(1). The K templates (16 x 16) are the first frame's patches at its points.
+  s(1). The K templates (16 x 16) are the first frame's patches at its points (anchored, beyond the
+  paper: each point followed into the other start frames and moved by its mean offset from theirs,
+  so one frame's detector error does not stay in the templates; ``config.anchor_templates``).
 - **Per frame** (:meth:`FaceTracker.track`), as :class:`gputrack.Scheduler` stages:
   ``detect`` (the detection proposals below, host, every ``config.detect_every`` frames),
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
@@ -80,6 +82,9 @@ _CASCADE = None
 #: from the camera, or whose points are off the detected box's by more than this fraction of their
 #: width (place or size), gets hypotheses around the box
 DETECT_TURN, DETECT_OFF = 25.0, 0.15
+#: the start's anchoring (``FaceTracker._anchored``): a followed point farther than this (px) from
+#: its frame's own point is a failed follow or a detector's outlier and is not used
+ANCHOR_REACH = 5.0
 
 
 def detect_faces(gray, sizes=None, scale_factor: float = 1.1) -> list[tuple[int, int, int, int]]:
@@ -110,6 +115,12 @@ def _host(image, name: str) -> np.ndarray:
     if isinstance(image, DeviceArray):
         raise TypeError(f"{name}: expected a host (NumPy) (H, W) image, got a DeviceArray (download it with .numpy())")
     return as_host_array(image, name)
+
+
+def _u8(image) -> np.ndarray:
+    """A gray image as OpenCV's uint8 (float values clipped to 0-255)."""
+    a = np.asarray(image)
+    return a if a.dtype == np.uint8 else np.clip(a, 0, 255).astype(np.uint8)
 
 
 def _gray(image, name: str, shape=None) -> np.ndarray:
@@ -218,7 +229,8 @@ class FaceTracker:
         """Initialise on the first n = ``config.keyframes`` frames (n, H, W) gray, with their K feature
         points (n, K, 2) px (NaN: unknown), or the first frame's only (K, 2) (followed into the next
         frames by pyramidal Lucas-Kanade), or, without them, from a Haar face box in the first frame.
-        Returns the estimates of the n frames. Raises ValueError for fewer or more frames than n, or
+        Returns the estimates of the n frames (their ``features``: the points used, anchored to the
+        templates with ``config.anchor_templates``). Raises ValueError for fewer or more frames than n, or
         when no face is found."""
         n, K = self.config.keyframes, self.model.K
         if frames is None or isinstance(frames, (DeviceArray, str, bytes)) or not hasattr(frames, "__iter__"):
@@ -251,6 +263,8 @@ class FaceTracker:
         if not np.isfinite(lm[0]).all():
             raise ValueError("landmarks: expected every point of the first frame (its templates), got NaN")
         self.shape = frames[0].shape
+        if self.config.anchor_templates:
+            lm = self._anchored(frames, lm)
         poses = [self._pose_from_points(lm[0])]
         for i in range(1, n):
             poses.append(self._pose_from_points(lm[i], poses[-1]))
@@ -282,14 +296,45 @@ class FaceTracker:
         return self._points_from_box(box)
 
     @staticmethod
+    def _anchored(frames, lm):
+        """(n, K, 2) the start frames' points made consistent with the first frame's templates.
+
+        The templates are cut at the first frame's points, so a detector's error there stays with
+        them in every later frame. Each template's point is followed into the other start frames
+        (pyramidal Lucas-Kanade from the first frame, started at that frame's own point); its offset
+        from that frame's point is the first frame's error minus that frame's. The mean offset over
+        the n frames (0 for the first) is taken off every followed point, so all n frames' points,
+        and the first frame's templates cut at them, carry only the mean of the n frames' errors."""
+        import cv2
+
+        n = len(lm)
+        first = _u8(frames[0])
+        p0 = np.asarray(lm[0], np.float32).reshape(-1, 1, 2)
+        followed = np.full(lm.shape, np.nan)
+        followed[0] = lm[0]
+        for i in range(1, n):
+            guess = np.where(np.isfinite(lm[i]), lm[i], lm[0]).astype(np.float32).reshape(-1, 1, 2)
+            nxt, st, _ = cv2.calcOpticalFlowPyrLK(first, _u8(frames[i]), p0, guess.copy(), winSize=(21, 21),
+                                                  maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))  # fmt: skip
+            pts = nxt.reshape(-1, 2).astype(np.float64)
+            pts[st.ravel() == 0] = np.nan
+            followed[i] = pts
+        offset = followed - lm  # (n, K, 2): e_0 - e_i where both are known
+        ok = np.isfinite(offset).all(axis=2) & (np.hypot(*np.moveaxis(offset, 2, 0)) < ANCHOR_REACH)
+        count = ok.sum(axis=0)
+        mean = np.where(ok[..., None], offset, 0.0).sum(axis=0) / np.maximum(count, 1)[:, None]
+        return np.where(ok[..., None], followed - mean, lm)
+
+    @staticmethod
     def _follow(frames, p0):
         """(n, K, 2): the points ``p0`` of the first frame followed by pyramidal Lucas-Kanade (NaN: lost)."""
         import cv2
 
         out = [np.asarray(p0, np.float64)]
-        prev, prev_pts = frames[0].astype(np.uint8), np.asarray(p0, np.float32).reshape(-1, 1, 2)
+        prev, prev_pts = _u8(frames[0]), np.asarray(p0, np.float32).reshape(-1, 1, 2)
         for f in frames[1:]:
-            img = f.astype(np.uint8)
+            img = _u8(f)
             nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev, img, prev_pts, None, winSize=(21, 21), maxLevel=3)
             pts = nxt.reshape(-1, 2).astype(np.float64)
             pts[st.ravel() == 0] = np.nan
