@@ -185,7 +185,7 @@ def test_table1_on_a_simulated_sequence(device, data):
     if device.spec != "taichi:cpu":
         pytest.skip(f"{device.spec}: the 90-frame protocol runs on taichi:cpu; "
                     "test_devices_match_the_reference pins this device to the reference")  # fmt: skip
-    ict, model, pca, seq = data
+    _, model, pca, seq = data
     frames = _frames(90)
     from gputrack.demos.face import track_sequence
 

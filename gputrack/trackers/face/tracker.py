@@ -143,7 +143,8 @@ class FaceTracker:
     comparison model, no identity); camera: :class:`gputrack.models.Camera`; config: FaceConfig.
     """
 
-    def __init__(self, device: Device, model, camera: Camera, config: FaceConfig = FaceConfig()):
+    def __init__(self, device: Device, model, camera: Camera, config: FaceConfig | None = None):
+        config = FaceConfig() if config is None else config
         if not isinstance(device, Device):
             raise TypeError(f"device: expected a gputrack.Device, got {type(device).__name__}")
         if not isinstance(camera, Camera):
