@@ -235,3 +235,58 @@ def test_first_frame_times_a_fresh_and_a_warm_process(tmp_path):
     for r in runs:
         assert 0 < r["import_s"] <= r["device_s"] <= r["tracker_s"] <= r["first_frame_s"] <= r["process_wall_s"]
         assert r["confidence"] == 1.0
+
+
+# -- the face tracker over many simulated people -------------------------------------------------------
+def _face_seeds():
+    spec = importlib.util.spec_from_file_location("face_seeds_under_test", ROOT / "perf" / "face_seeds.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_face_seeds_runs_and_compares(tmp_path):
+    """perf/face_seeds.py on numpy, one short sequence with and without a FaceConfig change: every run in
+    the JSON, the table and the paired counts printed."""
+    from gputrack.models.face import load_ict
+
+    try:
+        load_ict()
+    except FileNotFoundError as e:
+        pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository, or $GPUTRACK_DATA): {e}")
+    out = tmp_path / "seeds.json"
+    cmd = [sys.executable, str(ROOT / "perf" / "face_seeds.py"), "--device", "numpy", "--sequence", "depth",
+           "--seeds", "0", "--frames", "9", "--compare", "anchor_templates=false", "--json", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = json.loads(out.read_text())["runs"]
+    assert sorted(json.dumps(r["overrides"]) for r in runs) == ['{"anchor_templates": false}', "{}"]
+    for r in runs:
+        assert r["sequence"] == "depth" and r["seed"] == 0 and r["lost"] == 0
+        assert all(np.isfinite(r[c]) and r[c] >= 0 for c in ("x", "y", "z", "roll", "pitch", "yaw", "feature_px"))
+    assert "with anchor_templates=False" in proc.stdout and "runs in which the default was better" in proc.stdout
+
+
+def test_face_seeds_report_and_arguments():
+    fs = _face_seeds()
+    assert fs._seeds("0-2,5") == [0, 1, 2, 5]
+    for bad in ("2-1", "x", "-1"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            fs._seeds(bad)
+    assert fs._override("anchor_templates=false") == {"anchor_templates": False}
+    assert fs._override("rho=3.5") == {"rho": 3.5}
+    for bad in ("nonsense=1", "rho", "particles=0", "seed=3"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            fs._override(bad)
+
+    def row(seq, seed, ov, v):
+        return {"sequence": seq, "seed": seed, "overrides": ov, "feature_px": v,
+                **{c: v for c in ("x", "y", "z", "roll", "pitch", "yaw")}}  # fmt: skip
+
+    ov = {"rho": 3.0}
+    rows = [row("turns", 0, {}, 1.0), row("turns", 0, ov, 2.0), row("turns", 1, {}, 3.0), row("turns", 1, ov, 2.0)]
+    text = fs.report(rows, ("turns",), ov)
+    means = [line.split() for line in text.splitlines() if line.startswith(("turns", "  with rho=3.0"))]
+    assert means[0] == ["turns", "2"] + ["2.00"] * 7  # the default's mean over two seeds
+    assert means[1] == ["with", "rho=3.0", "2"] + ["2.00"] * 7
+    assert text.splitlines()[-1].split()[1:] == ["2"] + ["1"] * 7  # the default better in one of the two runs
