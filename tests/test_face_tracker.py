@@ -317,6 +317,9 @@ def test_the_start_anchors_the_templates_to_all_start_frames(data):
     assert np.nanmean(after) < 0.6 * np.nanmean(before)
     plain = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64, anchor_templates=False)).start(gray, noisy)
     np.testing.assert_array_equal(np.array([e.features for e in plain]), noisy)
+    # the first frame's points only: the others are followed from them, the first frame's stay as given
+    first = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64)).start(gray, noisy[0])
+    np.testing.assert_array_equal(first[0].features, noisy[0])
 
 
 def test_bad_input(data):

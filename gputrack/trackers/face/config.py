@@ -41,8 +41,9 @@ class FaceConfig:
     intensities): eq. 14 compares the patches brought to zero mean and this standard deviation, so a
     change of the light does not pull the points (:func:`gputrack.ops.face_relocate.relocate_points`);
     ``anchor_templates`` (beyond the paper; False = the first frame's patches at its given points):
-    each first-frame template's point is followed into the other start frames (Lucas-Kanade) and
-    moved by the mean offset from their given points, so a detector's error in the first frame does
+    where every start frame's points are given (a detector's), each first-frame template's point is
+    followed into the other start frames (Lucas-Kanade) and moved by the mean offset from their
+    given points, so a detector's error in the first frame does
     not stay in the templates (1 px of noise per point: 1.1 -> 0.5 px from the truth on the simulator).
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM

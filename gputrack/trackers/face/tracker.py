@@ -230,8 +230,9 @@ class FaceTracker:
         """Initialise on the first n = ``config.keyframes`` frames (n, H, W) gray, with their K feature
         points (n, K, 2) px (NaN: unknown), or the first frame's only (K, 2) (followed into the next
         frames by pyramidal Lucas-Kanade), or, without them, from a Haar face box in the first frame.
-        Returns the estimates of the n frames (their ``features``: the points used, anchored to the
-        templates with ``config.anchor_templates``). Raises ValueError for fewer or more frames than n, or
+        Returns the estimates of the n frames (their ``features``: the points used; every frame's points
+        given are anchored to the templates with ``config.anchor_templates``, points followed from the
+        first frame already are). Raises ValueError for fewer or more frames than n, or
         when no face is found."""
         n, K = self.config.keyframes, self.model.K
         if frames is None or isinstance(frames, (DeviceArray, str, bytes)) or not hasattr(frames, "__iter__"):
@@ -249,6 +250,7 @@ class FaceTracker:
             landmarks = as_host_array(landmarks, "landmarks")
             if landmarks.dtype.kind not in "iuf":
                 raise TypeError(f"landmarks: expected real points (px), got dtype {landmarks.dtype.name}")
+        followed = landmarks is None or landmarks.ndim == 2  # the other frames' points come from the first's
         if landmarks is None:
             landmarks = self._follow(frames, self._detected_points(frames[0]))
         elif landmarks.ndim == 2:
@@ -264,7 +266,7 @@ class FaceTracker:
         if not np.isfinite(lm[0]).all():
             raise ValueError("landmarks: expected every point of the first frame (its templates), got NaN")
         self.shape = frames[0].shape
-        if self.config.anchor_templates:
+        if self.config.anchor_templates and not followed:
             lm = self._anchored(frames, lm)
         poses = [self._pose_from_points(lm[0])]
         for i in range(1, n):
