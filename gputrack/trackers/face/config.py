@@ -43,8 +43,8 @@ class FaceConfig:
     ``anchor_templates`` (beyond the paper; False = the first frame's patches at its given points):
     where every start frame's points are given (a detector's), each first-frame template's point is
     followed into the other start frames (Lucas-Kanade) and moved by the mean offset from their
-    given points, so a detector's error in the first frame does
-    not stay in the templates (1 px of noise per point: 1.1 -> 0.5 px from the truth on the simulator).
+    given points, so a detector's error in the first frame does not stay in the templates (1 px of
+    noise per point: 1.1 -> 0.5 px from the truth on the simulator).
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``

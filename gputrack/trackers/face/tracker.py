@@ -123,6 +123,17 @@ def _u8(image) -> np.ndarray:
     return a if a.dtype == np.uint8 else np.clip(a, 0, 255).astype(np.uint8)
 
 
+def _lucas_kanade(a, b, points, guess, **options):
+    """Pyramidal Lucas-Kanade (21 x 21 window) of ``points`` (K, 1, 2) float32 from image ``a`` into
+    ``b`` (uint8), from ``guess`` (or None): ((K, 2) float64, NaN where lost; OpenCV's (K, 1, 2) result)."""
+    import cv2
+
+    nxt, st, _ = cv2.calcOpticalFlowPyrLK(a, b, points, guess, winSize=(21, 21), **options)
+    pts = nxt.reshape(-1, 2).astype(np.float64)
+    pts[st.ravel() == 0] = np.nan
+    return pts, nxt
+
+
 def _gray(image, name: str, shape=None) -> np.ndarray:
     a = _host(image, name)
     if a.dtype.kind not in "uif" or a.ndim != 2:
@@ -317,12 +328,9 @@ class FaceTracker:
         followed[0] = lm[0]
         for i in range(1, n):
             guess = np.where(np.isfinite(lm[i]), lm[i], lm[0]).astype(np.float32).reshape(-1, 1, 2)
-            nxt, st, _ = cv2.calcOpticalFlowPyrLK(first, _u8(frames[i]), p0, guess.copy(), winSize=(21, 21),
-                                                  maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))  # fmt: skip
-            pts = nxt.reshape(-1, 2).astype(np.float64)
-            pts[st.ravel() == 0] = np.nan
-            followed[i] = pts
+            followed[i], _ = _lucas_kanade(first, _u8(frames[i]), p0, guess, maxLevel=1,
+                                           flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                           criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))  # fmt: skip
         offset = followed - lm  # (n, K, 2): e_0 - e_i where both are known
         ok = np.isfinite(offset).all(axis=2) & (np.hypot(*np.moveaxis(offset, 2, 0)) < ANCHOR_REACH)
         count = ok.sum(axis=0)
@@ -332,17 +340,13 @@ class FaceTracker:
     @staticmethod
     def _follow(frames, p0):
         """(n, K, 2): the points ``p0`` of the first frame followed by pyramidal Lucas-Kanade (NaN: lost)."""
-        import cv2
-
         out = [np.asarray(p0, np.float64)]
         prev, prev_pts = _u8(frames[0]), np.asarray(p0, np.float32).reshape(-1, 1, 2)
         for f in frames[1:]:
             img = _u8(f)
-            nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev, img, prev_pts, None, winSize=(21, 21), maxLevel=3)
-            pts = nxt.reshape(-1, 2).astype(np.float64)
-            pts[st.ravel() == 0] = np.nan
+            pts, prev_pts = _lucas_kanade(prev, img, prev_pts, None, maxLevel=3)
             out.append(pts)
-            prev, prev_pts = img, nxt
+            prev = img
         return np.array(out)
 
     # -- per frame -----------------------------------------------------------------------------------
