@@ -44,7 +44,10 @@ class FaceConfig:
     where every start frame's points are given (a detector's), each first-frame template's point is
     followed into the other start frames (Lucas-Kanade) and moved by the mean offset from their
     given points, so a detector's error in the first frame does not stay in the templates (1 px of
-    noise per point: 1.1 -> 0.5 px from the truth on the simulator).
+    noise per point: 1.1 -> 0.5 px from the truth on the simulator); ``refine_pose`` (beyond the
+    paper; False = the filter's estimate): the estimate's pose is refined to fit the re-localised
+    points (PnP, Levenberg-Marquardt from the estimate, the shape held) and the filter's hypotheses
+    move with it; a step beyond ``pose_range`` is not taken.
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``
@@ -87,6 +90,7 @@ class FaceConfig:
     relocate_iterations: int = 5
     relocate_contrast: float = 30.0
     anchor_templates: bool = True
+    refine_pose: bool = True
     keyframes: int = 7
     init_iterations: int = 10
     iterations: int = 5

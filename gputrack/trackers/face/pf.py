@@ -122,6 +122,20 @@ class FaceParticleFilter:
             raise ValueError(f"share: expected a fraction in [0, 1], got {share!r}")
         self._mix = (state, float(share))
 
+    def move(self, state) -> None:
+        """Move the estimate to ``state`` (6 + D,) (a refinement of it, e.g. fitted to the feature
+        points) and every hypothesis with it by the same step; the step counts as motion (eq. 12's
+        velocity)."""
+        state = np.asarray(state, np.float64)
+        if self.estimate is None:
+            raise RuntimeError("FaceParticleFilter: call reset() before move()")
+        if state.shape != (6 + self.D,) or not np.isfinite(state).all():
+            raise ValueError(f"state: expected {6 + self.D} finite values, got {state.shape}")
+        step = state - self.estimate
+        self.states = self.states + step
+        self.velocity = self.velocity + step
+        self.estimate = state.copy()
+
     def sample(self) -> np.ndarray:
         """(N, 6 + D) new hypotheses (eq. 12) from the last ones, resampled by weight (and some around
         a detection, :meth:`mix`)."""

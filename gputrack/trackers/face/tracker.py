@@ -15,8 +15,11 @@
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
-  the K points and the frame's patches at them, which stay on the device for the next frame) and
-  ``bundle`` (the K points come down; the incremental bundle adjustment on the key frames, eq. 6-10,
+  the K points and the frame's patches at them, which stay on the device for the next frame),
+  ``refine`` (the K points come down; beyond the paper, ``config.refine_pose``: the estimate's pose
+  fitted to them by PnP from the filter's estimate, and the filter's hypotheses moved by the same
+  step, as paper 000 follows its particle filter with LM) and ``bundle`` (the incremental bundle
+  adjustment on the key frames, eq. 6-10,
   ``iterations`` LM iterations through :func:`gputrack.least_squares` on the device; the identity's
   running mean, eq. 10).
 - **Loss** (beyond the paper): a frame whose best hypothesis has a mean NCC below
@@ -44,7 +47,7 @@ import numpy as np
 
 from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
-from ...models.pose import facing, project, rodrigues
+from ...models.pose import facing, project, rodrigues, rotation_vector
 from ...ops.face_points import project_faces
 from ...ops.face_relocate import relocate_points, sample_patches
 from ...ops.ncc import patch_ncc
@@ -186,7 +189,8 @@ class FaceTracker:
             Stage("estimate", self._estimate, host_reads=("scores", "facing")),
             Stage("relocate", self._relocate, reads=("image", "templates", "previous"),
                   writes=("features", "previous", "spare")),
-            Stage("bundle", self._bundle, host_reads=("features",)),
+            Stage("refine", self._refine, host_reads=("features",)),
+            Stage("bundle", self._bundle),
         ], inputs=("image",), state=("templates", "previous", "features"))  # fmt: skip
 
     # -- start ---------------------------------------------------------------------------------------
@@ -198,20 +202,27 @@ class FaceTracker:
 
     def _pose_from_points(self, points, guess=None):
         """(rvec, tvec) of the current shape at expression mean seen at ``points`` (K, 2) (PnP)."""
-        import cv2
-
-        X = self._mean_shape()
         ok = np.isfinite(points).all(axis=1)
         if ok.sum() < 6:
             raise ValueError(f"landmarks: expected at least 6 finite points for the start pose, got {int(ok.sum())}")
-        K = np.array([[self.camera.fx, 0, self.camera.cx], [0, self.camera.fy, self.camera.cy], [0, 0, 1]])
         if guess is None:
             guess = self._box_pose(points)
+        fit = self._solve_pnp(self._mean_shape(), points, guess)
+        return guess if fit is None else fit
+
+    def _solve_pnp(self, X, points, guess):
+        """(rvec, tvec) of the model points X (K, 3) seen at ``points`` (K, 2) (the finite ones, at least
+        6), by OpenCV's iterative PnP (Levenberg-Marquardt on the reprojection error) from ``guess``
+        (rvec, tvec); None where it fails or puts the face behind the camera."""
+        import cv2
+
+        ok = np.isfinite(points).all(axis=1)
+        K = np.array([[self.camera.fx, 0, self.camera.cx], [0, self.camera.fy, self.camera.cy], [0, 0, 1]])
         r0, t0 = (np.asarray(g, np.float64).reshape(3, 1).copy() for g in guess)
         found, r, t = cv2.solvePnP(X[ok], np.asarray(points, np.float64)[ok], K, None, r0, t0, True,
                                    cv2.SOLVEPNP_ITERATIVE)  # fmt: skip
-        if not found or not np.isfinite(r).all() or t[2, 0] <= 0:
-            return guess
+        if not found or not np.isfinite(r).all() or not np.isfinite(t).all() or t[2, 0] <= 0:
+            return None
         return r.ravel(), t.ravel()
 
     def _box_pose(self, points):
@@ -399,10 +410,32 @@ class FaceTracker:
                                      contrast=c.relocate_contrast, out=out)  # fmt: skip
         b["spare"], b["previous"], b["features"] = b["previous"], patches, m
 
+    def _refine(self, b):
+        """The feature points come down; the estimate's pose fitted to them (``config.refine_pose``,
+        host: :meth:`_solve_pnp` with the estimate's shape, from its pose), the filter moved with it."""
+        h = self._host
+        if h["lost"]:
+            h["features"] = np.full((self.model.K, 2), np.nan)
+            return
+        h["features"] = m = b["features"].astype(np.float64)
+        est = h["state"]
+        if not self.config.refine_pose or np.isfinite(m).all(axis=1).sum() < 6:
+            return
+        mean, basis = self._basis
+        fit = self._solve_pnp(mean + basis @ est[6:], m, (est[:3], est[3:6]))
+        if fit is None:
+            return
+        turn = np.linalg.norm(rotation_vector(rodrigues(fit[0]) @ rodrigues(est[:3]).T))
+        if turn > self.config.pose_range[0] or np.linalg.norm(fit[1] - est[3:6]) > self.config.pose_range[1]:
+            return  # points that disagree this much with the filter are not trusted
+        new = np.concatenate([fit[0], fit[1], est[6:]])
+        self.pf.move(new)
+        h["state"] = new
+        h["landmarks"] = self._predicted(new[:3], new[3:6], new[6:])
+
     def _bundle(self, b):
         h = self._host
         lost = h["lost"]
-        h["features"] = np.full((self.model.K, 2), np.nan) if lost else b["features"].astype(np.float64)
         if lost or not self.config.learn_identity or self.model.identity_dims == 0:
             return  # the generic model has no identity to learn
         est = h["state"]
