@@ -342,6 +342,15 @@ def test_the_pose_is_refined_to_the_feature_points(data):
     np.testing.assert_allclose(refined.pf.states - plain.pf.states, np.broadcast_to(step, plain.pf.states.shape),
                                atol=1e-9)  # fmt: skip
     np.testing.assert_allclose(refined.pf.estimate[:3], r.rvec)
+    # points that would move the pose beyond the bundle adjustment's box (pose_range) are not trusted
+    state = refined.pf.estimate.copy()
+    for shift, taken in ((2.0, True), (150.0, False)):  # px, every point: 1.6 mm sideways / about 130 mm (> 30)
+        refined.pf.reset(state, model.K)
+        refined._host = {"lost": False, "state": state.copy()}
+        refined._refine({"features": r.landmarks + [shift, 0.0]})
+        moved = refined._host["state"][3] - state[3]
+        assert (0.2 < moved < 30.0) if taken else moved == 0.0, (shift, moved)
+        assert np.array_equal(refined.pf.estimate, refined._host["state"])
 
 
 def test_start_from_a_haar_face_box(device, data):
