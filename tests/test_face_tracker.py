@@ -322,8 +322,7 @@ def test_the_pose_is_refined_to_the_feature_points(data):
     (plain, p), (refined, r) = runs[False], runs[True]
     np.testing.assert_array_equal(r.features, p.features)
     assert np.isfinite(r.features).all()
-    mean, basis = refined._basis
-    shape = mean + basis @ r.expression
+    shape = refined._shape(r.expression)
 
     def misfit(rvec, t):  # RMS px of the pose's points from the feature points
         return np.sqrt(np.mean((project(seq.camera, rodrigues(rvec), t, shape) - r.features) ** 2))

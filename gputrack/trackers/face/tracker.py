@@ -195,10 +195,14 @@ class FaceTracker:
 
     # -- start ---------------------------------------------------------------------------------------
 
+    def _shape(self, a):
+        """(K, 3) the current identity's shape at deformation ``a`` (A',) (eq. 11)."""
+        mean, basis = self._basis
+        return mean + basis @ a
+
     def _mean_shape(self):
         """(K, 3) the current identity's shape at the model's mean deformation."""
-        mean, basis = self._basis
-        return mean + basis @ self.model.expression_mean
+        return self._shape(self.model.expression_mean)
 
     def _pose_from_points(self, points, guess=None):
         """(rvec, tvec) of the current shape at expression mean seen at ``points`` (K, 2) (PnP)."""
@@ -363,8 +367,7 @@ class FaceTracker:
     # -- per frame -----------------------------------------------------------------------------------
 
     def _predicted(self, rvec, tvec, a):
-        mean, basis = self._basis
-        return project(self.camera, rodrigues(rvec), tvec, mean + basis @ a)
+        return project(self.camera, rodrigues(rvec), tvec, self._shape(a))
 
     def _estimate_of(self, rvec, tvec, a, landmarks, features, confidence, lost) -> FaceEstimate:
         return FaceEstimate(rotation=rodrigues(rvec), translation=np.array(tvec, np.float64),
@@ -421,8 +424,7 @@ class FaceTracker:
         est = h["state"]
         if not self.config.refine_pose or np.isfinite(m).all(axis=1).sum() < 6:
             return
-        mean, basis = self._basis
-        fit = self._solve_pnp(mean + basis @ est[6:], m, (est[:3], est[3:6]))
+        fit = self._solve_pnp(self._shape(est[6:]), m, (est[:3], est[3:6]))
         if fit is None:
             return
         turn = np.linalg.norm(rotation_vector(rodrigues(fit[0]) @ rodrigues(est[:3]).T))
