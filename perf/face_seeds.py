@@ -6,9 +6,13 @@ process per run, the mean errors per sequence beside the paper's.
 One run swings with its seed (a few degrees of yaw, tens of mm of depth), so a change to the
 tracker is judged here over many runs: ``--compare FIELD=VALUE`` runs every case a second time with
 that FaceConfig field changed and counts, per column, the runs in which the default was better.
+``--floor`` runs every case once more with the person's true identity given and held (the depth
+floor: the tracker as it would be if it knew the person's size), ``--generic`` once more with the
+generic PCA model instead of the multilinear one (Table 1's comparison).
 
     python perf/face_seeds.py --device taichi:cpu --seeds 0-5
     python perf/face_seeds.py --device opencl --seeds 0-2 --sequence turns --compare anchor_templates=false
+    python perf/face_seeds.py --device opencl --seeds 0-5 --floor --generic
 """
 
 from __future__ import annotations
@@ -27,28 +31,45 @@ import numpy as np
 from gputrack.trackers.face.metrics import COLUMNS, PAPER_TABLE1
 
 SEQUENCES = ("turns", "depth", "expressions", "lighting", "mixed")
+#: the pseudo-overrides (not FaceConfig fields) of ``--floor``'s runs (the true identity given and held)
+#: and of ``--generic``'s (the generic PCA model)
+FLOOR, GENERIC = {"true_identity": True}, {"generic_model": True}
 
 
 def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> dict:
     """One run: the multilinear tracker on ``sequence`` with ``seed`` (its first ``frames`` frames, or all),
-    Table 1's means and more."""
+    Table 1's means and more; with :data:`FLOOR`'s key in ``overrides`` the person's true identity held,
+    and the depth error that perfect feature points leave (``landmark_z``, mm:
+    :func:`gputrack.demos.face.landmark_floor` over every 5th frame, as the demo); with
+    :data:`GENERIC`'s the generic PCA model."""
     import dataclasses
 
     import gputrack
-    from gputrack.demos.face import track_sequence
-    from gputrack.models.face import FaceModel, load_ict
+    from gputrack.demos.face import landmark_floor, track_sequence, true_identity
+    from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
     from gputrack.sim.face import face_sequence
     from gputrack.trackers.face import FaceConfig
     from gputrack.trackers.face.metrics import table1
 
     ict = load_ict()
     seq = face_sequence(sequence, frames=frames, seed=seed, ict=ict)
-    config = dataclasses.replace(FaceConfig(), seed=seed, **overrides)
-    rec = track_sequence(gputrack.device(spec), seq, FaceModel.from_ict(ict), config)
+    fields = {k: v for k, v in overrides.items() if k not in FLOOR and k not in GENERIC}
+    model = (PcaFaceModel if overrides.get("generic_model") else FaceModel).from_ict(ict)
+    identity = None
+    if overrides.get("true_identity"):
+        identity = true_identity(ict, seq, model)
+        fields["learn_identity"] = False
+    config = dataclasses.replace(FaceConfig(), seed=seed, **fields)
+    rec = track_sequence(gputrack.device(spec), seq, model, config, identity=identity)
     t = table1(rec["errors"])
-    return {"sequence": sequence, "seed": seed, "overrides": overrides, **{c: t[c][0] for c in COLUMNS},
-            "feature_px": float(np.nanmean(rec["feature_px"])), "lost": int(rec["lost"].sum()),
-            "median_ms": float(np.median(rec["ms"]))}  # fmt: skip
+    out = {"sequence": sequence, "seed": seed, "overrides": overrides, **{c: t[c][0] for c in COLUMNS},
+           "feature_px": float(np.nanmean(rec["feature_px"])), "lost": int(rec["lost"].sum()),
+           "median_ms": float(np.median(rec["ms"]))}  # fmt: skip
+    if identity is not None:
+        n = len(rec["errors"])
+        step = 5 if n >= 5 * config.keyframes else 1
+        out["landmark_z"] = landmark_floor(model, [seq[k] for k in range(0, n, step)], seq.camera, config)["z_mm"]
+    return out
 
 
 def _seeds(text: str) -> list[int]:
@@ -99,8 +120,11 @@ def _means(rows) -> list[float]:
     return [float(np.mean([r[c] for r in rows])) for c in (*COLUMNS, "feature_px")]
 
 
-def report(rows: list[dict], sequences, compare: dict | None) -> str:
-    variants = [("", {})] + ([("  with " + ",".join(f"{k}={v}" for k, v in compare.items()), compare)] if compare else [])
+def report(rows: list[dict], sequences, compare: dict | None, floor: bool = False, generic: bool = False) -> str:
+    variants = [("", {})] + (
+        [("  with " + ",".join(f"{k}={v}" for k, v in compare.items()), compare)] if compare else []
+    )
+    variants += ([("  generic PCA", GENERIC)] if generic else []) + ([("  true identity", FLOOR)] if floor else [])
     w = max(13, *(len(t) for t, _ in variants))
     head = f"{'sequence':<{w}} {'runs':>4} " + "".join(f"{c:>8}" for c in COLUMNS) + f"{'points px':>11}"
     lines = ["mean errors (x, y, z mm; roll, pitch, yaw deg; feature points after eq. 14, px from the truth)", head]
@@ -117,12 +141,25 @@ def report(rows: list[dict], sequences, compare: dict | None) -> str:
                 lines.append(f"{tag or name:<{w}} {len(sel):>4} "
                              + "".join(f"{v:8.2f}" for v in m[:6]) + f"{m[6]:11.2f}")  # fmt: skip
     lines.append(f"{'paper':<{w}} {'':>4} " + "".join(f"{v:8.2f}" for v in PAPER_TABLE1["paper: multilinear"]))
+    if floor:
+        lines.append("")
+        lines.append("z (mm): the tracker's, the true identity's and perfect feature points' (the size unknown), "
+                     "and the runs whose z is within 15 % of their perfect points'")  # fmt: skip
+        for name, seqs in groups:
+            base = {(r["sequence"], r["seed"]): r for r in rows if r["sequence"] in seqs and not r["overrides"]}
+            fl = {(r["sequence"], r["seed"]): r for r in rows if r["sequence"] in seqs and r["overrides"] == FLOOR}
+            keys = sorted(set(base) & set(fl))
+            if keys:
+                z, zt, zp = (np.mean([d[k][c] for k in keys]) for d, c in ((base, "z"), (fl, "z"), (fl, "landmark_z")))
+                near = sum(base[k]["z"] <= 1.15 * fl[k]["landmark_z"] for k in keys)
+                lines.append(f"{name:<{w}} {len(keys):>4}   tracker {z:6.2f}   true identity {zt:6.2f}   "
+                             f"perfect points {zp:6.2f}   within 15 %: {near} of {len(keys)}")  # fmt: skip
     if compare:
         lines.append("")
         lines.append("runs in which the default was better than " + ",".join(f"{k}={v}" for k, v in compare.items()))
         for name, seqs in groups:
             base = {(r["sequence"], r["seed"]): r for r in rows if r["sequence"] in seqs and not r["overrides"]}
-            other = {(r["sequence"], r["seed"]): r for r in rows if r["sequence"] in seqs and r["overrides"]}
+            other = {(r["sequence"], r["seed"]): r for r in rows if r["sequence"] in seqs and r["overrides"] == compare}
             keys = sorted(set(base) & set(other))
             if keys:
                 lines.append(f"{name:<{w}} {len(keys):>4} " + "".join(
@@ -137,6 +174,8 @@ def main(argv=None) -> int:
     p.add_argument("--sequence", action="append", choices=SEQUENCES, help="repeatable (default: all five)")
     p.add_argument("--seeds", type=_seeds, default=_seeds("0-2"), help="e.g. 0-5 or 0,3,7 (default 0-2)")
     p.add_argument("--compare", type=_override, action="append", help="FIELD=VALUE of FaceConfig (repeatable)")
+    p.add_argument("--floor", action="store_true", help="also run every case with the person's true identity held")
+    p.add_argument("--generic", action="store_true", help="also run every case with the generic PCA model")
     p.add_argument("--frames", type=int, help="only each sequence's first FRAMES frames (default: all 300)")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (default 2)")
     p.add_argument("--json", help="write every run's figures to this file")
@@ -150,7 +189,10 @@ def main(argv=None) -> int:
         p.error(f"--frames: expected at least 8 (7 start frames and one tracked), got {args.frames}")
     sequences = tuple(args.sequence or SEQUENCES)
     compare = {k: v for d in args.compare or [] for k, v in d.items()} or None
-    cases = [(args.device, s, seed, ov, args.frames) for seed in args.seeds for s in sequences for ov in ([{}, compare] if compare else [{}])]
+    variants = (
+        [{}] + ([compare] if compare else []) + ([GENERIC] if args.generic else []) + ([FLOOR] if args.floor else [])
+    )
+    cases = [(args.device, s, seed, ov, args.frames) for seed in args.seeds for s in sequences for ov in variants]
     print(f"face_seeds: {len(cases)} runs on {args.device}, {args.jobs} at a time", flush=True)
     t0, rows = time.perf_counter(), []
     with ThreadPoolExecutor(args.jobs) as pool:
@@ -161,7 +203,7 @@ def main(argv=None) -> int:
                   f"{r['roll']:.2f} pitch {r['pitch']:.2f} yaw {r['yaw']:.2f} deg ({time.perf_counter() - t0:.0f} s)",
                   flush=True)  # fmt: skip
     print()
-    print(report(rows, sequences, compare))
+    print(report(rows, sequences, compare, args.floor, args.generic))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": args.device, "runs": rows}, f, indent=1)

@@ -230,6 +230,26 @@ def test_table1_on_a_simulated_sequence(device, data):
     assert t["z"][0] < table1(generic["errors"])["z"][0]
 
 
+def test_the_true_identity_is_the_simulated_persons(data):
+    """The floor runs' identity (``true_identity``): the model's coordinates of the simulated person,
+    whose shape in the first frames it fits (at the best deformation) far better than the model's
+    mean identity does."""
+    from gputrack.demos.face import true_identity
+
+    ict, model, _, seq = data
+    s = true_identity(ict, seq, model)
+    assert s.shape == (model.identity_dims,) and np.isfinite(s).all()
+
+    def misfit(identity, frame):  # RMS mm of the frame's true points from the identity's best deformation
+        mean, basis = model.expression_basis(identity)
+        B = basis.reshape(-1, basis.shape[-1])
+        a = np.linalg.lstsq(B, (frame.shape - mean).ravel(), rcond=None)[0]
+        return np.sqrt(((B @ a - (frame.shape - mean).ravel()) ** 2).mean())
+
+    for frame in _frames(3):
+        assert misfit(s, frame) < 0.2 * misfit(model.identity_mean, frame)  # 0.29 against 3.46 mm
+
+
 def test_landmark_floor_is_the_size_the_landmarks_cannot_show(data):
     """The bundle adjustment on perfect feature points of the model's mean face, turning by up to
     30 deg: at its own size the depth comes out right; the same face 10 % larger, whose points are

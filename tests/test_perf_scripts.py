@@ -256,15 +256,18 @@ def test_face_seeds_runs_and_compares(tmp_path):
         pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository, or $GPUTRACK_DATA): {e}")
     out = tmp_path / "seeds.json"
     cmd = [sys.executable, str(ROOT / "perf" / "face_seeds.py"), "--device", "numpy", "--sequence", "depth",
-           "--seeds", "0", "--frames", "9", "--compare", "anchor_templates=false", "--json", str(out)]  # fmt: skip
+           "--seeds", "0", "--frames", "9", "--compare", "anchor_templates=false", "--floor", "--generic",
+           "--json", str(out)]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     runs = json.loads(out.read_text())["runs"]
-    assert sorted(json.dumps(r["overrides"]) for r in runs) == ['{"anchor_templates": false}', "{}"]
+    assert sorted(json.dumps(r["overrides"]) for r in runs) == [
+        '{"anchor_templates": false}', '{"generic_model": true}', '{"true_identity": true}', "{}"]  # fmt: skip
     for r in runs:
         assert r["sequence"] == "depth" and r["seed"] == 0 and r["lost"] == 0
         assert all(np.isfinite(r[c]) and r[c] >= 0 for c in ("x", "y", "z", "roll", "pitch", "yaw", "feature_px"))
     assert "with anchor_templates=False" in proc.stdout and "runs in which the default was better" in proc.stdout
+    assert "  generic PCA " in proc.stdout and "  true identity " in proc.stdout
 
 
 def test_face_seeds_report_and_arguments():
@@ -290,3 +293,16 @@ def test_face_seeds_report_and_arguments():
     assert means[0] == ["turns", "2"] + ["2.00"] * 7  # the default's mean over two seeds
     assert means[1] == ["with", "rho=3.0", "2"] + ["2.00"] * 7
     assert text.splitlines()[-1].split()[1:] == ["2"] + ["1"] * 7  # the default better in one of the two runs
+    # the floor's and the generic model's runs get their own rows and stay out of the paired counts; the
+    # floor's perfect-point depth (landmark_z) is set beside the tracker's z, run by run
+    rows += [row("turns", 0, fs.FLOOR, 0.5) | {"landmark_z": 0.5}, row("turns", 1, fs.FLOOR, 1.5) | {"landmark_z": 3.0},
+             row("turns", 0, fs.GENERIC, 9.0)]  # fmt: skip
+    text = fs.report(rows, ("turns",), ov, floor=True, generic=True)
+    lines = text.splitlines()
+    assert [ln.split() for ln in lines if ln.startswith("  true identity")] == [["true", "identity", "2"] + ["1.00"] * 7]
+    assert [ln.split() for ln in lines if ln.startswith("  generic PCA")] == [["generic", "PCA", "1"] + ["9.00"] * 7]
+    assert lines[-1].split()[1:] == ["2"] + ["1"] * 7
+    # z 1.0 against 1.15 x 0.5 (not within), 3.0 against 1.15 x 3.0 (within)
+    assert [ln.split()[1:] for ln in lines if ln.startswith("turns") and "perfect points" in ln] == [
+        ["2", "tracker", "2.00", "true", "identity", "1.00", "perfect", "points", "1.75", "within", "15", "%:", "1", "of",
+         "2"]]  # fmt: skip

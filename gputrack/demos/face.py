@@ -33,7 +33,7 @@ from ..sim.face import face_sequence
 from ..trackers.face import FaceConfig, FaceTracker
 from ..trackers.face.metrics import PAPER_TABLE1, format_table1, pose_errors, shape_error, table1
 
-__all__ = ["feature_error", "landmark_floor", "run", "track_sequence", "write_json"]
+__all__ = ["feature_error", "landmark_floor", "run", "track_sequence", "true_identity", "write_json"]
 
 
 def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
@@ -164,7 +164,7 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
     if generic:
         runs["generic PCA"] = (PcaFaceModel.from_ict(ict), config, None)
     if floor:
-        true_s = model.identity_of(_true_samples(ict, seq.identity, model))
+        true_s = true_identity(ict, seq, model)
         runs["true identity (floor)"] = (model, dataclasses.replace(config, learn_identity=False), true_s)
     records = {}
     for label, (m, cfg, ident) in runs.items():
@@ -267,11 +267,11 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
     return {"relative": rel, "z_mm": abs(rel) * depth, "rotation_deg": rotation, "keyframes": keys, "rms": res.rms}
 
 
-def _true_samples(ict, identity, model) -> np.ndarray:
-    """(A, K, 3) the sequence person's K points in the model's A deformations (for the model's
-    coordinates of the true identity)."""
-    lm = ict.landmarks(identity[None, :], ict.motion_weights())
-    return lm[:, list(model.landmarks)]
+def true_identity(ict, seq, model) -> np.ndarray:
+    """(S',) the model's coordinates of the simulated sequence's person: the least-squares identity
+    of its K points in the model's A deformations (the depth floor's run holds it)."""
+    lm = ict.landmarks(seq.identity[None, :], ict.motion_weights())
+    return model.identity_of(lm[:, list(model.landmarks)])
 
 
 def write_json(report: dict, path: str) -> None:
