@@ -3,7 +3,7 @@
 // Gauss-Newton iterations and samples its patch at the point found; the patch's samples are not
 // stored between the passes over it (each pass samples the image again).
 // img (H, W); pred (K, 2); prev, first, patches (K, S, S); points (K, 2);
-// c: rho, eps, max_step, contrast, tol, min_std, singular (gputrack/ops/face_relocate.py).
+// c: rho, eps, max_step, contrast, tol, min_std, singular, shading (gputrack/ops/face_relocate.py).
 
 // the image at (x, y), the coordinates clipped into it first
 static float gt_fr_bilinear(__global const float *img, const int H, const int W, const float x, const float y) {
@@ -15,22 +15,32 @@ static float gt_fr_bilinear(__global const float *img, const int H, const int W,
     return top + fy * (bot - top);
 }
 
-// contrast / max(std, min_std) of n values whose shifted sum and sum of squares are s, ss
-static float gt_fr_gain(const float s, const float ss, const float n, const float contrast, const float min_std) {
-    const float var = fmax(ss / n - (s / n) * (s / n), 0.0f);
-    return contrast / fmax(sqrt(var), min_std);
+// (mean, gain, bx, by) of n = S * S values whose sums, shifted by c0, are s, ss and, times the offsets
+// x, y from the patch's centre, sx, sy: gain (v - mean - bx x - by y) has zero mean and standard deviation
+// contrast (at least min_std); the ramp (bx, by) is the least-squares one with shading, else 0. sxx: the sum
+// of x * x over the patch (the same for y; x, y, 1 are orthogonal on the square grid).
+static float4 gt_fr_normaliser(const float c0, const float s, const float ss, const float sx, const float sy,
+                               const float n, const float sxx, const float contrast, const float min_std,
+                               const float shading) {
+    const float bx = shading != 0.0f ? sx / sxx : 0.0f, by = shading != 0.0f ? sy / sxx : 0.0f;
+    const float var = fmax(ss / n - (s / n) * (s / n) - (bx * bx + by * by) * sxx / n, 0.0f);
+    return (float4)(c0 + s / n, contrast / fmax(sqrt(var), min_std), bx, by);
 }
 
-// (mean, gain) of a stored S x S patch (sums shifted by its first value)
-static float2 gt_fr_stored(__global const float *p, const int S, const float contrast, const float min_std) {
-    const float n = (float)(S * S), p0 = p[0];
-    float s = 0.0f, ss = 0.0f;
-    for (int q = 0; q < S * S; ++q) {
-        const float v = p[q] - p0;
-        s += v;
-        ss += v * v;
-    }
-    return (float2)(p0 + s / n, gt_fr_gain(s, ss, n, contrast, min_std));
+// gt_fr_normaliser of a stored S x S patch
+static float4 gt_fr_stored(__global const float *p, const int S, const float sxx, const float contrast,
+                           const float min_std, const float shading) {
+    const float p0 = p[0], ctr = 0.5f * (float)(S - 1);
+    float s = 0.0f, ss = 0.0f, sx = 0.0f, sy = 0.0f;
+    for (int i = 0; i < S; ++i)
+        for (int j = 0; j < S; ++j) {
+            const float v = p[i * S + j] - p0;
+            s += v;
+            ss += v * v;
+            sx += v * ((float)j - ctr);
+            sy += v * ((float)i - ctr);
+        }
+    return gt_fr_normaliser(p0, s, ss, sx, sy, (float)(S * S), sxx, contrast, min_std, shading);
 }
 
 __kernel void gt_face_relocate(__global const float *img, __global const float *pred, __global const float *prev,
@@ -40,48 +50,58 @@ __kernel void gt_face_relocate(__global const float *img, __global const float *
     const int k = get_global_id(0);
     if (k >= K) return;
     const float rho = c[0], eps = c[1], max_step = c[2], contrast = c[3], tol = c[4], min_std = c[5];
-    const float singular = c[6];
+    const float singular = c[6], shading = c[7];
     const float n = (float)(S * S), ctr = 0.5f * (float)(S - 1);
+    const float sxx = (float)S * (float)S * (float)(S * S - 1) / 12.0f;  // sum of x * x over the patch
     __global const float *pk = prev + (long)k * S * S, *fk = first + (long)k * S * S;
-    float2 mgp = (float2)(0.0f, 1.0f), mgf = (float2)(0.0f, 1.0f);
+    float4 nprev = (float4)(0.0f, 1.0f, 0.0f, 0.0f), nfirst = nprev;  // (mean, gain, bx, by): raw intensities
     if (contrast > 0.0f) {
-        mgp = gt_fr_stored(pk, S, contrast, min_std);
-        mgf = gt_fr_stored(fk, S, contrast, min_std);
+        nprev = gt_fr_stored(pk, S, sxx, contrast, min_std, 0.0f);  // against the previous frame: no ramp off
+        nfirst = gt_fr_stored(fk, S, sxx, contrast, min_std, shading);
     }
     const float px = pred[2 * k], py = pred[2 * k + 1];
     float mx = px, my = py;
     for (int it = 0; it < iterations; ++it) {
         const float x0 = mx - ctr, y0 = my - ctr;  // patch pixel (0, 0)
-        float mi = 0.0f, gi = 1.0f;
-        if (contrast > 0.0f) {  // the current patch's mean and gain (its ring scaled alike)
+        // the current patch's normalisers (mean, gain, bx, by), its ring alike: na against the previous
+        // frame's patch, nb against the first frame's (its ramp off too with shading)
+        float4 na = (float4)(0.0f, 1.0f, 0.0f, 0.0f), nb = na;
+        if (contrast > 0.0f) {
             const float c0 = gt_fr_bilinear(img, H, W, x0, y0);
-            float s = 0.0f, ss = 0.0f;
+            float s = 0.0f, ss = 0.0f, sx = 0.0f, sy = 0.0f;
             for (int i = 0; i < S; ++i)
                 for (int j = 0; j < S; ++j) {
                     const float v = gt_fr_bilinear(img, H, W, x0 + j, y0 + i) - c0;
                     s += v;
                     ss += v * v;
+                    sx += v * ((float)j - ctr);
+                    sy += v * ((float)i - ctr);
                 }
-            mi = c0 + s / n;
-            gi = gt_fr_gain(s, ss, n, contrast, min_std);
+            na = gt_fr_normaliser(c0, s, ss, sx, sy, n, sxx, contrast, min_std, 0.0f);
+            nb = gt_fr_normaliser(c0, s, ss, sx, sy, n, sxx, contrast, min_std, shading);
         }
         float a00 = 0.0f, a01 = 0.0f, a11 = 0.0f, g0 = 0.0f, g1 = 0.0f;
         for (int i = 0; i < S; ++i)
-            for (int j = 0; j < S; ++j) {
-                const float x = x0 + j, y = y0 + i;
-                const float gx = 0.5f * gi * (gt_fr_bilinear(img, H, W, x + 1, y) - gt_fr_bilinear(img, H, W, x - 1, y));
-                const float gy = 0.5f * gi * (gt_fr_bilinear(img, H, W, x, y + 1) - gt_fr_bilinear(img, H, W, x, y - 1));
-                const float e = (rho + 1.0f) * gi * (gt_fr_bilinear(img, H, W, x, y) - mi)
-                                - rho * mgp.y * (pk[i * S + j] - mgp.x) - mgf.y * (fk[i * S + j] - mgf.x);  // eq. 14
-                a00 += gx * gx;
-                a01 += gx * gy;
-                a11 += gy * gy;
-                g0 += gx * e;
-                g1 += gy * e;
+            for (int j = 0; j < S; ++j) {  // eq. 14's appearance terms
+                const float x = x0 + j, y = y0 + i, ox = (float)j - ctr, oy = (float)i - ctr;
+                // the image's central differences and value there
+                const float ix = 0.5f * (gt_fr_bilinear(img, H, W, x + 1, y) - gt_fr_bilinear(img, H, W, x - 1, y));
+                const float iy = 0.5f * (gt_fr_bilinear(img, H, W, x, y + 1) - gt_fr_bilinear(img, H, W, x, y - 1));
+                const float v = gt_fr_bilinear(img, H, W, x, y);
+                const float gxa = na.y * (ix - na.z), gya = na.y * (iy - na.w);
+                const float gxb = nb.y * (ix - nb.z), gyb = nb.y * (iy - nb.w);
+                const float ea = na.y * (v - na.x - na.z * ox - na.w * oy)
+                                 - nprev.y * (pk[i * S + j] - nprev.x - nprev.z * ox - nprev.w * oy);
+                const float eb = nb.y * (v - nb.x - nb.z * ox - nb.w * oy)
+                                 - nfirst.y * (fk[i * S + j] - nfirst.x - nfirst.z * ox - nfirst.w * oy);
+                a00 += rho * gxa * gxa + gxb * gxb;
+                a01 += rho * gxa * gya + gxb * gyb;
+                a11 += rho * gya * gya + gyb * gyb;
+                g0 += rho * gxa * ea + gxb * eb;
+                g1 += rho * gya * ea + gyb * eb;
             }
-        a00 = (rho + 1.0f) * a00 + eps;
-        a01 = (rho + 1.0f) * a01;
-        a11 = (rho + 1.0f) * a11 + eps;
+        a00 += eps;
+        a11 += eps;
         g0 += eps * (mx - px);
         g1 += eps * (my - py);
         const float det = a00 * a11 - a01 * a01;

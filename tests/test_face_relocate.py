@@ -28,16 +28,21 @@ def _on(device, *arrays):
     return [a if device.backend == "numpy" else device.asarray(np.ascontiguousarray(a, np.float32)) for a in arrays]
 
 
-@pytest.mark.parametrize("contrast", [0.0, 30.0])
+@pytest.mark.parametrize(("contrast", "shading"), [(0.0, False), (30.0, False), (30.0, True)])
 @pytest.mark.parametrize("iterations", [2, 5])
-def test_devices_match_the_reference(device, contrast, iterations):
+def test_devices_match_the_reference(device, contrast, shading, iterations):
     """Points and patches against the float64 reference: before convergence (2 iterations, where every
-    point still moves) and at the tracker's 5, the previous patches of another light than the first."""
+    point still moves) and at the tracker's 5, the previous patches of another light than the first
+    (with ``shading``, shaded across too)."""
     img, _, tpl, start = scene()
     prev = (1.3 * tpl + 5.0).astype(np.float32)
-    want_m, want_p = relocate_points(REF, img, start, prev, tpl, iterations=iterations, contrast=contrast)
+    if shading:
+        prev += np.linspace(-20.0, 20.0, 16, dtype=np.float32)[None, None, :] + np.linspace(0, 8, 16)[None, :, None]
+        prev = prev.astype(np.float32)
+    want_m, want_p = relocate_points(REF, img, start, prev, tpl, iterations=iterations, contrast=contrast,
+                                     shading=shading)  # fmt: skip
     got_m, got_p = relocate_points(device, *_on(device, img, start, prev, tpl), iterations=iterations,
-                                   contrast=contrast)  # fmt: skip
+                                   contrast=contrast, shading=shading)  # fmt: skip
     got_m, got_p = gputrack.to_numpy(got_m), gputrack.to_numpy(got_p)
     assert got_m.shape == (10, 2) and got_m.dtype == np.float32 and got_p.shape == (10, 16, 16)
     assert np.abs(want_m - start).max() > 1.0  # the points moved
@@ -87,6 +92,28 @@ def test_relocation_with_contrast_ignores_a_change_of_light(device):
     assert err(ramp, 30.0) < 0.2 and err(ramp, 0.0) > 3.0
 
 
+def test_relocation_with_shading_ignores_light_from_one_side(device):
+    """Light from one side since the first frame: the frame (and the previous one, whose patches are cut at
+    the true points) brightened across the image, by 6 and by 30 gray levels across a patch's width, on
+    top of a gain and offset. With ``shading`` (the comparison with the first frame's templates takes
+    each patch's ramp off as well as its mean and contrast) the points stay on the true ones as in the
+    unchanged image; normalised without it, the templates pull them off, further the stronger the ramp.
+    eps = 0."""
+    img, true, tpl, start = scene()
+    x = np.arange(img.shape[1], dtype=np.float32)[None, :]
+
+    def err(image, shading):
+        prev = sample_patches(image, true, 16).astype(np.float32)
+        m = relocate_points(device, *_on(device, image, start, prev, tpl), eps=0.0, iterations=10, contrast=30.0,
+                            shading=shading)[0]  # fmt: skip
+        return np.abs(gputrack.to_numpy(m)[1:] - true[1:]).max()  # the inner points (the edge's patch is clipped)
+
+    assert err(img, True) < 0.01
+    for per_patch, off in ((6.0, 0.015), (30.0, 0.08)):  # measured: 0.0013 / 0.026 and 0.0015 / 0.13 px
+        side = (1.6 * img - 40.0 + per_patch / 16.0 * x).astype(np.float32)
+        assert err(side, True) < 0.01 and err(side, False) > off
+
+
 def test_bad_input_is_a_clear_error(device):
     img, _, tpl, start = scene()
     with pytest.raises(ValueError, match=r"^first: expected shape \(K=10, S=16, S=16\), got \(10, 8, 8\)"):
@@ -97,6 +124,10 @@ def test_bad_input_is_a_clear_error(device):
         relocate_points(device, img, np.full((10, 2), np.nan, np.float32), tpl, tpl)
     with pytest.raises(ValueError, match=r"^contrast: expected a number >= 0.0, got -1.0"):
         relocate_points(device, img, start, tpl, tpl, contrast=-1.0)
+    with pytest.raises(ValueError, match=r"^shading: expected contrast > 0 .*, got contrast 0"):
+        relocate_points(device, img, start, tpl, tpl, shading=True)
+    with pytest.raises(TypeError, match=r"^shading: expected a bool, got str"):
+        relocate_points(device, img, start, tpl, tpl, contrast=30.0, shading="yes")
     with pytest.raises(ValueError, match=r"^max_step: expected a number > 0, got 0"):
         relocate_points(device, img, start, tpl, tpl, max_step=0)
     with pytest.raises(ValueError, match=r"^iterations: expected an int >= 0, got 2.5"):

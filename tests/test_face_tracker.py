@@ -299,6 +299,26 @@ def test_a_lost_face_is_reported_and_found_again(device, data):
     assert err[0, :2].max() < 10.0  # x, y within 10 mm after the re-detection
 
 
+def test_the_face_is_searched_for_at_the_size_of_the_estimates_depth(data):
+    """The detection proposals' search (``_detected_box``) looks for the box a frontal face at the
+    estimate's depth gets: an estimate turned 65 deg away from a face that looks at the camera still
+    finds that face's box, though its own points span less than half of it (a search sized by
+    their extent would look for boxes too small, and a filter turned away would never come back)."""
+    _, model, _, seq = data
+    frames = _frames(8)
+    trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64))
+    trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+    img = frames[7].gray.astype(np.float32)
+    box, _ = trk._detected_box(img, near=True)
+    assert box is not None
+    turned = trk.pf.estimate.copy()
+    turned[1] += np.radians(65.0)
+    trk.pf.reset(turned, model.K)
+    again, last = trk._detected_box(img, near=True)
+    assert again is not None and abs(again[2] - box[2]) < 0.15 * box[2]
+    assert 1.4 * np.ptp(last[:, 0]) / 0.49 < box[2]  # beyond the largest box a search by the points' extent takes
+
+
 def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
     """The filter put on a pose turned 35 deg and moved 15 mm from the face (its NCC still above
     ``lost_score``): with detection proposals every frame (made where the box contradicts the
@@ -442,6 +462,11 @@ def test_bad_input(data):
         dataclasses.replace(FaceConfig(), pose_range=(0.1,))
     with pytest.raises(ValueError, match="FaceConfig.relocate_contrast: expected a finite number >= 0, got -1"):
         FaceConfig(relocate_contrast=-1.0)
+    with pytest.raises(ValueError, match=r"FaceConfig.relocate_shading: expected relocate_contrast > 0 .*, got "
+                                         "relocate_contrast 0"):  # fmt: skip
+        FaceConfig(relocate_shading=True, relocate_contrast=0.0)
+    with pytest.raises(ValueError, match="FaceConfig.refine_pose: expected a bool, got 'no'"):
+        FaceConfig(refine_pose="no")
     with pytest.raises(ValueError, match="FaceConfig.detect_every: expected an int >= 0, got -1"):
         FaceConfig(detect_every=-1)
     with pytest.raises(ValueError, match=r"FaceConfig.detect_share: expected a fraction in \[0, 1\], got 1.5"):

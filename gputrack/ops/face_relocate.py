@@ -22,7 +22,16 @@ the current point, I_{t-1}'s, I_1's) brought to zero mean and a standard deviati
 (I_t's one-pixel ring and so its gradient scaled alike), so that a change of the light between the
 frames (a gain and an offset of a patch's intensities) does not pull the points; eps keeps its
 meaning against patches of contrast c. A patch of less than ``MIN_STD`` gray levels of standard
-deviation is scaled as one of ``MIN_STD``.
+deviation is scaled as one of ``MIN_STD``. With ``shading`` (and c > 0) the comparison with the
+first frame's patch takes each patch's least-squares intensity ramp b_x x + b_y y (x, y its pixel
+offsets from the patch's centre) off too, before the scaling to c (the ring alike, so I_t's gradient
+loses (b_x, b_y) in that term): light that has come round to one side since the first frame shades
+a patch across its width, and the ramp would otherwise pull the point along it. The comparison with
+the previous frame (lit alike) keeps the ramp: it is part of the patch's texture. The 2 x 2 system
+then sums the two terms with their own gradients, (rho G_a^T G_a + G_b^T G_b + eps I) d =
+-(rho G_a^T e_a + G_b^T e_b + eps (m - m'_k)): G_a and e_a = I_t - I_{t-1} of the patches normalised
+for the previous frame's term, G_b and e_b = I_t - I_1 for the first frame's (without ``shading``
+both are the same, and this is the system above).
 
 Patches sample the image bilinearly: pixel (i, j) of the S x S patch at (u, v) is the image at
 (u + j - (S-1)/2, v + i - (S-1)/2), each coordinate first clipped into [0, W-1] x [0, H-1] (samples
@@ -53,15 +62,16 @@ SINGULAR = 1e-12
 
 
 def relocate_points(device, image, predicted, previous, first, *, rho: float = 4.0, eps: float = 4000.0,
-                    iterations: int = 5, max_step: float = 3.0, contrast: float = 0.0, tol: float = 0.01,
-                    out=None):  # fmt: skip
+                    iterations: int = 5, max_step: float = 3.0, contrast: float = 0.0, shading: bool = False,
+                    tol: float = 0.01, out=None):  # fmt: skip
     """(points (K, 2) float32 px, patches (K, S, S) float32): the K feature points minimising eq. 14
     in ``image`` (H, W) float32, and the image's S x S patches at them (see the module docstring).
 
     predicted: (K, 2) float32 m'_k, where each point starts; previous, first: (K, S, S) float32 the
     patches I_{t-1} and I_1; rho, eps: eq. 14's weights; iterations: Gauss-Newton steps at most;
     max_step: px per step at most; contrast: 0 compares raw intensities (the paper), c > 0 patches
-    normalised to zero mean and standard deviation c; tol: a point whose step is shorter than this
+    normalised to zero mean and standard deviation c; shading: with c > 0, the comparison with the
+    first frame takes each patch's intensity ramp off too; tol: a point whose step is shorter than this
     (px, in both coordinates) stops. Inputs NumPy or on the device; ``out``: (points, patches) on
     the device to write into."""
     check_device(device)
@@ -77,8 +87,13 @@ def relocate_points(device, image, predicted, previous, first, *, rho: float = 4
     pred = arg(device, predicted, "predicted", ("K", 2), dims, dtype=dtype)
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
         raise ValueError(f"iterations: expected an int >= 0, got {iterations!r}")
+    if not isinstance(shading, (bool, np.bool_)):
+        raise TypeError(f"shading: expected a bool, got {type(shading).__name__}")
     consts = np.array([real("rho", rho, low=0.0), real("eps", eps, low=0.0), real("max_step", max_step, positive=True),
-                       real("contrast", contrast, low=0.0), real("tol", tol, low=0.0), MIN_STD, SINGULAR])  # fmt: skip
+                       real("contrast", contrast, low=0.0), real("tol", tol, low=0.0), MIN_STD, SINGULAR,
+                       float(shading)])  # fmt: skip
+    if shading and consts[3] == 0:
+        raise ValueError("shading: expected contrast > 0 (the ramp is taken off normalised patches), got contrast 0")
     K, S = dims["K"], dims["S"]
     points, patches = out_arrays(device, out, (("points", (K, 2), np.float32), ("patches", (K, S, S), np.float32)))
     backend_module(device, "face_relocate").relocate_points(device, img, pred, prev, fst, consts, int(iterations),

@@ -22,22 +22,41 @@ def patches_at(image, points, size: int) -> np.ndarray:
     return top + fy * (bot - top)
 
 
-def _mean_gain(patches, contrast, min_std):
-    """(mean, gain), each (K, 1, 1): (patches - mean) * gain has zero mean and standard deviation
-    ``contrast`` (a patch flatter than ``min_std`` is scaled as one of ``min_std``)."""
-    mean = patches.mean(axis=(1, 2), keepdims=True)
-    d = patches - mean
-    return mean, contrast / np.maximum(np.sqrt((d * d).mean(axis=(1, 2), keepdims=True)), min_std)
+def _normaliser(inner, contrast, min_std, shading):
+    """(mean, gain, bx, by), each (K, 1, 1), of patches ``inner`` (K, S, S): gain * (v - mean - bx x - by y)
+    at offset (x, y) from the patch's centre has zero mean and standard deviation ``contrast`` (a patch
+    flatter than ``min_std`` is scaled as one of ``min_std``); with ``shading`` (bx, by) is the
+    least-squares ramp of the patch (0 without)."""
+    S = inner.shape[-1]
+    off = np.arange(S) - (S - 1) / 2.0
+    mean = inner.mean(axis=(1, 2), keepdims=True)
+    d = inner - mean
+    var = (d * d).mean(axis=(1, 2), keepdims=True)
+    bx = by = np.zeros_like(mean)
+    if shading:  # x and y offsets are orthogonal to 1 and to each other on the square grid
+        sxx = S * (off * off).sum()
+        bx = (d * off[None, None, :]).sum(axis=(1, 2), keepdims=True) / sxx
+        by = (d * off[None, :, None]).sum(axis=(1, 2), keepdims=True) / sxx
+        var = np.maximum(var - (bx * bx + by * by) * sxx / (S * S), 0.0)
+    return mean, contrast / np.maximum(np.sqrt(var), min_std), bx, by
+
+
+def _normalised(patches, inner, contrast, min_std, shading):
+    """``patches`` (K, B, B) centred like ``inner`` (K, S, S), B >= S, brought to ``inner``'s zero mean,
+    standard deviation ``contrast`` and (``shading``) no ramp (:func:`_normaliser`)."""
+    mean, gain, bx, by = _normaliser(inner, contrast, min_std, shading)
+    off = np.arange(patches.shape[-1]) - (patches.shape[-1] - 1) / 2.0
+    return (patches - mean - bx * off[None, None, :] - by * off[None, :, None]) * gain
 
 
 def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches):
-    rho, eps, max_step, contrast, tol, min_std, singular = (float(c) for c in consts)
+    rho, eps, max_step, contrast, tol, min_std, singular, shading = (float(c) for c in consts)
     img = np.asarray(image, np.float64)
     prev, fst = np.asarray(previous, np.float64), np.asarray(first, np.float64)
     K, S = prev.shape[0], prev.shape[-1]
     if contrast > 0:
-        prev, fst = ((p - mean) * gain for p in (prev, fst) for mean, gain in [_mean_gain(p, contrast, min_std)])
-    target = rho * prev + fst  # e = (rho + 1) I - target
+        prev = _normalised(prev, prev, contrast, min_std, False)
+        fst = _normalised(fst, fst, contrast, min_std, shading)
     pred = np.asarray(predicted, np.float64)
     m = pred.copy()
     active = np.ones(K, bool)
@@ -45,17 +64,22 @@ def relocate_points(device, image, predicted, previous, first, consts, iteration
         if not active.any():
             break
         big = patches_at(img, m, S + 2)  # the patch and a one-pixel ring: gradients by central differences
-        if contrast > 0:  # the patch's mean off, its gain to the contrast (the ring's samples alike)
-            mean, gain = _mean_gain(big[:, 1:-1, 1:-1], contrast, min_std)
-            big = (big - mean) * gain
-        gx = 0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2])
-        gy = 0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1])
-        e = (rho + 1.0) * big[:, 1:-1, 1:-1] - target  # eq. 14's appearance terms
-        a00 = (rho + 1.0) * (gx * gx).sum(axis=(1, 2)) + eps
-        a01 = (rho + 1.0) * (gx * gy).sum(axis=(1, 2))
-        a11 = (rho + 1.0) * (gy * gy).sum(axis=(1, 2)) + eps
-        g0 = (gx * e).sum(axis=(1, 2)) + eps * (m[:, 0] - pred[:, 0])
-        g1 = (gy * e).sum(axis=(1, 2)) + eps * (m[:, 1] - pred[:, 1])
+        a00 = a01 = a11 = g0 = g1 = 0.0
+        for w, stored, ramp in ((rho, prev, False), (1.0, fst, shading)):  # eq. 14's appearance terms
+            # the patch's mean (and, against the first frame with shading, its ramp) off, its gain to the
+            # contrast (the ring's samples alike)
+            b = _normalised(big, big[:, 1:-1, 1:-1], contrast, min_std, ramp) if contrast > 0 else big
+            gx = 0.5 * (b[:, 1:-1, 2:] - b[:, 1:-1, :-2])
+            gy = 0.5 * (b[:, 2:, 1:-1] - b[:, :-2, 1:-1])
+            e = b[:, 1:-1, 1:-1] - stored
+            a00 = a00 + w * (gx * gx).sum(axis=(1, 2))
+            a01 = a01 + w * (gx * gy).sum(axis=(1, 2))
+            a11 = a11 + w * (gy * gy).sum(axis=(1, 2))
+            g0 = g0 + w * (gx * e).sum(axis=(1, 2))
+            g1 = g1 + w * (gy * e).sum(axis=(1, 2))
+        a00, a11 = a00 + eps, a11 + eps
+        g0 = g0 + eps * (m[:, 0] - pred[:, 0])
+        g1 = g1 + eps * (m[:, 1] - pred[:, 1])
         det = a00 * a11 - a01 * a01
         ok = np.abs(det) > singular
         with np.errstate(all="ignore"):

@@ -30,73 +30,90 @@ def _bilinear(img: ti.template(), x, y):
 
 
 @ti.func
-def _gain(s, ss, n, contrast, min_std):
-    """contrast / max(std, min_std) of n values whose shifted sum and sum of squares are s, ss."""
-    var = ti.max(ss / n - (s / n) * (s / n), 0.0)
-    return contrast / ti.max(ti.sqrt(var), min_std)
+def _normaliser(c0, s, ss, sx, sy, n, sxx, contrast, min_std, shading):
+    """(mean, gain, bx, by) of n = S * S values whose sums, shifted by c0, are s, ss and, times the offsets
+    x, y from the patch's centre, sx, sy: gain (v - mean - bx x - by y) has zero mean and standard
+    deviation ``contrast`` (at least ``min_std``); the ramp (bx, by) is the least-squares one with
+    ``shading``, else 0. sxx: the sum of x * x over the patch (the same for y)."""
+    bx, by = 0.0, 0.0
+    if shading != 0:
+        bx, by = sx / sxx, sy / sxx
+    var = ti.max(ss / n - (s / n) * (s / n) - (bx * bx + by * by) * sxx / n, 0.0)
+    return c0 + s / n, contrast / ti.max(ti.sqrt(var), min_std), bx, by
 
 
 @ti.func
-def _stored_mean_gain(p: ti.template(), k, contrast, min_std):
-    """(mean, gain) of the stored patch p[k] (S x S) that bring it to zero mean and standard deviation
-    ``contrast`` (sums shifted by its first value: no cancellation in float32)."""
+def _stored_normaliser(p: ti.template(), k, sxx, contrast, min_std, shading):
+    """:func:`_normaliser` of the stored patch p[k] (S x S; sums shifted by its first value: no
+    cancellation in float32)."""
     S = p.shape[1]
-    n = ti.cast(S * S, ti.f32)
+    half = 0.5 * ti.cast(S - 1, ti.f32)
     p0 = p[k, 0, 0]
-    s = 0.0
-    ss = 0.0
+    s, ss, sx, sy = 0.0, 0.0, 0.0, 0.0
     for i, j in ti.ndrange(S, S):
         v = p[k, i, j] - p0
         s += v
         ss += v * v
-    return p0 + s / n, _gain(s, ss, n, contrast, min_std)
+        sx += v * (ti.cast(j, ti.f32) - half)
+        sy += v * (ti.cast(i, ti.f32) - half)
+    return _normaliser(p0, s, ss, sx, sy, ti.cast(S * S, ti.f32), sxx, contrast, min_std, shading)
 
 
 @ti.kernel
 def _relocate(img: F2, pred: F2, prev: F3, first: F3, consts: F1, points: F2, patches: F3, iterations: ti.i32,
               serial: ti.template()):  # fmt: skip
     rho, eps, max_step, contrast = consts[0], consts[1], consts[2], consts[3]
-    tol, min_std, singular = consts[4], consts[5], consts[6]
+    tol, min_std, singular, shading = consts[4], consts[5], consts[6], consts[7]
     S = prev.shape[1]
     n = ti.cast(S * S, ti.f32)
     half = 0.5 * ti.cast(S - 1, ti.f32)
+    sxx = n * ti.cast(S * S - 1, ti.f32) / 12.0  # the sum of x * x over the patch
     if ti.static(serial):
         ti.loop_config(serialize=True)
     for k in range(prev.shape[0]):
-        mp, gp, mf, gf = 0.0, 1.0, 0.0, 1.0
+        mp, gp, bxp, byp = 0.0, 1.0, 0.0, 0.0  # (mean, gain, ramp): raw intensities
+        mf, gf, bxf, byf = 0.0, 1.0, 0.0, 0.0
         if contrast > 0:
-            mp, gp = _stored_mean_gain(prev, k, contrast, min_std)
-            mf, gf = _stored_mean_gain(first, k, contrast, min_std)
+            mp, gp, bxp, byp = _stored_normaliser(prev, k, sxx, contrast, min_std, 0.0)  # no ramp off
+            mf, gf, bxf, byf = _stored_normaliser(first, k, sxx, contrast, min_std, shading)
         px, py = pred[k, 0], pred[k, 1]
         mx, my = px, py
         it = 0
         while it < iterations:
             x0, y0 = mx - half, my - half  # patch pixel (0, 0)
-            mi, gi = 0.0, 1.0
-            if contrast > 0:  # the current patch's mean and gain (its ring scaled alike)
+            # the current patch's normalisers (mean, gain, ramp), its ring alike: a against the previous
+            # frame's patch, b against the first frame's (its ramp off too with shading)
+            ma, ga, bxa, bya = 0.0, 1.0, 0.0, 0.0
+            mb, gb, bxb, byb = 0.0, 1.0, 0.0, 0.0
+            if contrast > 0:
                 c0 = _bilinear(img, x0, y0)
-                s = 0.0
-                ss = 0.0
+                s, ss, sx, sy = 0.0, 0.0, 0.0, 0.0
                 for i, j in ti.ndrange(S, S):
                     v = _bilinear(img, x0 + j, y0 + i) - c0
                     s += v
                     ss += v * v
-                mi, gi = c0 + s / n, _gain(s, ss, n, contrast, min_std)
+                    sx += v * (ti.cast(j, ti.f32) - half)
+                    sy += v * (ti.cast(i, ti.f32) - half)
+                ma, ga, bxa, bya = _normaliser(c0, s, ss, sx, sy, n, sxx, contrast, min_std, 0.0)
+                mb, gb, bxb, byb = _normaliser(c0, s, ss, sx, sy, n, sxx, contrast, min_std, shading)
             a00, a01, a11, g0, g1 = 0.0, 0.0, 0.0, 0.0, 0.0
-            for i, j in ti.ndrange(S, S):
+            for i, j in ti.ndrange(S, S):  # eq. 14's appearance terms
                 x, y = x0 + j, y0 + i
-                gx = 0.5 * gi * (_bilinear(img, x + 1, y) - _bilinear(img, x - 1, y))  # central differences
-                gy = 0.5 * gi * (_bilinear(img, x, y + 1) - _bilinear(img, x, y - 1))
-                e = (rho + 1.0) * gi * (_bilinear(img, x, y) - mi) - rho * gp * (prev[k, i, j] - mp) - \
-                    gf * (first[k, i, j] - mf)  # eq. 14's appearance terms  # fmt: skip
-                a00 += gx * gx
-                a01 += gx * gy
-                a11 += gy * gy
-                g0 += gx * e
-                g1 += gy * e
-            a00 = (rho + 1.0) * a00 + eps
-            a01 = (rho + 1.0) * a01
-            a11 = (rho + 1.0) * a11 + eps
+                ox, oy = ti.cast(j, ti.f32) - half, ti.cast(i, ti.f32) - half
+                ix = 0.5 * (_bilinear(img, x + 1, y) - _bilinear(img, x - 1, y))  # central differences
+                iy = 0.5 * (_bilinear(img, x, y + 1) - _bilinear(img, x, y - 1))
+                v = _bilinear(img, x, y)
+                gxa, gya = ga * (ix - bxa), ga * (iy - bya)
+                gxb, gyb = gb * (ix - bxb), gb * (iy - byb)
+                ea = ga * (v - ma - bxa * ox - bya * oy) - gp * (prev[k, i, j] - mp - bxp * ox - byp * oy)
+                eb = gb * (v - mb - bxb * ox - byb * oy) - gf * (first[k, i, j] - mf - bxf * ox - byf * oy)
+                a00 += rho * gxa * gxa + gxb * gxb
+                a01 += rho * gxa * gya + gxb * gyb
+                a11 += rho * gya * gya + gyb * gyb
+                g0 += rho * gxa * ea + gxb * eb
+                g1 += rho * gya * ea + gyb * eb
+            a00 += eps
+            a11 += eps
             g0 += eps * (mx - px)
             g1 += eps * (my - py)
             det = a00 * a11 - a01 * a01

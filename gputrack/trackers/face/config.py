@@ -40,7 +40,9 @@ class FaceConfig:
     is under 0.01 px); ``relocate_contrast`` (gray levels, beyond the paper; 0 = the paper's raw
     intensities): eq. 14 compares the patches brought to zero mean and this standard deviation, so a
     change of the light does not pull the points (:func:`gputrack.ops.face_relocate.relocate_points`);
-    ``anchor_templates`` (beyond the paper; False = the first frame's patches at its given points):
+    ``relocate_shading`` (beyond the paper, with ``relocate_contrast`` > 0): each patch's intensity
+    ramp is taken off too, so that light from one side, which shades a patch across its width, does
+    not pull the points either; ``anchor_templates`` (beyond the paper; False = the first frame's patches at its given points):
     where every start frame's points are given (a detector's), each first-frame template's point is
     followed into the other start frames (Lucas-Kanade) and moved by the mean offset from their
     given points, so a detector's error in the first frame does not stay in the templates (1 px of
@@ -89,6 +91,7 @@ class FaceConfig:
     eps: float = 4000.0
     relocate_iterations: int = 5
     relocate_contrast: float = 30.0
+    relocate_shading: bool = False
     anchor_templates: bool = True
     refine_pose: bool = True
     keyframes: int = 7
@@ -117,6 +120,13 @@ class FaceConfig:
             _positive(o, name, getattr(self, name))
         for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior", "relocate_contrast"):
             _positive(o, name, getattr(self, name), zero=True)
+        for name in ("prior", "anchor_templates", "refine_pose", "relocate_shading", "hold_identity_at_start",
+                     "learn_identity"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{o}.{name}: expected a bool, got {getattr(self, name)!r}")
+        if self.relocate_shading and self.relocate_contrast == 0:
+            raise ValueError(f"{o}.relocate_shading: expected relocate_contrast > 0 (the ramp is taken off normalised "
+                             "patches), got relocate_contrast 0")  # fmt: skip
         tn = np.asarray(self.translation_noise, dtype=np.float64)
         if tn.shape != (3,) or not np.isfinite(tn).all() or (tn < 0).any():
             raise ValueError(f"{o}.translation_noise: expected 3 numbers >= 0, got {self.translation_noise!r}")

@@ -410,7 +410,7 @@ class FaceTracker:
         out = None if spare is None else (b.get("features"), spare)  # last frame's arrays
         m, patches = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32), b["previous"],
                                      b["templates"], rho=c.rho, eps=c.eps, iterations=c.relocate_iterations,
-                                     contrast=c.relocate_contrast, out=out)  # fmt: skip
+                                     contrast=c.relocate_contrast, shading=c.relocate_shading, out=out)  # fmt: skip
         b["spare"], b["previous"], b["features"] = b["previous"], patches, m
 
     def _refine(self, b):
@@ -465,13 +465,17 @@ class FaceTracker:
 
     def _detected_box(self, img, near=False):
         """(box, last): the Haar box (x, y, w, h) nearest to where the face was last seen, or None,
-        and the last estimate's points (K, 2). Boxes within a factor 2 of the face's last width
-        anywhere (a box elsewhere is more likely background); with ``near``, within a factor 1.4 and
-        half a box of the face only, searched in that part of the image with coarser scale steps
-        (the detection proposals: a few ms, ``detect_faces``)."""
+        and the last estimate's points (K, 2). The face's width is the box width a frontal face at the
+        estimate's depth gets (not its points' extent, which a turn shrinks). Boxes within a factor 2
+        of that width anywhere (a box elsewhere is more likely background); with ``near``, within a
+        factor 1.4 and half a box of the face only, searched in that part of the image with coarser
+        scale steps (the detection proposals: a few ms, ``detect_faces``)."""
         est = self.pf.estimate
         last = self._predicted(est[:3], est[3:6], est[6:])
-        centre, width = last.mean(axis=0), max(np.ptp(last[:, 0]) / 0.49, 1.0)  # the box a face of that size gets
+        # the box a frontal face at the estimate's depth gets (the points' own extent shrinks with a turn, and
+        # a filter turned away from a frontal face would look for too small a box)
+        span = self.camera.fx * np.ptp(self._mean_shape()[:, 0]) / max(float(est[5]), 1.0)
+        centre, width = last.mean(axis=0), max(span / 0.49, 1.0)
         x0 = y0 = 0
         if near:
             reach = 1.3 * width  # half a box's offset and half the largest box (0.51 x 1.4 widths), with room
