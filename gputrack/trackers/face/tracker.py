@@ -463,6 +463,11 @@ class FaceTracker:
         return self._estimate_of(est[:3], est[3:6], est[6:], h["landmarks"], h["features"],
                                  0.0 if h["lost"] else h["confidence"], h["lost"])  # fmt: skip
 
+    def _frontal_span(self, z) -> float:
+        """px: how wide the current shape's points (at the mean deformation) look seen frontally at
+        depth ``z`` (mm)."""
+        return self.camera.fx * np.ptp(self._mean_shape()[:, 0]) / max(float(z), 1.0)
+
     def _detected_box(self, img, near=False):
         """(box, last): the Haar box (x, y, w, h) nearest to where the face was last seen, or None,
         and the last estimate's points (K, 2). The face's width is the box width a frontal face at the
@@ -474,8 +479,7 @@ class FaceTracker:
         last = self._predicted(est[:3], est[3:6], est[6:])
         # the box a frontal face at the estimate's depth gets (the points' own extent shrinks with a turn, and
         # a filter turned away from a frontal face would look for too small a box)
-        span = self.camera.fx * np.ptp(self._mean_shape()[:, 0]) / max(float(est[5]), 1.0)
-        centre, width = last.mean(axis=0), max(span / 0.49, 1.0)
+        centre, width = last.mean(axis=0), max(self._frontal_span(est[5]) / 0.49, 1.0)
         x0 = y0 = 0
         if near:
             reach = 1.3 * width  # half a box's offset and half the largest box (0.51 x 1.4 widths), with room
@@ -505,8 +509,11 @@ class FaceTracker:
         frame's proposal (``config.detect_every``) where the box contradicts the estimate: the
         estimate turned more than ``DETECT_TURN`` from the camera (the cascade finds faces that look
         at it), or its points off the box's by more than ``DETECT_OFF`` of its width in place or
-        size. Where they agree the proposal is left alone (a turn's mirror image is one of the poses
-        a frontal guess can lead to)."""
+        size (the size a frontal face at the estimate's depth would have). Where they agree the
+        proposal is left alone (a turn's mirror image is one of the poses a frontal guess can lead
+        to). The proposal is the box's frontal pose; where the box's size agrees with the estimate's
+        depth, at that depth (a box tells a face's distance only to some 10 %: its proportions to
+        the box differ from person to person, and the identity learnt knows the size better)."""
         box, last = self._detected_box(img, near=True)
         if box is None:
             return
@@ -514,9 +521,12 @@ class FaceTracker:
         turned = facing(rodrigues(est[:3]), est[3:6]) < np.cos(np.radians(DETECT_TURN))
         pts = self._points_from_box(box)
         w = np.ptp(pts[:, 0])
-        off = max(np.hypot(*(pts.mean(axis=0) - last.mean(axis=0))), abs(np.ptp(last[:, 0]) - w)) / w
-        if turned or off > DETECT_OFF:
+        place = np.hypot(*(pts.mean(axis=0) - last.mean(axis=0))) / w
+        size = abs(self._frontal_span(est[5]) - w) / w
+        if turned or max(place, size) > DETECT_OFF:
             r, t = self._pose_from_points(pts)
+            if size <= DETECT_OFF:
+                t = t * (est[5] / t[2])  # along the ray to the box's face: its place kept, the estimate's depth
             self.pf.mix(np.concatenate([r, t, est[6:]]), self.config.detect_share)
             self.proposals += 1
 
