@@ -303,7 +303,9 @@ def test_the_face_is_searched_for_at_the_size_of_the_estimates_depth(data):
     """The detection proposals' search (``_detected_box``) looks for the box a frontal face at the
     estimate's depth gets: an estimate turned 65 deg away from a face that looks at the camera still
     finds that face's box, though its own points span less than half of it (a search sized by
-    their extent would look for boxes too small, and a filter turned away would never come back)."""
+    their extent would look for boxes too small, and a filter turned away would never come back).
+    The proposal drawn from it is frontal and keeps the estimate's depth, which the box's size agrees
+    with."""
     _, model, _, seq = data
     frames = _frames(8)
     trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64))
@@ -317,6 +319,12 @@ def test_the_face_is_searched_for_at_the_size_of_the_estimates_depth(data):
     again, last = trk._detected_box(img, near=True)
     assert again is not None and abs(again[2] - box[2]) < 0.15 * box[2]
     assert 1.4 * np.ptp(last[:, 0]) / 0.49 < box[2]  # beyond the largest box a search by the points' extent takes
+    # the turn contradicts the box: hypotheses around the box's frontal pose, at the estimate's depth (the box's
+    # size agrees with it)
+    trk._propose_detected(img)
+    state, share = trk.pf._mix
+    assert trk.proposals == 1 and share == trk.config.detect_share
+    assert np.degrees(np.linalg.norm(state[:3])) < 5.0 and state[5] == pytest.approx(turned[5])
 
 
 def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
