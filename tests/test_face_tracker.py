@@ -473,7 +473,7 @@ def test_bad_input(data):
     with pytest.raises(ValueError, match=r"FaceConfig.relocate_shading: expected relocate_contrast > 0 .*, got "
                                          "relocate_contrast 0"):  # fmt: skip
         FaceConfig(relocate_shading=True, relocate_contrast=0.0)
-    with pytest.raises(ValueError, match="FaceConfig.refine_pose: expected a bool, got 'no'"):
+    with pytest.raises(TypeError, match="FaceConfig.refine_pose: expected a bool, got 'no'"):
         FaceConfig(refine_pose="no")
     with pytest.raises(ValueError, match="FaceConfig.detect_every: expected an int >= 0, got -1"):
         FaceConfig(detect_every=-1)

@@ -123,7 +123,7 @@ class FaceConfig:
         for name in ("prior", "anchor_templates", "refine_pose", "relocate_shading", "hold_identity_at_start",
                      "learn_identity"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{o}.{name}: expected a bool, got {getattr(self, name)!r}")
+                raise TypeError(f"{o}.{name}: expected a bool, got {getattr(self, name)!r}")
         if self.relocate_shading and self.relocate_contrast == 0:
             raise ValueError(f"{o}.relocate_shading: expected relocate_contrast > 0 (the ramp is taken off normalised "
                              "patches), got relocate_contrast 0")  # fmt: skip
