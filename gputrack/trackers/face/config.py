@@ -40,10 +40,12 @@ class FaceConfig:
     is under 0.01 px); ``relocate_contrast`` (gray levels, beyond the paper; 0 = the paper's raw
     intensities): eq. 14 compares the patches brought to zero mean and this standard deviation, so a
     change of the light does not pull the points (:func:`gputrack.ops.face_relocate.relocate_points`);
-    ``relocate_shading`` (beyond the paper, with ``relocate_contrast`` > 0): each patch's intensity
-    ramp is taken off too, so that light from one side, which shades a patch across its width, does
-    not pull the points either; ``anchor_templates`` (beyond the paper; False = the first frame's patches at its given points):
-    where every start frame's points are given (a detector's), each first-frame template's point is
+    ``relocate_shading`` (beyond the paper, with ``relocate_contrast`` > 0; off by default): the
+    comparison with the first frame's templates takes each patch's intensity ramp off too, so that
+    light that has come round to one side, shading a patch across its width, does not pull the
+    points either (better on the simulator's lighting sequence, a little worse on the others: the
+    README's face section); ``anchor_templates`` (beyond the paper; False = the first frame's
+    patches at its given points): where every start frame's points are given (a detector's), each first-frame template's point is
     followed into the other start frames (Lucas-Kanade) and moved by the mean offset from their
     given points, so a detector's error in the first frame does not stay in the templates (1 px of
     noise per point: 1.1 -> 0.5 px from the truth on the simulator); ``refine_pose`` (beyond the
