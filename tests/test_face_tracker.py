@@ -327,6 +327,29 @@ def test_the_face_is_searched_for_at_the_size_of_the_estimates_depth(data):
     assert np.degrees(np.linalg.norm(state[:3])) < 5.0 and state[5] == pytest.approx(turned[5])
 
 
+def test_a_filter_turned_far_is_searched_for_every_frame(data):
+    """Detection proposals are made every ``detect_every``-th frame, and every frame while the
+    estimate is turned further than ``DETECT_FAR`` from the camera: on the first tracked frame
+    (not a 10th), a filter put 60 deg off a face that looks at the camera gets hypotheses around
+    the face; put 35 deg off (turned, but not that far) it waits for the 10th frame."""
+    from gputrack.trackers.face.tracker import DETECT_FAR, DETECT_TURN
+
+    _, model, _, seq = data
+    frames = _frames(8)
+    assert DETECT_TURN < 35.0 < DETECT_FAR < 60.0
+    made = {}
+    for turn in (60.0, 35.0):
+        trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=64, detect_every=10, redetect_after=1000))
+        trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+        wrong = trk.pf.estimate.copy()
+        wrong[1] += np.radians(turn)
+        trk.pf.reset(wrong, model.K)
+        assert trk.frame % 10 != 0
+        trk.track(frames[7].gray)
+        made[turn] = trk.proposals
+    assert made == {60.0: 1, 35.0: 0}
+
+
 def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
     """The filter put on a pose turned 35 deg and moved 15 mm from the face (its NCC still above
     ``lost_score``): with detection proposals every frame (made where the box contradicts the

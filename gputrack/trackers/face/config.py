@@ -68,8 +68,9 @@ class FaceConfig:
     reported with confidence 0 and skips the re-localisation and the bundle adjustment; after
     ``redetect_after`` such frames in a row the face is searched again (Haar cascade) and the
     filter restarts at the detection, keeping the identity. Detection proposals (beyond the paper; 0
-    = off): every ``detect_every`` tracked frames the face is searched near its estimate (Haar
-    cascade, boxes of 1/1.4 to 1.4 times its size within half a box of it); where the box
+    = off): every ``detect_every`` tracked frames, and every frame while the estimate is turned
+    more than 45 deg from the camera, the face is searched near its estimate (Haar cascade, boxes
+    of 1/1.4 to 1.4 times its size within half a box of it); where the box
     contradicts the estimate (the estimate turned more than 25 deg from the camera, or its points
     off the box's by more than 15 % of their width), the fraction ``detect_share`` of that frame's
     hypotheses is drawn around the frontal pose the box gives

@@ -11,7 +11,8 @@
   paper: each point followed into the other start frames and moved by its mean offset from theirs,
   so one frame's detector error does not stay in the templates; ``config.anchor_templates``).
 - **Per frame** (:meth:`FaceTracker.track`), as :class:`gputrack.Scheduler` stages:
-  ``detect`` (the detection proposals below, host, every ``config.detect_every`` frames),
+  ``detect`` (the detection proposals below, host, every ``config.detect_every`` frames and every
+  frame while the estimate is turned more than ``DETECT_FAR``),
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
@@ -28,7 +29,8 @@
   again with the Haar cascade and the filter restarts at the box nearest to the face's last place of
   about its last size (the identity is kept). A face that
   leaves the image scores 0 and is lost the same way.
-- **Detection proposals** (beyond the paper): every ``config.detect_every`` frames the Haar cascade
+- **Detection proposals** (beyond the paper): every ``config.detect_every`` frames (every frame while
+  the estimate is turned more than ``DETECT_FAR``) the Haar cascade
   looks for the face near its estimate; where its box contradicts the estimate (a turned estimate,
   or points off the box), a share of that frame's hypotheses is drawn around the box's frontal pose
   (a mixture proposal, as Okuma et al.'s boosted particle filter): a filter locked on a wrong pose
@@ -85,6 +87,10 @@ _CASCADE = None
 #: from the camera, or whose points are off the detected box's by more than this fraction of their
 #: width (place or size), gets hypotheses around the box
 DETECT_TURN, DETECT_OFF = 25.0, 0.15
+#: an estimate turned further than this (deg) from the camera is searched for every frame, not every
+#: ``detect_every``-th: faces are rarely turned so far, and a filter that has run on past a turn's end
+#: must get back before the face turns away again
+DETECT_FAR = 45.0
 #: the start's anchoring (``FaceTracker._anchored``): a followed point farther than this (px) from
 #: its frame's own point is a failed follow or a detector's outlier and is not used
 ANCHOR_REACH = 5.0
@@ -376,9 +382,13 @@ class FaceTracker:
                             confidence=float(confidence), lost=bool(lost))  # fmt: skip
 
     def _detect(self, b):
-        """Detection proposals (host, every ``config.detect_every`` frames): :meth:`_propose_detected`."""
+        """Detection proposals (host, every ``config.detect_every`` frames, and every frame while the
+        estimate is turned more than ``DETECT_FAR``): :meth:`_propose_detected`."""
         every = self.config.detect_every
-        if every and self.frame % every == 0 and not self.lost_frames:
+        if not every or self.lost_frames:
+            return
+        est = self.pf.estimate
+        if self.frame % every == 0 or facing(rodrigues(est[:3]), est[3:6]) < np.cos(np.radians(DETECT_FAR)):
             self._propose_detected(self._host["gray"])
 
     def _sample(self, b):
