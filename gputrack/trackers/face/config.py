@@ -45,10 +45,11 @@ class FaceConfig:
     light that has come round to one side, shading a patch across its width, does not pull the
     points either (better on the simulator's lighting sequence, a little worse on the others: the
     README's face section); ``anchor_templates`` (beyond the paper; False = the first frame's
-    patches at its given points): where every start frame's points are given (a detector's), each first-frame template's point is
-    followed into the other start frames (Lucas-Kanade) and moved by the mean offset from their
-    given points, so a detector's error in the first frame does not stay in the templates (1 px of
-    noise per point: 1.1 -> 0.5 px from the truth on the simulator); ``refine_pose`` (beyond the
+    patches at its given points): where every start frame's points are given (a detector's), each
+    first-frame template's point is followed into the other start frames (Lucas-Kanade) and moved
+    by the mean offset from their given points, so a detector's error in the first frame does not
+    stay in the templates (1 px of noise per point: 1.1 -> 0.5 px from the truth on the simulator);
+    ``refine_pose`` (beyond the
     paper; False = the filter's estimate): the estimate's pose is refined to fit the re-localised
     points (PnP, Levenberg-Marquardt from the estimate, the shape held) and the filter's hypotheses
     move with it; a step beyond ``pose_range`` is not taken.
