@@ -163,3 +163,35 @@ def test_patches_are_bilinear_with_the_border_pixel_outside():
                                sample_patches(img.astype(np.uint8).astype(np.float32), pts, S), atol=1e-3)  # fmt: skip
     with pytest.raises(ValueError, match="finite"):
         sample_patches(img, [[np.nan, 3.0]], S)
+
+
+def test_warped_patches_sample_the_image_through_the_warp():
+    """sample_patches with a warp (K, 2, 2): pixel (i, j) of patch k samples the image at
+    points[k] + warp[k] @ (j - c, i - c), bilinear as the plain patches; the identity warp gives them,
+    a quarter turn gives them turned and a scale of 2 every second pixel of a patch twice the size."""
+    rng = np.random.default_rng(5)
+    img = rng.uniform(0, 255, (40, 50))
+    pts = np.array([[20.0, 18.0], [25.5, 20.5], [-3.0, 45.0]])
+    S = 6
+    plain = sample_patches(img, pts, S)
+    np.testing.assert_allclose(sample_patches(img, pts, S, np.tile(np.eye(2), (3, 1, 1))), plain, atol=1e-12)
+    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])  # offset (x, y) -> (-y, x)
+    got = sample_patches(img, pts, S, np.tile(quarter, (3, 1, 1)))
+    np.testing.assert_allclose(got, np.rot90(plain, k=1, axes=(1, 2)), atol=1e-9)
+    twice = sample_patches(img, pts[:1], S, 2.0 * np.eye(2)[None])
+    np.testing.assert_allclose(twice, sample_patches(img, pts[:1], 2 * S - 1)[:, ::2, ::2], atol=1e-9)
+    shear = np.array([[[1.0, 0.3], [0.0, 1.0]]])
+    off = np.arange(S) - (S - 1) / 2.0
+    u, v = pts[1]
+    for i in range(S):
+        for j in range(S):
+            x, y = u + off[j] + 0.3 * off[i], v + off[i]
+            x0, y0 = int(np.floor(x)), int(np.floor(y))
+            fx, fy = x - x0, y - y0
+            want = ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
+                    + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))  # fmt: skip
+            assert abs(sample_patches(img, pts[1:2], S, shear)[0, i, j] - want) < 1e-9
+    with pytest.raises(ValueError, match=r"warp: expected \(3, 2, 2\) finite matrices, got shape \(2, 2\)"):
+        sample_patches(img, pts, S, np.eye(2))
+    with pytest.raises(ValueError, match="warp: expected"):
+        sample_patches(img, pts, S, np.full((3, 2, 2), np.nan))

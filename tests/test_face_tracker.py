@@ -498,6 +498,8 @@ def test_bad_input(data):
         FaceConfig(relocate_shading=True, relocate_contrast=0.0)
     with pytest.raises(TypeError, match="FaceConfig.refine_pose: expected a bool, got 'no'"):
         FaceConfig(refine_pose="no")
+    with pytest.raises(TypeError, match="FaceConfig.warp_templates: expected a bool, got 1"):
+        FaceConfig(warp_templates=1)
     with pytest.raises(ValueError, match="FaceConfig.detect_every: expected an int >= 0, got -1"):
         FaceConfig(detect_every=-1)
     with pytest.raises(ValueError, match=r"FaceConfig.detect_share: expected a fraction in \[0, 1\], got 1.5"):
@@ -532,10 +534,22 @@ def test_track_command_on_an_image_folder(device, tmp_path, data):
                  "--save", str(tmp_path / "pics")]) == 0  # fmt: skip
     lines = [json.loads(s) for s in out.read_text().splitlines()]
     assert len(lines) == 12 and lines[-1]["frames"] == 11 and len(lines[-1]["identity"]) == 15
+    # the command's lines are the library's estimates: FaceTracker on the same frames and start points
+    _, model, _, _ = data
+    trk = FaceTracker(device, model, cam, FaceConfig())
+    want = trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:1])[0])
+    want += [trk.track(f.gray) for f in frames[7:]]
+    for line, w in zip(lines[:11], want):
+        np.testing.assert_allclose(line["rotation"], w.rotation, atol=1e-9)
+        np.testing.assert_allclose(line["translation"], w.translation, atol=1e-6)
+        np.testing.assert_allclose(line["landmarks"], w.landmarks, atol=1e-6)
     last = lines[10]
     err = pose_errors([np.array(last["rotation"])], [np.array(last["translation"])], [frames[10].rotation],
                       [frames[10].translation])  # fmt: skip
-    assert err[0, :2].max() < 5.0 and err[0, 3:].max() < 8.0 and not last["lost"]
+    # a start from one frame's points (1 px noise, followed into the other six by Lucas-Kanade) leaves the
+    # pitch a few degrees off for this person: at this frame 6.0-9.6 deg, the largest angle's error, over
+    # the filter's seeds 0-7 (measured with and without FaceConfig.warp_templates)
+    assert err[0, :2].max() < 5.0 and err[0, 3:].max() < 12.0 and not last["lost"]
     assert (tmp_path / "pics" / "frame_00010.png").exists()
 
 

@@ -101,10 +101,12 @@ def relocate_points(device, image, predicted, previous, first, *, rho: float = 4
     return points, patches
 
 
-def sample_patches(image, points, size: int) -> np.ndarray:
+def sample_patches(image, points, size: int, warp=None) -> np.ndarray:
     """(K, size, size) float64 bilinear patches of ``image`` (H, W) (NumPy, any real dtype) centred on
     the finite ``points`` (K, 2), on the host, with the convention of the module docstring (samples
-    outside the image take the nearest border pixel)."""
+    outside the image take the nearest border pixel). ``warp`` (K, 2, 2), optional: patch k's pixel at
+    offset d = (x, y) from its centre samples the image at points[k] + warp[k] @ d (a template seen
+    turned or scaled; the identity gives the plain patches)."""
     from ..backends.reference.face_relocate import patches_at
 
     img = np.asarray(image)
@@ -116,4 +118,8 @@ def sample_patches(image, points, size: int) -> np.ndarray:
         raise ValueError(f"points: expected finite pixel coordinates, got {pts[~np.isfinite(pts).all(axis=1)][:3]}")
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
         raise ValueError(f"size: expected an int >= 1, got {size!r}")
-    return patches_at(img, pts, int(size))
+    if warp is not None:
+        warp = np.asarray(warp, dtype=np.float64)
+        if warp.shape != (len(pts), 2, 2) or not np.isfinite(warp).all():
+            raise ValueError(f"warp: expected ({len(pts)}, 2, 2) finite matrices, got shape {warp.shape}")
+    return patches_at(img, pts, int(size), warp)

@@ -3,15 +3,22 @@
 import numpy as np
 
 
-def patches_at(image, points, size: int) -> np.ndarray:
+def patches_at(image, points, size: int, warp=None) -> np.ndarray:
     """(K, size, size) float64 bilinear patches of ``image`` (H, W) centred on ``points`` (K, 2), each
-    sample coordinate clipped into the image (the convention of gputrack/ops/face_relocate.py)."""
+    sample coordinate clipped into the image (the convention of gputrack/ops/face_relocate.py). With
+    ``warp`` (K, 2, 2), pixel (i, j) of patch k samples points[k] + warp[k] @ (j - c, i - c), c = (size-1)/2."""
     img = np.asarray(image, np.float64)
     H, W = img.shape
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     off = np.arange(size) - (size - 1) / 2.0
-    x = np.clip(pts[:, 0, None] + off, 0.0, W - 1.0)[:, None, :]  # (K, 1, S)
-    y = np.clip(pts[:, 1, None] + off, 0.0, H - 1.0)[:, :, None]  # (K, S, 1)
+    if warp is None:
+        x = np.broadcast_to((pts[:, 0, None] + off)[:, None, :], (len(pts), size, size))  # (K, S, S)
+        y = np.broadcast_to((pts[:, 1, None] + off)[:, :, None], (len(pts), size, size))
+    else:
+        d = np.stack(np.meshgrid(off, off), axis=-1)  # (S, S, 2): (x, y) offsets of pixel (i, j)
+        q = pts[:, None, None, :] + np.einsum("kab,ijb->kija", np.asarray(warp, np.float64), d)
+        x, y = q[..., 0], q[..., 1]
+    x, y = np.clip(x, 0.0, W - 1.0), np.clip(y, 0.0, H - 1.0)
     x0 = np.minimum(np.floor(x).astype(np.int64), W - 2)
     y0 = np.minimum(np.floor(y).astype(np.int64), H - 2)
     fx, fy = x - x0, y - y0

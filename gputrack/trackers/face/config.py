@@ -49,6 +49,10 @@ class FaceConfig:
     first-frame template's point is followed into the other start frames (Lucas-Kanade) and moved
     by the mean offset from their given points, so a detector's error in the first frame does not
     stay in the templates (1 px of noise per point: 1.1 -> 0.5 px from the truth on the simulator);
+    ``warp_templates`` (beyond the paper; False = the first frame's patches as cut): every frame the
+    templates are sampled again from the first frame, turned and scaled by the similarity the
+    filter's estimate gives each point (:mod:`gputrack.trackers.face.templates`), so that a roll or a
+    move in depth does not pull eq. 13's scores and eq. 14's points;
     ``refine_pose`` (beyond the
     paper; False = the filter's estimate): the estimate's pose is refined to fit the re-localised
     points (PnP, Levenberg-Marquardt from the estimate, the shape held) and the filter's hypotheses
@@ -97,6 +101,7 @@ class FaceConfig:
     relocate_contrast: float = 30.0
     relocate_shading: bool = False
     anchor_templates: bool = True
+    warp_templates: bool = True
     refine_pose: bool = True
     keyframes: int = 7
     init_iterations: int = 10
@@ -124,8 +129,8 @@ class FaceConfig:
             _positive(o, name, getattr(self, name))
         for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior", "relocate_contrast"):
             _positive(o, name, getattr(self, name), zero=True)
-        for name in ("prior", "anchor_templates", "refine_pose", "relocate_shading", "hold_identity_at_start",
-                     "learn_identity"):
+        for name in ("prior", "anchor_templates", "warp_templates", "refine_pose", "relocate_shading",
+                     "hold_identity_at_start", "learn_identity"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise TypeError(f"{o}.{name}: expected a bool, got {getattr(self, name)!r}")
         if self.relocate_shading and self.relocate_contrast == 0:

@@ -13,6 +13,8 @@
 - **Per frame** (:meth:`FaceTracker.track`), as :class:`gputrack.Scheduler` stages:
   ``detect`` (the detection proposals below, host, every ``config.detect_every`` frames and every
   frame while the estimate is turned more than ``DETECT_FAR``),
+  ``templates`` (beyond the paper, ``config.warp_templates``: the K templates sampled again from the
+  first frame, turned and scaled as the estimate sees the face, :mod:`.templates`; host, uploaded),
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
@@ -36,8 +38,8 @@
   (a mixture proposal, as Okuma et al.'s boosted particle filter): a filter locked on a wrong pose
   whose NCC stays fair (the loss test cannot see it) can come back.
 
-The image is uploaded once per frame as float32; the templates and the previous frame's patches stay on
-the device.
+The image is uploaded once per frame as float32 (and the K templates, 16 x 16 each, with
+``warp_templates``); the previous frame's patches stay on the device.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ from ...scheduler import Scheduler, Stage
 from .bundle import IncrementalBundle
 from .config import FaceConfig
 from .pf import FaceParticleFilter, shape_model
+from .templates import template_warp
 
 log = logging.getLogger("gputrack")
 
@@ -188,8 +191,10 @@ class FaceTracker:
         self.proposals = 0  # frames whose hypotheses were partly drawn around a detection (``_propose_detected``)
         self.proposals_taken = 0  # of them, frames whose estimate moved to one of those hypotheses
         self._host = {}  # this frame's host-side values between stages
+        self._first = None  # (image, points, pose, shape) of the first frame: the templates' source
         self.scheduler = Scheduler(device, [
             Stage("detect", self._detect),
+            Stage("templates", self._templates, writes=("templates",)),
             Stage("sample", self._sample, writes=("states", "shape", "points", "facing")),
             Stage("score", self._score, reads=("image", "points", "templates"), writes=("scores",)),
             Stage("estimate", self._estimate, host_reads=("scores", "facing")),
@@ -309,7 +314,9 @@ class FaceTracker:
         self._basis = self.model.expression_basis(self.identity)
         res = self.bundle.last
         S = self.config.template
-        self.scheduler.set("templates", sample_patches(frames[0].astype(np.float32), lm[0], S).astype(np.float32))
+        first = frames[0].astype(np.float32)
+        self._first = (first, lm[0].copy(), (res.rvecs[0], res.tvecs[0]), self._shape(res.expressions[0]))
+        self.scheduler.set("templates", sample_patches(first, lm[0], S).astype(np.float32))
         last = n - 1
         features = lm[last].copy()
         features[~np.isfinite(features)] = self._predicted(res.rvecs[last], res.tvecs[last],
@@ -390,6 +397,17 @@ class FaceTracker:
         est = self.pf.estimate
         if self.frame % every == 0 or facing(rodrigues(est[:3]), est[3:6]) < np.cos(np.radians(DETECT_FAR)):
             self._propose_detected(self._host["gray"])
+
+    def _templates(self, b):
+        """The first frame's templates turned and scaled as the estimate sees the face (host,
+        ``config.warp_templates``; :mod:`gputrack.trackers.face.templates`), uploaded for eq. 13 and 14."""
+        if not self.config.warp_templates:
+            return
+        image, points, pose, shape = self._first
+        est = self.pf.estimate
+        warp = template_warp(self.camera, pose, shape, (est[:3], est[3:6]), self._shape(est[6:]))
+        templates = sample_patches(image, points, self.config.template, warp).astype(np.float32)
+        b["templates"] = self.device.asarray(templates, out=b.get("templates"))
 
     def _sample(self, b):
         states = self.pf.propose_states().astype(np.float32)  # eq. 12 on the host, eq. 5 and 11 on the device
