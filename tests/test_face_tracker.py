@@ -84,6 +84,7 @@ def test_particle_filter_weights_and_estimate():
     near = np.all(np.abs(pf.states - pf.states[best]) <= cfg.near * noise, axis=1)
     w = np.exp(lw - lw.max())
     np.testing.assert_allclose(est, np.average(pf.states[near], axis=0, weights=w[near]))
+    assert est[6] == 0.3  # the held component exactly at its mean, not a weighted mean's rounding of it
     np.testing.assert_allclose(pf.weights.sum(), 1.0)
     assert pf.best_score == scores[best]
     # beyond eq. 13: a face turned away from the camera, or a head outside the depth range, weighs 0

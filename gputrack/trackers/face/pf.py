@@ -200,6 +200,7 @@ class FaceParticleFilter:
         best = int(np.argmax(lw))
         near = np.all(np.abs(states - states[best]) <= self.config.near * np.maximum(self.noise(), 1e-12), axis=1)
         est = np.average(states[near], axis=0, weights=w[near])
+        est[6:][~self.a_free] = self.a_mean[~self.a_free]  # held exactly (a weighted mean rounds)
         # a move to a detection's hypothesis (:meth:`mix`) is a new start, not motion
         self.from_detection = best >= len(states) - self._mixed
         self.velocity = np.zeros_like(est) if self.from_detection else est - self.estimate
