@@ -66,7 +66,7 @@ def test_warped_templates_match_a_rolled_and_receding_face(ict):
     true points than the plain ones, and eq. 14's first-frame term alone, started at the true points,
     stays nearer them."""
     from gputrack.models.face import LANDMARKS
-    from gputrack.sim.face import FACE_CAMERA, rotation_from_euler, render_face, rvec_from_rotation
+    from gputrack.sim.face import FACE_CAMERA, render_face, rotation_from_euler, rvec_from_rotation
 
     identity, expression = np.zeros(ict.identity_modes), np.zeros(len(ict.expression_names))
     X = ict.landmarks(identity, expression)[list(LANDMARKS)]

@@ -15,9 +15,10 @@ def patches_at(image, points, size: int, warp=None) -> np.ndarray:
         x = np.broadcast_to((pts[:, 0, None] + off)[:, None, :], (len(pts), size, size))  # (K, S, S)
         y = np.broadcast_to((pts[:, 1, None] + off)[:, :, None], (len(pts), size, size))
     else:
-        d = np.stack(np.meshgrid(off, off), axis=-1)  # (S, S, 2): (x, y) offsets of pixel (i, j)
-        q = pts[:, None, None, :] + np.einsum("kab,ijb->kija", np.asarray(warp, np.float64), d)
-        x, y = q[..., 0], q[..., 1]
+        w = np.asarray(warp, np.float64)[:, :, :, None, None]  # (K, 2, 2, 1, 1)
+        dx, dy = off[None, :], off[:, None]  # the (x, y) offsets of pixel (i, j)
+        x = pts[:, 0, None, None] + (w[:, 0, 0] * dx + w[:, 0, 1] * dy)
+        y = pts[:, 1, None, None] + (w[:, 1, 0] * dx + w[:, 1, 1] * dy)
     x, y = np.clip(x, 0.0, W - 1.0), np.clip(y, 0.0, H - 1.0)
     x0 = np.minimum(np.floor(x).astype(np.int64), W - 2)
     y0 = np.minimum(np.floor(y).astype(np.int64), H - 2)

@@ -314,7 +314,7 @@ class FaceTracker:
         self._basis = self.model.expression_basis(self.identity)
         res = self.bundle.last
         S = self.config.template
-        first = frames[0].astype(np.float32)
+        first = frames[0].astype(np.float64)  # the sampler's own type: no conversion per frame
         self._first = (first, lm[0].copy(), (res.rvecs[0], res.tvecs[0]), self._shape(res.expressions[0]))
         self.scheduler.set("templates", sample_patches(first, lm[0], S).astype(np.float32))
         last = n - 1
