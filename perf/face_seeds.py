@@ -8,11 +8,14 @@ tracker is judged here over many runs: ``--compare FIELD=VALUE`` runs every case
 that FaceConfig field changed and counts, per column, the runs in which the default was better.
 ``--floor`` runs every case once more with the person's true identity given and held (the depth
 floor: the tracker as it would be if it knew the person's size), ``--generic`` once more with the
-generic PCA model instead of the multilinear one (Table 1's comparison).
+generic PCA model instead of the multilinear one (Table 1's comparison), ``--true-points`` once more
+with each frame's true landmarks as the feature points instead of eq. 14's (what the rest of the
+tracker leaves with perfect points).
 
     python perf/face_seeds.py --device taichi:cpu --seeds 0-5
     python perf/face_seeds.py --device opencl --seeds 0-2 --sequence turns --compare anchor_templates=false
     python perf/face_seeds.py --device opencl --seeds 0-5 --floor --generic
+    python perf/face_seeds.py --device opencl --seeds 0-5 --sequence turns --true-points
 """
 
 from __future__ import annotations
@@ -31,9 +34,9 @@ import numpy as np
 from gputrack.trackers.face.metrics import COLUMNS, PAPER_TABLE1
 
 SEQUENCES = ("turns", "depth", "expressions", "lighting", "mixed")
-#: the pseudo-overrides (not FaceConfig fields) of ``--floor``'s runs (the true identity given and held)
-#: and of ``--generic``'s (the generic PCA model)
-FLOOR, GENERIC = {"true_identity": True}, {"generic_model": True}
+#: the pseudo-overrides (not FaceConfig fields) of ``--floor``'s runs (the true identity given and held),
+#: of ``--generic``'s (the generic PCA model) and of ``--true-points``' (the true landmarks as feature points)
+FLOOR, GENERIC, POINTS = {"true_identity": True}, {"generic_model": True}, {"true_points": True}
 
 
 def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> dict:
@@ -41,7 +44,7 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
     Table 1's means and more; with :data:`FLOOR`'s key in ``overrides`` the person's true identity held,
     and the depth error that perfect feature points leave (``landmark_z``, mm:
     :func:`gputrack.demos.face.landmark_floor` over every 5th frame, as the demo); with
-    :data:`GENERIC`'s the generic PCA model."""
+    :data:`GENERIC`'s the generic PCA model; with :data:`POINTS`' the true landmarks as the feature points."""
     import dataclasses
 
     import gputrack
@@ -53,14 +56,15 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
 
     ict = load_ict()
     seq = face_sequence(sequence, frames=frames, seed=seed, ict=ict)
-    fields = {k: v for k, v in overrides.items() if k not in FLOOR and k not in GENERIC}
+    fields = {k: v for k, v in overrides.items() if k not in FLOOR and k not in GENERIC and k not in POINTS}
     model = (PcaFaceModel if overrides.get("generic_model") else FaceModel).from_ict(ict)
     identity = None
     if overrides.get("true_identity"):
         identity = true_identity(ict, seq, model)
         fields["learn_identity"] = False
     config = dataclasses.replace(FaceConfig(), seed=seed, **fields)
-    rec = track_sequence(gputrack.device(spec), seq, model, config, identity=identity)
+    rec = track_sequence(gputrack.device(spec), seq, model, config, identity=identity,
+                         true_points=bool(overrides.get("true_points")))  # fmt: skip
     t = table1(rec["errors"])
     out = {"sequence": sequence, "seed": seed, "overrides": overrides, **{c: t[c][0] for c in COLUMNS},
            "feature_px": float(np.nanmean(rec["feature_px"])), "lost": int(rec["lost"].sum()),
@@ -120,11 +124,13 @@ def _means(rows) -> list[float]:
     return [float(np.mean([r[c] for r in rows])) for c in (*COLUMNS, "feature_px")]
 
 
-def report(rows: list[dict], sequences, compare: dict | None, floor: bool = False, generic: bool = False) -> str:
+def report(rows: list[dict], sequences, compare: dict | None, floor: bool = False, generic: bool = False,
+           points: bool = False) -> str:  # fmt: skip
     variants = [("", {})] + (
         [("  with " + ",".join(f"{k}={v}" for k, v in compare.items()), compare)] if compare else []
     )
     variants += ([("  generic PCA", GENERIC)] if generic else []) + ([("  true identity", FLOOR)] if floor else [])
+    variants += [("  true points", POINTS)] if points else []
     w = max(13, *(len(t) for t, _ in variants))
     head = f"{'sequence':<{w}} {'runs':>4} " + "".join(f"{c:>8}" for c in COLUMNS) + f"{'points px':>11}"
     lines = ["mean errors (x, y, z mm; roll, pitch, yaw deg; feature points after eq. 14, px from the truth)", head]
@@ -176,6 +182,8 @@ def main(argv=None) -> int:
     p.add_argument("--compare", type=_override, action="append", help="FIELD=VALUE of FaceConfig (repeatable)")
     p.add_argument("--floor", action="store_true", help="also run every case with the person's true identity held")
     p.add_argument("--generic", action="store_true", help="also run every case with the generic PCA model")
+    p.add_argument("--true-points", action="store_true",
+                   help="also run every case with the true landmarks as the feature points (not eq. 14's)")
     p.add_argument("--frames", type=int, help="only each sequence's first FRAMES frames (default: all 300)")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (default 2)")
     p.add_argument("--json", help="write every run's figures to this file")
@@ -191,6 +199,7 @@ def main(argv=None) -> int:
     compare = {k: v for d in args.compare or [] for k, v in d.items()} or None
     variants = (
         [{}] + ([compare] if compare else []) + ([GENERIC] if args.generic else []) + ([FLOOR] if args.floor else [])
+        + ([POINTS] if args.true_points else [])
     )
     cases = [(args.device, s, seed, ov, args.frames) for seed in args.seeds for s in sequences for ov in variants]
     print(f"face_seeds: {len(cases)} runs on {args.device}, {args.jobs} at a time", flush=True)
@@ -203,7 +212,7 @@ def main(argv=None) -> int:
                   f"{r['roll']:.2f} pitch {r['pitch']:.2f} yaw {r['yaw']:.2f} deg ({time.perf_counter() - t0:.0f} s)",
                   flush=True)  # fmt: skip
     print()
-    print(report(rows, sequences, compare, args.floor, args.generic))
+    print(report(rows, sequences, compare, args.floor, args.generic, args.true_points))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": args.device, "runs": rows}, f, indent=1)

@@ -424,6 +424,49 @@ def test_the_pose_is_refined_to_the_feature_points(data):
         assert np.array_equal(refined.pf.estimate, refined._host["state"])
 
 
+def test_feature_points_given_replace_eq14s(data):
+    """``track(gray, features=)``: points from elsewhere (here the true landmarks) are the frame's
+    feature points, the pose is fitted to them, and eq. 14 still gives the next frame's patches; NaN
+    points are unknown; bad points are a clear error."""
+    _, model, _, seq = data
+    frames = _frames(9)
+    runs = {}
+    for given in (False, True):
+        trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=128, learn_identity=False))  # the shape stays
+        trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+        truth = frames[7].landmarks2d.copy()
+        truth[3] = np.nan  # unknown
+        runs[given] = (trk, trk.track(frames[7].gray, features=truth if given else None))
+    (plain, p), (trk, g) = runs[False], runs[True]
+    np.testing.assert_array_equal(g.features, truth)
+    assert not np.isnan(p.features).any()
+    ok = np.isfinite(truth).all(axis=1)
+    # the pose is fitted to the points given (the known ones): no small step of it fits them better, and it
+    # projects nearer them than the pose fitted to eq. 14's points
+    shape = trk._shape(g.expression)
+
+    def misfit(rvec, t):
+        return np.sqrt(np.mean((project(seq.camera, rodrigues(rvec), t, shape) - truth)[ok] ** 2))
+
+    best = misfit(g.rvec, g.translation)
+    for i in range(6):
+        for d in (-1.0, 1.0):
+            x = np.concatenate([g.rvec, g.translation])
+            x[i] += d * (1e-3 if i < 3 else 0.2)
+            assert misfit(x[:3], x[3:]) > best - 1e-6
+    assert np.abs(g.landmarks - truth)[ok].mean() < np.abs(p.landmarks - truth)[ok].mean()
+    # eq. 14 ran all the same: the previous patches are the same in both
+    def previous(t):
+        x = t.scheduler.buffers["previous"]
+        return x.numpy() if hasattr(x, "numpy") else np.asarray(x)
+
+    np.testing.assert_array_equal(previous(trk), previous(plain))
+    with pytest.raises(ValueError, match=r"features: expected \(K=10, 2\) real points \(px\), got float64 \(9, 2\)"):
+        trk.track(frames[8].gray, features=truth[:9])
+    with pytest.raises(ValueError, match="features: expected finite values or NaN"):
+        trk.track(frames[8].gray, features=np.full((10, 2), np.inf))
+
+
 def test_start_from_a_haar_face_box(device, data):
     if device.spec != "taichi:cpu":
         pytest.skip("runs on taichi:cpu, inside the test run's own taichi:cpu phase")

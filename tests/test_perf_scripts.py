@@ -257,17 +257,21 @@ def test_face_seeds_runs_and_compares(tmp_path):
     out = tmp_path / "seeds.json"
     cmd = [sys.executable, str(ROOT / "perf" / "face_seeds.py"), "--device", "numpy", "--sequence", "depth",
            "--seeds", "0", "--frames", "9", "--compare", "anchor_templates=false", "--floor", "--generic",
-           "--json", str(out)]  # fmt: skip
+           "--true-points", "--json", str(out)]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     runs = json.loads(out.read_text())["runs"]
     assert sorted(json.dumps(r["overrides"]) for r in runs) == [
-        '{"anchor_templates": false}', '{"generic_model": true}', '{"true_identity": true}', "{}"]  # fmt: skip
+        '{"anchor_templates": false}', '{"generic_model": true}', '{"true_identity": true}', '{"true_points": true}',
+        "{}"]  # fmt: skip
     for r in runs:
         assert r["sequence"] == "depth" and r["seed"] == 0 and r["lost"] == 0
         assert all(np.isfinite(r[c]) and r[c] >= 0 for c in ("x", "y", "z", "roll", "pitch", "yaw", "feature_px"))
     assert "with anchor_templates=False" in proc.stdout and "runs in which the default was better" in proc.stdout
-    assert "  generic PCA " in proc.stdout and "  true identity " in proc.stdout
+    assert "  generic PCA " in proc.stdout and "  true identity " in proc.stdout and "  true points " in proc.stdout
+    # the true landmarks are the tracked frames' feature points (the start's are the detector's, as in every run)
+    px = {json.dumps(r["overrides"]): r["feature_px"] for r in runs}
+    assert px['{"true_points": true}'] < px["{}"]
 
 
 def test_face_seeds_report_and_arguments():
@@ -296,9 +300,10 @@ def test_face_seeds_report_and_arguments():
     # the floor's and the generic model's runs get their own rows and stay out of the paired counts; the
     # floor's perfect-point depth (landmark_z) is set beside the tracker's z, run by run
     rows += [row("turns", 0, fs.FLOOR, 0.5) | {"landmark_z": 0.5}, row("turns", 1, fs.FLOOR, 1.5) | {"landmark_z": 3.0},
-             row("turns", 0, fs.GENERIC, 9.0)]  # fmt: skip
-    text = fs.report(rows, ("turns",), ov, floor=True, generic=True)
+             row("turns", 0, fs.GENERIC, 9.0), row("turns", 1, fs.POINTS, 4.0)]  # fmt: skip
+    text = fs.report(rows, ("turns",), ov, floor=True, generic=True, points=True)
     lines = text.splitlines()
+    assert [ln.split() for ln in lines if ln.startswith("  true points")] == [["true", "points", "1"] + ["4.00"] * 7]
     assert [ln.split() for ln in lines if ln.startswith("  true identity")] == [["true", "identity", "2"] + ["1.00"] * 7]
     assert [ln.split() for ln in lines if ln.startswith("  generic PCA")] == [["generic", "PCA", "1"] + ["9.00"] * 7]
     assert lines[-1].split()[1:] == ["2"] + ["1"] * 7

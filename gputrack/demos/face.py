@@ -49,10 +49,12 @@ def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
 
 
 def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init="landmarks", landmark_noise=1.0,
-                   identity=None, progress=None, save=None, label="") -> dict:  # fmt: skip
+                   identity=None, true_points=False, progress=None, save=None, label="") -> dict:  # fmt: skip
     """Track ``seq`` with ``model``; return per-frame records (errors, shape errors, times) and the tracker.
 
-    identity: a fixed identity (S',) for the depth-floor run (``config.learn_identity`` should be False).
+    identity: a fixed identity (S',) for the depth-floor run (``config.learn_identity`` should be False);
+    true_points: every tracked frame's feature points are its true visible landmarks instead of eq. 14's
+    (``FaceTracker.track(features=)``): what the rest of the tracker leaves with perfect points.
     """
     n_frames = len(seq) if frames is None else min(int(frames), len(seq))
     n = config.keyframes
@@ -70,8 +72,9 @@ def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init=
     ms = []
     for k in range(n, n_frames):
         f = seq[k]
+        given = np.where(np.asarray(f.visible, bool)[:, None], f.landmarks2d, np.nan) if true_points else None
         t0 = time.perf_counter()
-        est = trk.track(f.gray)
+        est = trk.track(f.gray, features=given)
         dt = time.perf_counter() - t0
         if k == n:
             trk.scheduler.reset()  # the first tracked frame compiles the kernels

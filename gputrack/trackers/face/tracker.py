@@ -448,7 +448,8 @@ class FaceTracker:
         if h["lost"]:
             h["features"] = np.full((self.model.K, 2), np.nan)
             return
-        h["features"] = m = b["features"].astype(np.float64)
+        given = h.get("given")
+        h["features"] = m = b["features"].astype(np.float64) if given is None else given.copy()
         est = h["state"]
         if not self.config.refine_pose or np.isfinite(m).all(axis=1).sum() < 6:
             return
@@ -472,12 +473,25 @@ class FaceTracker:
         self.identity = self.bundle.add(h["features"], est[:3], est[3:6], est[6:])  # eq. 6-10
         self._basis = self.model.expression_basis(self.identity)
 
-    def track(self, gray) -> FaceEstimate:
-        """Track one frame (H, W) gray (the size of the start frames). Returns its :class:`FaceEstimate`."""
+    def track(self, gray, features=None) -> FaceEstimate:
+        """Track one frame (H, W) gray (the size of the start frames). Returns its :class:`FaceEstimate`.
+
+        features: optional (K, 2) px, this frame's feature points from elsewhere (another landmark
+        detector, or a simulator's true landmarks to measure what the points bound; NaN: unknown),
+        used instead of eq. 14's for the pose fit and the bundle adjustment. Eq. 14 still runs: its
+        patches are the next frame's I_{t-1}. A frame found lost uses neither."""
         if self.shape is None:
             raise RuntimeError("FaceTracker: call start() with the first frames before track()")
         img = _gray(gray, "gray", self.shape).astype(np.float32)
-        self._host = {"gray": img}
+        if features is not None:
+            features = as_host_array(features, "features")
+            if features.dtype.kind not in "iuf" or features.shape != (self.model.K, 2):
+                raise ValueError(f"features: expected (K={self.model.K}, 2) real points (px), got "
+                                 f"{features.dtype.name} {features.shape}")  # fmt: skip
+            if np.isinf(features).any():
+                raise ValueError("features: expected finite values or NaN (unknown), got inf")
+            features = features.astype(np.float64)
+        self._host = {"gray": img, "given": features}
         self.scheduler.run(image=img)
         h = self._host
         self.frame += 1
