@@ -66,6 +66,19 @@ def pytest_configure(config):
         raise pytest.UsageError(f"GPUTRACK_REQUIRE names unknown specs {sorted(unknown)}; known: {sorted(_infos())}")
 
 
+@pytest.fixture(scope="session")
+def ict():
+    """The ICT face data (:func:`gputrack.models.face.load_ict`); the test is skipped, with the reason,
+    where it is absent."""
+    from gputrack.models.face import load_ict
+
+    try:
+        return load_ict()
+    except FileNotFoundError as e:
+        pytest.skip(f"the ICT face data is absent ({e}); it lives in shared/data/ict_face beside the repository, "
+                    "or $GPUTRACK_DATA/ict_face")  # fmt: skip
+
+
 @pytest.fixture(scope="session", params=ALL_SPECS)
 def device(request):
     spec = request.param

@@ -9,22 +9,15 @@ from scipy.spatial.transform import Rotation
 
 import gputrack
 from gputrack.models import Camera
-from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
+from gputrack.models.face import FaceModel, PcaFaceModel
+from gputrack.models.pose import rodrigues
 from gputrack.ops.lm import LMStatus
 from gputrack.trackers.face import BundleProblem, IncrementalBundle, bundle_adjust, keyframe_spread
-from gputrack.models.pose import rodrigues
 from gputrack.trackers.face.bundle import MIN_KEYFRAME_POINTS
 
 REF = gputrack.device("numpy")
 CAMERA = Camera(700.0, 700.0, 320.0, 240.0)  # a VGA camera (the paper: 640x480)
 
-
-@pytest.fixture(scope="module")
-def ict():
-    try:
-        return load_ict()
-    except FileNotFoundError as e:
-        pytest.skip(f"ICT face data absent: {e}")
 
 
 @pytest.fixture(scope="module")

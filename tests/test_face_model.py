@@ -18,14 +18,6 @@ from gputrack.models.pose import euler_from_rotation, project, rodrigues, rotati
 
 
 @pytest.fixture(scope="module")
-def ict():
-    try:
-        return load_ict()
-    except FileNotFoundError as e:
-        pytest.skip(f"the ICT face data is absent (it lives in shared/data beside the repository, or in $GPUTRACK_DATA): {e}")
-
-
-@pytest.fixture(scope="module")
 def model(ict):
     return FaceModel.from_ict(ict)
 

@@ -3,7 +3,6 @@ plane's image Jacobians, the similarity of a roll and of a move in depth, and on
 warped templates matching a rolled and receding face where the plain ones do not."""
 
 import numpy as np
-import pytest
 
 import gputrack
 from gputrack.models import Camera
@@ -48,16 +47,6 @@ def test_the_warp_of_a_roll_a_move_in_depth_and_an_edge_on_face():
     W = template_warp(CAM, first, Xs, (np.array([0.1, 0.4, -0.2]), np.array([10.0, 5.0, 700.0])), Xs)
     np.testing.assert_allclose(W[:, 0, 0], W[:, 1, 1])
     np.testing.assert_allclose(W[:, 0, 1], -W[:, 1, 0])
-
-
-@pytest.fixture(scope="module")
-def ict():
-    from gputrack.models.face import load_ict
-
-    try:
-        return load_ict()
-    except FileNotFoundError as e:
-        pytest.skip(f"the ICT face data is absent (shared/data/ict_face beside the repository, or $GPUTRACK_DATA/ict_face): {e}")
 
 
 def test_warped_templates_match_a_rolled_and_receding_face(ict):

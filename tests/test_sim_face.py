@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gputrack.models import Camera
-from gputrack.models.face import LANDMARKS, load_ict, sample_people
+from gputrack.models.face import LANDMARKS, sample_people
 from gputrack.sim.face import (
     FACE_CAMERA,
     INTRO_FRAMES,
@@ -25,14 +25,6 @@ from gputrack.sim.face import (
     rotation_from_rvec,
     rvec_from_rotation,
 )
-
-
-@pytest.fixture(scope="module")
-def ict():
-    try:
-        return load_ict()
-    except FileNotFoundError as e:
-        pytest.skip(f"the ICT face data is absent ({e}); it lives in shared/data/ict_face beside the repository, or $GPUTRACK_DATA/ict_face")
 
 
 @pytest.fixture(scope="module")
