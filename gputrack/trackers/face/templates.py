@@ -3,8 +3,8 @@
 Eq. 13 scores the hypotheses and eq. 14 re-localises the points against the K templates cut from the
 first frame. As the head rolls or moves in depth, the patch around a feature point turns and scales in
 the image, and the template's best match moves off the point: on the simulator's turns sequence,
-eq. 14's first-frame term alone, started at the true points, settles 1-5 px away from them (the previous
-frame's term follows it there over a few frames). So each frame the templates are sampled again from
+eq. 14's first-frame term alone, started at the true points, settles 1-7 px away from them on the eye
+corners, nostrils and mouth corners (the previous frame's term follows it there over a few frames). So each frame the templates are sampled again from
 the first frame, turned and scaled as the filter's estimate sees the face.
 
 The map. A small patch of the face's frontal plane (the model's x-y plane) at model point X, seen with
@@ -20,7 +20,7 @@ Frobenius norm): the in-plane turn and the scale are alike for any surface at th
 foreshortening of a yaw or a pitch depends on the surface's direction there, which the K points do not
 tell. (Measured on the simulator, seeds 0-11: the full map A of the frontal plane put the outer eye
 corners and the nostrils, which do not lie in it, further off and lost yaw on the turns sequence; the
-similarity gained on every sequence; the README's face section.)
+similarity lowered the yaw error on every sequence; the README's face section.)
 """
 
 from __future__ import annotations
