@@ -4,8 +4,9 @@ Eq. 13 scores the hypotheses and eq. 14 re-localises the points against the K te
 first frame. As the head rolls or moves in depth, the patch around a feature point turns and scales in
 the image, and the template's best match moves off the point: on the simulator's turns sequence,
 eq. 14's first-frame term alone, started at the true points, settles 1-7 px away from them on the eye
-corners, nostrils and mouth corners (the previous frame's term follows it there over a few frames). So each frame the templates are sampled again from
-the first frame, turned and scaled as the filter's estimate sees the face.
+corners, nostrils and mouth corners (the previous frame's term follows it there over a few frames).
+So each frame the templates are sampled again from the first frame, turned and scaled as the
+filter's estimate sees the face.
 
 The map. A small patch of the face's frontal plane (the model's x-y plane) at model point X, seen with
 the pose (R, t) model -> camera, moves in the image by J d for a step d in that plane, with the 2 x 2
