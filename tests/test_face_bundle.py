@@ -60,9 +60,9 @@ def face_scene(model, ict=None, *, seed=123, n=7, noise=0.5, camera=CAMERA):
     tv = np.stack([rng.uniform(-60, 60, n), rng.uniform(-40, 40, n), np.linspace(500, 800, n)], axis=1)
     a = model.expression_mean + rng.uniform(-1, 1, (n, A)) * model.expression_std
     m = project(camera, rv, tv, model.shape(s, a)) + rng.normal(0, noise, (n, model.K, 2))
-    start = dict(rvecs=rv + rng.normal(0, np.deg2rad(3), (n, 3)), tvecs=tv + rng.normal(0, 5, (n, 3)),
-                 expressions=np.repeat(model.expression_mean[None], n, axis=0))  # fmt: skip
-    return dict(landmarks=m, rvecs=rv, tvecs=tv, expressions=a, identity=s, start=start)
+    start = {"rvecs": rv + rng.normal(0, np.deg2rad(3), (n, 3)), "tvecs": tv + rng.normal(0, 5, (n, 3)),
+                 "expressions": np.repeat(model.expression_mean[None], n, axis=0)}  # fmt: skip
+    return {"landmarks": m, "rvecs": rv, "tvecs": tv, "expressions": a, "identity": s, "start": start}
 
 
 def adjust(device, model, scene, **kw):
@@ -184,7 +184,7 @@ def reference_runs(model, ict):
     # the fixed components start off the mean (they are clipped onto it)
     sc["start"]["expressions"][:, 0] += 0.05
     sc["start"]["identity"] = model.identity_mean + 0.02
-    kw = dict(pose_range=(0.06, 6.0), identity_sigmas=1.0, fixed_first=True, max_iter=10)
+    kw = {"pose_range": (0.06, 6.0), "identity_sigmas": 1.0, "fixed_first": True, "max_iter": 10}
     return sc, kw, adjust(REF, model, sc, **kw)
 
 
@@ -198,11 +198,11 @@ def test_devices_match_reference_and_keep_the_box(device, model, reference_runs)
     st = sc["start"]
     # float64 on the device: only the summation order of J^T J differs; float32: the LM path itself
     f64 = _fp(device) == np.float64
-    tol = dict(rtol=1e-7, atol=1e-8) if f64 else dict(rtol=1e-3, atol=1e-3)
+    tol = {"rtol": 1e-7, "atol": 1e-8} if f64 else {"rtol": 1e-3, "atol": 1e-3}
     np.testing.assert_allclose(res.cost, ref.cost, rtol=tol["rtol"] if f64 else 1e-2)
     for name in ("rvecs", "tvecs", "expressions", "identity"):
         np.testing.assert_allclose(getattr(res, name), getattr(ref, name), err_msg=name,
-                                   **(tol if f64 else dict(rtol=1e-3, atol=2e-2)))  # fmt: skip
+                                   **(tol if f64 else {"rtol": 1e-3, "atol": 2e-2}))  # fmt: skip
     assert res.iterations == ref.iterations if f64 else True
     # the box (eq. 8-9): each parameter within it, fixed components at the mean, the first pose fixed
     std_s, std_a = model.identity_std, model.expression_std
@@ -241,7 +241,7 @@ def test_incremental_on_device_matches_reference(device, model, ict):
         ib = IncrementalBundle(dev, model, CAMERA, n=7, iterations=5)
         ib.start(sc["landmarks"][:7], st["rvecs"][:7], st["tvecs"][:7], st["expressions"][:7])
         out.append((ib.add(sc["landmarks"][7], st["rvecs"][7], st["tvecs"][7], st["expressions"][7]), ib.keyframes))
-    tol = dict(rtol=1e-7, atol=1e-8) if _fp(device) == np.float64 else dict(rtol=1e-3, atol=2e-2)
+    tol = {"rtol": 1e-7, "atol": 1e-8} if _fp(device) == np.float64 else {"rtol": 1e-3, "atol": 2e-2}
     np.testing.assert_allclose(out[1][0], out[0][0], **tol)
     np.testing.assert_array_equal(out[1][1], out[0][1])
 
@@ -409,7 +409,7 @@ def test_bad_input(model, ict):
     lm, rv, tv, ex = sc["landmarks"], st["rvecs"], st["tvecs"], st["expressions"]
 
     def ba(**kw):
-        args = dict(landmarks=lm, rvecs=rv, tvecs=tv, expressions=ex, identity=None)
+        args = {"landmarks": lm, "rvecs": rv, "tvecs": tv, "expressions": ex, "identity": None}
         args.update(kw)
         return bundle_adjust(REF, model, CAMERA, **args)
 
