@@ -56,7 +56,7 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
 
     ict = load_ict()
     seq = face_sequence(sequence, frames=frames, seed=seed, ict=ict)
-    fields = {k: v for k, v in overrides.items() if k not in FLOOR and k not in GENERIC and k not in POINTS}
+    fields = {k: v for k, v in overrides.items() if k not in {**FLOOR, **GENERIC, **POINTS}}
     model = (PcaFaceModel if overrides.get("generic_model") else FaceModel).from_ict(ict)
     identity = None
     if overrides.get("true_identity"):

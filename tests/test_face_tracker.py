@@ -461,7 +461,7 @@ def test_feature_points_given_replace_eq14s(data):
         return x.numpy() if hasattr(x, "numpy") else np.asarray(x)
 
     np.testing.assert_array_equal(previous(trk), previous(plain))
-    with pytest.raises(ValueError, match=r"features: expected \(K=10, 2\) real points \(px\), got float64 \(9, 2\)"):
+    with pytest.raises(ValueError, match=r"features: expected shape \(10, 2\), got \(9, 2\)"):
         trk.track(frames[8].gray, features=truth[:9])
     with pytest.raises(ValueError, match="features: expected finite values or NaN"):
         trk.track(frames[8].gray, features=np.full((10, 2), np.inf))

@@ -56,7 +56,7 @@ from ...ops.face_points import project_faces
 from ...ops.face_relocate import relocate_points, sample_patches
 from ...ops.ncc import patch_ncc
 from ...scheduler import Scheduler, Stage
-from .bundle import IncrementalBundle
+from .bundle import IncrementalBundle, _real_array
 from .config import FaceConfig
 from .pf import FaceParticleFilter, shape_model
 from .templates import template_warp
@@ -449,7 +449,7 @@ class FaceTracker:
             h["features"] = np.full((self.model.K, 2), np.nan)
             return
         given = h.get("given")
-        h["features"] = m = b["features"].astype(np.float64) if given is None else given.copy()
+        h["features"] = m = b["features"].astype(np.float64) if given is None else given
         est = h["state"]
         if not self.config.refine_pose or np.isfinite(m).all(axis=1).sum() < 6:
             return
@@ -484,13 +484,7 @@ class FaceTracker:
             raise RuntimeError("FaceTracker: call start() with the first frames before track()")
         img = _gray(gray, "gray", self.shape).astype(np.float32)
         if features is not None:
-            features = as_host_array(features, "features")
-            if features.dtype.kind not in "iuf" or features.shape != (self.model.K, 2):
-                raise ValueError(f"features: expected (K={self.model.K}, 2) real points (px), got "
-                                 f"{features.dtype.name} {features.shape}")  # fmt: skip
-            if np.isinf(features).any():
-                raise ValueError("features: expected finite values or NaN (unknown), got inf")
-            features = features.astype(np.float64)
+            features = _real_array(as_host_array(features, "features"), "features", (self.model.K, 2), allow_nan=True)
         self._host = {"gray": img, "given": features}
         self.scheduler.run(image=img)
         h = self._host
