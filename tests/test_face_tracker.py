@@ -379,6 +379,22 @@ def test_a_filter_on_a_wrong_pose_moves_to_the_detected_face(device, data):
     assert control > 4.5, errors[0]
 
 
+def _pose_misfit(camera, shape, points):
+    """misfit(rvec, t): the RMS px of the pose's projected ``shape`` from the finite ``points``."""
+    ok = np.isfinite(points).all(axis=1)
+    return lambda rvec, t: np.sqrt(np.mean((project(camera, rodrigues(rvec), t, shape) - points)[ok] ** 2))
+
+
+def _assert_least_squares_pose(misfit, rvec, t):
+    """No small step of a pose parameter fits better than (rvec, t): a least-squares fit."""
+    best = misfit(rvec, t)
+    for i in range(6):
+        for d in (-1.0, 1.0):
+            x = np.concatenate([rvec, t])
+            x[i] += d * (1e-3 if i < 3 else 0.2)
+            assert misfit(x[:3], x[3:]) > best - 1e-6
+
+
 def test_the_pose_is_refined_to_the_feature_points(data):
     """``refine_pose``: the first tracked frame's filter estimate is the same with and without it (same
     stream), and so are the re-localised points; refined, the reported pose fits them (PnP) better
@@ -395,18 +411,10 @@ def test_the_pose_is_refined_to_the_feature_points(data):
     np.testing.assert_array_equal(r.features, p.features)
     assert np.isfinite(r.features).all()
     shape = refined._shape(r.expression)
-
-    def misfit(rvec, t):  # RMS px of the pose's points from the feature points
-        return np.sqrt(np.mean((project(seq.camera, rodrigues(rvec), t, shape) - r.features) ** 2))
-
-    best = misfit(r.rvec, r.translation)
-    assert best < misfit(p.rvec, p.translation) - 0.05  # 1.48 vs 1.68 px measured
+    misfit = _pose_misfit(seq.camera, shape, r.features)
+    assert misfit(r.rvec, r.translation) < misfit(p.rvec, p.translation) - 0.05  # 1.48 vs 1.68 px measured
     np.testing.assert_allclose(r.landmarks, project(seq.camera, r.rotation, r.translation, shape))
-    for i in range(6):  # a least-squares fit: no small step of a pose parameter fits better
-        for d in (-1.0, 1.0):
-            x = np.concatenate([r.rvec, r.translation])
-            x[i] += d * (1e-3 if i < 3 else 0.2)
-            assert misfit(x[:3], x[3:]) > best - 1e-6
+    _assert_least_squares_pose(misfit, r.rvec, r.translation)
     np.testing.assert_array_equal(r.expression, p.expression)  # the pose only
     step = np.concatenate([r.rvec - p.rvec, r.translation - p.translation, np.zeros(len(r.expression))])
     assert np.abs(step).max() > 0
@@ -443,17 +451,7 @@ def test_feature_points_given_replace_eq14s(data):
     ok = np.isfinite(truth).all(axis=1)
     # the pose is fitted to the points given (the known ones): no small step of it fits them better, and it
     # projects nearer them than the pose fitted to eq. 14's points
-    shape = trk._shape(g.expression)
-
-    def misfit(rvec, t):
-        return np.sqrt(np.mean((project(seq.camera, rodrigues(rvec), t, shape) - truth)[ok] ** 2))
-
-    best = misfit(g.rvec, g.translation)
-    for i in range(6):
-        for d in (-1.0, 1.0):
-            x = np.concatenate([g.rvec, g.translation])
-            x[i] += d * (1e-3 if i < 3 else 0.2)
-            assert misfit(x[:3], x[3:]) > best - 1e-6
+    _assert_least_squares_pose(_pose_misfit(seq.camera, trk._shape(g.expression), truth), g.rvec, g.translation)
     assert np.abs(g.landmarks - truth)[ok].mean() < np.abs(p.landmarks - truth)[ok].mean()
     # eq. 14 ran all the same: the previous patches are the same in both
     def previous(t):
