@@ -12,6 +12,11 @@ generic PCA model instead of the multilinear one (Table 1's comparison), ``--tru
 with each frame's true landmarks as the feature points instead of eq. 14's (what the rest of the
 tracker leaves with perfect points).
 
+Every default run also says where its rotation error comes from
+(:func:`gputrack.trackers.face.metrics.error_parts` and ``rotation_sources``): how much of it is an
+offset held through the run and how much varies from frame to frame, and what the tracked points
+alone and the estimated shape alone leave.
+
     python perf/face_seeds.py --device taichi:cpu --seeds 0-5
     python perf/face_seeds.py --device opencl --seeds 0-2 --sequence turns --compare anchor_templates=false
     python perf/face_seeds.py --device opencl --seeds 0-5 --floor --generic
@@ -52,7 +57,7 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
     from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
     from gputrack.sim.face import face_sequence
     from gputrack.trackers.face import FaceConfig
-    from gputrack.trackers.face.metrics import table1
+    from gputrack.trackers.face.metrics import error_parts, pose_errors, rotation_sources, table1
 
     ict = load_ict()
     seq = face_sequence(sequence, frames=frames, seed=seed, ict=ict)
@@ -69,6 +74,17 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
     out = {"sequence": sequence, "seed": seed, "overrides": overrides, **{c: t[c][0] for c in COLUMNS},
            "feature_px": float(np.nanmean(rec["feature_px"])), "lost": int(rec["lost"].sum()),
            "median_ms": float(np.median(rec["ms"]))}  # fmt: skip
+    if not overrides:  # where the rotation error comes from (the default runs only)
+        ests, true = rec["estimates"], rec["truth"]
+        ok = ~rec["lost"]
+        signed = pose_errors(np.array([e.rotation for e in ests]), np.array([e.translation for e in ests]),
+                             true["rotations"], true["translations"], signed=True)[ok, 3:]  # fmt: skip
+        offset, varying = error_parts(signed)
+        src = rotation_sources(seq.camera, np.array([e.features for e in ests])[ok],
+                               np.array([model.shape(e.identity, e.expression) for e in ests])[ok], true["points"][ok],
+                               true["shapes"][ok], true["rotations"][ok], true["translations"][ok])  # fmt: skip
+        out["split"] = {"offset": offset.tolist(), "varying": varying.tolist(),
+                        **{k: np.nanmean(v, axis=0).tolist() for k, v in src.items()}}  # fmt: skip
     if identity is not None:
         n = len(rec["errors"])
         step = 5 if n >= 5 * config.keyframes else 1
@@ -160,6 +176,20 @@ def report(rows: list[dict], sequences, compare: dict | None, floor: bool = Fals
                 near = sum(base[k]["z"] <= 1.15 * fl[k]["landmark_z"] for k in keys)
                 lines.append(f"{name:<{w}} {len(keys):>4}   tracker {z:6.2f}   true identity {zt:6.2f}   "
                              f"perfect points {zp:6.2f}   within 15 %: {near} of {len(keys)}")  # fmt: skip
+    split = [r for r in rows if not r["overrides"] and "split" in r]
+    if split:
+        lines.append("")
+        lines.append("where the rotation error comes from (roll, pitch, yaw deg; mean over the runs): the offset each run "
+                     "holds and the part that varies frame to frame; the error of the pose fitted to the tracked points "
+                     "with the true shape (the points alone) and to the true points with the estimated shape (the "
+                     "shape alone)")  # fmt: skip
+        parts = ("offset", "varying", "points", "shape")
+        lines.append(f"{'sequence':<{w}} {'runs':>4} " + "".join(f"{p:>21}" for p in parts))
+        for name, seqs in groups:
+            sel = [r["split"] for r in split if r["sequence"] in seqs]
+            if sel:
+                cells = ("{:7.2f}{:7.2f}{:7.2f}".format(*np.mean([r[p] for r in sel], axis=0)) for p in parts)
+                lines.append(f"{name:<{w}} {len(sel):>4} " + "".join(f"{c:>21}" for c in cells))
     if compare:
         lines.append("")
         lines.append("runs in which the default was better than " + ",".join(f"{k}={v}" for k, v in compare.items()))

@@ -50,7 +50,10 @@ def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
 
 def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init="landmarks", landmark_noise=1.0,
                    identity=None, true_points=False, progress=None, save=None, label="") -> dict:  # fmt: skip
-    """Track ``seq`` with ``model``; return per-frame records (errors, shape errors, times) and the tracker.
+    """Track ``seq`` with ``model``; return per-frame records (errors, shape errors, times), the
+    :class:`FaceEstimate` of every frame (``estimates``), the truth (``truth``: rotations (F, 3, 3),
+    translations (F, 3), the visible landmarks' points (F, K, 2), NaN where hidden, and shapes (F, K, 3))
+    and the tracker.
 
     identity: a fixed identity (S',) for the depth-floor run (``config.learn_identity`` should be False);
     true_points: every tracked frame's feature points are its true visible landmarks instead of eq. 14's
@@ -87,9 +90,13 @@ def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init=
             _picture(save, label, k, f, est, seq.camera)
     R = np.array([e.rotation for e in ests])
     t = np.array([e.translation for e in ests])
-    err = pose_errors(R, t, np.array([f.rotation for f in truth]), np.array([f.translation for f in truth]))
+    true = {"rotations": np.array([f.rotation for f in truth]), "translations": np.array([f.translation for f in truth]),
+            "points": np.array([np.where(np.asarray(f.visible, bool)[:, None], f.landmarks2d, np.nan) for f in truth]),
+            "shapes": np.array([f.shape for f in truth])}  # fmt: skip
+    err = pose_errors(R, t, true["rotations"], true["translations"])
     shape = np.array([shape_error(model, e.identity, e.expression, f.shape) for e, f in zip(ests, truth)])
     return {"errors": err, "shape_error": shape, "ms": np.array(ms), "start_ms": start_ms,
+            "estimates": ests, "truth": true,
             "feature_px": np.array([feature_error(e.features, f) for e, f in zip(ests, truth)]),
             "lost": np.array([e.lost for e in ests]), "confidence": np.array([e.confidence for e in ests]),
             "tracker": trk}  # fmt: skip

@@ -13,7 +13,7 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["euler_from_rotation", "facing", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
+__all__ = ["euler_from_rotation", "facing", "fit_pose", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
            "rotation_vector", "skew"]
 
 
@@ -100,3 +100,23 @@ def facing(R, t) -> np.ndarray:
     model faces the camera squarely, 0 when seen edge-on."""
     R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
     return np.einsum("...c,...c->...", R[..., :, 2], t) / np.maximum(np.linalg.norm(t, axis=-1), 1e-9)
+
+
+def fit_pose(camera: Camera, points3d, points, guess):
+    """(rvec, tvec) of model points ``points3d`` (K, 3) seen at ``points`` (K, 2) px (NaN: unknown; the
+    finite ones, at least 6, are used) by OpenCV's iterative PnP (Levenberg-Marquardt on the
+    reprojection error) from ``guess`` (rvec, tvec); None where fewer than 6 points are known, or
+    the fit fails or puts the model's origin behind the camera."""
+    import cv2
+
+    pts = np.asarray(points, np.float64)
+    ok = np.isfinite(pts).all(axis=1)
+    if ok.sum() < 6:
+        return None
+    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
+    r0, t0 = (np.asarray(g, np.float64).reshape(3, 1).copy() for g in guess)
+    found, r, t = cv2.solvePnP(np.asarray(points3d, np.float64)[ok], pts[ok], K, None, r0, t0, True,
+                               cv2.SOLVEPNP_ITERATIVE)  # fmt: skip
+    if not found or not np.isfinite(r).all() or not np.isfinite(t).all() or t[2, 0] <= 0:
+        return None
+    return r.ravel(), t.ravel()

@@ -5,6 +5,10 @@
   about x, :func:`gputrack.models.pose.euler_from_rotation`) against the truth;
 - :func:`table1`: their mean and standard deviation (Table 1), :func:`format_table1` side by side for
   several models (the paper: the multilinear model against the generic PCA model);
+- :func:`error_parts` (beyond the paper): how much of a run's errors is one offset held through
+  the run and how much varies from frame to frame;
+- :func:`rotation_sources` (beyond the paper): the rotation errors the feature points alone leave
+  (with the true shape) and those the estimated shape alone leaves (with the true points);
 - :func:`shape_error`: the RMS distance (mm) of the K estimated model-frame points from the true ones
   (Fig. 7's bottom graph: the facial shape error in the model coordinate system), per frame: how the
   identity converges.
@@ -14,16 +18,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...models.pose import euler_from_rotation
+from ...models.pose import euler_from_rotation, fit_pose, rodrigues, rotation_vector
 
-__all__ = ["COLUMNS", "PAPER_TABLE1", "format_table1", "pose_errors", "shape_error", "table1"]
+__all__ = ["COLUMNS", "PAPER_TABLE1", "error_parts", "format_table1", "pose_errors", "rotation_sources", "shape_error",
+           "table1"]
 
 #: Table 1's columns
 COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
-def pose_errors(rotations, translations, true_rotations, true_translations) -> np.ndarray:
-    """(F, 6) absolute errors per frame: x, y, z (mm), roll, pitch, yaw (deg).
+def pose_errors(rotations, translations, true_rotations, true_translations, *, signed: bool = False) -> np.ndarray:
+    """(F, 6) absolute errors per frame: x, y, z (mm), roll, pitch, yaw (deg); ``signed``: the
+    estimate minus the truth instead (angles wrapped into [-180, 180)).
 
     rotations (F, 3, 3) and translations (F, 3) estimated (model -> camera), the true ones alike.
     Frames where the estimate is NaN (lost without a pose) give NaN rows."""
@@ -34,7 +40,60 @@ def pose_errors(rotations, translations, true_rotations, true_translations) -> n
                          f"{R.shape}, {t.shape}, {Rt.shape}, {tt.shape}")  # fmt: skip
     d_ang = euler_from_rotation(R) - euler_from_rotation(Rt)
     d_ang = (d_ang + np.pi) % (2 * np.pi) - np.pi
-    return np.column_stack([np.abs(t - tt), np.degrees(np.abs(d_ang))])
+    err = np.column_stack([t - tt, np.degrees(d_ang)])
+    return err if signed else np.abs(err)
+
+
+def error_parts(signed_errors) -> tuple[np.ndarray, np.ndarray]:
+    """(offset, varying), each (C,): of one run's signed errors (F, C) (:func:`pose_errors` with
+    ``signed=True``, NaN rows left out), the absolute value of their mean (an offset held through
+    the run) and the mean absolute deviation from that mean (what changes from frame to frame).
+    Their sum bounds the mean absolute error from above; where the offset is most of it, smoothing
+    the estimate over time cannot help, a better model of the face can."""
+    e = np.asarray(signed_errors, np.float64)
+    if e.ndim != 2:
+        raise ValueError(f"signed_errors: expected (F, C), got shape {e.shape}")
+    e = e[np.isfinite(e).all(axis=1)]
+    if not len(e):
+        return np.full(e.shape[1], np.nan), np.full(e.shape[1], np.nan)
+    mean = e.mean(axis=0)
+    return np.abs(mean), np.abs(e - mean).mean(axis=0)
+
+
+def rotation_sources(camera, features, shapes, true_points, true_shapes, true_rotations, true_translations) -> dict:
+    """Where a run's rotation errors come from: the feature points or the estimated shape.
+
+    Per frame two poses are fitted (:func:`gputrack.models.pose.fit_pose`, from the true pose):
+    the true shape to the tracked feature points, and the estimated shape to the true points. The
+    first pose's error is what the feature points alone leave; the second's what the shape (the
+    identity and the deformation) alone leaves. features, true_points (F, K, 2) px (NaN: unknown or
+    hidden); shapes, true_shapes (F, K, 3) mm in the model frame; true_rotations (F, 3, 3),
+    true_translations (F, 3). Returns {"points": (F, 3), "shape": (F, 3)}: absolute roll, pitch and
+    yaw errors (deg), NaN rows where fewer than 6 points are known."""
+    F = len(true_rotations)
+    arrays = {"features": (features, (F, None, 2)), "shapes": (shapes, (F, None, 3)),
+              "true_points": (true_points, (F, None, 2)), "true_shapes": (true_shapes, (F, None, 3)),
+              "true_rotations": (true_rotations, (F, 3, 3)), "true_translations": (true_translations, (F, 3))}  # fmt: skip
+    a = {}
+    for name, (v, shape) in arrays.items():
+        v = np.asarray(v, np.float64)
+        if v.ndim != len(shape) or any(w is not None and g != w for g, w in zip(v.shape, shape)):
+            want = "(" + ", ".join("K" if w is None else str(w) for w in shape) + ")"
+            raise ValueError(f"{name}: expected shape {want}, got {v.shape}")
+        a[name] = v
+    ks = {a[name].shape[1] for name in ("features", "shapes", "true_points", "true_shapes")}
+    if len(ks) > 1:
+        raise ValueError(f"features, shapes, true_points, true_shapes: expected the same K points, got K = {sorted(ks)}")
+    out = {"points": np.full((F, 3), np.nan), "shape": np.full((F, 3), np.nan)}
+    for f in range(F):
+        R, t = a["true_rotations"][f], a["true_translations"][f]
+        guess = (rotation_vector(R), t)
+        pairs = (("points", a["true_shapes"][f], a["features"][f]), ("shape", a["shapes"][f], a["true_points"][f]))
+        for key, X, m in pairs:
+            fit = fit_pose(camera, X, m, guess)
+            if fit is not None:
+                out[key][f] = np.abs(pose_errors(rodrigues(fit[0])[None], fit[1][None], R[None], t[None])[0, 3:])
+    return out
 
 
 def table1(errors) -> dict:

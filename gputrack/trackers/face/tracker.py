@@ -51,7 +51,7 @@ import numpy as np
 
 from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
-from ...models.pose import facing, project, rodrigues, rotation_vector
+from ...models.pose import facing, fit_pose, project, rodrigues, rotation_vector
 from ...ops.face_points import project_faces
 from ...ops.face_relocate import relocate_points, sample_patches
 from ...ops.ncc import patch_ncc
@@ -222,23 +222,8 @@ class FaceTracker:
             raise ValueError(f"landmarks: expected at least 6 finite points for the start pose, got {int(ok.sum())}")
         if guess is None:
             guess = self._box_pose(points)
-        fit = self._solve_pnp(self._mean_shape(), points, guess)
+        fit = fit_pose(self.camera, self._mean_shape(), points, guess)
         return guess if fit is None else fit
-
-    def _solve_pnp(self, X, points, guess):
-        """(rvec, tvec) of the model points X (K, 3) seen at ``points`` (K, 2) (the finite ones, at least
-        6), by OpenCV's iterative PnP (Levenberg-Marquardt on the reprojection error) from ``guess``
-        (rvec, tvec); None where it fails or puts the face behind the camera."""
-        import cv2
-
-        ok = np.isfinite(points).all(axis=1)
-        K = np.array([[self.camera.fx, 0, self.camera.cx], [0, self.camera.fy, self.camera.cy], [0, 0, 1]])
-        r0, t0 = (np.asarray(g, np.float64).reshape(3, 1).copy() for g in guess)
-        found, r, t = cv2.solvePnP(X[ok], np.asarray(points, np.float64)[ok], K, None, r0, t0, True,
-                                   cv2.SOLVEPNP_ITERATIVE)  # fmt: skip
-        if not found or not np.isfinite(r).all() or not np.isfinite(t).all() or t[2, 0] <= 0:
-            return None
-        return r.ravel(), t.ravel()
 
     def _box_pose(self, points):
         """A frontal pose whose mean shape spans the points' extent (the start guess of PnP)."""
@@ -443,7 +428,7 @@ class FaceTracker:
 
     def _refine(self, b):
         """The feature points come down; the estimate's pose fitted to them (``config.refine_pose``,
-        host: :meth:`_solve_pnp` with the estimate's shape, from its pose), the filter moved with it."""
+        host: :func:`~gputrack.models.pose.fit_pose` with the estimate's shape, from its pose), the filter moved with it."""
         h = self._host
         if h["lost"]:
             h["features"] = np.full((self.model.K, 2), np.nan)
@@ -451,9 +436,9 @@ class FaceTracker:
         given = h.get("given")
         h["features"] = m = b["features"].astype(np.float64) if given is None else given
         est = h["state"]
-        if not self.config.refine_pose or np.isfinite(m).all(axis=1).sum() < 6:
+        if not self.config.refine_pose:
             return
-        fit = self._solve_pnp(self._shape(est[6:]), m, (est[:3], est[3:6]))
+        fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
         if fit is None:
             return
         turn = np.linalg.norm(rotation_vector(rodrigues(fit[0]) @ rodrigues(est[:3]).T))
