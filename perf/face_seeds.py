@@ -14,8 +14,8 @@ tracker leaves with perfect points).
 
 Every default run also says where its rotation error comes from
 (:func:`gputrack.trackers.face.metrics.error_parts` and ``rotation_sources``): how much of it is an
-offset held through the run and how much varies from frame to frame, and what the tracked points
-alone and the estimated shape alone leave.
+offset held through the run, how much changes slowly with the motion and how much from frame to
+frame, and what the tracked points alone and the estimated shape alone leave.
 
     python perf/face_seeds.py --device taichi:cpu --seeds 0-5
     python perf/face_seeds.py --device opencl --seeds 0-2 --sequence turns --compare anchor_templates=false
@@ -79,12 +79,11 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
         ok = ~rec["lost"]
         signed = pose_errors(np.array([e.rotation for e in ests]), np.array([e.translation for e in ests]),
                              true["rotations"], true["translations"], signed=True)[ok, 3:]  # fmt: skip
-        offset, varying = error_parts(signed)
         src = rotation_sources(seq.camera, np.array([e.features for e in ests])[ok],
                                np.array([model.shape(e.identity, e.expression) for e in ests])[ok], true["points"][ok],
                                true["shapes"][ok], true["rotations"][ok], true["translations"][ok])  # fmt: skip
-        out["split"] = {"offset": offset.tolist(), "varying": varying.tolist(),
-                        **{k: np.nanmean(v, axis=0).tolist() for k, v in src.items()}}  # fmt: skip
+        parts = {**error_parts(signed), **{k: np.nanmean(v, axis=0) for k, v in src.items()}}
+        out["split"] = {k: v.tolist() for k, v in parts.items()}
     if identity is not None:
         n = len(rec["errors"])
         step = 5 if n >= 5 * config.keyframes else 1
@@ -180,10 +179,10 @@ def report(rows: list[dict], sequences, compare: dict | None, floor: bool = Fals
     if split:
         lines.append("")
         lines.append("where the rotation error comes from (roll, pitch, yaw deg; mean over the runs): the offset each run "
-                     "holds and the part that varies frame to frame; the error of the pose fitted to the tracked points "
-                     "with the true shape (the points alone) and to the true points with the estimated shape (the "
-                     "shape alone)")  # fmt: skip
-        parts = ("offset", "varying", "points", "shape")
+                     "holds, the part that changes slowly with the motion and the frame-to-frame jitter (error_parts); "
+                     "the error of the pose fitted to the tracked points with the true shape (the points alone) and "
+                     "to the true points with the estimated shape (the shape alone)")  # fmt: skip
+        parts = ("offset", "slow", "jitter", "points", "shape")
         lines.append(f"{'sequence':<{w}} {'runs':>4} " + "".join(f"{p:>21}" for p in parts))
         for name, seqs in groups:
             sel = [r["split"] for r in split if r["sequence"] in seqs]

@@ -55,18 +55,27 @@ def test_signed_pose_errors_are_the_estimate_minus_the_truth():
     np.testing.assert_allclose(pose_errors([a], [t[0]], [b], [t[0]], signed=True)[0, 3], -2.0, atol=1e-9)
 
 
-def test_error_parts_split_an_offset_from_what_varies():
-    e = np.array([[1.0, 2.0], [1.0, -2.0], [1.0, 2.0], [1.0, -2.0], [np.nan, 5.0]])  # the NaN row is left out
-    offset, varying = error_parts(e)
-    np.testing.assert_allclose(offset, [1.0, 0.0])
-    np.testing.assert_allclose(varying, [0.0, 2.0])
+def test_error_parts_split_an_offset_a_slow_change_and_jitter():
+    # column 0: an offset only; column 1: +-2 alternating (jitter only, window 2 frames would see it as
+    # slow, 3 averages it out); column 2: a ramp (slow only); the NaN row is left out
+    F = 41
+    ramp = np.linspace(-1.0, 1.0, F)
+    e = np.column_stack([np.full(F, 1.5), 2.0 * (-1.0) ** np.arange(F), ramp])
+    e = np.vstack([e[:20], [np.nan, 9.0, 9.0], e[20:]])
+    parts = error_parts(e, window=3)
+    np.testing.assert_allclose(parts["offset"], [1.5, 2.0 / F, 0.0], atol=1e-12)
+    np.testing.assert_allclose(parts["jitter"][0], 0.0, atol=1e-12)
+    assert parts["jitter"][1] > 1.2 and parts["slow"][1] < 0.8  # alternating: mostly jitter
+    assert parts["slow"][2] > 0.45 and parts["jitter"][2] < 0.01  # a ramp: slow, no jitter
     rng = np.random.default_rng(0)
-    e = rng.normal(0.5, 1.0, (200, 3))
-    offset, varying = error_parts(e)
-    assert (np.abs(e).mean(axis=0) <= offset + varying + 1e-12).all()
-    assert np.isnan(error_parts(np.full((2, 3), np.nan))).all()
+    e = rng.normal(0.5, 1.0, (200, 3)) + np.sin(np.linspace(0, 6, 200))[:, None]
+    parts = error_parts(e)
+    assert (np.abs(e).mean(axis=0) <= parts["offset"] + parts["slow"] + parts["jitter"] + 1e-12).all()
+    assert all(np.isnan(v).all() for v in error_parts(np.full((2, 3), np.nan)).values())
     with pytest.raises(ValueError, match=r"signed_errors: expected \(F, C\), got shape \(3,\)"):
         error_parts(np.zeros(3))
+    with pytest.raises(ValueError, match=r"window: expected an int >= 1, got 0"):
+        error_parts(e, window=0)
 
 
 def test_rotation_sources_tell_the_points_from_the_shape():

@@ -271,7 +271,7 @@ def test_face_seeds_runs_and_compares(tmp_path):
     assert "  generic PCA " in proc.stdout and "  true identity " in proc.stdout and "  true points " in proc.stdout
     # the default run says where its rotation error comes from; the variants do not
     split = next(r["split"] for r in runs if not r["overrides"])
-    assert sorted(split) == ["offset", "points", "shape", "varying"]
+    assert sorted(split) == ["jitter", "offset", "points", "shape", "slow"]
     assert all(len(v) == 3 and all(np.isfinite(x) and x >= 0 for x in v) for v in split.values())
     assert all("split" not in r for r in runs if r["overrides"])
     assert "where the rotation error comes from" in proc.stdout
@@ -318,9 +318,11 @@ def test_face_seeds_report_and_arguments():
         ["2", "tracker", "2.00", "true", "identity", "1.00", "perfect", "points", "1.75", "within", "15", "%:", "1", "of",
          "2"]]  # fmt: skip
     # the rotation error's sources: the mean of each part over the default runs that have them
-    rows[0]["split"] = {"offset": [1.0, 2.0, 3.0], "varying": [0.0] * 3, "points": [1.0] * 3, "shape": [2.0] * 3}
-    rows[2]["split"] = {"offset": [3.0, 2.0, 1.0], "varying": [1.0] * 3, "points": [1.0] * 3, "shape": [0.0] * 3}
+    rows[0]["split"] = {"offset": [1.0, 2.0, 3.0], "slow": [0.0] * 3, "jitter": [4.0] * 3, "points": [1.0] * 3,
+                        "shape": [2.0] * 3}  # fmt: skip
+    rows[2]["split"] = {"offset": [3.0, 2.0, 1.0], "slow": [1.0] * 3, "jitter": [2.0] * 3, "points": [1.0] * 3,
+                        "shape": [0.0] * 3}  # fmt: skip
     lines = fs.report(rows, ("turns",), ov).splitlines()
     at = lines.index(next(ln for ln in lines if ln.startswith("where the rotation error comes from")))
-    assert lines[at + 1].split() == ["sequence", "runs", "offset", "varying", "points", "shape"]
-    assert lines[at + 2].split() == ["turns", "2"] + ["2.00"] * 3 + ["0.50"] * 3 + ["1.00"] * 3 + ["1.00"] * 3
+    assert lines[at + 1].split() == ["sequence", "runs", "offset", "slow", "jitter", "points", "shape"]
+    assert lines[at + 2].split() == ["turns", "2"] + ["2.00"] * 3 + ["0.50"] * 3 + ["3.00"] * 3 + ["1.00"] * 6

@@ -6,7 +6,7 @@
 - :func:`table1`: their mean and standard deviation (Table 1), :func:`format_table1` side by side for
   several models (the paper: the multilinear model against the generic PCA model);
 - :func:`error_parts` (beyond the paper): how much of a run's errors is one offset held through
-  the run and how much varies from frame to frame;
+  the run, how much changes slowly with the motion and how much from frame to frame;
 - :func:`rotation_sources` (beyond the paper): the rotation errors the feature points alone leave
   (with the true shape) and those the estimated shape alone leaves (with the true points);
 - :func:`shape_error`: the RMS distance (mm) of the K estimated model-frame points from the true ones
@@ -44,20 +44,27 @@ def pose_errors(rotations, translations, true_rotations, true_translations, *, s
     return err if signed else np.abs(err)
 
 
-def error_parts(signed_errors) -> tuple[np.ndarray, np.ndarray]:
-    """(offset, varying), each (C,): of one run's signed errors (F, C) (:func:`pose_errors` with
-    ``signed=True``, NaN rows left out), the absolute value of their mean (an offset held through
-    the run) and the mean absolute deviation from that mean (what changes from frame to frame).
-    Their sum bounds the mean absolute error from above; where the offset is most of it, smoothing
-    the estimate over time cannot help, a better model of the face can."""
+def error_parts(signed_errors, window: int = 9) -> dict:
+    """How one run's signed errors (F, C) (:func:`pose_errors` with ``signed=True``, in frame order;
+    NaN rows left out) are made: {"offset": (C,) the absolute value of their mean, held through the
+    run; "slow": (C,) the mean distance of their moving average over ``window`` frames (centred, the
+    ends held) from that mean, what changes with the motion; "jitter": (C,) the mean distance of the
+    errors from that moving average, what changes from frame to frame}. The three add up to at least
+    the mean absolute error. Where the offset and the slow part are most of it, smoothing the
+    estimate over time cannot help; a better model of the face or better feature points can."""
+    from scipy.ndimage import uniform_filter1d
+
     e = np.asarray(signed_errors, np.float64)
     if e.ndim != 2:
         raise ValueError(f"signed_errors: expected (F, C), got shape {e.shape}")
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
+        raise ValueError(f"window: expected an int >= 1, got {window!r}")
     e = e[np.isfinite(e).all(axis=1)]
     if not len(e):
-        return np.full(e.shape[1], np.nan), np.full(e.shape[1], np.nan)
+        return {k: np.full(e.shape[1], np.nan) for k in ("offset", "slow", "jitter")}
     mean = e.mean(axis=0)
-    return np.abs(mean), np.abs(e - mean).mean(axis=0)
+    smooth = uniform_filter1d(e, int(window), axis=0, mode="nearest")
+    return {"offset": np.abs(mean), "slow": np.abs(smooth - mean).mean(axis=0), "jitter": np.abs(e - smooth).mean(axis=0)}
 
 
 def rotation_sources(camera, features, shapes, true_points, true_shapes, true_rotations, true_translations) -> dict:
