@@ -9,6 +9,8 @@
 - :mod:`.bundle` — the incremental bundle adjustment (sec. 3, eq. 5-10): :func:`bundle_adjust` of n
   frames, :class:`IncrementalBundle` (key-frame choice and the running mean of the identity),
   :func:`keyframe_spread`;
+- :mod:`.refine` — the estimate's pose and deformation fitted to the feature points
+  (``FaceConfig.refine_deformation``);
 - :mod:`.templates` — the first frame's templates turned and scaled as the estimate sees the face
   (``FaceConfig.warp_templates``);
 - :mod:`.metrics` — Table 1's errors and the shape error; :mod:`.pictures` — drawn frames.

@@ -56,7 +56,11 @@ class FaceConfig:
     ``refine_pose`` (beyond the
     paper; False = the filter's estimate): the estimate's pose is refined to fit the re-localised
     points (PnP, Levenberg-Marquardt from the estimate, the shape held) and the filter's hypotheses
-    move with it; a step beyond ``pose_range`` is not taken.
+    move with it; a step beyond ``pose_range`` is not taken. ``refine_deformation`` (beyond the paper,
+    with ``refine_pose``; 0 = the pose only, the filter's deformation held): the deformation is
+    fitted with the pose, held near the filter's by a Gaussian prior of this many model standard
+    deviations (:func:`gputrack.trackers.face.refine.fit_pose_deformation`; the pose alone took
+    up the deformation's error as a pitch of the head).
 
     Bundle adjustment (sec. 3, eq. 5-10): ``keyframes`` n = 7; ``init_iterations`` = 10 LM
     iterations over the first n frames, ``iterations`` = 5 per tracked frame; ``pose_range``
@@ -103,6 +107,7 @@ class FaceConfig:
     anchor_templates: bool = True
     warp_templates: bool = True
     refine_pose: bool = True
+    refine_deformation: float = 0.5
     keyframes: int = 7
     init_iterations: int = 10
     iterations: int = 5
@@ -127,7 +132,8 @@ class FaceConfig:
             raise ValueError(f"{o}.max_turn: expected degrees in (0, 180], got {self.max_turn!r}")
         for name in ("sigma", "near", "identity_sigmas"):
             _positive(o, name, getattr(self, name))
-        for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior", "relocate_contrast"):
+        for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior", "relocate_contrast",
+                     "refine_deformation"):
             _positive(o, name, getattr(self, name), zero=True)
         for name in ("prior", "anchor_templates", "warp_templates", "refine_pose", "relocate_shading",
                      "hold_identity_at_start", "learn_identity"):

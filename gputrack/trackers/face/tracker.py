@@ -20,7 +20,8 @@
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
   the K points and the frame's patches at them, which stay on the device for the next frame),
   ``refine`` (the K points come down; beyond the paper, ``config.refine_pose``: the estimate's pose
-  fitted to them by PnP from the filter's estimate, and the filter's hypotheses moved by the same
+  and, with ``config.refine_deformation``, its deformation fitted to them from the filter's
+  estimate (:mod:`.refine`; the pose alone by PnP), and the filter's hypotheses moved by the same
   step, as paper 000 follows its particle filter with LM) and ``bundle`` (the incremental bundle
   adjustment on the key frames, eq. 6-10,
   ``iterations`` LM iterations through :func:`gputrack.least_squares` on the device; the identity's
@@ -59,6 +60,7 @@ from ...scheduler import Scheduler, Stage
 from .bundle import IncrementalBundle, _real_array
 from .config import FaceConfig
 from .pf import FaceParticleFilter, shape_model
+from .refine import fit_pose_deformation
 from .templates import template_warp
 
 log = logging.getLogger("gputrack")
@@ -427,8 +429,10 @@ class FaceTracker:
         b["spare"], b["previous"], b["features"] = b["previous"], patches, m
 
     def _refine(self, b):
-        """The feature points come down; the estimate's pose fitted to them (``config.refine_pose``,
-        host: :func:`~gputrack.models.pose.fit_pose` with the estimate's shape, from its pose), the filter moved with it."""
+        """The feature points come down; the estimate fitted to them (``config.refine_pose``, host): its
+        pose and deformation (``config.refine_deformation`` > 0, :func:`.refine.fit_pose_deformation`)
+        or its pose alone (:func:`~gputrack.models.pose.fit_pose` with the estimate's shape), from
+        the estimate; the filter moved with it."""
         h = self._host
         if h["lost"]:
             h["features"] = np.full((self.model.K, 2), np.nan)
@@ -438,13 +442,17 @@ class FaceTracker:
         est = h["state"]
         if not self.config.refine_pose:
             return
-        fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
-        if fit is None:
+        c = self.config
+        if c.refine_deformation > 0:
+            new = fit_pose_deformation(self.camera, *self._basis, m, est, c.refine_deformation * self.model.expression_std)
+        else:
+            fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
+            new = None if fit is None else np.concatenate([fit[0], fit[1], est[6:]])
+        if new is None:
             return
-        turn = np.linalg.norm(rotation_vector(rodrigues(fit[0]) @ rodrigues(est[:3]).T))
-        if turn > self.config.pose_range[0] or np.linalg.norm(fit[1] - est[3:6]) > self.config.pose_range[1]:
+        turn = np.linalg.norm(rotation_vector(rodrigues(new[:3]) @ rodrigues(est[:3]).T))
+        if turn > c.pose_range[0] or np.linalg.norm(new[3:6] - est[3:6]) > c.pose_range[1]:
             return  # points that disagree this much with the filter are not trusted
-        new = np.concatenate([fit[0], fit[1], est[6:]])
         self.pf.move(new)
         h["state"] = new
         h["landmarks"] = self._predicted(new[:3], new[3:6], new[6:])
