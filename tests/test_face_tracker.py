@@ -396,14 +396,16 @@ def _assert_least_squares_pose(misfit, rvec, t):
 
 
 def test_the_pose_is_refined_to_the_feature_points(data):
-    """``refine_pose``: the first tracked frame's filter estimate is the same with and without it (same
-    stream), and so are the re-localised points; refined, the reported pose fits them (PnP) better
-    than the filter's, and every hypothesis moved with it."""
+    """``refine_pose`` with ``refine_deformation=0`` (the pose alone): the first tracked frame's filter
+    estimate is the same with and without it (same stream), and so are the re-localised points;
+    refined, the reported pose fits them (PnP) better than the filter's, and every hypothesis moved
+    with it."""
     _, model, _, seq = data
     frames = _frames(8)
     runs = {}
     for refine in (False, True):
-        cfg = FaceConfig(particles=128, refine_pose=refine, learn_identity=False)  # the shape stays the fitted one
+        cfg = FaceConfig(particles=128, refine_pose=refine, refine_deformation=0.0,
+                         learn_identity=False)  # the shape stays the fitted one  # fmt: skip
         trk = FaceTracker(REF, model, seq.camera, cfg)
         trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
         runs[refine] = (trk, trk.track(frames[7].gray))
@@ -430,6 +432,42 @@ def test_the_pose_is_refined_to_the_feature_points(data):
         moved = refined._host["state"][3] - state[3]
         assert (0.2 < moved < 30.0) if taken else moved == 0.0, (shift, moved)
         assert np.array_equal(refined.pf.estimate, refined._host["state"])
+
+
+def test_the_deformation_is_refined_with_the_pose(data):
+    """``refine_deformation`` (default 0.5): the reported pose and deformation are the least-squares fit
+    to the re-localised points with the prior around the filter's deformation (no small step of any
+    of them does better), and every hypothesis moved by the whole step."""
+    _, model, _, seq = data
+    frames = _frames(8)
+    runs = {}
+    for refine in (False, True):
+        trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=128, refine_pose=refine, learn_identity=False))
+        trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+        runs[refine] = (trk, trk.track(frames[7].gray))
+    (plain, p), (refined, r) = runs[False], runs[True]
+    np.testing.assert_array_equal(r.features, p.features)  # the same filter estimate and points before the fit
+    sd = 0.5 * model.expression_std
+    free = sd > 0  # components the model holds (std 0) stay: tests/test_face_refine.py
+    np.testing.assert_array_equal(r.expression[~free], p.expression[~free])
+    assert np.abs(r.expression - p.expression)[free].max() > 1e-3
+
+    def objective(x):
+        u = project(seq.camera, rodrigues(x[:3]), x[3:6], refined._shape(x[6:]))
+        return float(np.sum((u - r.features) ** 2) + np.sum(((x[6:] - p.expression)[free] / sd[free]) ** 2))
+
+    x = np.concatenate([r.rvec, r.translation, r.expression])
+    best = objective(x)
+    assert best < objective(np.concatenate([p.rvec, p.translation, p.expression]))
+    for i in [*range(6), *(6 + np.flatnonzero(free))]:
+        for d in (-1.0, 1.0):
+            y = x.copy()
+            y[i] += d * (1e-3 if i < 3 else 0.2 if i < 6 else 0.02 * sd[i - 6])
+            assert objective(y) > best - 1e-6, i
+    np.testing.assert_allclose(r.landmarks, project(seq.camera, r.rotation, r.translation, refined._shape(r.expression)))
+    step = x - np.concatenate([p.rvec, p.translation, p.expression])
+    np.testing.assert_allclose(refined.pf.states - plain.pf.states, np.broadcast_to(step, plain.pf.states.shape),
+                               atol=1e-9)  # fmt: skip
 
 
 def test_feature_points_given_replace_eq14s(data):
@@ -540,6 +578,8 @@ def test_bad_input(data):
         FaceConfig(relocate_shading=True, relocate_contrast=0.0)
     with pytest.raises(TypeError, match="FaceConfig.refine_pose: expected a bool, got 'no'"):
         FaceConfig(refine_pose="no")
+    with pytest.raises(ValueError, match=r"FaceConfig.refine_deformation: expected a finite number >= 0, got -0.5"):
+        FaceConfig(refine_deformation=-0.5)
     with pytest.raises(TypeError, match="FaceConfig.warp_templates: expected a bool, got 1"):
         FaceConfig(warp_templates=1)
     with pytest.raises(ValueError, match="FaceConfig.detect_every: expected an int >= 0, got -1"):

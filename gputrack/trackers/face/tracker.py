@@ -430,9 +430,9 @@ class FaceTracker:
 
     def _refine(self, b):
         """The feature points come down; the estimate fitted to them (``config.refine_pose``, host): its
-        pose and deformation (``config.refine_deformation`` > 0, :func:`.refine.fit_pose_deformation`)
-        or its pose alone (:func:`~gputrack.models.pose.fit_pose` with the estimate's shape), from
-        the estimate; the filter moved with it."""
+        pose (:func:`~gputrack.models.pose.fit_pose` with the estimate's shape), then from there its
+        pose and deformation (``config.refine_deformation`` > 0, :func:`.refine.fit_pose_deformation`);
+        each fit that moves the pose beyond ``pose_range`` is not taken; the filter moved with it."""
         h = self._host
         if h["lost"]:
             h["features"] = np.full((self.model.K, 2), np.nan)
@@ -443,19 +443,25 @@ class FaceTracker:
         if not self.config.refine_pose:
             return
         c = self.config
-        if c.refine_deformation > 0:
-            new = fit_pose_deformation(self.camera, *self._basis, m, est, c.refine_deformation * self.model.expression_std)
-        else:
-            fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
-            new = None if fit is None else np.concatenate([fit[0], fit[1], est[6:]])
+        fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
+        new = None if fit is None else self._trusted(np.concatenate([fit[0], fit[1], est[6:]]), est)
+        if c.refine_deformation > 0:  # then the deformation with the pose, from there
+            start = est if new is None else new
+            fit = fit_pose_deformation(self.camera, *self._basis, m, start, c.refine_deformation * self.model.expression_std)
+            if fit is not None:
+                new = self._trusted(fit, start, otherwise=new)
         if new is None:
             return
-        turn = np.linalg.norm(rotation_vector(rodrigues(new[:3]) @ rodrigues(est[:3]).T))
-        if turn > c.pose_range[0] or np.linalg.norm(new[3:6] - est[3:6]) > c.pose_range[1]:
-            return  # points that disagree this much with the filter are not trusted
         self.pf.move(new)
         h["state"] = new
         h["landmarks"] = self._predicted(new[:3], new[3:6], new[6:])
+
+    def _trusted(self, new, start, otherwise=None):
+        """``new`` (6 + D,) unless its pose is more than ``config.pose_range`` from ``start``'s: points
+        that disagree this much with the filter are not trusted (then ``otherwise``)."""
+        turn = np.linalg.norm(rotation_vector(rodrigues(new[:3]) @ rodrigues(start[:3]).T))
+        far = turn > self.config.pose_range[0] or np.linalg.norm(new[3:6] - start[3:6]) > self.config.pose_range[1]
+        return otherwise if far else new
 
     def _bundle(self, b):
         h = self._host
