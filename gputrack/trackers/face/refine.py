@@ -29,7 +29,7 @@ __all__ = ["fit_pose_deformation"]
 
 #: Levenberg-Marquardt: the start damping (relative to diag J^T J), the most iterations, and the
 #: relative decrease of the cost under which the fit has converged
-DAMPING, ITERATIONS, COST_RTOL = 1e-6, 20, 1e-9
+DAMPING, ITERATIONS, COST_RTOL = 1e-6, 20, 1e-12
 
 
 def fit_pose_deformation(camera: Camera, mean, basis, points, state, prior_sd) -> np.ndarray | None:
