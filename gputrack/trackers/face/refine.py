@@ -13,7 +13,7 @@ eyes), so fitting the pose alone, with the filter's deformation held, turns the 
 deformation's error. Components with sd_b = 0 are held.
 
 A hand-written solver, not SciPy's ``least_squares``: on these 6 + 5 parameters and 20 + 5
-residuals SciPy's took ~5 ms a frame on the 2-core VM (its finite differences and set-up), more
+residuals SciPy's took ~4 ms a frame on the 2-core VM (its finite differences and set-up), more
 than the face tracker's whole frame budget; this one takes a few tenths of a millisecond and
 reaches the same minimum (tests/test_face_refine.py).
 """
@@ -40,6 +40,8 @@ def fit_pose_deformation(camera: Camera, mean, basis, points, state, prior_sd) -
 
     Returns the fitted state, or None where fewer than 6 points are known, or a model point falls
     behind the camera or the fit is not finite."""
+    import cv2
+
     mean, basis = np.asarray(mean, np.float64), np.asarray(basis, np.float64)
     pts = np.asarray(points, np.float64)
     x0 = np.asarray(state, np.float64)
@@ -85,8 +87,6 @@ def fit_pose_deformation(camera: Camera, mean, basis, points, state, prior_sd) -
         J[: 2 * len(Y)] = (dproj @ dY).reshape(2 * len(Y), -1)
         J[2 * len(Y) :, 6:] = np.diag(inv_sd)
         return J
-
-    import cv2
 
     R, t, a = cv2.Rodrigues(x0[:3])[0], x0[3:6].copy(), x0[6:].copy()
     r, RX, Y = evaluate(R, t, a)
