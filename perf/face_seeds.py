@@ -57,7 +57,7 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
     from gputrack.models.face import FaceModel, PcaFaceModel, load_ict
     from gputrack.sim.face import face_sequence
     from gputrack.trackers.face import FaceConfig
-    from gputrack.trackers.face.metrics import error_parts, pose_errors, rotation_sources, table1
+    from gputrack.trackers.face.metrics import error_parts, rotation_sources, table1
 
     ict = load_ict()
     seq = face_sequence(sequence, frames=frames, seed=seed, ict=ict)
@@ -77,8 +77,7 @@ def child(spec: str, sequence: str, seed: int, overrides: dict, frames=None) -> 
     if not overrides:  # where the rotation error comes from (the default runs only)
         ests, true = rec["estimates"], rec["truth"]
         ok = ~rec["lost"]
-        signed = pose_errors(np.array([e.rotation for e in ests]), np.array([e.translation for e in ests]),
-                             true["rotations"], true["translations"], signed=True)[ok, 3:]  # fmt: skip
+        signed = rec["signed_errors"][ok, 3:]
         src = rotation_sources(seq.camera, np.array([e.features for e in ests])[ok],
                                np.array([model.shape(e.identity, e.expression) for e in ests])[ok], true["points"][ok],
                                true["shapes"][ok], true["rotations"][ok], true["translations"][ok])  # fmt: skip

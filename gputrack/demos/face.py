@@ -33,7 +33,13 @@ from ..sim.face import face_sequence
 from ..trackers.face import FaceConfig, FaceTracker
 from ..trackers.face.metrics import PAPER_TABLE1, format_table1, pose_errors, shape_error, table1
 
-__all__ = ["feature_error", "landmark_floor", "run", "track_sequence", "true_identity", "write_json"]
+__all__ = ["feature_error", "landmark_floor", "run", "track_sequence", "true_identity", "visible_landmarks",
+           "write_json"]
+
+
+def visible_landmarks(frame) -> np.ndarray:
+    """(K, 2) a simulated frame's true feature points (``landmarks2d``), NaN where hidden (``visible``)."""
+    return np.where(np.asarray(frame.visible, bool)[:, None], frame.landmarks2d, np.nan)
 
 
 def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
@@ -42,15 +48,13 @@ def start_landmarks(seq, n: int, noise: float, seed) -> np.ndarray:
     out = []
     for k in range(n):
         f = seq[k]
-        pts = f.landmarks2d + rng.normal(0.0, noise, f.landmarks2d.shape)
-        pts[~f.visible] = np.nan
-        out.append(pts)
+        out.append(visible_landmarks(f) + rng.normal(0.0, noise, f.landmarks2d.shape))
     return np.array(out)
 
 
 def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init="landmarks", landmark_noise=1.0,
                    identity=None, true_points=False, progress=None, save=None, label="") -> dict:  # fmt: skip
-    """Track ``seq`` with ``model``; return per-frame records (errors, shape errors, times), the
+    """Track ``seq`` with ``model``; return per-frame records (errors, the same signed, shape errors, times), the
     :class:`FaceEstimate` of every frame (``estimates``), the truth (``truth``: rotations (F, 3, 3),
     translations (F, 3), the visible landmarks' points (F, K, 2), NaN where hidden, and shapes (F, K, 3))
     and the tracker.
@@ -75,7 +79,7 @@ def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init=
     ms = []
     for k in range(n, n_frames):
         f = seq[k]
-        given = np.where(np.asarray(f.visible, bool)[:, None], f.landmarks2d, np.nan) if true_points else None
+        given = visible_landmarks(f) if true_points else None
         t0 = time.perf_counter()
         est = trk.track(f.gray, features=given)
         dt = time.perf_counter() - t0
@@ -91,11 +95,11 @@ def track_sequence(device, seq, model, config: FaceConfig, *, frames=None, init=
     R = np.array([e.rotation for e in ests])
     t = np.array([e.translation for e in ests])
     true = {"rotations": np.array([f.rotation for f in truth]), "translations": np.array([f.translation for f in truth]),
-            "points": np.array([np.where(np.asarray(f.visible, bool)[:, None], f.landmarks2d, np.nan) for f in truth]),
-            "shapes": np.array([f.shape for f in truth])}  # fmt: skip
-    err = pose_errors(R, t, true["rotations"], true["translations"])
+            "points": np.array([visible_landmarks(f) for f in truth]), "shapes": np.array([f.shape for f in truth])}  # fmt: skip
+    signed = pose_errors(R, t, true["rotations"], true["translations"], signed=True)
+    err = np.abs(signed)
     shape = np.array([shape_error(model, e.identity, e.expression, f.shape) for e, f in zip(ests, truth)])
-    return {"errors": err, "shape_error": shape, "ms": np.array(ms), "start_ms": start_ms,
+    return {"errors": err, "signed_errors": signed, "shape_error": shape, "ms": np.array(ms), "start_ms": start_ms,
             "estimates": ests, "truth": true,
             "feature_px": np.array([feature_error(e.features, f) for e, f in zip(ests, truth)]),
             "lost": np.array([e.lost for e in ests]), "confidence": np.array([e.confidence for e in ests]),
@@ -261,7 +265,7 @@ def landmark_floor(model, frames, camera, config: FaceConfig, *, device=None, ma
         if slot >= 0:
             keys[slot] = i
     fk = [frames[k] for k in keys]
-    lm = np.array([np.where(np.asarray(f.visible)[:, None], f.landmarks2d, np.nan) for f in fk])
+    lm = np.array([visible_landmarks(f) for f in fk])
     device = get_device("numpy") if device is None else device
     res = bundle_adjust(device, model, camera, lm, rv[keys], np.array([f.translation for f in fk]),
                         np.tile(model.expression_mean, (n, 1)), model.identity_mean, pose_range=START_POSE_RANGE,

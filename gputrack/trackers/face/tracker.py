@@ -439,10 +439,9 @@ class FaceTracker:
             return
         given = h.get("given")
         h["features"] = m = b["features"].astype(np.float64) if given is None else given
-        est = h["state"]
-        if not self.config.refine_pose:
+        est, c = h["state"], self.config
+        if not c.refine_pose:
             return
-        c = self.config
         fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
         new = None if fit is None else self._trusted(np.concatenate([fit[0], fit[1], est[6:]]), est)
         if c.refine_deformation > 0:  # then the deformation with the pose, from there
