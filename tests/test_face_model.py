@@ -132,3 +132,18 @@ def test_rotations_and_projection():
     t = np.array([10.0, -20.0, 600.0])
     want = cv2.projectPoints(X, r[0], t, np.array([[700, 0, 320], [0, 710, 240], [0, 0, 1.0]]), None)[0][:, 0]
     np.testing.assert_allclose(project(cam, R[0], t, X), want, atol=1e-9)
+
+
+def test_one_rotation_is_the_batched_one():
+    """rodrigues of one (3,) vector and rotation_vector of one (3, 3) matrix (Python-float paths, for a
+    tracker's per-frame pose) give the batched results: small angles (the series), ordinary ones, and
+    a half turn (rotation_vector's axis from the symmetric part)."""
+    rng = np.random.default_rng(3)
+    r = np.concatenate([rng.normal(0, 0.6, (200, 3)), rng.normal(0, 1e-5, (20, 3)), np.zeros((1, 3)),
+                        [[0.0, np.pi - 1e-5, 0.0], [1e-4, 0.0, 0.0]]])  # fmt: skip
+    R = rodrigues(r)
+    one = np.array([rodrigues(v) for v in r])
+    assert one.shape == (len(r), 3, 3) and one.dtype == np.float64
+    np.testing.assert_allclose(one, R, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.array([rotation_vector(m) for m in R]), rotation_vector(R), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(rodrigues([0.0, 0.0, 0.0]), np.eye(3))

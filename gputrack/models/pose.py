@@ -9,6 +9,8 @@ Everything is vectorised over leading dimensions and runs in NumPy float64.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .camera import Camera
@@ -42,14 +44,38 @@ def rotation_coefficients(r):
 def rodrigues(rvec) -> np.ndarray:
     """(..., 3, 3) rotation matrices R = I + sin t/t [r]x + (1 - cos t)/t^2 [r]x^2 of Rodrigues vectors r (..., 3)."""
     r = np.asarray(rvec, dtype=np.float64)
+    if r.shape == (3,):  # one vector (a tracker's pose, every frame): the same sums without the array calls
+        return _rodrigues_one(*r.tolist())
     a, b, _ = rotation_coefficients(r)
     K = skew(r)
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
+def _rodrigues_one(x: float, y: float, z: float) -> np.ndarray:
+    """:func:`rodrigues` of one vector (x, y, z) with Python floats: I + a [r]x + b (r r^T - t^2 I)."""
+    t2 = (x * x + z * z) + y * y
+    if t2 < 1e-6:  # t < 1e-3: the series of rotation_coefficients
+        a, b = 1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1 - math.cos(t)) / t**2
+    xx, yy, zz, xy, xz, yz = b * x * x, b * y * y, b * z * z, b * x * y, b * x * z, b * y * z
+    return np.array([[1 - b * t2 + xx, xy - a * z, xz + a * y],
+                     [xy + a * z, 1 - b * t2 + yy, yz - a * x],
+                     [xz - a * y, yz + a * x, 1 - b * t2 + zz]])  # fmt: skip
+
+
 def rotation_vector(R) -> np.ndarray:
     """(..., 3) Rodrigues vectors (angle in [0, pi]) of rotation matrices (..., 3, 3), as ``cv2.Rodrigues``."""
     R = np.asarray(R, dtype=np.float64)
+    if R.shape == (3, 3):  # one matrix: the same arithmetic with Python floats (away from a half turn)
+        (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+        cos = min(max(((a + e + i) - 1.0) / 2.0, -1.0), 1.0)
+        theta = math.acos(cos)
+        if theta <= math.pi - 1e-3:
+            sin = math.sin(theta)
+            k = theta / max(2.0 * sin, 1e-300) if sin > 1e-6 else 0.5 + theta**2 / 12.0
+            return np.array([(h - f) * k, (c - g) * k, (d - b) * k])
     w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     theta = np.arccos(cos)
