@@ -383,8 +383,8 @@ def check_face_points(device: Device) -> None:
 
 
 def check_face_relocate(device: Device) -> None:
-    """relocate_points of a few feature points on a smooth texture: points and patches against the
-    reference to float32 rounding."""
+    """relocate_points of a few feature points on a smooth texture: points, patches and matches against
+    the reference to float32 rounding."""
     from .ops.face_relocate import relocate_points, sample_patches
 
     rng = np.random.default_rng(13)
@@ -395,7 +395,7 @@ def check_face_relocate(device: Device) -> None:
     start = (true + rng.normal(0, 1.0, true.shape)).astype(np.float32)
     want = relocate_points(get_device("numpy"), img, start, tpl, tpl, iterations=3, contrast=30.0)
     got = relocate_points(device, img, start, tpl, tpl, iterations=3, contrast=30.0)
-    for name, g, w in zip(("points", "patches"), got, want):
+    for name, g, w in zip(("points", "patches", "match"), got, want):
         err = float(np.max(np.abs(to_numpy(g) - w)))
         assert err <= 2e-3, f"relocate_points ({name}) differs from the reference by {err:.3g}"
 

@@ -1,8 +1,8 @@
 // Feature-point re-localisation (paper 003 eq. 14): the same as
 // gputrack/backends/reference/face_relocate.py, in float32. One work-item per feature point runs its
-// Gauss-Newton iterations and samples its patch at the point found; the patch's samples are not
-// stored between the passes over it (each pass samples the image again).
-// img (H, W); pred (K, 2); prev, first, patches (K, S, S); points (K, 2);
+// Gauss-Newton iterations, samples its patch at the point found and matches it with its template; the
+// patch's samples are not stored between the passes over it (each pass samples the image again).
+// img (H, W); pred (K, 2); prev, first, patches (K, S, S); points (K, 2); match (K,);
 // c: rho, eps, max_step, contrast, tol, min_std, singular, shading (gputrack/ops/face_relocate.py).
 
 // the image at (x, y), the coordinates clipped into it first
@@ -43,10 +43,41 @@ static float4 gt_fr_stored(__global const float *p, const int S, const float sxx
     return gt_fr_normaliser(p0, s, ss, sx, sy, (float)(S * S), sxx, contrast, min_std, shading);
 }
 
+// the NCC of the S x S patches a and b, each with its least-squares plane (mean and ramp) off; 0 where
+// either is flat (its residual's standard deviation at most 1e-6 (|mean| + 1)). Two passes: the planes,
+// then the residuals' products.
+static float gt_fr_plane_match(__global const float *a, __global const float *b, const int S, const float sxx) {
+    const float ctr = 0.5f * (float)(S - 1), n = (float)(S * S);
+    float sa = 0.0f, sb = 0.0f, xa = 0.0f, ya = 0.0f, xb = 0.0f, yb = 0.0f;
+    for (int i = 0; i < S; ++i)
+        for (int j = 0; j < S; ++j) {
+            const float va = a[i * S + j], vb = b[i * S + j], ox = (float)j - ctr, oy = (float)i - ctr;
+            sa += va;
+            sb += vb;
+            xa += va * ox;
+            ya += va * oy;
+            xb += vb * ox;
+            yb += vb * oy;
+        }
+    const float ma = sa / n, mb = sb / n, bxa = xa / sxx, bya = ya / sxx, bxb = xb / sxx, byb = yb / sxx;
+    float ab = 0.0f, aa = 0.0f, bb = 0.0f;
+    for (int i = 0; i < S; ++i)
+        for (int j = 0; j < S; ++j) {
+            const float ox = (float)j - ctr, oy = (float)i - ctr;
+            const float ra = a[i * S + j] - ma - bxa * ox - bya * oy, rb = b[i * S + j] - mb - bxb * ox - byb * oy;
+            ab += ra * rb;
+            aa += ra * ra;
+            bb += rb * rb;
+        }
+    const float fa = 1e-6f * (fabs(ma) + 1.0f), fb = 1e-6f * (fabs(mb) + 1.0f);
+    if (!(aa / n > fa * fa) || !(bb / n > fb * fb)) return 0.0f;
+    return ab / sqrt(aa * bb);
+}
+
 __kernel void gt_face_relocate(__global const float *img, __global const float *pred, __global const float *prev,
                                __global const float *first, __global const float *c, __global float *points,
-                               __global float *patches, const int K, const int S, const int H, const int W,
-                               const int iterations) {
+                               __global float *patches, __global float *match, const int K, const int S, const int H,
+                               const int W, const int iterations) {
     const int k = get_global_id(0);
     if (k >= K) return;
     const float rho = c[0], eps = c[1], max_step = c[2], contrast = c[3], tol = c[4], min_std = c[5];
@@ -123,4 +154,5 @@ __kernel void gt_face_relocate(__global const float *img, __global const float *
     __global float *out = patches + (long)k * S * S;
     for (int i = 0; i < S; ++i)
         for (int j = 0; j < S; ++j) out[i * S + j] = gt_fr_bilinear(img, H, W, mx - ctr + j, my - ctr + i);
+    match[k] = gt_fr_plane_match(out, fk, S, sxx);
 }

@@ -39,16 +39,55 @@ def test_devices_match_the_reference(device, contrast, shading, iterations):
     if shading:
         prev += np.linspace(-20.0, 20.0, 16, dtype=np.float32)[None, None, :] + np.linspace(0, 8, 16)[None, :, None]
         prev = prev.astype(np.float32)
-    want_m, want_p = relocate_points(REF, img, start, prev, tpl, iterations=iterations, contrast=contrast,
-                                     shading=shading)  # fmt: skip
-    got_m, got_p = relocate_points(device, *_on(device, img, start, prev, tpl), iterations=iterations,
-                                   contrast=contrast, shading=shading)  # fmt: skip
-    got_m, got_p = gputrack.to_numpy(got_m), gputrack.to_numpy(got_p)
+    want_m, want_p, want_c = relocate_points(REF, img, start, prev, tpl, iterations=iterations, contrast=contrast,
+                                             shading=shading)  # fmt: skip
+    got = relocate_points(device, *_on(device, img, start, prev, tpl), iterations=iterations, contrast=contrast,
+                          shading=shading)  # fmt: skip
+    got_m, got_p, got_c = (gputrack.to_numpy(a) for a in got)
     assert got_m.shape == (10, 2) and got_m.dtype == np.float32 and got_p.shape == (10, 16, 16)
+    assert got_c.shape == (10,) and got_c.dtype == np.float32
     assert np.abs(want_m - start).max() > 1.0  # the points moved
     np.testing.assert_allclose(got_m, want_m, atol=2e-3)  # float32 sums of 256 terms
     np.testing.assert_allclose(got_p, want_p, atol=2e-3)
     np.testing.assert_allclose(want_p, sample_patches(img, want_m, 16), atol=1e-3)  # the image's patches there
+    np.testing.assert_allclose(got_c, want_c, atol=2e-4)
+    np.testing.assert_allclose(want_c, _plane_ncc(want_p, tpl), atol=1e-6)
+
+
+def _plane_ncc(patches, templates):
+    """The match written out: each patch's least-squares plane a + b x + c y (np.linalg.lstsq) off, then
+    the NCC of the residuals."""
+    S = patches.shape[-1]
+    y, x = np.mgrid[0:S, 0:S]
+    A = np.column_stack([np.ones(S * S), x.ravel(), y.ravel()])
+    out = []
+    for p, t in zip(np.asarray(patches, np.float64), np.asarray(templates, np.float64)):
+        rp = p.ravel() - A @ np.linalg.lstsq(A, p.ravel(), rcond=None)[0]
+        rt = t.ravel() - A @ np.linalg.lstsq(A, t.ravel(), rcond=None)[0]
+        out.append(rp @ rt / np.sqrt((rp @ rp) * (rt @ rt)))
+    return np.array(out)
+
+
+def test_the_match_is_the_ncc_without_the_light_plane(device):
+    """match: 1 for a point back on its own patch under another gain, offset and light from one side;
+    low for a point whose template is another place's; 0 for a flat image. eps = 0, the appearance alone."""
+    img, true, tpl, start = scene()
+    x = np.arange(img.shape[1], dtype=np.float32)[None, :]
+    side = (1.6 * img - 40.0 + 2.0 * x).astype(np.float32)  # 32 gray levels across a patch
+    prev = sample_patches(side, true, 16).astype(np.float32)
+    m, _, c = relocate_points(device, *_on(device, side, start, prev, tpl), eps=0.0, iterations=10, contrast=30.0,
+                              shading=True)  # fmt: skip
+    c = gputrack.to_numpy(c)
+    assert np.abs(gputrack.to_numpy(m)[1:] - true[1:]).max() < 0.01
+    assert (c[1:] > 0.999).all()  # the inner points (the edge's patch is clipped)
+    other = np.roll(tpl, 1, axis=0)  # each point's template cut at another point
+    c = gputrack.to_numpy(relocate_points(device, *_on(device, img, true.astype(np.float32), other, other),
+                                          iterations=0)[2])  # fmt: skip
+    np.testing.assert_allclose(c, _plane_ncc(sample_patches(img, true, 16), other), atol=2e-4)
+    assert c.max() < 0.7 and np.abs(c).mean() < 0.4  # measured: 0.39 and 0.30 (the right template: 1)
+    flat = np.full(img.shape, 7.0, np.float32)
+    c = gputrack.to_numpy(relocate_points(device, *_on(device, flat, start, tpl, tpl))[2])
+    np.testing.assert_array_equal(c, np.zeros(10, np.float32))
 
 
 def test_out_arrays_are_written(device):
@@ -56,7 +95,7 @@ def test_out_arrays_are_written(device):
     args = _on(device, img, start, tpl, tpl)
     out = relocate_points(device, *args)
     again = relocate_points(device, *args, out=out)
-    assert again[0] is out[0] and again[1] is out[1]
+    assert len(again) == 3 and all(a is b for a, b in zip(again, out))
 
 
 def test_relocation_follows_the_appearance_and_the_prediction(device):

@@ -81,7 +81,7 @@ def test_warped_templates_match_a_rolled_and_receding_face(ict):
     ref = gputrack.device("numpy")
 
     def settled(templates):  # px from the truth where eq. 14's first-frame term alone puts each point
-        m, _ = relocate_points(ref, images[1], points[1], templates, templates, rho=0.0, eps=0.0, iterations=20,
+        m, _, _ = relocate_points(ref, images[1], points[1], templates, templates, rho=0.0, eps=0.0, iterations=20,
                                contrast=30.0)  # fmt: skip
         return np.hypot(*(m - points[1]).T)
 

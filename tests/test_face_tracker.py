@@ -428,7 +428,7 @@ def test_the_pose_is_refined_to_the_feature_points(data):
     for shift, taken in ((2.0, True), (150.0, False)):  # px, every point: 1.6 mm sideways / about 130 mm (> 30)
         refined.pf.reset(state, model.K)
         refined._host = {"lost": False, "state": state.copy()}
-        refined._refine({"features": r.landmarks + [shift, 0.0]})
+        refined._refine({"features": r.landmarks + [shift, 0.0], "match": np.ones(model.K, np.float32)})
         moved = refined._host["state"][3] - state[3]
         assert (0.2 < moved < 30.0) if taken else moved == 0.0, (shift, moved)
         assert np.array_equal(refined.pf.estimate, refined._host["state"])

@@ -15,8 +15,12 @@ import numpy as np
 
 from .camera import Camera
 
-__all__ = ["euler_from_rotation", "facing", "fit_pose", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
+__all__ = ["MIN_POSE_POINTS", "euler_from_rotation", "facing", "fit_pose", "project", "rodrigues", "rotation_coefficients", "rotation_from_euler",
            "rotation_vector", "skew"]
+
+
+#: the fewest known points :func:`fit_pose` fits a pose to
+MIN_POSE_POINTS = 6
 
 
 def skew(v) -> np.ndarray:
@@ -137,7 +141,7 @@ def fit_pose(camera: Camera, points3d, points, guess):
 
     pts = np.asarray(points, np.float64)
     ok = np.isfinite(pts).all(axis=1)
-    if ok.sum() < 6:
+    if ok.sum() < MIN_POSE_POINTS:
         return None
     K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
     r0, t0 = (np.asarray(g, np.float64).reshape(3, 1).copy() for g in guess)

@@ -39,9 +39,15 @@ outside the image take the nearest border pixel), then interpolated from the pix
 W-2), y0 = min(floor(y), H-2) and their right and lower neighbours; :func:`sample_patches` is the same
 on the host in float64 (the tracker's templates).
 
-:func:`relocate_points` also returns the S x S patches of the image at the points it found: the
-next frame's I_{t-1}. One launch does every point; the tracker's image, templates and patches stay
-on the device, only the K points go up and come down. The NumPy backend computes in float64 (the
+:func:`relocate_points` also returns the S x S patches of the image at the points it found (the
+next frame's I_{t-1}) and how well each matches its first-frame template: the zero-mean normalised
+cross-correlation of the two patches with each one's least-squares intensity plane (its mean and
+its ramp b_x x + b_y y) taken off, in [-1, 1], 0 where either is flat (the residual's standard
+deviation at most 1e-6 (|mean| + 1), as :func:`gputrack.ops.ncc.patch_ncc`). Light that has come
+round to one side shades a patch across its width and does not lower the match; a point that has
+slipped onto other texture, or is hidden behind the nose, does (the face tracker leaves such points
+out of its fits, ``FaceConfig.min_match``). One launch does every point; the tracker's image,
+templates and patches stay on the device, only the K points and their matches go up and come down. The NumPy backend computes in float64 (the
 oracle), the device kernels in float32.
 """
 
@@ -64,16 +70,17 @@ SINGULAR = 1e-12
 def relocate_points(device, image, predicted, previous, first, *, rho: float = 4.0, eps: float = 4000.0,
                     iterations: int = 5, max_step: float = 3.0, contrast: float = 0.0, shading: bool = False,
                     tol: float = 0.01, out=None):  # fmt: skip
-    """(points (K, 2) float32 px, patches (K, S, S) float32): the K feature points minimising eq. 14
-    in ``image`` (H, W) float32, and the image's S x S patches at them (see the module docstring).
+    """(points (K, 2) float32 px, patches (K, S, S) float32, match (K,) float32): the K feature points
+    minimising eq. 14 in ``image`` (H, W) float32, the image's S x S patches at them and each patch's
+    match with its template in ``first`` (see the module docstring).
 
     predicted: (K, 2) float32 m'_k, where each point starts; previous, first: (K, S, S) float32 the
     patches I_{t-1} and I_1; rho, eps: eq. 14's weights; iterations: Gauss-Newton steps at most;
     max_step: px per step at most; contrast: 0 compares raw intensities (the paper), c > 0 patches
     normalised to zero mean and standard deviation c; shading: with c > 0, the comparison with the
     first frame takes each patch's intensity ramp off too; tol: a point whose step is shorter than this
-    (px, in both coordinates) stops. Inputs NumPy or on the device; ``out``: (points, patches) on
-    the device to write into."""
+    (px, in both coordinates) stops. Inputs NumPy or on the device; ``out``: (points, patches, match)
+    on the device to write into."""
     check_device(device)
     dims: dict = {}
     dtype = (np.float32, np.float64) if device.backend == "numpy" else np.float32
@@ -95,10 +102,11 @@ def relocate_points(device, image, predicted, previous, first, *, rho: float = 4
     if shading and consts[3] == 0:
         raise ValueError("shading: expected contrast > 0 (the ramp is taken off normalised patches), got contrast 0")
     K, S = dims["K"], dims["S"]
-    points, patches = out_arrays(device, out, (("points", (K, 2), np.float32), ("patches", (K, S, S), np.float32)))
+    points, patches, match = out_arrays(device, out, (("points", (K, 2), np.float32), ("patches", (K, S, S), np.float32),
+                                                      ("match", (K,), np.float32)))  # fmt: skip
     backend_module(device, "face_relocate").relocate_points(device, img, pred, prev, fst, consts, int(iterations),
-                                                            points, patches)  # fmt: skip
-    return points, patches
+                                                            points, patches, match)  # fmt: skip
+    return points, patches, match
 
 
 def sample_patches(image, points, size: int, warp=None) -> np.ndarray:

@@ -17,9 +17,10 @@ def _kernel(device):
     return cl.Kernel(device.program("gt_face_relocate.cl"), "gt_face_relocate")
 
 
-def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches):
+def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches, match):
     K, S = previous.shape[0], previous.shape[1]
     H, W = image.shape
     enqueue(device, _kernel(device), *ndrange(K, group=(1,)), image.buffer.data, predicted.buffer.data, previous.buffer.data,
             first.buffer.data, constant(device, consts.astype(np.float32)).buffer.data, points.buffer.data,
-            patches.buffer.data, np.int32(K), np.int32(S), np.int32(H), np.int32(W), np.int32(iterations))  # fmt: skip
+            patches.buffer.data, match.buffer.data, np.int32(K), np.int32(S), np.int32(H), np.int32(W),
+            np.int32(iterations))  # fmt: skip

@@ -57,10 +57,32 @@ def _normalised(patches, inner, contrast, min_std, shading):
     return (patches - mean - bx * off[None, None, :] - by * off[None, :, None]) * gain
 
 
-def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches):
+def plane_match(patches, templates) -> np.ndarray:
+    """(K,) the NCC of each patch (K, S, S) with its template, each with its least-squares intensity
+    plane (mean and ramp) off; 0 where either is flat (gputrack/ops/face_relocate.py)."""
+    a, b = np.asarray(patches, np.float64), np.asarray(templates, np.float64)
+    S = a.shape[-1]
+    off = np.arange(S) - (S - 1) / 2.0
+    sxx = S * (off * off).sum()
+    res, ok = [], True
+    for p in (a, b):
+        mean = p.mean(axis=(1, 2), keepdims=True)
+        d = p - mean
+        bx = (d * off[None, None, :]).sum(axis=(1, 2), keepdims=True) / sxx
+        by = (d * off[None, :, None]).sum(axis=(1, 2), keepdims=True) / sxx
+        r = d - bx * off[None, None, :] - by * off[None, :, None]
+        ok = ok & (np.sqrt((r * r).mean(axis=(1, 2))) > 1e-6 * (np.abs(mean[:, 0, 0]) + 1.0))
+        res.append(r)
+    num = (res[0] * res[1]).sum(axis=(1, 2))
+    den = np.sqrt((res[0] * res[0]).sum(axis=(1, 2)) * (res[1] * res[1]).sum(axis=(1, 2)))
+    return np.where(ok, num / np.where(ok, den, 1.0), 0.0)
+
+
+def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches, match):
     rho, eps, max_step, contrast, tol, min_std, singular, shading = (float(c) for c in consts)
     img = np.asarray(image, np.float64)
     prev, fst = np.asarray(previous, np.float64), np.asarray(first, np.float64)
+    templates = fst
     K, S = prev.shape[0], prev.shape[-1]
     if contrast > 0:
         prev = _normalised(prev, prev, contrast, min_std, False)
@@ -100,3 +122,4 @@ def relocate_points(device, image, predicted, previous, first, consts, iteration
         active &= np.abs(d).max(axis=1) >= tol
     points[...] = m
     patches[...] = patches_at(img, m, S)
+    match[...] = plane_match(patches, templates)

@@ -1,6 +1,7 @@
 """Taichi: feature-point re-localisation (gputrack/ops/face_relocate.py, paper 003 eq. 14) in float32,
-one launch: a thread per feature point runs its Gauss-Newton iterations and samples its patch at
-the point found (on a CPU one serial loop: K ~ 10 points are too few for the thread pool). The
+one launch: a thread per feature point runs its Gauss-Newton iterations, samples its patch at the
+point found and matches it with its template (on a CPU one serial loop: K ~ 10 points are too few
+for the thread pool). The
 patch's samples are not stored between the passes over it: each pass samples the image again
 (bilinear samples of a 640 x 480 float32 image stay in the cache)."""
 
@@ -59,9 +60,43 @@ def _stored_normaliser(p: ti.template(), k, sxx, contrast, min_std, shading):
     return _normaliser(p0, s, ss, sx, sy, ti.cast(S * S, ti.f32), sxx, contrast, min_std, shading)
 
 
+@ti.func
+def _plane_match(a: ti.template(), b: ti.template(), k, sxx):
+    """The NCC of patches a[k] and b[k] (S x S), each with its least-squares plane (mean and ramp) off;
+    0 where either is flat (gputrack/ops/face_relocate.py). Two passes: the planes, then the residuals."""
+    S = a.shape[1]
+    n = ti.cast(S * S, ti.f32)
+    half = 0.5 * ti.cast(S - 1, ti.f32)
+    sa, sb, xa, ya, xb, yb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for i, j in ti.ndrange(S, S):
+        va, vb = a[k, i, j], b[k, i, j]
+        ox, oy = ti.cast(j, ti.f32) - half, ti.cast(i, ti.f32) - half
+        sa += va
+        sb += vb
+        xa += va * ox
+        ya += va * oy
+        xb += vb * ox
+        yb += vb * oy
+    ma, mb = sa / n, sb / n
+    bxa, bya, bxb, byb = xa / sxx, ya / sxx, xb / sxx, yb / sxx
+    ab, aa, bb = 0.0, 0.0, 0.0
+    for i, j in ti.ndrange(S, S):
+        ox, oy = ti.cast(j, ti.f32) - half, ti.cast(i, ti.f32) - half
+        ra = a[k, i, j] - ma - bxa * ox - bya * oy
+        rb = b[k, i, j] - mb - bxb * ox - byb * oy
+        ab += ra * rb
+        aa += ra * ra
+        bb += rb * rb
+    fa, fb = 1e-6 * (ti.abs(ma) + 1.0), 1e-6 * (ti.abs(mb) + 1.0)
+    out = 0.0
+    if aa / n > fa * fa and bb / n > fb * fb:
+        out = ab / ti.sqrt(aa * bb)
+    return out
+
+
 @ti.kernel
-def _relocate(img: F2, pred: F2, prev: F3, first: F3, consts: F1, points: F2, patches: F3, iterations: ti.i32,
-              serial: ti.template()):  # fmt: skip
+def _relocate(img: F2, pred: F2, prev: F3, first: F3, consts: F1, points: F2, patches: F3, match: F1,
+              iterations: ti.i32, serial: ti.template()):  # fmt: skip
     rho, eps, max_step, contrast = consts[0], consts[1], consts[2], consts[3]
     tol, min_std, singular, shading = consts[4], consts[5], consts[6], consts[7]
     S = prev.shape[1]
@@ -136,9 +171,10 @@ def _relocate(img: F2, pred: F2, prev: F3, first: F3, consts: F1, points: F2, pa
         points[k, 1] = my
         for i, j in ti.ndrange(S, S):
             patches[k, i, j] = _bilinear(img, mx - half + j, my - half + i)
+        match[k] = _plane_match(patches, first, k, sxx)
 
 
-def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches):
+def relocate_points(device, image, predicted, previous, first, consts, iterations, points, patches, match):
     c = constant(device, consts.astype("float32"))
     launch(_relocate, (image.buffer, predicted.buffer, previous.buffer, first.buffer, c.buffer, points.buffer,
-                       patches.buffer), (current_arch() == "cpu",), scalars=(iterations,))  # fmt: skip
+                       patches.buffer, match.buffer), (current_arch() == "cpu",), scalars=(iterations,))  # fmt: skip

@@ -52,7 +52,12 @@ class FaceConfig:
     ``warp_templates`` (beyond the paper; False = the first frame's patches as cut): every frame the
     templates are sampled again from the first frame, turned and scaled by the similarity the
     filter's estimate gives each point (:mod:`gputrack.trackers.face.templates`), so that a roll or a
-    move in depth does not pull eq. 13's scores and eq. 14's points;
+    move in depth does not pull eq. 13's scores and eq. 14's points; ``min_match`` (beyond the paper;
+    -1 = every point, as the paper): a re-localised point whose patch matches its template worse than
+    this (the NCC with each patch's intensity plane off, ``relocate_points``' ``match``) is hidden,
+    e.g. behind the nose as the head turns, or has slipped onto other texture: it is left out of the
+    pose fit and the bundle adjustment (NaN in :attr:`FaceEstimate.features`), unless fewer than
+    ``MIN_POSE_POINTS`` (6) would be left;
     ``refine_pose`` (beyond the
     paper; False = the filter's estimate): the estimate's pose is refined to fit the re-localised
     points (PnP, Levenberg-Marquardt from the estimate, the shape held) and the filter's hypotheses
@@ -104,6 +109,7 @@ class FaceConfig:
     relocate_iterations: int = 5
     relocate_contrast: float = 30.0
     relocate_shading: bool = False
+    min_match: float = 0.5
     anchor_templates: bool = True
     warp_templates: bool = True
     refine_pose: bool = True
@@ -154,5 +160,7 @@ class FaceConfig:
         if isinstance(self.detect_share, bool) or not isinstance(self.detect_share, (int, float, np.integer, np.floating)) \
                 or not 0.0 <= self.detect_share <= 1.0:
             raise ValueError(f"{o}.detect_share: expected a fraction in [0, 1], got {self.detect_share!r}")
-        if not np.isfinite(self.lost_score) or not -1.0 <= self.lost_score <= 1.0:
-            raise ValueError(f"{o}.lost_score: expected a number in [-1, 1], got {self.lost_score!r}")
+        for name in ("lost_score", "min_match"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not -1.0 <= v <= 1.0:
+                raise ValueError(f"{o}.{name}: expected a number in [-1, 1], got {v!r}")

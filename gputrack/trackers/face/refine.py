@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...models.camera import Camera
-from ...models.pose import rotation_vector
+from ...models.pose import MIN_POSE_POINTS, rotation_vector
 
 __all__ = ["fit_pose_deformation"]
 
@@ -55,7 +55,7 @@ def fit_pose_deformation(camera: Camera, mean, basis, points, state, prior_sd) -
     if not np.isfinite(x0).all() or not np.isfinite(sd).all() or (sd < 0).any():
         raise ValueError("state, prior_sd: expected finite values, prior_sd >= 0")
     ok = np.isfinite(pts).all(axis=1)
-    if ok.sum() < 6:
+    if ok.sum() < MIN_POSE_POINTS:
         return None
     free = sd > 0
     Bf, a0 = basis[ok][:, :, free], x0[6:][free]

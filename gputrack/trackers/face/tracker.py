@@ -52,7 +52,7 @@ import numpy as np
 
 from ...device import Device, DeviceArray, as_host_array
 from ...models.camera import Camera
-from ...models.pose import facing, fit_pose, project, rodrigues, rotation_vector
+from ...models.pose import MIN_POSE_POINTS, facing, fit_pose, project, rodrigues, rotation_vector
 from ...ops.face_points import project_faces
 from ...ops.face_relocate import relocate_points, sample_patches
 from ...ops.ncc import patch_ncc
@@ -201,10 +201,10 @@ class FaceTracker:
             Stage("score", self._score, reads=("image", "points", "templates"), writes=("scores",)),
             Stage("estimate", self._estimate, host_reads=("scores", "facing")),
             Stage("relocate", self._relocate, reads=("image", "templates", "previous"),
-                  writes=("features", "previous", "spare")),
-            Stage("refine", self._refine, host_reads=("features",)),
+                  writes=("features", "previous", "spare", "match")),
+            Stage("refine", self._refine, host_reads=("features", "match")),
             Stage("bundle", self._bundle),
-        ], inputs=("image",), state=("templates", "previous", "features"))  # fmt: skip
+        ], inputs=("image",), state=("templates", "previous", "features", "match"))  # fmt: skip
 
     # -- start ---------------------------------------------------------------------------------------
 
@@ -220,8 +220,9 @@ class FaceTracker:
     def _pose_from_points(self, points, guess=None):
         """(rvec, tvec) of the current shape at expression mean seen at ``points`` (K, 2) (PnP)."""
         ok = np.isfinite(points).all(axis=1)
-        if ok.sum() < 6:
-            raise ValueError(f"landmarks: expected at least 6 finite points for the start pose, got {int(ok.sum())}")
+        if ok.sum() < MIN_POSE_POINTS:
+            raise ValueError(f"landmarks: expected at least {MIN_POSE_POINTS} finite points for the start pose, got "
+                             f"{int(ok.sum())}")  # fmt: skip
         if guess is None:
             guess = self._box_pose(points)
         fit = fit_pose(self.camera, self._mean_shape(), points, guess)
@@ -309,6 +310,7 @@ class FaceTracker:
         features[~np.isfinite(features)] = self._predicted(res.rvecs[last], res.tvecs[last],
                                                            res.expressions[last])[~np.isfinite(lm[last])]
         self.scheduler.set("features", features.astype(np.float32))
+        self.scheduler.set("match", np.ones(K, np.float32))  # the start's points are the templates' own
         self.scheduler.set("previous", sample_patches(frames[last].astype(np.float32), features, S).astype(np.float32))
         self.pf.reset(np.concatenate([res.rvecs[last], res.tvecs[last], res.expressions[last]]), K)
         self.lost_frames, self.frame = 0, n
@@ -413,8 +415,8 @@ class FaceTracker:
         self._host.update(state=est, confidence=conf, lost=conf < self.config.lost_score)
 
     def _relocate(self, b):
-        """Eq. 14 on the device from the estimate's points: the feature points, and the frame's patches
-        at them (the next frame's I_{t-1}; two arrays in turn)."""
+        """Eq. 14 on the device from the estimate's points: the feature points, the frame's patches
+        at them (the next frame's I_{t-1}; two arrays in turn) and how each matches its template."""
         h = self._host
         est = h["state"]
         h["landmarks"] = self._predicted(est[:3], est[3:6], est[6:])
@@ -422,14 +424,16 @@ class FaceTracker:
             return
         c = self.config
         spare = b.get("spare")
-        out = None if spare is None else (b.get("features"), spare)  # last frame's arrays
-        m, patches = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32), b["previous"],
+        out = None if spare is None else (b.get("features"), spare, b.get("match"))  # last frame's arrays
+        m, patches, match = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32), b["previous"],
                                      b["templates"], rho=c.rho, eps=c.eps, iterations=c.relocate_iterations,
                                      contrast=c.relocate_contrast, shading=c.relocate_shading, out=out)  # fmt: skip
-        b["spare"], b["previous"], b["features"] = b["previous"], patches, m
+        b["spare"], b["previous"], b["features"], b["match"] = b["previous"], patches, m, match
 
     def _refine(self, b):
-        """The feature points come down; the estimate fitted to them (``config.refine_pose``, host): its
+        """The feature points come down, less those that do not match their templates (``config.min_match``:
+        NaN, left out of this fit and the bundle adjustment, unless fewer than MIN_POSE_POINTS would be
+        left); the estimate fitted to them (``config.refine_pose``, host): its
         pose (:func:`~gputrack.models.pose.fit_pose` with the estimate's shape), then from there its
         pose and deformation (``config.refine_deformation`` > 0, :func:`.refine.fit_pose_deformation`);
         each fit that moves the pose beyond ``pose_range`` is not taken; the filter moved with it."""
@@ -437,9 +441,16 @@ class FaceTracker:
         if h["lost"]:
             h["features"] = np.full((self.model.K, 2), np.nan)
             return
-        given = h.get("given")
-        h["features"] = m = b["features"].astype(np.float64) if given is None else given
-        est, c = h["state"], self.config
+        given, c = h.get("given"), self.config
+        if given is None:
+            m = b["features"].astype(np.float64)
+            off = b["match"] < c.min_match  # no longer like its template: hidden, or slipped onto other texture
+            if off.any() and (~off).sum() >= MIN_POSE_POINTS:  # too few left: every point, as the paper
+                m[off] = np.nan
+        else:
+            m = given
+        h["features"] = m
+        est = h["state"]
         if not c.refine_pose:
             return
         fit = fit_pose(self.camera, self._shape(est[6:]), m, (est[:3], est[3:6]))
