@@ -18,8 +18,10 @@
   ``sample`` (eq. 12, host; the N x K hypothesis points uploaded), ``score`` (eq. 13's NCC sum of
   every hypothesis, ONE device launch), ``estimate`` (eq. 13 weights and the state, host reads the N
   scores), ``relocate`` (eq. 14, one device launch: :func:`gputrack.ops.face_relocate.relocate_points`,
-  the K points and the frame's patches at them, which stay on the device for the next frame),
-  ``refine`` (the K points come down; beyond the paper, ``config.refine_pose``: the estimate's pose
+  the K points, the frame's patches at them, which stay on the device for the next frame, and each
+  point's match with its template), ``refine`` (the K points and their matches come down; beyond
+  the paper, points matching worse than ``config.min_match`` are left out of the fits; with
+  ``config.refine_pose``: the estimate's pose
   and, with ``config.refine_deformation``, its deformation fitted to them from the filter's
   estimate (:mod:`.refine`; the pose alone by PnP), and the filter's hypotheses moved by the same
   step, as paper 000 follows its particle filter with LM) and ``bundle`` (the incremental bundle
@@ -73,8 +75,9 @@ class FaceEstimate:
     """One frame's result. rotation (3, 3) and translation (3,) mm: model -> camera; rvec (3,) the
     rotation as a Rodrigues vector; expression (D,) the deformation; identity (S',) s(t);
     landmarks (K, 2) px: the projection of the estimate (m'_t); features (K, 2) px: the
-    re-localised points (eq. 14; NaN when lost); confidence in [0, 1]: the best hypothesis' mean NCC
-    (0 when lost); lost: the face was not found in this frame."""
+    re-localised points (eq. 14; NaN when lost, and where a point does not match its template,
+    ``FaceConfig.min_match``); confidence in [0, 1]: the best hypothesis' mean NCC (0 when lost);
+    lost: the face was not found in this frame."""
 
     rotation: np.ndarray
     translation: np.ndarray
