@@ -470,6 +470,43 @@ def test_the_deformation_is_refined_with_the_pose(data):
                                atol=1e-9)  # fmt: skip
 
 
+def test_points_that_do_not_match_their_templates_are_left_out(data):
+    """``min_match`` (default 0.5): a re-localised point whose match with its template is below it is
+    NaN in the frame's features and the fit ignores it (moving it changes nothing); where fewer than
+    six points would be left every point is used; min_match = -1 keeps every point."""
+    _, model, _, seq = data
+    frames = _frames(8)
+    trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=128, learn_identity=False))
+    trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
+    est = trk.track(frames[7].gray)
+    assert np.isfinite(est.features).all()  # every point of this frame matches
+    state, points = trk.pf.estimate.copy(), frames[7].landmarks2d.astype(np.float32)
+
+    def refine(match, pts=points, config=None):
+        trk.config = config or FaceConfig(particles=128, learn_identity=False)
+        trk.pf.reset(state, model.K)
+        trk._host = {"lost": False, "state": state.copy()}
+        trk._refine({"features": pts, "match": np.asarray(match, np.float32)})
+        return trk._host["features"], trk._host["state"]
+
+    match = np.full(model.K, 0.9)
+    match[[0, 4]] = [0.2, 0.49]  # below 0.5
+    feats, fitted = refine(match)
+    assert np.isnan(feats[[0, 4]]).all() and np.isfinite(np.delete(feats, [0, 4], axis=0)).all()
+    moved = points.copy()
+    moved[[0, 4]] += 25.0  # the left-out points anywhere: the same fit
+    np.testing.assert_array_equal(refine(match, moved)[1], fitted)
+    assert not np.allclose(refine(np.ones(model.K), moved)[1], fitted)  # counted, they move it
+    few = np.full(model.K, 0.1)
+    few[:5] = 0.9  # five match: fewer than six would be left, every point is used
+    feats, _ = refine(few)
+    assert np.isfinite(feats).all()
+    feats, _ = refine(match, config=FaceConfig(particles=128, learn_identity=False, min_match=-1.0))
+    assert np.isfinite(feats).all()
+    with pytest.raises(ValueError, match=r"FaceConfig.min_match: expected a number in \[-1, 1\], got 1.5"):
+        FaceConfig(min_match=1.5)
+
+
 def test_feature_points_given_replace_eq14s(data):
     """``track(gray, features=)``: points from elsewhere (here the true landmarks) are the frame's
     feature points, the pose is fitted to them, and eq. 14 still gives the next frame's patches; NaN
