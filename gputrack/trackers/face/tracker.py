@@ -428,9 +428,10 @@ class FaceTracker:
         c = self.config
         spare = b.get("spare")
         out = None if spare is None else (b.get("features"), spare, b.get("match"))  # last frame's arrays
-        m, patches, match = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32), b["previous"],
-                                     b["templates"], rho=c.rho, eps=c.eps, iterations=c.relocate_iterations,
-                                     contrast=c.relocate_contrast, shading=c.relocate_shading, out=out)  # fmt: skip
+        m, patches, match = relocate_points(self.device, b["image"], h["landmarks"].astype(np.float32),
+                                            b["previous"], b["templates"], rho=c.rho, eps=c.eps,
+                                            iterations=c.relocate_iterations, contrast=c.relocate_contrast,
+                                            shading=c.relocate_shading, out=out)  # fmt: skip
         b["spare"], b["previous"], b["features"], b["match"] = b["previous"], patches, m, match
 
     def _refine(self, b):
