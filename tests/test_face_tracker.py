@@ -473,7 +473,7 @@ def test_the_deformation_is_refined_with_the_pose(data):
 def test_points_that_do_not_match_their_templates_are_left_out(data):
     """``min_match`` (default 0.5): a re-localised point whose match with its template is below it is
     NaN in the frame's features and the fit ignores it (moving it changes nothing); where fewer than
-    six points would be left every point is used; min_match = -1 keeps every point."""
+    six match, the six that match best are kept; min_match = -1 keeps every point."""
     _, model, _, seq = data
     frames = _frames(8)
     trk = FaceTracker(REF, model, seq.camera, FaceConfig(particles=128, learn_identity=False))
@@ -497,10 +497,9 @@ def test_points_that_do_not_match_their_templates_are_left_out(data):
     moved[[0, 4]] += 25.0  # the left-out points anywhere: the same fit
     np.testing.assert_array_equal(refine(match, moved)[1], fitted)
     assert not np.allclose(refine(np.ones(model.K), moved)[1], fitted)  # counted, they move it
-    few = np.full(model.K, 0.1)
-    few[:5] = 0.9  # five match: fewer than six would be left, every point is used
+    few = np.array([0.9, 0.1, 0.9, 0.2, 0.9, 0.3, 0.9, 0.05, 0.9, 0.25])  # five match: the best of the rest too
     feats, _ = refine(few)
-    assert np.isfinite(feats).all()
+    np.testing.assert_array_equal(np.isfinite(feats).all(axis=1), [1, 0, 1, 0, 1, 1, 1, 0, 1, 0])
     feats, _ = refine(match, config=FaceConfig(particles=128, learn_identity=False, min_match=-1.0))
     assert np.isfinite(feats).all()
     with pytest.raises(ValueError, match=r"FaceConfig.min_match: expected a number in \[-1, 1\], got 1.5"):

@@ -56,8 +56,8 @@ class FaceConfig:
     -1 = every point, as the paper): a re-localised point whose patch matches its template worse than
     this (the NCC with each patch's intensity plane off, ``relocate_points``' ``match``) is hidden,
     e.g. behind the nose as the head turns, or has slipped onto other texture: it is left out of the
-    pose fit and the bundle adjustment (NaN in :attr:`FaceEstimate.features`), unless fewer than
-    ``MIN_POSE_POINTS`` (6) would be left;
+    pose fit and the bundle adjustment (NaN in :attr:`FaceEstimate.features`); where fewer than
+    ``MIN_POSE_POINTS`` (6) match, the six that match best are kept;
     ``refine_pose`` (beyond the
     paper; False = the filter's estimate): the estimate's pose is refined to fit the re-localised
     points (PnP, Levenberg-Marquardt from the estimate, the shape held) and the filter's hypotheses

@@ -436,8 +436,8 @@ class FaceTracker:
 
     def _refine(self, b):
         """The feature points come down, less those that do not match their templates (``config.min_match``:
-        NaN, left out of this fit and the bundle adjustment, unless fewer than MIN_POSE_POINTS would be
-        left); the estimate fitted to them (``config.refine_pose``, host): its
+        NaN, left out of this fit and the bundle adjustment; where fewer than MIN_POSE_POINTS match, all
+        but the MIN_POSE_POINTS that match best); the estimate fitted to them (``config.refine_pose``, host): its
         pose (:func:`~gputrack.models.pose.fit_pose` with the estimate's shape), then from there its
         pose and deformation (``config.refine_deformation`` > 0, :func:`.refine.fit_pose_deformation`);
         each fit that moves the pose beyond ``pose_range`` is not taken; the filter moved with it."""
@@ -449,8 +449,10 @@ class FaceTracker:
         if given is None:
             m = b["features"].astype(np.float64)
             off = b["match"] < c.min_match  # no longer like its template: hidden, or slipped onto other texture
-            if off.any() and (~off).sum() >= MIN_POSE_POINTS:  # too few left: every point, as the paper
-                m[off] = np.nan
+            if (~off).sum() < MIN_POSE_POINTS:  # too few match: the MIN_POSE_POINTS that match best
+                off = np.ones(len(off), bool)
+                off[np.argsort(-np.asarray(b["match"]), kind="stable")[:MIN_POSE_POINTS]] = False
+            m[off] = np.nan
         else:
             m = given
         h["features"] = m
