@@ -21,6 +21,23 @@ __all__ = ["MIN_POSE_POINTS", "euler_from_rotation", "facing", "fit_pose", "proj
 
 #: the fewest known points :func:`fit_pose` fits a pose to
 MIN_POSE_POINTS = 6
+#: below this angle (rad) :func:`rotation_coefficients` (and :func:`rodrigues`) take their series
+SMALL_ANGLE = 1e-3
+#: :func:`rotation_vector`: below this sine of the angle its factor theta / (2 sin) comes from its
+#: series; within this of a half turn (rad) the axis comes from the symmetric part
+SMALL_SINE, NEAR_HALF_TURN = 1e-6, 1e-3
+
+
+def _coefficient_series(t2):
+    """sin t / t, (1 - cos t) / t^2 and (t - sin t) / t^3 by their series in t2 = t^2 (floats or arrays)."""
+    return 1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720, 1 / 6 - t2 / 120 + t2 * t2 / 5040
+
+
+def _half_angle_factor(theta, sin):
+    """theta / (2 sin theta) of rotation_vector, by its series where sin <= SMALL_SINE (floats or arrays)."""
+    if isinstance(theta, float):
+        return theta / max(2.0 * sin, 1e-300) if sin > SMALL_SINE else 0.5 + theta**2 / 12.0
+    return np.where(sin > SMALL_SINE, theta / np.maximum(2.0 * sin, 1e-300), 0.5 + theta**2 / 12.0)
 
 
 def skew(v) -> np.ndarray:
@@ -37,11 +54,12 @@ def rotation_coefficients(r):
     r = np.asarray(r, dtype=np.float64)
     t2 = np.einsum("...c,...c->...", r, r)
     t = np.sqrt(t2)
-    small = t < 1e-3
+    small = t < SMALL_ANGLE
     ts = np.where(small, 1.0, t)
-    a = np.where(small, 1 - t2 / 6 + t2 * t2 / 120, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - np.cos(ts)) / ts**2)
-    c = np.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040, (ts - np.sin(ts)) / ts**3)
+    sa, sb, sc = _coefficient_series(t2)
+    a = np.where(small, sa, np.sin(ts) / ts)
+    b = np.where(small, sb, (1 - np.cos(ts)) / ts**2)
+    c = np.where(small, sc, (ts - np.sin(ts)) / ts**3)
     return a, b, c
 
 
@@ -57,11 +75,11 @@ def rodrigues(rvec) -> np.ndarray:
 
 def _rodrigues_one(x: float, y: float, z: float) -> np.ndarray:
     """:func:`rodrigues` of one vector (x, y, z) with Python floats: I + a [r]x + b (r r^T - t^2 I)."""
-    t2 = (x * x + z * z) + y * y
-    if t2 < 1e-6:  # t < 1e-3: the series of rotation_coefficients
-        a, b = 1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720
+    t2 = (x * x + z * z) + y * y  # the order of rotation_coefficients' einsum
+    t = math.sqrt(t2)
+    if t < SMALL_ANGLE:
+        a, b, _ = _coefficient_series(t2)
     else:
-        t = math.sqrt(t2)
         a, b = math.sin(t) / t, (1 - math.cos(t)) / t**2
     xx, yy, zz, xy, xz, yz = b * x * x, b * y * y, b * z * z, b * x * y, b * x * z, b * y * z
     return np.array([[1 - b * t2 + xx, xy - a * z, xz + a * y],
@@ -76,16 +94,15 @@ def rotation_vector(R) -> np.ndarray:
         (a, b, c), (d, e, f), (g, h, i) = R.tolist()
         cos = min(max(((a + e + i) - 1.0) / 2.0, -1.0), 1.0)
         theta = math.acos(cos)
-        if theta <= math.pi - 1e-3:
-            sin = math.sin(theta)
-            k = theta / max(2.0 * sin, 1e-300) if sin > 1e-6 else 0.5 + theta**2 / 12.0
+        if theta <= math.pi - NEAR_HALF_TURN:
+            k = _half_angle_factor(theta, math.sin(theta))
             return np.array([(h - f) * k, (c - g) * k, (d - b) * k])
     w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     theta = np.arccos(cos)
     sin = np.sin(theta)
-    out = w * np.where(sin > 1e-6, theta / np.maximum(2.0 * sin, 1e-300), 0.5 + theta**2 / 12.0)[..., None]
-    near_pi = theta > np.pi - 1e-3  # the axis from the symmetric part: (R + R^T) / 2 - cos I = (1 - cos) n n^T
+    out = w * _half_angle_factor(theta, sin)[..., None]
+    near_pi = theta > np.pi - NEAR_HALF_TURN  # the axis from the symmetric part: (R + R^T) / 2 - cos I = (1 - cos) n n^T
     if np.any(near_pi):
         S = (R[near_pi] + np.swapaxes(R[near_pi], -1, -2)) / 2.0 - cos[near_pi, None, None] * np.eye(3)
         col = np.argmax(np.abs(np.diagonal(S, axis1=-2, axis2=-1)), axis=-1)

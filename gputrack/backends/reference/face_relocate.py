@@ -61,16 +61,11 @@ def plane_match(patches, templates) -> np.ndarray:
     """(K,) the NCC of each patch (K, S, S) with its template, each with its least-squares intensity
     plane (mean and ramp) off; 0 where either is flat (gputrack/ops/face_relocate.py)."""
     a, b = np.asarray(patches, np.float64), np.asarray(templates, np.float64)
-    S = a.shape[-1]
-    off = np.arange(S) - (S - 1) / 2.0
-    sxx = S * (off * off).sum()
+    off = np.arange(a.shape[-1]) - (a.shape[-1] - 1) / 2.0
     res, ok = [], True
     for p in (a, b):
-        mean = p.mean(axis=(1, 2), keepdims=True)
-        d = p - mean
-        bx = (d * off[None, None, :]).sum(axis=(1, 2), keepdims=True) / sxx
-        by = (d * off[None, :, None]).sum(axis=(1, 2), keepdims=True) / sxx
-        r = d - bx * off[None, None, :] - by * off[None, :, None]
+        mean, _, bx, by = _normaliser(p, 1.0, 1.0, True)  # the plane: mean and ramp
+        r = p - mean - bx * off[None, None, :] - by * off[None, :, None]
         ok = ok & (np.sqrt((r * r).mean(axis=(1, 2))) > 1e-6 * (np.abs(mean[:, 0, 0]) + 1.0))
         res.append(r)
     num = (res[0] * res[1]).sum(axis=(1, 2))
