@@ -674,51 +674,12 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
         // time, rows and columns past P read as zeros (a block inside J's width takes the loop
         // without the bounds). Then J^T r by four rows. For the face bundle's P = 92 on PoCL:
         // ~0.2 ms a launch, against 0.46 ms for a row by LM_JB columns with scalar sums.
-        //
-        // A block-sparse J (the face bundle's: a frame's rows are 0 outside its pose, deformation
-        // and the identity) first gets, per group c of four columns, the rows [E[2c], E[2c + 1]]
-        // that hold all of its entries other than 0 (NaN counts), in the scratch past J^T r; each
-        // sum runs over the rows where both of its groups can be non-zero only. The products left
-        // out are 0 (a non-finite J still shows on the diagonal), and the sums take their terms in
-        // the same order: the same values. The face bundle's update (P = 92, M = 155, PoCL on the
-        // 2-core VM, 600 updates, two runs each, 2026-12-07): 0.143 / 0.146 ms -> 0.105 / 0.104 ms.
         const int nrb = (P + 3) / 4, ncb = (P + LM_JB - 1) / LM_JB;
-        __global REAL *E = Jt + P;
-        const int extents = (long)P * M - P >= 2 * nrb && M < (1 << 24);  // room, and rows exact as REAL
-        if (extents) {
-            for (int c = lid; c < nrb; c += ls) {
-                const int j1 = min(4 * c + 4, P);
-                int first = M, last = -1;
-                for (int m = 0; m < M; ++m) {
-                    __global const JTYPE *Jm = Jb + (long)m * P;
-                    int nz = 0;
-                    for (int j = 4 * c; j < j1; ++j)
-                        nz |= Jm[j] != 0 ? 1 : 0;
-                    if (nz) {
-                        first = min(first, m);
-                        last = m;
-                    }
-                }
-                E[2 * c] = (REAL)first;
-                E[2 * c + 1] = (REAL)last;
-            }
-            barrier(CLK_GLOBAL_MEM_FENCE);
-        }
         for (int q = lid; q < nrb * ncb + nrb; q += ls) {
             if (q < nrb * ncb) {
                 const int rb = q / ncb, i0 = 4 * rb, j0 = (q - rb * ncb) * LM_JB;
                 if (j0 + LM_JB <= i0)
                     continue;  // below the diagonal: the mirror of a block another work-item sums
-                int m0 = 0, m1 = M;  // the rows summed
-                if (extents) {
-                    int first = M, last = -1;  // of the column groups j0 ..
-                    for (int c = j0 / 4; c < min(j0 / 4 + LM_JB / 4, nrb); ++c) {
-                        first = min(first, (int)E[2 * c]);
-                        last = max(last, (int)E[2 * c + 1]);
-                    }
-                    m0 = max(first, (int)E[2 * rb]);
-                    m1 = min(last, (int)E[2 * rb + 1]) + 1;
-                }
                 REAL4 acc[4][LM_JB / 4];
 #pragma unroll
                 for (int k = 0; k < 4; ++k)
@@ -726,7 +687,7 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                     for (int v = 0; v < LM_JB / 4; ++v)
                         acc[k][v] = (REAL4)(0);
                 if (i0 + 4 <= P && j0 + LM_JB <= P) {
-                    for (int m = m0; m < m1; ++m) {
+                    for (int m = 0; m < M; ++m) {
                         __global const JTYPE *Jm = Jb + (long)m * P;
                         const REAL4 x = GT_TO_REAL4(vload4(0, Jm + i0));
 #pragma unroll
@@ -739,7 +700,7 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                         }
                     }
                 } else {
-                    for (int m = m0; m < m1; ++m) {
+                    for (int m = 0; m < M; ++m) {
                         __global const JTYPE *Jm = Jb + (long)m * P;
                         const REAL4 x = gt_lm_jpart4(Jm, i0, P);
 #pragma unroll
@@ -767,10 +728,9 @@ __kernel void gt_lm_update(__global REAL *S, __global int *I, __global REAL *W, 
                         }
                     }
             } else {
-                const int c = q - nrb * ncb, i0 = 4 * c;
-                const int m0 = extents ? (int)E[2 * c] : 0, m1 = extents ? (int)E[2 * c + 1] + 1 : M;
+                const int i0 = 4 * (q - nrb * ncb);
                 REAL4 s = (REAL4)(0);
-                for (int m = m0; m < m1; ++m)
+                for (int m = 0; m < M; ++m)
                     s = fma(gt_lm_jpart4(Jb + (long)m * P, i0, P), (REAL4)((REAL)rt[m]), s);
                 REAL t[4];
                 vstore4(s, 0, t);

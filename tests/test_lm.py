@@ -673,15 +673,13 @@ def _block_mask(M, P):
 
 
 # P = 40, 92: above STATIC_P_MAX, where taichi:cpu skips the rows of a tile that are 0 in its blocks
-# and opencl sums each block over the rows where its column groups can be non-zero
 @pytest.mark.parametrize("P,M", [(40, 49), (92, 155), (40, 1)])
 def test_block_sparse_jacobian_matches_reference(device, P, M):
     """A Jacobian callable whose J is 0 outside blocks of rows and columns (a bundle adjustment's;
-    taichi:cpu skips those rows in J^T J's tiles and factors within the rows' envelope, opencl sums
-    over each column group's rows) gives the reference's solve; a NaN in such a J (in a row that is
-    0 in the other column blocks) fails the problem as the reference does; a singular J^T J started
-    at C = 0 raises the damping as the reference does (M > 1). M = 1: no room for taichi:cpu's row
-    marks nor opencl's row ranges (the plain sums)."""
+    taichi:cpu skips those rows in J^T J's tiles and factors within the rows' envelope) gives the
+    reference's solve; a NaN in such a J (in a row that is 0 in the other column blocks) fails the
+    problem as the reference does; a singular J^T J started at C = 0 raises the damping as the
+    reference does (M > 1). M = 1: no room for taichi:cpu's row marks (the plain sums)."""
     B = 2
     rng = np.random.default_rng(300 + P + M)
     mask = _block_mask(M, P)
