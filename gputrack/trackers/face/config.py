@@ -52,7 +52,14 @@ class FaceConfig:
     ``warp_templates`` (beyond the paper; False = the first frame's patches as cut): every frame the
     templates are sampled again from the first frame, turned and scaled by the similarity the
     filter's estimate gives each point (:mod:`gputrack.trackers.face.templates`), so that a roll or a
-    move in depth does not pull eq. 13's scores and eq. 14's points; ``min_match`` (beyond the paper;
+    move in depth does not pull eq. 13's scores and eq. 14's points; ``template_views`` (beyond the
+    paper, degrees, with ``warp_templates``; 0 = the first frame only): a tracked frame where at least eight points matched
+    their templates and whose face direction is more than this from every source's becomes another
+    source of the templates (at its re-localised points that matched; at most 16 sources), and each
+    frame each point's template comes from the source nearest the estimate's face direction where
+    that point matched (:class:`gputrack.trackers.face.templates.TemplateViews`): a turned face is
+    matched against patches seen turned, not frontal patches warped by a similarity (the mixed
+    sequence's errors fell by a quarter to a third; the README's face section); ``min_match`` (beyond the paper;
     -1 = every point, as the paper): a re-localised point whose patch matches its template worse than
     this (the NCC with each patch's intensity plane off, ``relocate_points``' ``match``) is hidden,
     e.g. behind the nose as the head turns, or has slipped onto other texture: it is left out of the
@@ -112,6 +119,7 @@ class FaceConfig:
     min_match: float = 0.5
     anchor_templates: bool = True
     warp_templates: bool = True
+    template_views: float = 10.0
     refine_pose: bool = True
     refine_deformation: float = 0.5
     keyframes: int = 7
@@ -139,7 +147,7 @@ class FaceConfig:
         for name in ("sigma", "near", "identity_sigmas"):
             _positive(o, name, getattr(self, name))
         for name in ("kappa", "rotation_noise", "speed_gain", "rho", "eps", "identity_prior", "relocate_contrast",
-                     "refine_deformation"):
+                     "refine_deformation", "template_views"):
             _positive(o, name, getattr(self, name), zero=True)
         for name in ("prior", "anchor_templates", "warp_templates", "refine_pose", "relocate_shading",
                      "hold_identity_at_start", "learn_identity"):

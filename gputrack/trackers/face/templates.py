@@ -1,4 +1,5 @@
-"""The first frame's templates as the face is seen now (beyond the paper: ``FaceConfig.warp_templates``).
+"""The templates as the face is seen now (beyond the paper: ``FaceConfig.warp_templates`` and
+``template_views``).
 
 Eq. 13 scores the hypotheses and eq. 14 re-localises the points against the K templates cut from the
 first frame. As the head rolls or moves in depth, the patch around a feature point turns and scales in
@@ -22,6 +23,12 @@ foreshortening of a yaw or a pitch depends on the surface's direction there, whi
 tell. (Measured on the simulator, seeds 0-11: the full map A of the frontal plane put the outer eye
 corners and the nostrils, which do not lie in it, further off and lost yaw on the turns sequence; the
 similarity lowered the yaw error on every sequence; the README's face section.)
+
+The sources (:class:`TemplateViews`). A similarity cannot show how a patch looks once the face has
+turned away from the first frame: the far eye's corners and the nostrils foreshorten, the mouth
+corners wrap round. So tracked frames seen from other directions become sources too, and each
+point's template is cut from the source whose face direction is nearest the estimate's, warped
+from that source's pose as above.
 """
 
 from __future__ import annotations
@@ -31,7 +38,10 @@ import numpy as np
 from ...models.camera import Camera
 from ...models.pose import rodrigues
 
-__all__ = ["frontal_jacobians", "template_warp"]
+__all__ = ["VIEW_POINTS", "TemplateViews", "frontal_jacobians", "template_warp"]
+
+#: the fewest matched points of a frame kept as a source of templates (:class:`TemplateViews`)
+VIEW_POINTS = 8
 
 
 def frontal_jacobians(camera: Camera, rvec, tvec, X) -> np.ndarray:
@@ -62,3 +72,63 @@ def template_warp(camera: Camera, first_pose, first_shape, pose, shape) -> np.nd
     S = np.stack([np.stack([a, -b], -1), np.stack([b, a], -1)], -2)
     S[~ok | ~np.isfinite(S).all(axis=(1, 2))] = np.eye(2)
     return S
+
+
+class TemplateViews:
+    """The templates' sources (beyond the paper: ``FaceConfig.template_views``): the first frame, then
+    tracked frames that saw the face from other directions.
+
+    A source is (image, points (K, 2) px with NaN where a point did not match, pose (rvec, tvec), shape
+    (K, 3) mm). :meth:`add` keeps a frame where at least ``VIEW_POINTS`` points matched and its
+    face direction (the model's z axis in the camera frame) is more than ``spacing`` degrees from every
+    kept source's, up to ``most`` sources (``spacing`` 0: the first frame's alone). :meth:`templates`
+    cuts each point's template from the source nearest the estimate's face direction among those where
+    that point matched, warped by :func:`template_warp` from that source's pose and shape: a turned
+    face is matched against patches seen turned, not frontal patches turned by a similarity."""
+
+    def __init__(self, camera: Camera, size: int, spacing: float, most: int):
+        self.camera, self.size, self.most = camera, int(size), int(most)
+        self.spacing = float(spacing)
+        self.sources: list[tuple] = []
+        self._directions: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self.sources)
+
+    def add(self, image, points, pose, shape) -> bool:
+        """Keep this frame as a source (the first one always, with every point known); True if kept."""
+        pts = np.asarray(points, np.float64)
+        d = rodrigues(np.asarray(pose[0], np.float64))[:, 2]
+        if self.sources:
+            if self.spacing <= 0 or len(self.sources) >= self.most or np.isfinite(pts).all(axis=1).sum() < VIEW_POINTS:
+                return False
+            if max(float(e @ d) for e in self._directions) > np.cos(np.radians(self.spacing)):
+                return False
+        elif not np.isfinite(pts).all():
+            raise ValueError("points: expected every point of the first source, got NaN")
+        self.sources.append((np.asarray(image, np.float64), pts.copy(), (np.array(pose[0], np.float64),
+                             np.array(pose[1], np.float64)), np.asarray(shape, np.float64).copy()))  # fmt: skip
+        self._directions.append(d)
+        return True
+
+    def choice(self, rvec) -> np.ndarray:
+        """(K,) each point's source for a face turned as ``rvec``: the nearest in direction where it matched."""
+        d = rodrigues(np.asarray(rvec, np.float64))[:, 2]
+        out = np.full(len(self.sources[0][1]), -1)
+        for i in np.argsort([-float(e @ d) for e in self._directions], kind="stable"):
+            out[(out < 0) & np.isfinite(self.sources[i][1]).all(axis=1)] = i
+        return out
+
+    def templates(self, pose, shape) -> np.ndarray:
+        """(K, size, size) float32: each point's template as the face is seen at ``pose`` (rvec, tvec)
+        with ``shape`` (K, 3)."""
+        from ...ops.face_relocate import sample_patches
+
+        src = self.choice(pose[0]) if len(self.sources) > 1 else np.zeros(len(self.sources[0][1]), int)
+        out = np.empty((len(src), self.size, self.size), np.float32)
+        for i in np.unique(src):
+            image, points, source_pose, source_shape = self.sources[i]
+            k = src == i
+            warp = template_warp(self.camera, source_pose, source_shape[k], pose, np.asarray(shape)[k])
+            out[k] = sample_patches(image, points[k], self.size, warp)
+        return out

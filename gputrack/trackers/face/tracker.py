@@ -63,7 +63,7 @@ from .bundle import IncrementalBundle, _real_array
 from .config import FaceConfig
 from .pf import FaceParticleFilter, shape_model
 from .refine import fit_pose_deformation
-from .templates import template_warp
+from .templates import TemplateViews
 
 log = logging.getLogger("gputrack")
 
@@ -102,6 +102,8 @@ DETECT_FAR = 45.0
 #: the start's anchoring (``FaceTracker._anchored``): a followed point farther than this (px) from
 #: its frame's own point is a failed follow or a detector's outlier and is not used
 ANCHOR_REACH = 5.0
+#: the most template sources kept (``config.template_views``), the first frame's included
+MAX_VIEWS = 16
 
 
 def detect_faces(gray, sizes=None, scale_factor: float = 1.1) -> list[tuple[int, int, int, int]]:
@@ -196,7 +198,7 @@ class FaceTracker:
         self.proposals = 0  # frames whose hypotheses were partly drawn around a detection (``_propose_detected``)
         self.proposals_taken = 0  # of them, frames whose estimate moved to one of those hypotheses
         self._host = {}  # this frame's host-side values between stages
-        self._first = None  # (image, points, pose, shape) of the first frame: the templates' source
+        self._views = None  # the templates' sources (TemplateViews), from start()
         self.scheduler = Scheduler(device, [
             Stage("detect", self._detect),
             Stage("templates", self._templates, writes=("templates",)),
@@ -306,7 +308,8 @@ class FaceTracker:
         res = self.bundle.last
         S = self.config.template
         first = frames[0].astype(np.float64)  # the sampler's own type: no conversion per frame
-        self._first = (first, lm[0].copy(), (res.rvecs[0], res.tvecs[0]), self._shape(res.expressions[0]))
+        self._views = TemplateViews(self.camera, S, self.config.template_views, MAX_VIEWS)
+        self._views.add(first, lm[0], (res.rvecs[0], res.tvecs[0]), self._shape(res.expressions[0]))
         self.scheduler.set("templates", sample_patches(first, lm[0], S).astype(np.float32))
         last = n - 1
         features = lm[last].copy()
@@ -395,10 +398,8 @@ class FaceTracker:
         ``config.warp_templates``; :mod:`gputrack.trackers.face.templates`), uploaded for eq. 13 and 14."""
         if not self.config.warp_templates:
             return
-        image, points, pose, shape = self._first
         est = self.pf.estimate
-        warp = template_warp(self.camera, pose, shape, (est[:3], est[3:6]), self._shape(est[6:]))
-        templates = sample_patches(image, points, self.config.template, warp).astype(np.float32)
+        templates = self._views.templates((est[:3], est[3:6]), self._shape(est[6:]))
         b["templates"] = self.device.asarray(templates, out=b.get("templates"))
 
     def _sample(self, b):
@@ -471,6 +472,8 @@ class FaceTracker:
         self.pf.move(new)
         h["state"] = new
         h["landmarks"] = self._predicted(new[:3], new[3:6], new[6:])
+        if given is None and c.warp_templates and c.template_views > 0:  # a source of templates (own points only)
+            self._views.add(h["gray"], m, (new[:3], new[3:6]), self._shape(new[6:]))
 
     def _trusted(self, new, start, otherwise=None):
         """``new`` (6 + D,) unless its pose is more than ``config.pose_range`` from ``start``'s: points
