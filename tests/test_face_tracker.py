@@ -551,7 +551,7 @@ def test_templates_come_from_the_view_nearest_the_estimate(data):
     trk = FaceTracker(REF, model, seq.camera, dataclasses.replace(cfg, template_views=1e-6))
     trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
     est = trk.track(frames[7].gray)
-    assert np.isfinite(est.features).all() and len(trk._views) == 2
+    assert np.isfinite(est.features).all() and len(trk._views) == trk.template_sources == 2
     np.testing.assert_array_equal(trk._views.sources[1][1], est.features)
     trk = FaceTracker(REF, model, seq.camera, dataclasses.replace(cfg, template_views=0.0))
     trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
@@ -757,6 +757,8 @@ def test_demo_command(device, tmp_path, capsys, data):
     assert all(np.isfinite(v[0]) for t in rep["table1"].values() for v in t.values())
     assert "detect" in [s["name"] for s in rep["stages"]] and "; detection proposals " in text  # timed and counted
     assert set(rep["detection_proposals"]) == set(rep["table1"])
+    assert set(rep["template_sources"]) == set(rep["table1"]) and min(rep["template_sources"].values()) >= 1
+    assert "; template sources " in text
     assert (tmp_path / "errors.png").exists() and (tmp_path / "frame_0008.png").exists()
 
 

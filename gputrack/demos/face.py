@@ -216,7 +216,7 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
     med = float(np.median(rec["ms"][1:])) if len(rec["ms"]) > 1 else float("nan")
     print(f"start (n = {config.keyframes} frames, {config.init_iterations} LM iterations) {rec['start_ms']:.0f} ms; "
           f"median tracked frame {med:.1f} ms; lost frames {int(rec['lost'].sum())}; detection proposals "
-          f"{trk.proposals} (taken {trk.proposals_taken})", file=out)  # fmt: skip
+          f"{trk.proposals} (taken {trk.proposals_taken}); template sources {trk.template_sources}", file=out)  # fmt: skip
     if save:
         _error_plot(save, records, 30.0)
         print(f"pictures written to {save}", file=out)
@@ -229,6 +229,7 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
               "lost": {k: int(r["lost"].sum()) for k, r in records.items()},
               "detection_proposals": {k: {"made": r["tracker"].proposals, "taken": r["tracker"].proposals_taken}
                                       for k, r in records.items()},
+              "template_sources": {k: r["tracker"].template_sources for k, r in records.items()},
               "stages": trk.scheduler.report(), "median_frame_ms": med, "start_ms": rec["start_ms"]}  # fmt: skip
     return report
 

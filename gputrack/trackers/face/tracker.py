@@ -213,6 +213,12 @@ class FaceTracker:
 
     # -- start ---------------------------------------------------------------------------------------
 
+    @property
+    def template_sources(self) -> int:
+        """How many frames the templates are cut from (``config.template_views``): the first frame and
+        the tracked frames kept since as seen from other directions (0 before :meth:`start`)."""
+        return 0 if self._views is None else len(self._views)
+
     def _shape(self, a):
         """(K, 3) the current identity's shape at deformation ``a`` (A',) (eq. 11)."""
         mean, basis = self._basis
