@@ -521,7 +521,7 @@ def test_templates_come_from_the_view_nearest_the_estimate(data):
     cfg = FaceConfig(particles=128, learn_identity=False, template_views=10.0)
     trk = FaceTracker(REF, model, seq.camera, cfg)
     trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
-    views = trk._views
+    views = trk.views
     assert len(views) == 1
     first_pose, shape = views.sources[0][2], trk._shape(trk.pf.estimate[6:])
 
@@ -547,16 +547,25 @@ def test_templates_come_from_the_view_nearest_the_estimate(data):
         warp = template_warp(seq.camera, source_pose, source_shape[k], pose, shape[k])
         np.testing.assert_array_equal(got[k], sample_patches(image, points[k], cfg.template, warp).astype(np.float32))
 
+    # the picture: a row per source, a cell per point, blank where the point did not match
+    from gputrack.trackers.face.pictures import draw_template_sources
+
+    pic = draw_template_sources(views, scale=2)
+    side = 2 * cfg.template
+    assert pic.shape == (2 * (side + 4) + 4, 140 + model.K * (side + 4), 3) and pic.dtype == np.uint8
+    cell = lambda r, k: pic[4 + r * (side + 4) : 4 + r * (side + 4) + side, 140 + k * (side + 4) :][:, :side]
+    assert (cell(1, 1) == 40).all() and (cell(1, 3) == 40).all() and (cell(1, 2) != 40).any()
+
     # tracking: a frame matched everywhere and turned from the first adds a source (here any turn counts)
     trk = FaceTracker(REF, model, seq.camera, dataclasses.replace(cfg, template_views=1e-6))
     trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
     est = trk.track(frames[7].gray)
-    assert np.isfinite(est.features).all() and len(trk._views) == trk.template_sources == 2
-    np.testing.assert_array_equal(trk._views.sources[1][1], est.features)
+    assert np.isfinite(est.features).all() and len(trk.views) == trk.template_sources == 2
+    np.testing.assert_array_equal(trk.views.sources[1][1], est.features)
     trk = FaceTracker(REF, model, seq.camera, dataclasses.replace(cfg, template_views=0.0))
     trk.start(np.array([f.gray for f in frames[:7]]), start_points(frames[:7]))
     trk.track(frames[7].gray)
-    assert len(trk._views) == 1
+    assert len(trk.views) == 1
     with pytest.raises(ValueError, match=r"FaceConfig.template_views"):
         FaceConfig(template_views=-1.0)
 
@@ -760,6 +769,7 @@ def test_demo_command(device, tmp_path, capsys, data):
     assert set(rep["template_sources"]) == set(rep["table1"]) and min(rep["template_sources"].values()) >= 1
     assert "; template sources " in text
     assert (tmp_path / "errors.png").exists() and (tmp_path / "frame_0008.png").exists()
+    assert (tmp_path / "template_sources.png").exists()
 
 
 def test_benchmark_cases_run_and_match_the_reference(device, data):

@@ -123,6 +123,14 @@ def _picture(save, label, k, f, est, camera) -> None:
     cv2.imwrite(os.path.join(save, f"{label}frame_{k:04d}.png"), img)
 
 
+def _sources_picture(save, trk) -> None:
+    import cv2
+
+    from ..trackers.face.pictures import draw_template_sources
+
+    cv2.imwrite(os.path.join(save, "template_sources.png"), draw_template_sources(trk.views))
+
+
 def _error_plot(save, records: dict, fps: float) -> None:
     try:
         import matplotlib
@@ -219,6 +227,7 @@ def run(device, *, sequence=0, frames=None, seed=0, init="landmarks", landmark_n
           f"{trk.proposals} (taken {trk.proposals_taken}); template sources {trk.template_sources}", file=out)  # fmt: skip
     if save:
         _error_plot(save, records, 30.0)
+        _sources_picture(save, trk)
         print(f"pictures written to {save}", file=out)
     report = {"device": {"spec": device.spec, "name": device.name},
               "sequence": {"name": name, "frames": len(seq), "seed": seed, "init": init},

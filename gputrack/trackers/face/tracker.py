@@ -198,7 +198,7 @@ class FaceTracker:
         self.proposals = 0  # frames whose hypotheses were partly drawn around a detection (``_propose_detected``)
         self.proposals_taken = 0  # of them, frames whose estimate moved to one of those hypotheses
         self._host = {}  # this frame's host-side values between stages
-        self._views = None  # the templates' sources (TemplateViews), from start()
+        self.views = None  # the templates' sources (templates.TemplateViews), from start()
         self.scheduler = Scheduler(device, [
             Stage("detect", self._detect),
             Stage("templates", self._templates, writes=("templates",)),
@@ -217,7 +217,7 @@ class FaceTracker:
     def template_sources(self) -> int:
         """How many frames the templates are cut from (``config.template_views``): the first frame and
         the tracked frames kept since as seen from other directions (0 before :meth:`start`)."""
-        return 0 if self._views is None else len(self._views)
+        return 0 if self.views is None else len(self.views)
 
     def _shape(self, a):
         """(K, 3) the current identity's shape at deformation ``a`` (A',) (eq. 11)."""
@@ -314,8 +314,8 @@ class FaceTracker:
         res = self.bundle.last
         S = self.config.template
         first = frames[0].astype(np.float64)  # the sampler's own type: no conversion per frame
-        self._views = TemplateViews(self.camera, S, self.config.template_views, MAX_VIEWS)
-        self._views.add(first, lm[0], (res.rvecs[0], res.tvecs[0]), self._shape(res.expressions[0]))
+        self.views = TemplateViews(self.camera, S, self.config.template_views, MAX_VIEWS)
+        self.views.add(first, lm[0], (res.rvecs[0], res.tvecs[0]), self._shape(res.expressions[0]))
         self.scheduler.set("templates", sample_patches(first, lm[0], S).astype(np.float32))
         last = n - 1
         features = lm[last].copy()
@@ -405,7 +405,7 @@ class FaceTracker:
         if not self.config.warp_templates:
             return
         est = self.pf.estimate
-        templates = self._views.templates((est[:3], est[3:6]), self._shape(est[6:]))
+        templates = self.views.templates((est[:3], est[3:6]), self._shape(est[6:]))
         b["templates"] = self.device.asarray(templates, out=b.get("templates"))
 
     def _sample(self, b):
@@ -479,7 +479,7 @@ class FaceTracker:
         h["state"] = new
         h["landmarks"] = self._predicted(new[:3], new[3:6], new[6:])
         if given is None and c.warp_templates and c.template_views > 0:  # a source of templates (own points only)
-            self._views.add(h["gray"], m, (new[:3], new[3:6]), self._shape(new[6:]))
+            self.views.add(h["gray"], m, (new[:3], new[3:6]), self._shape(new[6:]))
 
     def _trusted(self, new, start, otherwise=None):
         """``new`` (6 + D,) unless its pose is more than ``config.pose_range`` from ``start``'s: points
