@@ -3,12 +3,13 @@
 import numpy as np
 
 
-def patches_at(image, points, size: int, warp=None) -> np.ndarray:
+def patches_at(image, points, size: int, warp=None, index=None) -> np.ndarray:
     """(K, size, size) float64 bilinear patches of ``image`` (H, W) centred on ``points`` (K, 2), each
     sample coordinate clipped into the image (the convention of gputrack/ops/face_relocate.py). With
-    ``warp`` (K, 2, 2), pixel (i, j) of patch k samples points[k] + warp[k] @ (j - c, i - c), c = (size-1)/2."""
+    ``warp`` (K, 2, 2), pixel (i, j) of patch k samples points[k] + warp[k] @ (j - c, i - c), c = (size-1)/2.
+    With ``index`` (K,) int, ``image`` is a stack (n, H, W) and patch k is cut from image index[k]."""
     img = np.asarray(image, np.float64)
-    H, W = img.shape
+    H, W = img.shape[-2:]
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     off = np.arange(size) - (size - 1) / 2.0
     if warp is None:
@@ -24,6 +25,8 @@ def patches_at(image, points, size: int, warp=None) -> np.ndarray:
     y0 = np.minimum(np.floor(y).astype(np.int64), H - 2)
     fx, fy = x - x0, y - y0
     i = y0 * W + x0  # (K, S, S) flat index of the top-left pixel
+    if index is not None:
+        i = i + np.asarray(index, np.int64)[:, None, None] * (H * W)
     flat = img.reshape(-1)
     top = flat[i] + fx * (flat[i + 1] - flat[i])
     bot = flat[i + W] + fx * (flat[i + W + 1] - flat[i + W])

@@ -61,8 +61,12 @@ def template_warp(camera: Camera, first_pose, first_shape, pose, shape) -> np.nd
     similarity that maps a pixel offset from each feature point now to the offset in the first frame
     (see the module docstring). first_pose, pose: (rvec, tvec) model -> camera; first_shape, shape:
     (K, 3) mm, the model points then and now. A point seen edge-on (a singular J) keeps the identity."""
-    J0 = frontal_jacobians(camera, *first_pose, first_shape)
-    J = frontal_jacobians(camera, *pose, shape)
+    return _similarity(frontal_jacobians(camera, *first_pose, first_shape), frontal_jacobians(camera, *pose, shape))
+
+
+def _similarity(J0, J) -> np.ndarray:
+    """(K, 2, 2) the similarity nearest J0 J^-1 per point (the identity where J is singular): J0, J
+    (K, 2, 2) the frontal Jacobians then and now (:func:`template_warp`)."""
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     ok = np.abs(det) > 1e-9
     inv = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], -1), np.stack([-J[:, 1, 0], J[:, 0, 0]], -1)], -2)
@@ -84,13 +88,16 @@ class TemplateViews:
     kept source's, up to ``most`` sources (``spacing`` 0: the first frame's alone). :meth:`templates`
     cuts each point's template from the source nearest the estimate's face direction among those where
     that point matched, warped by :func:`template_warp` from that source's pose and shape: a turned
-    face is matched against patches seen turned, not frontal patches turned by a similarity."""
+    face is matched against patches seen turned, not frontal patches turned by a similarity. The
+    sources' images are kept stacked, with their frontal Jacobians, so that a frame's templates take
+    one bilinear sampling whatever their sources."""
 
     def __init__(self, camera: Camera, size: int, spacing: float, most: int):
         self.camera, self.size, self.most = camera, int(size), int(most)
         self.spacing = float(spacing)
         self.sources: list[tuple] = []
         self._directions: list[np.ndarray] = []
+        self._images = self._points = self._jacobians = None  # (n, H, W), (n, K, 2), (n, K, 2, 2)
 
     def __len__(self) -> int:
         return len(self.sources)
@@ -98,7 +105,8 @@ class TemplateViews:
     def add(self, image, points, pose, shape) -> bool:
         """Keep this frame as a source (the first one always, with every point known); True if kept."""
         pts = np.asarray(points, np.float64)
-        d = rodrigues(np.asarray(pose[0], np.float64))[:, 2]
+        rvec, tvec = np.array(pose[0], np.float64), np.array(pose[1], np.float64)
+        d = rodrigues(rvec)[:, 2]
         if self.sources:
             if self.spacing <= 0 or len(self.sources) >= self.most or np.isfinite(pts).all(axis=1).sum() < VIEW_POINTS:
                 return False
@@ -106,29 +114,41 @@ class TemplateViews:
                 return False
         elif not np.isfinite(pts).all():
             raise ValueError("points: expected every point of the first source, got NaN")
-        self.sources.append((np.asarray(image, np.float64), pts.copy(), (np.array(pose[0], np.float64),
-                             np.array(pose[1], np.float64)), np.asarray(shape, np.float64).copy()))  # fmt: skip
+        n, shp = len(self.sources), np.asarray(shape, np.float64).copy()
+        self._images = self._put(self._images, n, np.asarray(image, np.float64))
+        self._points = self._put(self._points, n, pts)
+        self._jacobians = self._put(self._jacobians, n, frontal_jacobians(self.camera, rvec, tvec, shp))
+        self.sources = [(self._images[i], self._points[i], *rest) for i, (_, _, *rest) in enumerate(self.sources)]
+        self.sources.append((self._images[n], self._points[n], (rvec, tvec), shp))
         self._directions.append(d)
         return True
+
+    def _put(self, held, n, new):
+        """``held`` with ``new`` as its n-th entry: room for twice as many made where it is full (at
+        most ``most``), so that the sources are copied a few times, not at every addition."""
+        if held is None or n == len(held):
+            grown = np.empty((1 if held is None else min(2 * n, self.most), *np.shape(new)), np.float64)
+            if held is not None:
+                grown[:n] = held
+            held = grown
+        held[n] = new
+        return held
 
     def choice(self, rvec) -> np.ndarray:
         """(K,) each point's source for a face turned as ``rvec``: the nearest in direction where it matched."""
         d = rodrigues(np.asarray(rvec, np.float64))[:, 2]
-        out = np.full(len(self.sources[0][1]), -1)
+        out = np.full(self._points.shape[1], -1)
         for i in np.argsort([-float(e @ d) for e in self._directions], kind="stable"):
-            out[(out < 0) & np.isfinite(self.sources[i][1]).all(axis=1)] = i
+            out[(out < 0) & np.isfinite(self._points[i]).all(axis=1)] = i
         return out
 
     def templates(self, pose, shape) -> np.ndarray:
         """(K, size, size) float32: each point's template as the face is seen at ``pose`` (rvec, tvec)
         with ``shape`` (K, 3)."""
-        from ...ops.face_relocate import sample_patches
+        from ...backends.reference.face_relocate import patches_at
 
-        src = self.choice(pose[0]) if len(self.sources) > 1 else np.zeros(len(self.sources[0][1]), int)
-        out = np.empty((len(src), self.size, self.size), np.float32)
-        for i in np.unique(src):
-            image, points, source_pose, source_shape = self.sources[i]
-            k = src == i
-            warp = template_warp(self.camera, source_pose, source_shape[k], pose, np.asarray(shape)[k])
-            out[k] = sample_patches(image, points[k], self.size, warp)
-        return out
+        K, n = self._points.shape[1], len(self.sources)
+        src = self.choice(pose[0]) if len(self.sources) > 1 else np.zeros(K, int)
+        k = np.arange(K)
+        warp = _similarity(self._jacobians[src, k], frontal_jacobians(self.camera, *pose, shape))
+        return patches_at(self._images[:n], self._points[src, k], self.size, warp, src).astype(np.float32)
