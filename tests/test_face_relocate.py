@@ -204,6 +204,27 @@ def test_patches_are_bilinear_with_the_border_pixel_outside():
         sample_patches(img, [[np.nan, 3.0]], S)
 
 
+def test_patches_from_a_stack_of_images_are_each_images_own():
+    """sample_patches with ``index``: from a stack (n, H, W), patch k is image index[k]'s, the same
+    values as cut from that image alone (warped or not, at the borders too); a bad index or a single
+    image with an index raises."""
+    rng = np.random.default_rng(7)
+    stack = rng.uniform(0, 255, (3, 30, 40))
+    pts = np.array([[12.3, 7.8], [0.0, 0.0], [-2.6, 14.2], [38.9, 29.4], [20.5, 15.5]])
+    index = np.array([2, 0, 1, 2, 1])
+    warp = np.tile(np.array([[0.9, -0.2], [0.2, 0.9]]), (len(pts), 1, 1))
+    for w in (None, warp):
+        got = sample_patches(stack, pts, 6, w, index)
+        for k, i in enumerate(index):
+            np.testing.assert_array_equal(got[k], sample_patches(stack[i], pts[k : k + 1], 6, None if w is None else w[k : k + 1])[0])
+    with pytest.raises(ValueError, match=r"index: expected 5 ints in \[0, 3\)"):
+        sample_patches(stack, pts, 6, None, np.array([0, 1, 2, 3, 0]))
+    with pytest.raises(ValueError, match=r"index: expected 5 ints"):
+        sample_patches(stack, pts, 6, None, np.zeros(4, int))
+    with pytest.raises(ValueError, match=r"image: expected a stack of images \(n, H, W\)"):
+        sample_patches(stack[0], pts, 6, None, index)
+
+
 def test_warped_patches_sample_the_image_through_the_warp():
     """sample_patches with a warp (K, 2, 2): pixel (i, j) of patch k samples the image at
     points[k] + warp[k] @ (j - c, i - c), bilinear as the plain patches; the identity warp gives them,

@@ -109,19 +109,27 @@ def relocate_points(device, image, predicted, previous, first, *, rho: float = 4
     return points, patches, match
 
 
-def sample_patches(image, points, size: int, warp=None) -> np.ndarray:
+def sample_patches(image, points, size: int, warp=None, index=None) -> np.ndarray:
     """(K, size, size) float64 bilinear patches of ``image`` (H, W) (NumPy, any real dtype) centred on
     the finite ``points`` (K, 2), on the host, with the convention of the module docstring (samples
     outside the image take the nearest border pixel). ``warp`` (K, 2, 2), optional: patch k's pixel at
     offset d = (x, y) from its centre samples the image at points[k] + warp[k] @ d (a template seen
-    turned or scaled; the identity gives the plain patches)."""
+    turned or scaled; the identity gives the plain patches). ``index`` (K,) ints, optional: ``image``
+    is a stack of images (n, H, W) and patch k is cut from image index[k] (the same values as cutting
+    each from its own image)."""
     from ..backends.reference.face_relocate import patches_at
 
     img = np.asarray(image)
-    if img.ndim != 2 or min(img.shape) < 2 or img.dtype.kind not in "uif":
-        raise ValueError(f"image: expected a (H, W) image of real values, at least 2 x 2, got {img.dtype.name} "
+    want = 2 if index is None else 3
+    if img.ndim != want or min(img.shape[-2:]) < 2 or img.dtype.kind not in "uif":
+        what = "a (H, W) image" if index is None else "a stack of images (n, H, W)"
+        raise ValueError(f"image: expected {what} of real values, at least 2 x 2, got {img.dtype.name} "
                          f"{img.shape}")  # fmt: skip
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if index is not None:
+        index = np.asarray(index)
+        if index.shape != (len(pts),) or index.dtype.kind not in "iu" or (index < 0).any() or (index >= len(img)).any():
+            raise ValueError(f"index: expected {len(pts)} ints in [0, {len(img)}), got {index!r}")
     if not np.isfinite(pts).all():
         raise ValueError(f"points: expected finite pixel coordinates, got {pts[~np.isfinite(pts).all(axis=1)][:3]}")
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
@@ -130,4 +138,4 @@ def sample_patches(image, points, size: int, warp=None) -> np.ndarray:
         warp = np.asarray(warp, dtype=np.float64)
         if warp.shape != (len(pts), 2, 2) or not np.isfinite(warp).all():
             raise ValueError(f"warp: expected ({len(pts)}, 2, 2) finite matrices, got shape {warp.shape}")
-    return patches_at(img, pts, int(size), warp)
+    return patches_at(img, pts, int(size), warp, index)

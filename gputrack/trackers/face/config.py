@@ -53,13 +53,14 @@ class FaceConfig:
     templates are sampled again from the first frame, turned and scaled by the similarity the
     filter's estimate gives each point (:mod:`gputrack.trackers.face.templates`), so that a roll or a
     move in depth does not pull eq. 13's scores and eq. 14's points; ``template_views`` (beyond the
-    paper, degrees, with ``warp_templates``; 0 = the first frame only): a tracked frame where at least eight points matched
-    their templates and whose face direction is more than this from every source's becomes another
-    source of the templates (at its re-localised points that matched; at most 16 sources), and each
-    frame each point's template comes from the source nearest the estimate's face direction where
-    that point matched (:class:`gputrack.trackers.face.templates.TemplateViews`): a turned face is
-    matched against patches seen turned, not frontal patches warped by a similarity (the mixed
-    sequence's errors fell by a quarter to a third; the README's face section); ``min_match`` (beyond the paper;
+    paper, degrees, with ``warp_templates``; 0 = the first frame only): a tracked frame where at
+    least eight points matched their templates and whose face direction is more than this from every
+    source's becomes another source of the templates (at its re-localised points that matched; at
+    most 16 sources), and each frame each point's template comes from the source nearest the
+    estimate's face direction where that point matched
+    (:class:`gputrack.trackers.face.templates.TemplateViews`): a turned face is matched against
+    patches seen turned, not frontal patches warped by a similarity (the mixed sequence's errors fell
+    by a quarter to a third; the README's face section); ``min_match`` (beyond the paper;
     -1 = every point, as the paper): a re-localised point whose patch matches its template worse than
     this (the NCC with each patch's intensity plane off, ``relocate_points``' ``match``) is hidden,
     e.g. behind the nose as the head turns, or has slipped onto other texture: it is left out of the

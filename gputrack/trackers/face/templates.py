@@ -145,10 +145,10 @@ class TemplateViews:
     def templates(self, pose, shape) -> np.ndarray:
         """(K, size, size) float32: each point's template as the face is seen at ``pose`` (rvec, tvec)
         with ``shape`` (K, 3)."""
-        from ...backends.reference.face_relocate import patches_at
+        from ...ops.face_relocate import sample_patches
 
         K, n = self._points.shape[1], len(self.sources)
         src = self.choice(pose[0]) if len(self.sources) > 1 else np.zeros(K, int)
         k = np.arange(K)
         warp = _similarity(self._jacobians[src, k], frontal_jacobians(self.camera, *pose, shape))
-        return patches_at(self._images[:n], self._points[src, k], self.size, warp, src).astype(np.float32)
+        return sample_patches(self._images[:n], self._points[src, k], self.size, warp, src).astype(np.float32)

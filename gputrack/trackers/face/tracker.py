@@ -400,8 +400,9 @@ class FaceTracker:
             self._propose_detected(self._host["gray"])
 
     def _templates(self, b):
-        """The first frame's templates turned and scaled as the estimate sees the face (host,
-        ``config.warp_templates``; :mod:`gputrack.trackers.face.templates`), uploaded for eq. 13 and 14."""
+        """The templates turned and scaled as the estimate sees the face, each point's from the source
+        nearest the estimate's face direction (host, ``config.warp_templates`` and ``template_views``;
+        :mod:`gputrack.trackers.face.templates`), uploaded for eq. 13 and 14."""
         if not self.config.warp_templates:
             return
         est = self.pf.estimate
@@ -447,7 +448,8 @@ class FaceTracker:
         but the MIN_POSE_POINTS that match best); the estimate fitted to them (``config.refine_pose``, host): its
         pose (:func:`~gputrack.models.pose.fit_pose` with the estimate's shape), then from there its
         pose and deformation (``config.refine_deformation`` > 0, :func:`.refine.fit_pose_deformation`);
-        each fit that moves the pose beyond ``pose_range`` is not taken; the filter moved with it."""
+        each fit that moves the pose beyond ``pose_range`` is not taken; the filter moved with it. A
+        refined frame seen from a new direction becomes a source of the templates (``config.template_views``)."""
         h = self._host
         if h["lost"]:
             h["features"] = np.full((self.model.K, 2), np.nan)
