@@ -95,31 +95,37 @@ class TemplateViews:
     def __init__(self, camera: Camera, size: int, spacing: float, most: int):
         self.camera, self.size, self.most = camera, int(size), int(most)
         self.spacing = float(spacing)
-        self.sources: list[tuple] = []
-        self._directions: list[np.ndarray] = []
-        self._images = self._points = self._jacobians = None  # (n, H, W), (n, K, 2), (n, K, 2, 2)
+        self._directions: list[np.ndarray] = []  # each source's face direction (3,)
+        self._poses: list[tuple] = []  # (rvec, tvec)
+        self._shapes: list[np.ndarray] = []  # (K, 3)
+        self._images = self._points = self._jacobians = None  # (n, H, W), (n, K, 2), (n, K, 2, 2), room for more
 
     def __len__(self) -> int:
-        return len(self.sources)
+        return len(self._directions)
+
+    @property
+    def sources(self) -> list[tuple]:
+        """The sources in the order kept: (image (H, W), points (K, 2), pose (rvec, tvec), shape (K, 3))."""
+        return [(self._images[i], self._points[i], self._poses[i], self._shapes[i]) for i in range(len(self))]
 
     def add(self, image, points, pose, shape) -> bool:
         """Keep this frame as a source (the first one always, with every point known); True if kept."""
         pts = np.asarray(points, np.float64)
         rvec, tvec = np.array(pose[0], np.float64), np.array(pose[1], np.float64)
         d = rodrigues(rvec)[:, 2]
-        if self.sources:
-            if self.spacing <= 0 or len(self.sources) >= self.most or np.isfinite(pts).all(axis=1).sum() < VIEW_POINTS:
+        if len(self):
+            if self.spacing <= 0 or len(self) >= self.most or np.isfinite(pts).all(axis=1).sum() < VIEW_POINTS:
                 return False
             if max(float(e @ d) for e in self._directions) > np.cos(np.radians(self.spacing)):
                 return False
         elif not np.isfinite(pts).all():
             raise ValueError("points: expected every point of the first source, got NaN")
-        n, shp = len(self.sources), np.asarray(shape, np.float64).copy()
+        n, shp = len(self), np.asarray(shape, np.float64).copy()
         self._images = self._put(self._images, n, np.asarray(image, np.float64))
         self._points = self._put(self._points, n, pts)
         self._jacobians = self._put(self._jacobians, n, frontal_jacobians(self.camera, rvec, tvec, shp))
-        self.sources = [(self._images[i], self._points[i], *rest) for i, (_, _, *rest) in enumerate(self.sources)]
-        self.sources.append((self._images[n], self._points[n], (rvec, tvec), shp))
+        self._poses.append((rvec, tvec))
+        self._shapes.append(shp)
         self._directions.append(d)
         return True
 
@@ -147,8 +153,8 @@ class TemplateViews:
         with ``shape`` (K, 3)."""
         from ...ops.face_relocate import sample_patches
 
-        K, n = self._points.shape[1], len(self.sources)
-        src = self.choice(pose[0]) if len(self.sources) > 1 else np.zeros(K, int)
+        K, n = self._points.shape[1], len(self)
+        src = self.choice(pose[0]) if n > 1 else np.zeros(K, int)
         k = np.arange(K)
         warp = _similarity(self._jacobians[src, k], frontal_jacobians(self.camera, *pose, shape))
         return sample_patches(self._images[:n], self._points[src, k], self.size, warp, src).astype(np.float32)
